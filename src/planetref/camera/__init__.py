@@ -1,0 +1,1 @@
+"""Camera models and geodesy: native line scan, USGS CSM ISDs and RPCs."""

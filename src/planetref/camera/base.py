@@ -1,0 +1,178 @@
+"""What every planetref camera and terrain provides.
+
+Image coordinates
+-----------------
+All planetref cameras use one pixel convention: ``(line, sample)`` with the top-left
+corner of the first pixel at ``(0, 0)``, so the centre of the first pixel is
+``(0.5, 0.5)``. This is usgscsm's convention for CSM ISDs and GDAL's for RPCs.
+ISIS measures (first pixel centre at ``(1, 1)``) convert with ``csm = isis - 0.5``
+(see :func:`isis_to_csm`).
+
+Ground coordinates
+------------------
+Body-fixed XYZ in metres (see :mod:`planetref.camera.geodesy`), or longitude/latitude
+(degrees, planetocentric unless a camera's body says otherwise) and height above the
+camera's ellipsoid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planetref.camera.geodesy import Ellipsoid, LatitudeKind
+
+__all__ = [
+    "Camera",
+    "ConstantHeight",
+    "ImagePoints",
+    "OnMiss",
+    "Terrain",
+    "csm_to_isis",
+    "isis_to_csm",
+]
+
+OnMiss = Literal["nan", "raise"]
+
+
+def isis_to_csm(line: ArrayLike, sample: ArrayLike) -> tuple[NDArray[np.float64], ...]:
+    """ISIS (1-based, first pixel centre at 1.0) -> planetref/CSM (first centre at 0.5)."""
+    return np.asarray(line, float) - 0.5, np.asarray(sample, float) - 0.5
+
+
+def csm_to_isis(line: ArrayLike, sample: ArrayLike) -> tuple[NDArray[np.float64], ...]:
+    """planetref/CSM (first pixel centre at 0.5) -> ISIS (first pixel centre at 1.0)."""
+    return np.asarray(line, float) + 0.5, np.asarray(sample, float) + 0.5
+
+
+@dataclass(frozen=True)
+class ImagePoints:
+    """Image coordinates returned by ``ground_to_image``.
+
+    Attributes:
+        line: Line coordinates (pixel convention of this module), shape ``(M,)``.
+        sample: Sample coordinates, shape ``(M,)``.
+        valid: False where the point could not be projected (behind the camera, no
+            convergence); ``line``/``sample`` are NaN there.
+        in_image: True where the point falls inside the image (``0 <= line < n_lines``
+            and ``0 <= sample < n_samples``).
+    """
+
+    line: NDArray[np.float64]
+    sample: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+    in_image: NDArray[np.bool_]
+
+    def as_array(self) -> NDArray[np.float64]:
+        """``(M, 2)`` array of ``(line, sample)``."""
+        return np.stack([self.line, self.sample], axis=-1)
+
+
+@runtime_checkable
+class Terrain(Protocol):
+    """A height surface above a reference ellipsoid.
+
+    Attributes:
+        ellipsoid: The body the heights refer to.
+        min_height_m: A lower bound of every height the surface takes (metres).
+        max_height_m: An upper bound (metres).
+    """
+
+    ellipsoid: Ellipsoid
+    min_height_m: float
+    max_height_m: float
+
+    def height(self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
+               ) -> NDArray[np.float64]:
+        """Height (m) at planetocentric lon/lat (degrees); NaN outside or in holes."""
+        ...
+
+    @property
+    def sampling_m(self) -> float:
+        """The surface's ground sampling distance in metres (the step a ray marches)."""
+        ...
+
+
+@dataclass(frozen=True)
+class ConstantHeight:
+    """The surface at a constant height above an ellipsoid.
+
+    Attributes:
+        ellipsoid: The reference body.
+        height_m: Height above the ellipsoid in metres.
+    """
+
+    ellipsoid: Ellipsoid
+    height_m: float = 0.0
+
+    @property
+    def min_height_m(self) -> float:
+        """Equal to ``height_m``."""
+        return self.height_m
+
+    @property
+    def max_height_m(self) -> float:
+        """Equal to ``height_m``."""
+        return self.height_m
+
+    @property
+    def sampling_m(self) -> float:
+        """Infinite: a constant surface needs no marching."""
+        return float("inf")
+
+    def height(self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
+               ) -> NDArray[np.float64]:
+        """``height_m`` everywhere."""
+        return np.full(np.broadcast(np.asarray(lon_deg), np.asarray(lat_deg)).shape,
+                       self.height_m)
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """The interface shared by every camera model (native line scan, CSM ISD, RPC).
+
+    Image coordinates follow this module's convention; ground coordinates are
+    body-fixed XYZ in metres.
+
+    Attributes:
+        ellipsoid: The body the camera's heights and latitudes refer to.
+        latitude_kind: Which latitude the camera's lon/lat interfaces use.
+        ccd_names: Names of the camera's detector arrays (one entry for a single CCD).
+    """
+
+    ellipsoid: Ellipsoid
+    latitude_kind: LatitudeKind
+
+    @property
+    def ccd_names(self) -> tuple[str, ...]:
+        """Names of the CCDs; the first is the default."""
+        ...
+
+    def image_size(self, ccd: str | None = None) -> tuple[int, int]:
+        """``(n_lines, n_samples)`` of a CCD image."""
+        ...
+
+    def image_to_ground(self, line: ArrayLike, sample: ArrayLike,
+                        terrain: Terrain | float = 0.0, *, ccd: str | None = None,
+                        on_miss: OnMiss = "raise") -> NDArray[np.float64]:
+        """Intersect the rays of image points with the terrain.
+
+        Args:
+            line: Line coordinates, shape ``(M,)`` or scalar.
+            sample: Sample coordinates, same shape.
+            terrain: A :class:`Terrain`, or a height in metres above the ellipsoid.
+            ccd: Which CCD the image points belong to (default: the first).
+            on_miss: ``"raise"`` a :class:`~planetref.errors.GeometryError` when a ray
+                misses the terrain, or return NaN rows (``"nan"``).
+
+        Returns:
+            XYZ in metres, shape ``(M, 3)``.
+        """
+        ...
+
+    def ground_to_image(self, xyz: ArrayLike, *, ccd: str | None = None) -> ImagePoints:
+        """Project body-fixed points (metres, shape ``(M, 3)``) into a CCD image."""
+        ...

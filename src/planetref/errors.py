@@ -1,0 +1,84 @@
+"""The exception hierarchy of planetref.
+
+Every error that planetref raises on purpose derives from :class:`PlanetrefError`.
+The subclasses also derive from the matching built-in type (``ValueError``,
+``FileNotFoundError``...), so callers may catch either, as rasterio does.
+The CLI prints ``str(error)`` as a single line, so messages name the file and the
+field or value at fault and say what was expected.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+
+
+class PlanetrefError(Exception):
+    """Root of all planetref errors."""
+
+
+class InputError(PlanetrefError, ValueError):
+    """Malformed or inconsistent input (a file, a field, an argument)."""
+
+    def __init__(self, message: str, *, path: str | PathLike[str] | None = None,
+                 field: str | None = None) -> None:
+        self.path = None if path is None else str(path)
+        self.field = field
+        parts = []
+        if self.path is not None:
+            parts.append(self.path)
+        if field:
+            parts.append(f"field '{field}'")
+        prefix = ": ".join(parts)
+        super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class MissingFileError(PlanetrefError, FileNotFoundError):
+    """A required file does not exist."""
+
+    def __init__(self, message: str, *, path: str | PathLike[str] | None = None) -> None:
+        self.path = None if path is None else str(path)
+        super().__init__(f"{self.path}: {message}" if self.path else message)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class UnsupportedFormatError(InputError):
+    """A file whose format planetref does not recognise or support."""
+
+
+class CrsError(InputError):
+    """A coordinate reference system that is missing, wrong or incompatible."""
+
+
+class GeometryError(PlanetrefError, ValueError):
+    """A geometric computation has no valid answer (a ray misses the terrain, a point
+    lies behind the camera, an iteration does not converge)."""
+
+
+class WeightsError(PlanetrefError, FileNotFoundError):
+    """Pretrained weights are missing or do not match their expected checksum."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class MatchingError(PlanetrefError, RuntimeError):
+    """Matching failed in a way the caller must know about (e.g. zero matches)."""
+
+
+class AdjustmentError(PlanetrefError, RuntimeError):
+    """The bundle adjustment is degenerate, diverged or cannot start."""
+
+
+__all__ = [
+    "AdjustmentError",
+    "CrsError",
+    "GeometryError",
+    "InputError",
+    "MatchingError",
+    "MissingFileError",
+    "PlanetrefError",
+    "UnsupportedFormatError",
+    "WeightsError",
+]
