@@ -52,8 +52,11 @@ class CrsError(InputError):
 
 
 class GeometryError(PlanetrefError, ValueError):
-    """A geometric computation has no valid answer (a ray misses the terrain, a point
-    lies behind the camera, an iteration does not converge)."""
+    """A geometric computation has no valid answer.
+
+    For example a ray misses the terrain, a point lies behind the camera, or an
+    iteration does not converge.
+    """
 
 
 class WeightsError(PlanetrefError, FileNotFoundError):

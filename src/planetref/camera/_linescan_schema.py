@@ -1,0 +1,147 @@
+"""Validation of the native line-scan camera JSON (format ``planetref-linescan``).
+
+The format is documented in ``docs/camera-format.md``. Validation is done with pydantic
+models that reject unknown keys and non-finite numbers, and every error becomes a
+one-line :class:`~planetref.errors.InputError` naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=False)
+
+
+class BodyDoc(_Model):
+    name: str = ""
+    semi_major_m: FiniteFloat = Field(gt=0)
+    semi_minor_m: FiniteFloat = Field(gt=0)
+    latitude: Literal["planetocentric", "planetographic"] = "planetocentric"
+
+
+class OrientationDoc(_Model):
+    interpolation_order: int = Field(default=4, ge=2, le=16)
+    node_lines: list[FiniteFloat] = Field(min_length=2)
+    nodes: list[Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]]
+
+
+class InteriorDoc(_Model):
+    focal_length_mm: FiniteFloat = Field(gt=0)
+    x0_mm: FiniteFloat = 0.0
+    y0_mm: FiniteFloat = 0.0
+
+
+class CcdDoc(_Model):
+    name: str = Field(min_length=1)
+    n_lines: int = Field(gt=0)
+    n_samples: int = Field(gt=0)
+    pixel_pitch_mm: FiniteFloat = Field(gt=0)
+    x_mm: FiniteFloat
+    y_mm: FiniteFloat
+    angle_rad: FiniteFloat = 0.0
+
+
+class CameraDoc(_Model):
+    format: Literal["planetref-linescan"]
+    version: int
+    name: str = ""
+    body: BodyDoc
+    frame_rotation: Annotated[list[Annotated[list[FiniteFloat],
+                                             Field(min_length=3, max_length=3)]],
+                              Field(min_length=3, max_length=3)]
+    line_rates: list[Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]] = \
+        Field(min_length=1)
+    orientation: OrientationDoc
+    interior: InteriorDoc
+    ccds: list[CcdDoc] = Field(min_length=1)
+
+    @field_validator("version")
+    @classmethod
+    def _known_version(cls, v: int) -> int:
+        if v != 1:
+            raise ValueError(f"unsupported version {v}; this planetref reads version 1")
+        return v
+
+
+def load_json(path: str | os.PathLike[str]) -> Any:
+    """Read a JSON file with one-line errors for missing, unreadable or malformed files."""
+    p = Path(path)
+    if not p.exists():
+        raise MissingFileError("no such file", path=p)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the file ({exc})", path=p) from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
+                         path=p) from None
+
+
+def _first_error(exc: ValidationError) -> tuple[str, str]:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err["loc"])
+    msg = err["msg"]
+    if "input" in err and err["type"] not in ("missing",):
+        val = repr(err["input"])
+        if len(val) > 60:
+            val = val[:57] + "..."
+        msg = f"{msg} (got {val})"
+    return loc, msg
+
+
+def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: Any) -> Any:
+    """Validate a decoded native camera document and build the camera with ``factory``."""
+    import numpy as np
+
+    from planetref.camera.geodesy import Ellipsoid
+    from planetref.camera.linescan import CcdGeometry, InteriorOrientation, LineRateTable
+
+    if not isinstance(doc, dict) or doc.get("format") != "planetref-linescan":
+        raise UnsupportedFormatError(
+            "not a planetref line-scan camera (expected \"format\": \"planetref-linescan\")",
+            path=path)
+    try:
+        m = CameraDoc.model_validate(doc)
+    except ValidationError as exc:
+        loc, msg = _first_error(exc)
+        raise InputError(msg, path=path, field=loc) from None
+    if len(m.orientation.node_lines) != len(m.orientation.nodes):
+        raise InputError(f"{len(m.orientation.node_lines)} node lines but "
+                         f"{len(m.orientation.nodes)} nodes", path=path,
+                         field="orientation.nodes")
+    try:
+        ell = Ellipsoid(m.body.semi_major_m, m.body.semi_minor_m, m.body.name)
+        return factory(
+            ellipsoid=ell,
+            frame_rotation=np.asarray(m.frame_rotation, dtype=np.float64),
+            line_rates=LineRateTable(tuple(tuple(r) for r in m.line_rates)),
+            node_lines=np.asarray(m.orientation.node_lines, dtype=np.float64),
+            nodes=np.asarray(m.orientation.nodes, dtype=np.float64),
+            interior=InteriorOrientation(m.interior.focal_length_mm, m.interior.x0_mm,
+                                         m.interior.y0_mm),
+            ccds=tuple(CcdGeometry(c.name, c.n_lines, c.n_samples, c.pixel_pitch_mm,
+                                   c.x_mm, c.y_mm, c.angle_rad) for c in m.ccds),
+            interpolation_order=m.orientation.interpolation_order,
+            latitude_kind=m.body.latitude,
+            name=m.name,
+        )
+    except InputError as exc:
+        if exc.path is None and path is not None:
+            raise InputError(str(exc), path=path) from None
+        raise
+
+
+__all__ = ["CameraDoc", "load_json", "parse_document"]

@@ -1,0 +1,807 @@
+"""The rigorous push-broom (line-scan) camera: the orientation image model (OIM).
+
+Model
+-----
+* **Time.** Image line ``l`` (continuous, pixel-corner convention: line ``i`` spans
+  ``[i, i+1)`` and its centre is ``i + 0.5``) is exposed at ``t(l)`` given by a
+  piecewise-linear :class:`LineRateTable`.
+* **Exterior orientation (EO).** ``N`` orientation nodes at fixed image lines each hold
+  ``X, Y, Z`` (metres, body-fixed) and ``phi, omega, kappa`` (radians). The EO of any
+  line is the Lagrange interpolation, in time, of the ``k`` neighbouring nodes
+  (``k = interpolation_order``, default 4): for ``t`` in ``[t_i, t_{i+1})`` the nodes
+  ``i - k/2 + 1 ... i + k/2`` (clamped to the ends) are used.
+* **Rotation.** ``R = R0 @ R_phi(Y) @ R_omega(X) @ R_kappa(Z)``, the phi-omega-kappa
+  sequence of classical photogrammetry, rotates camera-frame vectors into the body-fixed
+  frame. ``R0`` (``frame_rotation``) is a constant rotation from a local frame (for
+  instance the orbit frame: x along track, y across track, z radial up) to the body-fixed
+  frame, so that the adjustable angles stay small and far from gimbal lock.
+* **Camera frame and collinearity.** The camera looks along ``-z``; the focal plane's x
+  axis points along track (the line direction) and y across track (the sample
+  direction). With ``[U, V, W] = R^T (P - S)``: ``x - x0 = -f U / W`` and
+  ``y - y0 = -f V / W`` (focal-plane millimetres).
+* **Interior orientation (IO).** Principal point ``(x0, y0)`` and focal length ``f``
+  (mm), shared by every CCD of the camera.
+* **CCDs.** Each CCD is a line of ``n_samples`` pixels of pitch ``p`` (mm) whose
+  sample-0 edge sits at ``(x_mm, y_mm)`` in the focal plane, rotated by ``angle_rad``
+  from the y axis: sample ``s`` is at ``(x_mm + s p sin a, y_mm + s p cos a)``. Several
+  CCDs (HiRIC's three TDI arrays) share one EO and IO.
+
+Image coordinates are ``(line, sample)`` with the first pixel's centre at ``(0.5, 0.5)``,
+as everywhere in planetref.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
+from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
+from planetref.errors import GeometryError, InputError
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "CcdGeometry",
+    "ImagePartials",
+    "InteriorOrientation",
+    "LineRateTable",
+    "LineScanCamera",
+    "rotation_matrix",
+    "rotation_matrix_derivatives",
+]
+
+FORMAT_NAME = "planetref-linescan"
+FORMAT_VERSION = 1
+
+F64 = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- time
+@dataclass(frozen=True)
+class LineRateTable:
+    """Line -> time mapping.
+
+    Attributes:
+        rows: ``((start_line, start_time_s, period_s), ...)`` sorted by start line; row
+            ``i`` applies from its start line up to the next row's. Before the first
+            row the first row is extrapolated. Times are seconds (any epoch; only
+            differences matter), periods seconds per line (> 0).
+    """
+
+    rows: tuple[tuple[float, float, float], ...]
+
+    def __post_init__(self) -> None:
+        rows = tuple(tuple(float(v) for v in r) for r in self.rows)
+        if not rows:
+            raise InputError("line rate table is empty", field="line_rates")
+        for i, r in enumerate(rows):
+            if len(r) != 3 or not all(math.isfinite(v) for v in r):
+                raise InputError(f"row {i} must be 3 finite numbers, got {r}", field="line_rates")
+            if r[2] <= 0:
+                raise InputError(f"row {i}: period must be > 0 s, got {r[2]}",
+                                 field="line_rates")
+        starts = [r[0] for r in rows]
+        if any(b <= a for a, b in itertools.pairwise(starts)):
+            raise InputError("start lines must increase", field="line_rates")
+        object.__setattr__(self, "rows", rows)
+
+    @property
+    def _arrays(self) -> tuple[F64, F64, F64]:
+        a = np.asarray(self.rows, dtype=np.float64)
+        return a[:, 0], a[:, 1], a[:, 2]
+
+    def _row(self, line: F64) -> NDArray[np.intp]:
+        starts = self._arrays[0]
+        return np.clip(np.searchsorted(starts, line, side="right") - 1, 0, len(starts) - 1)
+
+    def time(self, line: ArrayLike) -> F64:
+        """Exposure time (s) of continuous line coordinates."""
+        line = np.asarray(line, dtype=np.float64)
+        starts, t0, period = self._arrays
+        i = self._row(line)
+        return t0[i] + (line - starts[i]) * period[i]
+
+    def period(self, line: ArrayLike) -> F64:
+        """Seconds per line at the given lines (``dt/dline``)."""
+        line = np.asarray(line, dtype=np.float64)
+        return self._arrays[2][self._row(line)]
+
+    def line(self, time: ArrayLike) -> F64:
+        """Inverse of :meth:`time` (continuous line of a time in seconds)."""
+        t = np.asarray(time, dtype=np.float64)
+        starts, t0, period = self._arrays
+        i = np.clip(np.searchsorted(t0, t, side="right") - 1, 0, len(t0) - 1)
+        return starts[i] + (t - t0[i]) / period[i]
+
+
+# ---------------------------------------------------------------- interior, CCDs
+@dataclass(frozen=True)
+class InteriorOrientation:
+    """Interior orientation shared by all CCDs of a camera.
+
+    Attributes:
+        focal_length_mm: Focal length ``f`` in millimetres (> 0).
+        x0_mm: Principal point, along-track focal-plane coordinate (mm).
+        y0_mm: Principal point, across-track focal-plane coordinate (mm).
+    """
+
+    focal_length_mm: float
+    x0_mm: float = 0.0
+    y0_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("focal_length_mm", "x0_mm", "y0_mm"):
+            if not math.isfinite(getattr(self, name)):
+                raise InputError(f"must be finite, got {getattr(self, name)}",
+                                 field=f"interior.{name}")
+        if self.focal_length_mm <= 0:
+            raise InputError(f"must be > 0, got {self.focal_length_mm}",
+                             field="interior.focal_length_mm")
+
+    def as_array(self) -> F64:
+        """``[x0_mm, y0_mm, f_mm]``, the order used by :class:`ImagePartials`."""
+        return np.array([self.x0_mm, self.y0_mm, self.focal_length_mm])
+
+    @classmethod
+    def from_array(cls, values: ArrayLike) -> InteriorOrientation:
+        """Inverse of :meth:`as_array`."""
+        x0, y0, f = (float(v) for v in np.asarray(values, dtype=np.float64))
+        return cls(focal_length_mm=f, x0_mm=x0, y0_mm=y0)
+
+
+@dataclass(frozen=True)
+class CcdGeometry:
+    """Placement of one line-array CCD in the focal plane.
+
+    Attributes:
+        name: Identifier of the CCD (unique within a camera).
+        n_lines: Number of image lines of this CCD's image.
+        n_samples: Number of pixels of the array.
+        pixel_pitch_mm: Pixel size in millimetres (> 0).
+        x_mm: Along-track focal-plane coordinate of the sample-0 edge (mm).
+        y_mm: Across-track focal-plane coordinate of the sample-0 edge (mm).
+        angle_rad: Rotation of the array from the focal plane's y axis (radians).
+    """
+
+    name: str
+    n_lines: int
+    n_samples: int
+    pixel_pitch_mm: float
+    x_mm: float
+    y_mm: float
+    angle_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        where = f"ccds[{self.name}]"
+        if not self.name:
+            raise InputError("CCD name must not be empty", field="ccds.name")
+        if int(self.n_lines) <= 0 or int(self.n_samples) <= 0:
+            raise InputError(f"n_lines and n_samples must be > 0, got {self.n_lines}, "
+                             f"{self.n_samples}", field=where)
+        for name in ("pixel_pitch_mm", "x_mm", "y_mm", "angle_rad"):
+            if not math.isfinite(getattr(self, name)):
+                raise InputError(f"{name} must be finite", field=where)
+        if self.pixel_pitch_mm <= 0:
+            raise InputError(f"pixel_pitch_mm must be > 0, got {self.pixel_pitch_mm}",
+                             field=where)
+
+    def focal_plane(self, sample: ArrayLike) -> tuple[F64, F64]:
+        """Focal-plane ``(x, y)`` in mm of sample coordinates on the array."""
+        s = np.asarray(sample, dtype=np.float64) * self.pixel_pitch_mm
+        return (self.x_mm + s * math.sin(self.angle_rad),
+                self.y_mm + s * math.cos(self.angle_rad))
+
+    def detector(self, x_mm: ArrayLike, y_mm: ArrayLike) -> tuple[F64, F64]:
+        """Focal-plane point -> ``(sample, offset)``.
+
+        ``offset`` is the distance from the array's centre line, in pixels, positive
+        towards +x when the array is unrotated; it is zero for points on the array.
+        """
+        dx = np.asarray(x_mm, dtype=np.float64) - self.x_mm
+        dy = np.asarray(y_mm, dtype=np.float64) - self.y_mm
+        sa, ca = math.sin(self.angle_rad), math.cos(self.angle_rad)
+        p = self.pixel_pitch_mm
+        return (dx * sa + dy * ca) / p, (dx * ca - dy * sa) / p
+
+
+# -------------------------------------------------------------------- rotations
+def _axis_rotations(phi: F64, omega: F64, kappa: F64) -> tuple[F64, F64, F64]:
+    shape = np.shape(phi)
+    rp = np.zeros((*shape, 3, 3))
+    cp, sp = np.cos(phi), np.sin(phi)
+    rp[..., 0, 0], rp[..., 0, 2], rp[..., 1, 1] = cp, -sp, 1.0
+    rp[..., 2, 0], rp[..., 2, 2] = sp, cp
+    ro = np.zeros((*shape, 3, 3))
+    co, so = np.cos(omega), np.sin(omega)
+    ro[..., 0, 0], ro[..., 1, 1], ro[..., 1, 2] = 1.0, co, -so
+    ro[..., 2, 1], ro[..., 2, 2] = so, co
+    rk = np.zeros((*shape, 3, 3))
+    ck, sk = np.cos(kappa), np.sin(kappa)
+    rk[..., 0, 0], rk[..., 0, 1], rk[..., 1, 0] = ck, -sk, sk
+    rk[..., 1, 1], rk[..., 2, 2] = ck, 1.0
+    return rp, ro, rk
+
+
+def rotation_matrix(phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike) -> F64:
+    """``R_phi(Y) @ R_omega(X) @ R_kappa(Z)`` (angles in radians), shape ``(..., 3, 3)``.
+
+    ``R_phi = [[cos, 0, -sin], [0, 1, 0], [sin, 0, cos]]``,
+    ``R_omega = [[1, 0, 0], [0, cos, -sin], [0, sin, cos]]``,
+    ``R_kappa = [[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]``.
+    """
+    rp, ro, rk = _axis_rotations(*(np.asarray(a, dtype=np.float64)
+                                   for a in (phi, omega, kappa)))
+    return rp @ ro @ rk
+
+
+def rotation_matrix_derivatives(phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike
+                                ) -> tuple[F64, F64, F64, F64]:
+    """The rotation and its derivatives w.r.t. phi, omega and kappa (per radian)."""
+    phi, omega, kappa = (np.asarray(a, dtype=np.float64) for a in (phi, omega, kappa))
+    rp, ro, rk = _axis_rotations(phi, omega, kappa)
+    # d/da of a rotation about one axis is the generator applied to it.
+    drp = np.zeros_like(rp)
+    cp, sp = np.cos(phi), np.sin(phi)
+    drp[..., 0, 0], drp[..., 0, 2], drp[..., 2, 0], drp[..., 2, 2] = -sp, -cp, cp, -sp
+    dro = np.zeros_like(ro)
+    co, so = np.cos(omega), np.sin(omega)
+    dro[..., 1, 1], dro[..., 1, 2], dro[..., 2, 1], dro[..., 2, 2] = -so, -co, co, -so
+    drk = np.zeros_like(rk)
+    ck, sk = np.cos(kappa), np.sin(kappa)
+    drk[..., 0, 0], drk[..., 0, 1], drk[..., 1, 0], drk[..., 1, 1] = -sk, -ck, ck, -sk
+    r = rp @ ro @ rk
+    return r, drp @ ro @ rk, rp @ dro @ rk, rp @ ro @ drk
+
+
+# ----------------------------------------------------------------- Lagrange
+def _lagrange(times: F64, t: F64, order: int) -> tuple[NDArray[np.intp], F64, F64]:
+    """Window start, weights and weight derivatives (per second) for times ``t``."""
+    n = len(times)
+    k = min(order, n)
+    i = np.searchsorted(times, t, side="right") - 1
+    start = np.clip(i - k // 2 + 1, 0, n - k)
+    idx = start[:, None] + np.arange(k)[None, :]
+    tn = times[idx]  # (M, k)
+    dt = t[:, None] - tn
+    w = np.ones_like(tn)
+    dw = np.zeros_like(tn)
+    for j in range(k):
+        denom = np.ones(len(t))
+        for m in range(k):
+            if m != j:
+                denom = denom * (tn[:, j] - tn[:, m])
+        prod = np.ones(len(t))
+        for m in range(k):
+            if m != j:
+                prod = prod * dt[:, m]
+        w[:, j] = prod / denom
+        deriv = np.zeros(len(t))
+        for i2 in range(k):
+            if i2 == j:
+                continue
+            p2 = np.ones(len(t))
+            for m in range(k):
+                if m not in (j, i2):
+                    p2 = p2 * dt[:, m]
+            deriv = deriv + p2
+        dw[:, j] = deriv / denom
+    return idx, w, dw
+
+
+# ----------------------------------------------------------------- partials
+@dataclass(frozen=True)
+class ImagePartials:
+    """Partial derivatives of image coordinates, vectorised over ``M`` observations.
+
+    Rows are ordered ``(line, sample)``. Each observation depends on ``k`` orientation
+    nodes (its Lagrange window), listed in ``node_index``.
+
+    Attributes:
+        line: Projected line of each ground point, shape ``(M,)``.
+        sample: Projected sample, shape ``(M,)``.
+        node_index: Indices of the nodes each observation depends on, ``(M, k)``.
+        d_nodes: ``d(line, sample) / d(node params)``, shape ``(M, 2, k, 6)``; the
+            parameters are ``X, Y, Z`` (per metre) and ``phi, omega, kappa`` (per radian).
+        d_interior: ``d(line, sample) / d(x0, y0, f)`` (per millimetre), ``(M, 2, 3)``.
+        d_ground: ``d(line, sample) / d(X, Y, Z)`` of the ground point (per metre),
+            ``(M, 2, 3)``.
+    """
+
+    line: F64
+    sample: F64
+    node_index: NDArray[np.intp]
+    d_nodes: F64
+    d_interior: F64
+    d_ground: F64
+
+    def dense_nodes(self, n_nodes: int) -> F64:
+        """The node partials scattered into a dense ``(M, 2, n_nodes * 6)`` array."""
+        m, _, k, _ = self.d_nodes.shape
+        out = np.zeros((m, 2, n_nodes, 6))
+        rows = np.repeat(np.arange(m), k)
+        for c in range(2):
+            out[rows, c, self.node_index.ravel()] = self.d_nodes[:, c].reshape(m * k, 6)
+        return out.reshape(m, 2, n_nodes * 6)
+
+
+# ------------------------------------------------------------------- camera
+@dataclass(frozen=True)
+class _Collinearity:
+    """Intermediate quantities of projecting points with the EO of given lines."""
+
+    sample: F64
+    offset: F64
+    uvw: F64
+    rot: F64
+    d: F64  # P - S
+
+
+@dataclass(frozen=True, eq=False)
+class LineScanCamera:
+    """The rigorous line-scan camera (orientation image model); see the module doc.
+
+    Attributes:
+        ellipsoid: The body (heights, latitudes) the camera refers to.
+        frame_rotation: ``R0``, shape ``(3, 3)``, local frame -> body-fixed.
+        line_rates: Line -> time table.
+        node_lines: Image lines of the orientation nodes, shape ``(N,)``, increasing.
+        nodes: ``(N, 6)`` node parameters ``X, Y, Z`` (m), ``phi, omega, kappa`` (rad).
+        interpolation_order: Number ``k`` of nodes in each Lagrange window.
+        interior: Interior orientation.
+        ccds: The CCDs; names must be unique.
+        latitude_kind: Latitude convention of the lon/lat interfaces.
+        name: Free-form identifier (e.g. the strip id).
+    """
+
+    ellipsoid: Ellipsoid
+    frame_rotation: F64
+    line_rates: LineRateTable
+    node_lines: F64
+    nodes: F64
+    interior: InteriorOrientation
+    ccds: tuple[CcdGeometry, ...]
+    interpolation_order: int = 4
+    latitude_kind: LatitudeKind = "planetocentric"
+    name: str = ""
+    _node_times: F64 = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        r0 = np.array(self.frame_rotation, dtype=np.float64)
+        if r0.shape != (3, 3) or not np.all(np.isfinite(r0)):
+            raise InputError("must be a finite 3x3 matrix", field="frame_rotation")
+        if np.abs(r0 @ r0.T - np.eye(3)).max() > 1e-9 or np.linalg.det(r0) < 0:
+            raise InputError("must be a proper rotation (orthonormal, det +1)",
+                             field="frame_rotation")
+        lines = np.array(self.node_lines, dtype=np.float64).ravel()
+        nodes = np.array(self.nodes, dtype=np.float64)
+        if nodes.ndim != 2 or nodes.shape[1] != 6:
+            raise InputError(f"must have shape (N, 6), got {nodes.shape}", field="nodes")
+        if len(lines) != len(nodes):
+            raise InputError(f"{len(lines)} node lines for {len(nodes)} nodes",
+                             field="node_lines")
+        if len(lines) < 2:
+            raise InputError("at least 2 orientation nodes are needed", field="nodes")
+        if not (np.all(np.isfinite(lines)) and np.all(np.isfinite(nodes))):
+            raise InputError("must be finite (NaN or inf found)", field="nodes")
+        times = self.line_rates.time(lines)
+        if np.any(np.diff(times) <= 0):
+            raise InputError("node times must strictly increase", field="node_lines")
+        if int(self.interpolation_order) < 2:
+            raise InputError(f"must be >= 2, got {self.interpolation_order}",
+                             field="interpolation_order")
+        if not self.ccds:
+            raise InputError("a camera needs at least one CCD", field="ccds")
+        names = [c.name for c in self.ccds]
+        if len(set(names)) != len(names):
+            raise InputError(f"CCD names must be unique, got {names}", field="ccds")
+        for arr in (r0, lines, nodes, times):
+            arr.setflags(write=False)
+        object.__setattr__(self, "frame_rotation", r0)
+        object.__setattr__(self, "node_lines", lines)
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "ccds", tuple(self.ccds))
+        object.__setattr__(self, "interpolation_order", int(self.interpolation_order))
+        object.__setattr__(self, "_node_times", times)
+
+    # ------------------------------------------------------------ basics
+    @property
+    def ccd_names(self) -> tuple[str, ...]:
+        """Names of the CCDs; the first is the default."""
+        return tuple(c.name for c in self.ccds)
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of orientation nodes."""
+        return len(self.nodes)
+
+    def ccd(self, name: str | None = None) -> CcdGeometry:
+        """The CCD called ``name`` (the first one when ``None``)."""
+        if name is None:
+            return self.ccds[0]
+        for c in self.ccds:
+            if c.name == name:
+                return c
+        raise InputError(f"unknown CCD {name!r}; this camera has {list(self.ccd_names)}")
+
+    def image_size(self, ccd: str | None = None) -> tuple[int, int]:
+        """``(n_lines, n_samples)`` of a CCD image."""
+        c = self.ccd(ccd)
+        return int(c.n_lines), int(c.n_samples)
+
+    def replace(self, **changes: Any) -> LineScanCamera:
+        """A copy with some attributes replaced (e.g. ``nodes=``, ``interior=``)."""
+        return replace(self, **changes)
+
+    # ------------------------------------------------------------ exterior orientation
+    def _eo(self, line: F64) -> tuple[NDArray[np.intp], F64, F64, F64, F64]:
+        t = self.line_rates.time(line)
+        idx, w, dw = _lagrange(self._node_times, t, self.interpolation_order)
+        win = self.nodes[idx]  # (M, k, 6)
+        eo = np.einsum("mk,mkp->mp", w, win)
+        deo_dt = np.einsum("mk,mkp->mp", dw, win)
+        return idx, w, dw, eo, deo_dt
+
+    def exterior(self, line: ArrayLike) -> tuple[F64, F64]:
+        """Exterior orientation at continuous line coordinates.
+
+        Returns:
+            ``(S, R)``: perspective centres (m, body-fixed, ``(M, 3)``) and rotations
+            camera -> body-fixed (``(M, 3, 3)``).
+        """
+        line = np.atleast_1d(np.asarray(line, dtype=np.float64))
+        _, _, _, eo, _ = self._eo(line)
+        return eo[:, :3], self.frame_rotation @ rotation_matrix(eo[:, 3], eo[:, 4], eo[:, 5])
+
+    def look_rays(self, line: ArrayLike, sample: ArrayLike, *, ccd: str | None = None
+                  ) -> tuple[F64, F64]:
+        """Body-fixed rays of image points.
+
+        Returns:
+            ``(origin, direction)``: perspective centres (m) and unit look directions,
+            each ``(M, 3)``.
+        """
+        line, sample = np.broadcast_arrays(np.atleast_1d(np.asarray(line, np.float64)),
+                                           np.atleast_1d(np.asarray(sample, np.float64)))
+        c = self.ccd(ccd)
+        x, y = c.focal_plane(sample)
+        io = self.interior
+        v_cam = np.stack([x - io.x0_mm, y - io.y0_mm,
+                          np.full_like(x, -io.focal_length_mm)], axis=-1)
+        origin, rot = self.exterior(line)
+        d = np.einsum("mij,mj->mi", rot, v_cam)
+        return origin, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    # ------------------------------------------------------------ image -> ground
+    def image_to_ground(self, line: ArrayLike, sample: ArrayLike,
+                        terrain: Terrain | float = 0.0, *, ccd: str | None = None,
+                        on_miss: OnMiss = "raise") -> F64:
+        """Intersect the rays of image points with a height, ellipsoid or DEM.
+
+        Args:
+            line: Line coordinates (first pixel centre at 0.5), ``(M,)`` or scalar.
+            sample: Sample coordinates, same shape.
+            terrain: Height in metres above the ellipsoid, or any :class:`Terrain`.
+            ccd: CCD name (default: the first CCD).
+            on_miss: ``"raise"`` a :class:`GeometryError` naming the first ray that
+                misses, or ``"nan"`` to return NaN rows for them.
+
+        Returns:
+            Body-fixed XYZ in metres, shape ``(M, 3)``.
+        """
+        origin, direction = self.look_rays(line, sample, ccd=ccd)
+        if isinstance(terrain, int | float | np.floating | np.integer):
+            terrain = ConstantHeight(self.ellipsoid, float(terrain))
+        if isinstance(terrain, ConstantHeight):
+            s = ray_ellipsoid_intersection(origin, direction, terrain.ellipsoid,
+                                           terrain.height_m)
+            xyz = origin + s[:, None] * direction
+            miss = ~np.isfinite(s)
+            if np.any(miss) and on_miss == "raise":
+                i = int(np.flatnonzero(miss)[0])
+                raise GeometryError(
+                    f"the ray of image point (line {np.atleast_1d(line)[i % np.size(line)]}, "
+                    f"sample {np.atleast_1d(sample)[i % np.size(sample)]}) misses the surface "
+                    f"at height {terrain.height_m} m")
+            return xyz
+        from planetref.camera.raycast import intersect_terrain
+
+        return intersect_terrain(origin, direction, terrain, on_miss=on_miss)
+
+    # ------------------------------------------------------------ ground -> image
+    def _collinearity(self, xyz: F64, line: F64, c: CcdGeometry) -> _Collinearity:
+        s, rot = self.exterior(line)
+        d = xyz - s
+        uvw = np.einsum("mji,mj->mi", rot, d)  # R^T d
+        io = self.interior
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = io.x0_mm - io.focal_length_mm * uvw[:, 0] / uvw[:, 2]
+            y = io.y0_mm - io.focal_length_mm * uvw[:, 1] / uvw[:, 2]
+        sample, offset = c.detector(x, y)
+        return _Collinearity(sample, offset, uvw, rot, d)
+
+    def _offset_and_rate(self, xyz: F64, line: F64, c: CcdGeometry) -> tuple[F64, F64, F64]:
+        """Detector offset (px), its derivative per line, and the sample, at ``line``."""
+        _idx, _w, _dw, eo, deo_dt = self._eo(line)
+        col = self._collinearity(xyz, line, c)
+        dpix = self._d_detector_d_eo(col, eo, c)  # (M, 2, 6)
+        rate = np.einsum("mp,mp->m", dpix[:, 1], deo_dt) * self.line_rates.period(line)
+        return col.offset, rate, col.sample
+
+    def _d_detector_d_eo(self, col: _Collinearity, eo: F64, c: CcdGeometry) -> F64:
+        """d(sample, offset)/d(X, Y, Z, phi, omega, kappa) of the interpolated EO."""
+        _, dr_p, dr_o, dr_k = rotation_matrix_derivatives(eo[:, 3], eo[:, 4], eo[:, 5])
+        r0 = self.frame_rotation
+        duvw = np.empty((len(eo), 3, 6))
+        duvw[:, :, :3] = -np.transpose(col.rot, (0, 2, 1))  # d(R^T (P-S))/dS
+        for j, dr in enumerate((dr_p, dr_o, dr_k)):
+            duvw[:, :, 3 + j] = np.einsum("mji,mj->mi", r0 @ dr, col.d)
+        dxy = self._d_xy_d_uvw(col.uvw) @ duvw  # (M, 2, 6)
+        return _detector_jac(c, len(eo)) @ dxy
+
+    def _d_xy_d_uvw(self, uvw: F64) -> F64:
+        f = self.interior.focal_length_mm
+        u, v, w = uvw[:, 0], uvw[:, 1], uvw[:, 2]
+        j = np.zeros((len(uvw), 2, 3))
+        j[:, 0, 0] = -f / w
+        j[:, 0, 2] = f * u / w**2
+        j[:, 1, 1] = -f / w
+        j[:, 1, 2] = f * v / w**2
+        return j
+
+    def ground_to_image(self, xyz: ArrayLike, *, ccd: str | None = None,
+                        line_guess: ArrayLike | None = None) -> ImagePoints:
+        """Project body-fixed points into a CCD image.
+
+        The line is found by solving ``offset(line) = 0`` (the point lies in the plane
+        of the CCD's line of sight at that line's time) with a bracketed Newton
+        iteration, vectorised over points, to ``1e-8`` line. Outside the image the
+        solution is still computed where it exists within the orientation nodes' span
+        (extrapolating the EO up to one node spacing beyond the first and last node);
+        ``in_image`` tells. Points behind the camera or whose line cannot be found come
+        back with ``valid=False`` and NaN coordinates.
+
+        Args:
+            xyz: Body-fixed points in metres, shape ``(M, 3)`` or ``(3,)``.
+            ccd: CCD name (default: the first CCD).
+            line_guess: Optional starting lines (e.g. the observed lines in an
+                adjustment), which skip the bracketing search.
+
+        Returns:
+            :class:`ImagePoints` (line, sample, valid, in_image).
+        """
+        p = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
+        if p.shape[-1] != 3:
+            raise InputError(f"xyz must have shape (M, 3), got {np.shape(xyz)}")
+        c = self.ccd(ccd)
+        m = len(p)
+        line = np.full(m, np.nan)
+        chunk = 65536
+        for a in range(0, m, chunk):
+            b = min(a + chunk, m)
+            guess = None if line_guess is None else np.broadcast_to(
+                np.asarray(line_guess, np.float64), (m,))[a:b]
+            line[a:b] = self._solve_line(p[a:b], c, guess)
+        ok = np.isfinite(line)
+        sample = np.full(m, np.nan)
+        if np.any(ok):
+            col = self._collinearity(p[ok], line[ok], c)
+            sample[ok] = col.sample
+            behind = col.uvw[:, 2] >= 0
+            if np.any(behind):
+                idx = np.flatnonzero(ok)[behind]
+                line[idx] = np.nan
+                sample[idx] = np.nan
+                ok[idx] = False
+        in_image = ok & (line >= 0) & (line < c.n_lines) & (sample >= 0) & (sample < c.n_samples)
+        return ImagePoints(line=line, sample=sample, valid=ok, in_image=in_image)
+
+    def _solve_line(self, p: F64, c: CcdGeometry, guess: F64 | None) -> F64:
+        m = len(p)
+        lo_line = self.node_lines[0] - (self.node_lines[1] - self.node_lines[0])
+        hi_line = self.node_lines[-1] + (self.node_lines[-1] - self.node_lines[-2])
+        if guess is None:
+            # Bracket: the offset changes sign once as the point passes under the CCD.
+            cand = np.linspace(lo_line, hi_line, 33)
+            off = np.stack([self._collinearity(p, np.full(m, lc), c).offset for lc in cand], 1)
+            sgn = np.sign(off)
+            change = (sgn[:, :-1] * sgn[:, 1:] <= 0) & np.isfinite(off[:, :-1]) \
+                & np.isfinite(off[:, 1:])
+            has = change.any(axis=1)
+            j = np.argmax(change, axis=1)
+            rows = np.arange(m)
+            lo = np.where(has, cand[j], np.nan)
+            hi = np.where(has, cand[np.minimum(j + 1, len(cand) - 1)], np.nan)
+            f_lo, f_hi = off[rows, j], off[rows, np.minimum(j + 1, len(cand) - 1)]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                frac = np.where(f_hi != f_lo, f_lo / (f_lo - f_hi), 0.5)
+            line = lo + np.clip(frac, 0, 1) * (hi - lo)
+        else:
+            line = np.array(guess, dtype=np.float64)
+            lo = np.full(m, lo_line)
+            hi = np.full(m, hi_line)
+        active = np.isfinite(line)
+        for _ in range(30):
+            if not np.any(active):
+                break
+            ia = np.flatnonzero(active)
+            off, rate, _ = self._offset_and_rate(p[ia], line[ia], c)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = -off / rate
+            new = line[ia] + step
+            # Keep Newton inside the bracket; fall back to bisection when it leaves.
+            if guess is None:
+                lo_a, hi_a = lo[ia], hi[ia]
+                bad = ~np.isfinite(new) | (new < lo_a) | (new > hi_a)
+                new = np.where(bad, 0.5 * (lo_a + hi_a), new)
+                # Shrink the bracket with the sign of the offset at the current line.
+                off_lo = self._collinearity(p[ia], lo_a, c).offset
+                same = np.sign(off) == np.sign(off_lo)
+                lo[ia] = np.where(same, line[ia], lo_a)
+                hi[ia] = np.where(same, hi_a, line[ia])
+            else:
+                new = np.clip(new, lo[ia], hi[ia])
+            line[ia] = new
+            done = np.abs(step) < 1e-8
+            done |= ~np.isfinite(step)
+            active[ia[done]] = False
+        # A final residual check rejects iterations that stalled at a bracket end.
+        ok = np.isfinite(line)
+        if np.any(ok):
+            off = self._collinearity(p[ok], line[ok], c).offset
+            bad = ~(np.abs(off) < 1e-6)
+            line[np.flatnonzero(ok)[bad]] = np.nan
+        return line
+
+    # ------------------------------------------------------------ partials
+    def image_partials(self, xyz: ArrayLike, *, ccd: str | None = None,
+                       line_guess: ArrayLike | None = None) -> ImagePartials:
+        """Exact partial derivatives of the projected ``(line, sample)`` of ground points.
+
+        The projection is the implicit solution ``offset(line; theta, P) = 0`` of
+        :meth:`ground_to_image`; by the implicit-function theorem
+        ``dline/dq = -(d offset/dq) / (d offset/dline)`` and
+        ``dsample/dq = d sample/dq + (d sample/dline) dline/dq`` for every parameter
+        ``q`` (node EO, interior orientation, ground coordinates).
+
+        Args:
+            xyz: Ground points in metres, ``(M, 3)``.
+            ccd: CCD name.
+            line_guess: Optional starting lines for the projection.
+
+        Returns:
+            :class:`ImagePartials`. Rows for points that cannot be projected are NaN.
+        """
+        p = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
+        c = self.ccd(ccd)
+        ip = self.ground_to_image(p, ccd=c.name, line_guess=line_guess)
+        line = np.where(ip.valid, ip.line, self.node_lines[0])
+        idx, w, _dw, eo, deo_dt = self._eo(line)
+        col = self._collinearity(p, line, c)
+        jac_det = _detector_jac(c, len(p))  # d(sample, offset)/d(x, y)
+        d_eo = self._d_detector_d_eo(col, eo, c)  # (M, 2, 6): rows sample, offset
+        period = self.line_rates.period(line)
+        d_dline = np.einsum("mrp,mp->mr", d_eo, deo_dt) * period[:, None]  # (M, 2)
+        # Ground point: d(uvw)/dP = R^T.
+        d_ground_raw = jac_det @ (self._d_xy_d_uvw(col.uvw)
+                                  @ np.transpose(col.rot, (0, 2, 1)))  # (M, 2, 3)
+        # Interior orientation: x = x0 - f U/W, y = y0 - f V/W.
+        dxy_dio = np.zeros((len(p), 2, 3))
+        dxy_dio[:, 0, 0] = 1.0
+        dxy_dio[:, 1, 1] = 1.0
+        dxy_dio[:, 0, 2] = -col.uvw[:, 0] / col.uvw[:, 2]
+        dxy_dio[:, 1, 2] = -col.uvw[:, 1] / col.uvw[:, 2]
+        d_io_raw = jac_det @ dxy_dio
+        # Node parameters through the Lagrange weights.
+        d_nodes_raw = d_eo[:, :, None, :] * w[:, None, :, None]  # (M, 2, k, 6)
+
+        def implicit(raw: F64) -> F64:
+            # raw[:, 0] = d sample/dq, raw[:, 1] = d offset/dq at fixed line.
+            dl = -raw[:, 1] / _bcast(d_dline[:, 1], raw[:, 1])
+            ds = raw[:, 0] + _bcast(d_dline[:, 0], raw[:, 0]) * dl
+            return np.stack([dl, ds], axis=1)
+
+        out_nodes = implicit(d_nodes_raw)
+        out_io = implicit(d_io_raw)
+        out_ground = implicit(d_ground_raw)
+        bad = ~ip.valid
+        for arr in (out_nodes, out_io, out_ground):
+            arr[bad] = np.nan
+        return ImagePartials(line=ip.line, sample=ip.sample, node_index=idx,
+                             d_nodes=out_nodes, d_interior=out_io, d_ground=out_ground)
+
+    # ------------------------------------------------------------ files
+    def to_dict(self) -> dict[str, Any]:
+        """The native JSON document of this camera (see :func:`LineScanCamera.from_dict`)."""
+        return {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "name": self.name,
+            "body": {"name": self.ellipsoid.name,
+                     "semi_major_m": self.ellipsoid.semi_major_m,
+                     "semi_minor_m": self.ellipsoid.semi_minor_m,
+                     "latitude": self.latitude_kind},
+            "frame_rotation": self.frame_rotation.tolist(),
+            "line_rates": [list(r) for r in self.line_rates.rows],
+            "orientation": {
+                "interpolation_order": self.interpolation_order,
+                "node_lines": self.node_lines.tolist(),
+                "nodes": self.nodes.tolist(),
+            },
+            "interior": {"focal_length_mm": self.interior.focal_length_mm,
+                         "x0_mm": self.interior.x0_mm, "y0_mm": self.interior.y0_mm},
+            "ccds": [{"name": c.name, "n_lines": int(c.n_lines), "n_samples": int(c.n_samples),
+                      "pixel_pitch_mm": c.pixel_pitch_mm, "x_mm": c.x_mm, "y_mm": c.y_mm,
+                      "angle_rad": c.angle_rad} for c in self.ccds],
+        }
+
+    @classmethod
+    def from_dict(cls, doc: Any, *, path: str | os.PathLike[str] | None = None
+                  ) -> LineScanCamera:
+        """Build a camera from a native JSON document (validated; see docs/camera-format.md).
+
+        Raises:
+            InputError: Naming ``path`` and the offending field.
+        """
+        from planetref.camera._linescan_schema import parse_document
+
+        return parse_document(doc, path=path, factory=cls)
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike[str]) -> LineScanCamera:
+        """Read a native JSON camera file."""
+        from planetref.camera._linescan_schema import load_json
+
+        return cls.from_dict(load_json(path), path=path)
+
+    def to_json(self, path: str | os.PathLike[str]) -> Path:
+        """Write the native JSON camera file atomically (temporary file, then rename)."""
+        return write_json_atomic(self.to_dict(), path)
+
+
+
+def _detector_jac(c: CcdGeometry, m: int) -> F64:
+    """d(sample, offset)/d(x, y) of a CCD (constant), broadcast to ``(m, 2, 2)``."""
+    sa, ca, p = math.sin(c.angle_rad), math.cos(c.angle_rad), c.pixel_pitch_mm
+    return np.broadcast_to(np.array([[sa, ca], [ca, -sa]]) / p, (m, 2, 2))
+
+
+def _bcast(a: F64, like: F64) -> F64:
+    return a.reshape(a.shape + (1,) * (like.ndim - 1))
+
+
+def write_json_atomic(doc: Any, path: str | os.PathLike[str]) -> Path:
+    """Write ``doc`` as JSON to ``path`` through a temporary file in the same folder.
+
+    A crash half-way leaves any existing file untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(doc, fh, indent=1, allow_nan=False)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def evenly_spaced_nodes(n_lines: int, n_nodes: int, margin_lines: float = 0.0
+                        ) -> F64:
+    """Node lines spread evenly over ``[-margin, n_lines + margin]``."""
+    if n_nodes < 2:
+        raise InputError(f"at least 2 nodes are needed, got {n_nodes}")
+    return np.linspace(-margin_lines, n_lines + margin_lines, n_nodes)
+

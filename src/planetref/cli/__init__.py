@@ -1,0 +1,82 @@
+"""The ``planetref`` command line.
+
+Sub-commands are registered explicitly in :data:`COMMANDS` and imported only when they
+run, so ``planetref camera ...`` does not pay for importing torch. Every
+:class:`~planetref.errors.PlanetrefError` ends the command with a one-line message and
+exit status 1; no traceback is shown unless ``-vv`` is given.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+from typing import Any
+
+import click
+
+from planetref import __version__
+from planetref.errors import PlanetrefError
+
+__all__ = ["COMMANDS", "main"]
+
+# name -> "module:attribute" of a click command; explicit, no plugin discovery.
+COMMANDS: dict[str, str] = {
+    "info": "planetref.cli.info:info_command",
+    "camera": "planetref.cli.camera:camera_group",
+    "matchers": "planetref.cli.match:matchers_command",
+    "match": "planetref.cli.match:match_command",
+    "simulate": "planetref.cli.simulate:simulate_command",
+}
+
+log = logging.getLogger("planetref")
+
+
+class _LazyGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(name for name in COMMANDS if self._available(name))
+
+    @staticmethod
+    def _available(name: str) -> bool:
+        module = COMMANDS[name].split(":")[0]
+        return importlib.util.find_spec(module) is not None
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        target = COMMANDS.get(cmd_name)
+        if target is None or not self._available(cmd_name):
+            return None
+        module, attr = target.split(":")
+        cmd = getattr(importlib.import_module(module), attr)
+        cmd.name = cmd_name
+        return cmd
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except PlanetrefError as exc:
+            if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
+                raise
+            raise click.ClickException(str(exc)) from None
+
+
+def _configure_logging(verbosity: int) -> None:
+    level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(
+        max(-1, min(verbosity, 2)), logging.DEBUG)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("planetref")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="planetref")
+@click.option("-v", "--verbose", count=True, help="More output (-vv: debug, with tracebacks).")
+@click.option("-q", "--quiet", count=True, help="Less output (errors only, no progress bars).")
+@click.pass_context
+def main(ctx: click.Context, verbose: int, quiet: int) -> None:
+    """planetref: georeference planetary push-broom images without ground control points."""
+    ctx.ensure_object(dict)
+    ctx.obj["verbosity"] = verbose - quiet
+    ctx.obj["quiet"] = quiet > 0
+    _configure_logging(verbose - quiet)

@@ -1,0 +1,110 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from planetref.camera.geodesy import xyz_to_lonlat
+from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+from planetref.cli import main
+
+
+@pytest.fixture
+def camera_file(tmp_path):
+    ccds = ccd_row(3, 256, 512, 0.010, overlap_px=16, stagger_mm=1.0)
+    cam, _ = orbit_camera(OrbitGeometry(20.0, 74.0, 10.0), focal_length_mm=4640.0, ccds=ccds)
+    return cam, cam.to_json(tmp_path / "cam.json")
+
+
+def run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+
+
+def test_version_and_help():
+    from planetref import __version__
+
+    r = run("--version")
+    assert r.exit_code == 0 and __version__ in r.output
+    r = run("--help")
+    assert "camera" in r.output and "info" in r.output
+
+
+def test_info_json():
+    r = run("info", "--json")
+    info = json.loads(r.output)
+    for key in ("planetref", "torch", "kornia", "rasterio", "gdal", "proj", "weights_dir"):
+        assert key in info
+    assert info["gdal"].count(".") >= 1
+
+
+def test_image_to_ground_and_back(camera_file):
+    cam, path = camera_file
+    r = run("camera", "image-to-ground", path, "--line", 100.25, "--sample", 40.5,
+            "--height", -1500, "--ccd", "ccd2")
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output)
+    assert set(out) == {"x_m", "y_m", "z_m", "lat_deg", "lon_deg", "height_m"}
+    xyz = cam.image_to_ground([100.25], [40.5], -1500.0, ccd="ccd2")[0]
+    assert [out["x_m"], out["y_m"], out["z_m"]] == pytest.approx(xyz.tolist(), abs=1e-6)
+    assert out["height_m"] == pytest.approx(-1500.0, abs=1e-4)
+    r = run("camera", "ground-to-image", path, "--lat", out["lat_deg"], "--lon",
+            out["lon_deg"], "--height", out["height_m"], "--ccd", "ccd2")
+    back = json.loads(r.output)
+    assert back["line"] == pytest.approx(100.25, abs=1e-6)
+    assert back["sample"] == pytest.approx(40.5, abs=1e-6)
+    r = run("camera", "ground-to-image", path, "--xyz", *xyz, "--ccd", "ccd2")
+    assert json.loads(r.output)["line"] == pytest.approx(100.25, abs=1e-6)
+    lon, lat, _ = xyz_to_lonlat(xyz, cam.ellipsoid)
+    assert out["lat_deg"] == pytest.approx(float(lat)) and out["lon_deg"] == pytest.approx(
+        float(lon))
+
+
+@pytest.mark.parametrize("content, needle", [
+    ('{"format": "planetref-linescan", "version": 1', "malformed JSON"),
+    ('{"a": 1}', "neither a planetref line-scan camera nor a CSM"),
+    ("hello", "unrecognised camera file"),
+])
+def test_bad_camera_file_is_one_line_error(tmp_path, content, needle):
+    p = tmp_path / "bad.json"
+    p.write_text(content)
+    r = CliRunner().invoke(main, ["camera", "image-to-ground", str(p), "--line", "1",
+                                  "--sample", "1"])
+    assert r.exit_code == 1
+    assert needle in r.output and str(p) in r.output
+    assert "Traceback" not in r.output and r.output.count("\n") == 1
+
+
+def test_missing_file_and_bad_ccd(camera_file, tmp_path):
+    _, path = camera_file
+    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(tmp_path / "x.json"),
+                                  "--xyz", "1", "2", "3"])
+    assert r.exit_code == 1 and "no such camera file" in r.output
+    r = CliRunner().invoke(main, ["camera", "image-to-ground", str(path), "--line", "1",
+                                  "--sample", "1", "--ccd", "ccd9"])
+    assert r.exit_code == 1 and "unknown CCD 'ccd9'" in r.output
+
+
+def test_usage_errors(camera_file):
+    _, path = camera_file
+    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(path)])
+    assert r.exit_code == 2 and "--xyz" in r.output
+    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(path), "--lat", "100",
+                                  "--lon", "0", "--height", "0"])
+    assert r.exit_code == 1 and "--lat" in r.output
+
+
+def test_console_script_runs():
+    r = subprocess.run([sys.executable, "-m", "planetref", "--version"], capture_output=True,
+                       text=True, check=False)
+    assert r.returncode == 0 and "planetref" in r.stdout
+
+
+def test_behind_camera_point_is_reported(camera_file):
+    cam, path = camera_file
+    s, _ = cam.exterior([256.0])
+    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(path), "--xyz",
+                                  *map(str, (1.2 * s[0]).tolist())])
+    assert r.exit_code == 1 and "cannot be projected" in r.output
+    assert np.isfinite(s).all()
