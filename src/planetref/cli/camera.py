@@ -91,3 +91,32 @@ def ground_to_image(camera_file: str, xyz: tuple[float, float, float] | None,
     if not bool(ip.in_image[0]):
         click.echo("warning: the point projects outside the image", err=True)
     click.echo(json.dumps(out))
+
+
+@camera_group.command("fit-rpc")
+@click.argument("camera_file", metavar="CAMERA", type=click.Path(dir_okay=False))
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
+              help="Output: NAME.RPB, NAME_RPC.TXT, or an existing GeoTIFF to embed them in.")
+@click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
+@click.option("--height-range", nargs=2, type=float, default=(-8000.0, 8000.0),
+              show_default=True, help="Lowest and highest terrain height of the fit (m).")
+@click.option("--grid", nargs=3, type=int, default=(21, 21, 7), show_default=True,
+              help="Fitting grid: lines, samples, heights.")
+def fit_rpc_command(camera_file: str, out: str, ccd: str | None,
+                    height_range: tuple[float, float], grid: tuple[int, int, int]) -> None:
+    """Fit RPCs to a rigorous camera (terrain-independent) and write them; prints JSON.
+
+    Output: the fit report (RMS/max error in pixels on the fitting and check grids).
+    """
+    from planetref.camera.rpc import RpcBody, fit_rpc, write_rpc
+
+    lo, hi = height_range
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise InputError(f"--height-range needs two finite heights, low < high, got {lo}, {hi}")
+    cam = load_camera(camera_file)
+    rpc, report = fit_rpc(cam, ccd=ccd, height_range_m=(lo, hi), grid=grid)
+    path = write_rpc(rpc, out, body=RpcBody(cam.ellipsoid, cam.latitude_kind))
+    doc = {"out": str(path), "fit_rms_px": report.fit_rms_px, "fit_max_px": report.fit_max_px,
+           "check_rms_px": report.check_rms_px, "check_max_px": report.check_max_px,
+           "check_max_ground_m": report.check_max_ground_m}
+    click.echo(json.dumps(doc))
