@@ -273,3 +273,32 @@ def test_fit_rpc_to_rigorous_camera(perturbed, limit_px):
     assert report.check_max_px < limit_px
     if perturbed:
         assert report.check_rms_px > 1e-3  # the wobble is real and measured, not hidden
+
+
+class _RidgeTerrain:
+    """Ridges 400 m high every 800 m across the scene (a rough Terrain for ray casting)."""
+
+    def __init__(self, ellipsoid):
+        self.ellipsoid = ellipsoid
+        self.min_height_m, self.max_height_m = -500.0, 500.0
+
+    @property
+    def sampling_m(self):
+        return 10.0
+
+    def height(self, lon_deg, lat_deg):
+        x = np.radians(np.asarray(lon_deg)) * self.ellipsoid.semi_major_m
+        return 400.0 * np.sin(2 * np.pi * x / 800.0) + 0.0 * np.asarray(lat_deg)
+
+
+def test_image_to_dem_round_trip(cam):
+    terrain = _RidgeTerrain(cam.ellipsoid)
+    line, sample = random_pixels(cam, "ccd1", 300, seed=9)
+    xyz = cam.image_to_ground(line, sample, terrain, ccd="ccd1")
+    lon, lat, h = xyz_to_lonlat(xyz, cam.ellipsoid)
+    assert np.abs(h - terrain.height(lon, lat)).max() < 1e-3  # on the surface
+    ip = cam.ground_to_image(xyz, ccd="ccd1")
+    assert np.abs(ip.line - line).max() < 1e-6 and np.abs(ip.sample - sample).max() < 1e-6
+    # Relief moves the ground point along the ray: compare with the flat intersection.
+    flat = cam.image_to_ground(line, sample, 0.0, ccd="ccd1")
+    assert np.linalg.norm(flat - xyz, axis=1).max() > 1.0
