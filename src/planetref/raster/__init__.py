@@ -1,0 +1,1 @@
+"""Raster data: DEMs and images on map grids."""

@@ -1,0 +1,603 @@
+"""A height grid in a map CRS that implements the :class:`~planetref.camera.base.Terrain` protocol.
+
+:class:`GridTerrain` holds a DEM in memory (a 2-D array of heights in metres above the
+reference body of the CRS, plus an affine geotransform and a CRS), interpolates it
+bilinearly and intersects camera rays with it exactly (to a tolerance well under a
+millimetre). It serves both the reference DEM of real data (:meth:`GridTerrain.from_geotiff`)
+and the truth DEM of the simulator.
+
+Conventions
+-----------
+* Raster pixel ``(row, col)`` covers ``[col, col+1) x [row, row+1)`` in pixel space, so its
+  centre is at ``transform * (col + 0.5, row + 0.5)`` (GDAL's "area" convention).
+* Heights are sampled with bilinear interpolation between pixel centres. Between the
+  outermost pixel centres and the raster edge the edge values are held constant
+  (clamped), outside the raster's extent the height is NaN. A NaN (nodata) pixel makes
+  every interpolated value that touches it NaN (holes are not filled).
+* Longitudes/latitudes are planetocentric degrees, east-positive (see
+  :mod:`planetref.camera.geodesy`); XYZ are body-fixed metres.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planetref.camera.geodesy import (
+    CrsGround,
+    Ellipsoid,
+    lonlat_to_xyz,
+    ray_ellipsoid_intersection,
+    wrap_longitude,
+    xyz_to_lonlat,
+)
+from planetref.errors import CrsError, InputError, MissingFileError, UnsupportedFormatError
+
+__all__ = ["GridTerrain", "MapProjection", "RayHits"]
+
+
+@dataclass(frozen=True)
+class RayHits:
+    """Intersections of rays with a :class:`GridTerrain`.
+
+    Attributes:
+        xyz: Body-fixed points in metres, shape ``(M, 3)``; NaN rows for misses.
+        x: Map x (CRS units) of the points, shape ``(M,)``; NaN for misses.
+        y: Map y (CRS units), shape ``(M,)``; NaN for misses.
+        height: Terrain height (m) at the points, shape ``(M,)``; NaN for misses.
+    """
+
+    xyz: NDArray[np.float64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    height: NDArray[np.float64]
+
+    @property
+    def hit(self) -> NDArray[np.bool_]:
+        """True where the ray met the terrain."""
+        return np.isfinite(self.height)
+
+
+class _EqcSphere:
+    """Closed-form equidistant cylindrical on a sphere (PROJ ``eqc``), for speed."""
+
+    def __init__(self, radius: float, lat_ts: float, lat_0: float, lon_0: float,
+                 x_0: float, y_0: float) -> None:
+        self.r = radius
+        self.kx = radius * np.cos(np.radians(lat_ts)) * np.pi / 180.0
+        self.ky = radius * np.pi / 180.0
+        self.lat_0, self.lon_0, self.x_0, self.y_0 = lat_0, lon_0, x_0, y_0
+
+    def lonlat_to_map(self, lon: NDArray[np.float64], lat: NDArray[np.float64]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        dlon = wrap_longitude(lon - self.lon_0)
+        return self.x_0 + self.kx * dlon, self.y_0 + self.ky * (lat - self.lat_0)
+
+    def map_to_lonlat(self, x: NDArray[np.float64], y: NDArray[np.float64]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        lon = self.lon_0 + (x - self.x_0) / self.kx
+        return wrap_longitude(lon), self.lat_0 + (y - self.y_0) / self.ky
+
+
+def _eqc_fast_path(ground: CrsGround) -> _EqcSphere | None:
+    """The closed form of an equirectangular CRS on a sphere, or None if not applicable."""
+    crs = ground.crs
+    if not crs.is_projected or not ground.ellipsoid.is_sphere:
+        return None
+    op = crs.coordinate_operation
+    if op is None or "equidistant cylindrical" not in op.method_name.lower():
+        return None
+    axes = crs.axis_info
+    if (len(axes) != 2 or axes[0].direction.lower() != "east"
+            or axes[1].direction.lower() != "north"
+            or any(a.unit_name not in ("metre", "meter") for a in axes)):
+        return None
+    values = {"lat_ts": 0.0, "lat_0": 0.0, "lon_0": 0.0, "x_0": 0.0, "y_0": 0.0}
+    names = {"latitude of 1st standard parallel": "lat_ts",
+             "latitude of natural origin": "lat_0",
+             "longitude of natural origin": "lon_0",
+             "false easting": "x_0", "false northing": "y_0"}
+    for p in op.params:
+        key = names.get(p.name.lower())
+        if key is None:
+            return None
+        values[key] = float(p.value)
+    fast = _EqcSphere(ground.ellipsoid.semi_major_m, **values)
+    # Check the closed form against PROJ on a few points near the origin before trusting it.
+    lon = fast.lon_0 + np.array([-0.3, 0.0, 0.2, 0.7])
+    lat = np.array([-0.5, 0.1, 0.4, 0.8]) + np.clip(values["lat_ts"], -80.0, 80.0)
+    x_ref, y_ref = ground.lonlat_to_map(lon, lat)
+    x, y = fast.lonlat_to_map(lon, lat)
+    if not (np.allclose(x, x_ref, atol=1e-6, rtol=0) and np.allclose(y, y_ref, atol=1e-6, rtol=0)):
+        return None
+    return fast
+
+
+class MapProjection:
+    """Map coordinates of a CRS <-> lon/lat/XYZ, in closed form where possible.
+
+    Equirectangular CRSs on a sphere (such as ``IAU_2015:49910`` and the simulator's
+    local maps) are converted with closed formulas (checked against PROJ when the object
+    is built); any other CRS goes through :class:`~planetref.camera.geodesy.CrsGround`.
+
+    Args:
+        crs: Anything ``pyproj.CRS.from_user_input`` accepts (not geocentric).
+
+    Raises:
+        CrsError: If the CRS is invalid or geocentric.
+    """
+
+    def __init__(self, crs: object) -> None:
+        self.ground = CrsGround(crs)
+        self.crs = self.ground.crs
+        self.ellipsoid: Ellipsoid = self.ground.ellipsoid
+        self._fast = _eqc_fast_path(self.ground)
+
+    @property
+    def is_closed_form(self) -> bool:
+        """True when the closed-form equirectangular path is used."""
+        return self._fast is not None
+
+    def lonlat_to_map(self, lon_deg: ArrayLike, lat_deg: ArrayLike
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Planetocentric lon/lat (degrees) to map coordinates."""
+        lon, lat = np.asarray(lon_deg, float), np.asarray(lat_deg, float)
+        if self._fast is not None:
+            return self._fast.lonlat_to_map(lon, lat)
+        return self.ground.lonlat_to_map(lon, lat)
+
+    def map_to_lonlat(self, x: ArrayLike, y: ArrayLike
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Map coordinates to planetocentric lon/lat in degrees."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        if self._fast is not None:
+            return self._fast.map_to_lonlat(x, y)
+        return self.ground.map_to_lonlat(x, y)
+
+    def xyz_to_map(self, xyz: ArrayLike
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Body-fixed XYZ (m, shape ``(..., 3)``) to map ``x, y`` and height above the body."""
+        if self._fast is not None:
+            lon, lat, h = xyz_to_lonlat(xyz, self.ellipsoid)
+            x, y = self._fast.lonlat_to_map(lon, lat)
+            return x, y, h
+        return self.ground.xyz_to_map(xyz)
+
+    def map_to_xyz(self, x: ArrayLike, y: ArrayLike, height_m: ArrayLike) -> NDArray[np.float64]:
+        """Map ``x, y`` and height (m) to body-fixed XYZ (m), shape ``(..., 3)``."""
+        if self._fast is not None:
+            lon, lat = self._fast.map_to_lonlat(np.asarray(x, float), np.asarray(y, float))
+            return lonlat_to_xyz(lon, lat, height_m, self.ellipsoid)
+        return self.ground.map_to_xyz(x, y, height_m)
+
+
+class GridTerrain:
+    """A DEM held in memory: heights on a regular grid of a map CRS.
+
+    Implements the :class:`~planetref.camera.base.Terrain` protocol (``height`` takes
+    planetocentric lon/lat in degrees) and adds map-coordinate access and an exact ray
+    intersection (:meth:`intersect_rays`).
+
+    Args:
+        heights: Heights in metres above the CRS's reference body, shape ``(rows, cols)``.
+            Stored as given (float32 is kept as float32); NaN marks nodata.
+        transform: Affine geotransform (``rasterio.Affine``, or the six GDAL coefficients
+            ``(x0, dx, rx, y0, ry, dy)``) from pixel ``(col, row)`` to map ``(x, y)``.
+        crs: The map CRS (anything ``pyproj.CRS.from_user_input`` accepts). It must not be
+            geocentric.
+        nodata: A value in ``heights`` that means "no data"; such pixels become NaN
+            (the array is then copied to floating point).
+
+    Raises:
+        InputError: If the array is not 2-D, has fewer than 2 x 2 pixels, holds no finite
+            value or the transform is singular.
+        CrsError: If the CRS is invalid or geocentric.
+    """
+
+    def __init__(self, heights: ArrayLike, transform: object, crs: object,
+                 *, nodata: float | None = None) -> None:
+        from affine import Affine
+
+        h = np.asarray(heights)
+        if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
+            raise InputError(f"heights must be a 2-D array of at least 2 x 2, got {h.shape}")
+        if not np.issubdtype(h.dtype, np.floating):
+            h = h.astype(np.float64)
+        if nodata is not None and np.isfinite(nodata):
+            h = np.where(h == nodata, np.nan, h).astype(h.dtype)
+        finite = np.isfinite(h)
+        if not finite.any():
+            raise InputError("the DEM holds no finite height")
+        self.heights: NDArray[np.floating] = h
+        if isinstance(transform, Affine):
+            self.transform = transform
+        else:
+            coeffs = tuple(float(v) for v in transform)  # type: ignore[union-attr]
+            if len(coeffs) != 6:
+                raise InputError(f"transform needs 6 coefficients, got {len(coeffs)}")
+            self.transform = Affine.from_gdal(*coeffs)
+        if abs(self.transform.determinant) == 0.0:
+            raise InputError(f"singular geotransform {tuple(self.transform)[:6]}")
+        self._inverse = ~self.transform
+        self.projection = MapProjection(crs)
+        self.crs = self.projection.crs
+        self.ellipsoid: Ellipsoid = self.projection.ellipsoid
+        self.min_height_m = float(np.min(h[finite]))
+        self.max_height_m = float(np.max(h[finite]))
+        self._max_slope: float | None = None
+        self._flat = np.ascontiguousarray(h).reshape(-1)
+
+    # -- construction -------------------------------------------------------------------
+    @classmethod
+    def from_geotiff(cls, path: str | PathLike[str], *, band: int = 1) -> GridTerrain:
+        """Read a DEM from a GeoTIFF (or any raster GDAL reads).
+
+        Args:
+            path: The raster file.
+            band: 1-based band index holding the heights (metres).
+
+        Returns:
+            The DEM, with nodata pixels (the band's nodata value, and NaN) as NaN.
+
+        Raises:
+            MissingFileError: If the file does not exist.
+            UnsupportedFormatError: If GDAL cannot read it.
+            CrsError: If the raster has no CRS.
+            InputError: If the band does not exist or holds no finite height.
+        """
+        import rasterio
+        from rasterio.errors import RasterioIOError
+
+        p = Path(path)
+        if not p.exists():
+            raise MissingFileError("DEM file not found", path=p)
+        try:
+            with rasterio.open(p) as ds:
+                if not 1 <= band <= ds.count:
+                    raise InputError(f"band {band} does not exist (the file has {ds.count})",
+                                     path=p)
+                if ds.crs is None:
+                    raise CrsError("the DEM has no CRS", path=p)
+                data = ds.read(band)
+                nodata = ds.nodatavals[band - 1]
+                transform, crs = ds.transform, ds.crs
+        except RasterioIOError as exc:
+            raise UnsupportedFormatError(f"cannot read raster ({exc})", path=p) from None
+        if not np.issubdtype(data.dtype, np.floating):
+            data = data.astype(np.float32 if data.itemsize <= 2 else np.float64)
+        try:
+            return cls(data, transform, crs, nodata=nodata)
+        except InputError as exc:
+            raise InputError(str(exc), path=p) from None
+
+    def to_geotiff(self, path: str | PathLike[str], *, compress: str = "deflate") -> None:
+        """Write the DEM as a single-band GeoTIFF (NaN nodata, tiled, no timestamps).
+
+        Args:
+            path: Output file; overwritten if it exists.
+            compress: GDAL compression name ("deflate", "lzw", "none").
+        """
+        import rasterio
+
+        profile = {
+            "driver": "GTiff", "width": self.shape[1], "height": self.shape[0], "count": 1,
+            "dtype": self.heights.dtype.name, "crs": rasterio.crs.CRS.from_wkt(self.crs.to_wkt()),
+            "transform": self.transform, "nodata": float("nan"),
+        }
+        if compress != "none":
+            profile.update(compress=compress, predictor=3)
+        if self.shape[0] >= 256 and self.shape[1] >= 256:
+            profile.update(tiled=True, blockxsize=256, blockysize=256)
+        with rasterio.Env(GDAL_PAM_ENABLED="NO"), rasterio.open(path, "w", **profile) as ds:
+            ds.write(self.heights, 1)
+
+    # -- properties ---------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` of the grid."""
+        return (int(self.heights.shape[0]), int(self.heights.shape[1]))
+
+    @property
+    def sampling_m(self) -> float:
+        """Ground distance (m) between neighbouring pixel centres (the smaller axis).
+
+        Measured on the body at the grid's centre.
+        """
+        rows, cols = self.shape
+        c, r = cols / 2.0, rows / 2.0
+        pts = [self.transform @ (c, r), self.transform @ (c + 1, r), self.transform @ (c, r + 1)]
+        xs = np.array([p[0] for p in pts])
+        ys = np.array([p[1] for p in pts])
+        xyz = self.map_to_xyz(xs, ys, np.zeros(3))
+        return float(min(np.linalg.norm(xyz[1] - xyz[0]), np.linalg.norm(xyz[2] - xyz[0])))
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` of the raster's extent in map units."""
+        rows, cols = self.shape
+        corners = [self.transform @ (c, r) for c in (0, cols) for r in (0, rows)]
+        xs = [p[0] for p in corners]
+        ys = [p[1] for p in corners]
+        return (min(xs), min(ys), max(xs), max(ys))
+
+    @property
+    def max_slope(self) -> float:
+        """The largest height gradient (m/m) between neighbouring pixels (computed once)."""
+        if self._max_slope is None:
+            h = self.heights
+            res_x = float(np.hypot(self.transform.a, self.transform.d))
+            res_y = float(np.hypot(self.transform.b, self.transform.e))
+            scale = self.sampling_m / min(res_x, res_y)  # metres per map unit (approx.)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                gx = np.nanmax(np.abs(np.diff(h, axis=1))) / (res_x * scale)
+                gy = np.nanmax(np.abs(np.diff(h, axis=0))) / (res_y * scale)
+            self._max_slope = float(np.nanmax([gx, gy, 0.0]) * np.sqrt(2.0))
+        return self._max_slope
+
+    # -- coordinates --------------------------------------------------------------------
+    def lonlat_to_map(self, lon_deg: ArrayLike, lat_deg: ArrayLike
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Planetocentric lon/lat (degrees) to map coordinates of the grid's CRS."""
+        return self.projection.lonlat_to_map(lon_deg, lat_deg)
+
+    def map_to_lonlat(self, x: ArrayLike, y: ArrayLike
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Map coordinates to planetocentric lon/lat in degrees."""
+        return self.projection.map_to_lonlat(x, y)
+
+    def xyz_to_map(self, xyz: ArrayLike
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Body-fixed XYZ (m, shape ``(..., 3)``) to map ``x, y`` and height above the body."""
+        return self.projection.xyz_to_map(xyz)
+
+    def map_to_xyz(self, x: ArrayLike, y: ArrayLike, height_m: ArrayLike) -> NDArray[np.float64]:
+        """Map ``x, y`` and height (m) to body-fixed XYZ (m), shape ``(..., 3)``."""
+        return self.projection.map_to_xyz(x, y, height_m)
+
+    def map_to_pixel(self, x: ArrayLike, y: ArrayLike
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Map coordinates to continuous ``(row, col)`` with pixel centres at integers.
+
+        Pixel ``(0, 0)``'s centre maps to ``(0.0, 0.0)`` here (unlike image coordinates of
+        cameras, which put it at ``(0.5, 0.5)``), which is the convenient index space for
+        interpolation.
+        """
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        inv = self._inverse
+        col = inv.a * x + inv.b * y + inv.c - 0.5
+        row = inv.d * x + inv.e * y + inv.f - 0.5
+        return row, col
+
+    # -- sampling -----------------------------------------------------------------------
+    def height_at_map(self, x: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
+        """Bilinearly interpolated height (m) at map coordinates; NaN outside or in holes."""
+        row, col = self.map_to_pixel(x, y)
+        return self._bilinear(row, col)
+
+    def height(self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
+               ) -> NDArray[np.float64]:
+        """Height (m) at planetocentric lon/lat (degrees); NaN outside or in holes."""
+        x, y = self.lonlat_to_map(lon_deg, lat_deg)
+        return self.height_at_map(x, y)
+
+    def _bilinear(self, row: NDArray[np.float64], col: NDArray[np.float64]
+                  ) -> NDArray[np.float64]:
+        rows, cols = self.shape
+        inside = (row >= -0.5) & (row <= rows - 0.5) & (col >= -0.5) & (col <= cols - 0.5)
+        r = np.clip(row, 0.0, rows - 1.0)
+        c = np.clip(col, 0.0, cols - 1.0)
+        r0 = np.minimum(r.astype(np.intp), rows - 2)
+        c0 = np.minimum(c.astype(np.intp), cols - 2)
+        fr = r - r0
+        fc = c - c0
+        flat = self._flat
+        idx = r0 * cols + c0
+        h00 = flat.take(idx)
+        h01 = flat.take(idx + 1)
+        h10 = flat.take(idx + cols)
+        h11 = flat.take(idx + (cols + 1))
+        top = h00 + fc * (h01 - h00)
+        bot = h10 + fc * (h11 - h10)
+        out = top + fr * (bot - top)
+        if not inside.all():
+            out = np.where(inside, out, np.nan)
+        return out.astype(np.float64, copy=False)
+
+    # -- ray intersection ---------------------------------------------------------------
+    def intersect_rays(self, origin: ArrayLike, direction: ArrayLike, *,
+                       tol_m: float = 1e-5, max_iter: int = 60) -> RayHits:
+        """First intersection of rays with the (bilinearly interpolated) DEM surface.
+
+        Rays whose direction is close to the local vertical (so that the slope of the DEM
+        times the tangent of the ray's off-vertical angle stays below 0.5) are solved by
+        the fixed-point iteration ``h <- DEM(point of the ray at height h)``, which then
+        provably converges to the unique intersection. Other rays, and any that do not
+        converge, are marched from the DEM's top down in steps of half a DEM pixel and
+        refined by bisection, which returns the first intersection (occlusions handled).
+        Ray origins must lie above the DEM's highest point (a camera in orbit or in the
+        air); for a sphere and an equirectangular CRS the iteration runs in closed form.
+
+        Args:
+            origin: Ray origins, body-fixed metres, shape ``(M, 3)``.
+            direction: Ray directions (any length), shape ``(M, 3)``.
+            tol_m: Height tolerance of the solution in metres.
+            max_iter: Iterations of the fixed-point solver before falling back to marching.
+
+        Returns:
+            The hits; rows are NaN where a ray misses the DEM (leaves its extent or meets a
+            hole first).
+        """
+        o = np.atleast_2d(np.asarray(origin, dtype=np.float64))
+        d = np.atleast_2d(np.asarray(direction, dtype=np.float64))
+        o, d = np.broadcast_arrays(o, d)
+        if o.shape[-1] != 3:
+            raise InputError(f"rays need a last axis of length 3, got {o.shape}")
+        o = o.reshape(-1, 3)
+        d = d.reshape(-1, 3)
+        d = d / np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)[:, None]
+        m = o.shape[0]
+        out_xyz = np.full((m, 3), np.nan)
+        out_x = np.full(m, np.nan)
+        out_y = np.full(m, np.nan)
+        out_h = np.full(m, np.nan)
+        if m == 0:
+            return RayHits(out_xyz, out_x, out_y, out_h)
+
+        # Off-vertical angle of each ray at the mean terrain height.
+        h_mid = 0.5 * (self.min_height_m + self.max_height_m)
+        if self.ellipsoid.is_sphere:
+            od = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1] + o[:, 2] * d[:, 2]
+            disc = od * od - (o[:, 0] ** 2 + o[:, 1] ** 2 + o[:, 2] ** 2) + (
+                self.ellipsoid.semi_major_m + h_mid) ** 2
+            with np.errstate(invalid="ignore"):
+                s_mid = -od - np.sqrt(disc)
+            s_mid[~(s_mid >= 0)] = np.nan
+        else:
+            s_mid = ray_ellipsoid_intersection(o, d, self.ellipsoid, h_mid)
+        p_mid = o + s_mid[:, None] * d
+        cos_t = -(p_mid[:, 0] * d[:, 0] + p_mid[:, 1] * d[:, 1] + p_mid[:, 2] * d[:, 2])
+        cos_t = np.clip(cos_t / np.sqrt(p_mid[:, 0] ** 2 + p_mid[:, 1] ** 2 + p_mid[:, 2] ** 2),
+                        1e-9, 1.0)
+        tan_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None)) / cos_t
+        easy = np.isfinite(s_mid) & (tan_t * self.max_slope < 0.5)
+
+        todo = np.flatnonzero(easy)
+        if todo.size:
+            oo, dd = o[todo], d[todo]
+            if self.ellipsoid.is_sphere and self.projection._fast is not None:
+                h, done, pts, x, y = self._fixed_point_sphere(oo, dd, h_mid, tol_m, max_iter)
+            else:
+                h, done, pts, x, y = self._fixed_point(oo, dd, h_mid, tol_m, max_iter)
+            idx = todo[done]
+            out_xyz[idx] = pts[done]
+            out_h[idx] = h[done]
+            out_x[idx], out_y[idx] = x[done], y[done]
+            # Anything not converged (including rays that stepped off the grid on the way)
+            # is left to the marcher, which also finds genuine misses.
+            easy[todo[~done]] = False
+
+        hard = np.flatnonzero(~easy & np.isfinite(s_mid))
+        if hard.size:
+            self._march(o[hard], d[hard], hard, out_xyz, out_x, out_y, out_h, tol_m)
+        return RayHits(out_xyz, out_x, out_y, out_h)
+
+    def _fixed_point(self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float,
+                     tol_m: float, max_iter: int) -> tuple[NDArray[np.float64], ...]:
+        """``h <- DEM(ray point at height h)`` for any body and CRS."""
+        h = np.full(len(o), h0)
+        done = np.zeros(len(o), dtype=bool)
+        for _ in range(max_iter):
+            s = ray_ellipsoid_intersection(o, d, self.ellipsoid, h)
+            x, y, _ = self.xyz_to_map(o + s[:, None] * d)
+            h_new = self.height_at_map(x, y)
+            done = np.isfinite(h_new) & (np.abs(h_new - h) < tol_m)
+            h = np.where(np.isfinite(h_new), h_new, h)
+            if np.all(done | ~np.isfinite(h_new)):
+                break
+        s = ray_ellipsoid_intersection(o, d, self.ellipsoid, h)
+        done &= np.isfinite(s)
+        pts = o + s[:, None] * d
+        x, y, _ = self.xyz_to_map(pts)
+        return h, done, pts, x, y
+
+    def _fixed_point_sphere(self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float,
+                            tol_m: float, max_iter: int) -> tuple[NDArray[np.float64], ...]:
+        """The same iteration, in closed form for a sphere and an equirectangular map."""
+        fast = self.projection._fast
+        if fast is None:
+            return self._fixed_point(o, d, h0, tol_m, max_iter)
+        radius = self.ellipsoid.semi_major_m
+        ox, oy, oz = (np.ascontiguousarray(o[:, k]) for k in range(3))
+        dx, dy, dz = (np.ascontiguousarray(d[:, k]) for k in range(3))
+        od = ox * dx + oy * dy + oz * dz
+        base = od * od - (ox * ox + oy * oy + oz * oz)
+        kx = fast.kx * 180.0 / np.pi  # map metres per radian
+        ky = fast.ky * 180.0 / np.pi
+        lon0, lat0 = np.radians(fast.lon_0), np.radians(fast.lat_0)
+
+        def to_map(h: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+            with np.errstate(invalid="ignore"):
+                s = -od - np.sqrt(base + (radius + h) ** 2)
+            px, py, pz = ox + s * dx, oy + s * dy, oz + s * dz
+            dlon = np.arctan2(py, px) - lon0
+            if dlon.size and (dlon.min() < -np.pi or dlon.max() >= np.pi):
+                dlon = (dlon + np.pi) % (2 * np.pi) - np.pi
+            lat = np.arctan2(pz, np.hypot(px, py))
+            return s, fast.x_0 + kx * dlon, fast.y_0 + ky * (lat - lat0)
+
+        h = np.full(len(o), h0)
+        done = np.zeros(len(o), dtype=bool)
+        for _ in range(max_iter):
+            _, x, y = to_map(h)
+            h_new = self.height_at_map(x, y)
+            finite = np.isfinite(h_new)
+            done = finite & (np.abs(h_new - h) < tol_m)
+            h = np.where(finite, h_new, h)
+            if np.all(done | ~finite):
+                break
+        s, x, y = to_map(h)
+        done &= np.isfinite(s)
+        pts = o + s[:, None] * d
+        return h, done, pts, x, y
+
+    def _ray_height_minus_dem(self, o: NDArray[np.float64], d: NDArray[np.float64],
+                              s: NDArray[np.float64]
+                              ) -> tuple[NDArray[np.float64], ...]:
+        pts = o + s[:, None] * d
+        x, y, h_ray = self.xyz_to_map(pts)
+        return h_ray - self.height_at_map(x, y), pts, x, y
+
+    def _march(self, o: NDArray[np.float64], d: NDArray[np.float64], idx: NDArray[np.intp],
+               out_xyz: NDArray[np.float64], out_x: NDArray[np.float64],
+               out_y: NDArray[np.float64], out_h: NDArray[np.float64], tol_m: float) -> None:
+        s_top = ray_ellipsoid_intersection(o, d, self.ellipsoid, self.max_height_m + 1.0)
+        s_bot = ray_ellipsoid_intersection(o, d, self.ellipsoid, self.min_height_m - 1.0)
+        s_bot = np.where(np.isfinite(s_bot), s_bot, s_top + 4.0 * (self.max_height_m
+                                                                  - self.min_height_m + 2.0))
+        step = 0.5 * self.sampling_m
+        n_steps = int(np.nanmax(np.ceil((s_bot - s_top) / step))) if np.any(
+            np.isfinite(s_top)) else 0
+        active = np.isfinite(s_top)
+        s_prev = s_top.copy()
+        f_prev, *_ = self._ray_height_minus_dem(o, d, s_prev)
+        lo = np.full(len(o), np.nan)
+        hi = np.full(len(o), np.nan)
+        for k in range(1, n_steps + 1):
+            if not active.any():
+                break
+            a = np.flatnonzero(active)
+            s_cur = np.minimum(s_top[a] + k * step, s_bot[a])
+            f_cur, *_ = self._ray_height_minus_dem(o[a], d[a], s_cur)
+            crossed = (f_cur <= 0) & np.isfinite(f_prev[a])
+            lost = ~np.isfinite(f_cur) & np.isfinite(f_prev[a])  # left the DEM or hit a hole
+            lo[a[crossed]] = s_prev[a[crossed]]
+            hi[a[crossed]] = s_cur[crossed]
+            finished = crossed | lost | (s_cur >= s_bot[a])
+            s_prev[a] = s_cur
+            f_prev[a] = f_cur
+            active[a[finished]] = False
+        found = np.flatnonzero(np.isfinite(lo))
+        if not found.size:
+            return
+        oo, dd, a_, b_ = o[found], d[found], lo[found], hi[found]
+        for _ in range(80):
+            mid = 0.5 * (a_ + b_)
+            f_mid, *_ = self._ray_height_minus_dem(oo, dd, mid)
+            above = f_mid > 0
+            a_ = np.where(above, mid, a_)
+            b_ = np.where(above, b_, mid)
+            if np.max(b_ - a_) < tol_m * 0.1:
+                break
+        s = 0.5 * (a_ + b_)
+        _, pts, x, y = self._ray_height_minus_dem(oo, dd, s)
+        h = self.height_at_map(x, y)
+        out_xyz[idx[found]] = pts
+        out_x[idx[found]] = x
+        out_y[idx[found]] = y
+        out_h[idx[found]] = h

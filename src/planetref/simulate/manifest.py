@@ -1,0 +1,301 @@
+"""The scene manifest ``scene.toml``: what a scene directory contains.
+
+The manifest is the pipeline's entry point for simulated and real data alike; see
+``docs/scene-manifest.md`` for the format. Paths are relative to the manifest's
+folder (absolute paths are accepted for real data). Unknown keys are rejected with
+the list of the valid keys.
+
+Example::
+
+    format = "planetref-scene"
+    version = 1
+    name = "tiny"
+
+    [body]
+    name = "Mars"
+    semi_major_m = 3396190.0
+    semi_minor_m = 3396190.0
+
+    [reference]
+    ortho = "reference/ortho.tif"
+    dem = "reference/dem.tif"
+
+    [[strips]]
+    id = "strip1"
+
+    [[strips.ccds]]
+    name = "ccd1"
+    image = "strips/strip1/ccd1.tif"
+    camera = "strips/strip1/camera.json"
+    camera_ccd = "ccd1"
+    rpc = "strips/strip1/ccd1.RPB"
+
+    [truth]
+    dem = "truth/dem.tif"
+    ortho_offset_m = [0.0, 0.0]
+
+    [truth.cameras]
+    strip1 = "truth/strip1.camera.json"
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from planetref.camera.geodesy import Ellipsoid
+from planetref.errors import InputError, MissingFileError
+from planetref.simulate.config import format_validation_error
+
+__all__ = [
+    "MANIFEST_FORMAT",
+    "MANIFEST_NAME",
+    "MANIFEST_VERSION",
+    "BodySpec",
+    "CcdSpec",
+    "ReferenceSpec",
+    "SceneManifest",
+    "StripSpec",
+    "TruthSpec",
+    "load_manifest",
+    "write_manifest",
+]
+
+MANIFEST_FORMAT = "planetref-scene"
+MANIFEST_VERSION = 1
+MANIFEST_NAME = "scene.toml"
+
+_ID = r"^[A-Za-z0-9_.-]{1,64}$"
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class BodySpec(_Model):
+    """The reference body of every height and latitude in the scene.
+
+    Attributes:
+        name: Name of the body (informative).
+        semi_major_m: Equatorial radius (m).
+        semi_minor_m: Polar radius (m).
+    """
+
+    name: str = "Mars"
+    semi_major_m: float = Field(default=3396190.0, gt=0)
+    semi_minor_m: float = Field(default=3396190.0, gt=0)
+
+    def ellipsoid(self) -> Ellipsoid:
+        """The body as an :class:`~planetref.camera.geodesy.Ellipsoid`."""
+        return Ellipsoid(self.semi_major_m, self.semi_minor_m, self.name)
+
+
+class ReferenceSpec(_Model):
+    """The reference data the images are registered to.
+
+    Attributes:
+        ortho: Orthoimage (georeferenced raster, any GDAL format, e.g. a CTX mosaic).
+        dem: DEM (georeferenced raster of heights in metres above ``body``).
+        ortho_band: 1-based band of the ortho to use.
+        dem_band: 1-based band of the DEM.
+    """
+
+    ortho: str
+    dem: str
+    ortho_band: int = Field(default=1, ge=1)
+    dem_band: int = Field(default=1, ge=1)
+
+
+class CcdSpec(_Model):
+    """One CCD image of a strip and its camera.
+
+    Attributes:
+        name: CCD name, unique within the strip.
+        image: The image (GDAL raster; band 1 is used).
+        camera: The camera file: native line-scan JSON, USGS CSM ISD or RPC
+            (``.RPB``, ``_RPC.TXT`` or a GeoTIFF with RPC tags).
+        camera_ccd: Name of this CCD inside a multi-CCD camera file (native JSON),
+            default: the camera's first CCD.
+        rpc: Optional RPC fitted to the camera (any of the RPC formats).
+    """
+
+    name: str = Field(pattern=_ID)
+    image: str
+    camera: str
+    camera_ccd: str | None = None
+    rpc: str | None = None
+
+
+class StripSpec(_Model):
+    """A strip: the CCD images taken together (they share one orbit and attitude).
+
+    Attributes:
+        id: Strip identifier, unique within the scene.
+        ccds: Its CCDs (at least one).
+    """
+
+    id: str = Field(pattern=_ID)
+    ccds: tuple[CcdSpec, ...] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _unique_ccds(self) -> StripSpec:
+        names = [c.name for c in self.ccds]
+        if len(set(names)) != len(names):
+            raise ValueError(f"CCD names must be unique within a strip, got {names}")
+        return self
+
+
+class TruthSpec(_Model):
+    """Ground truth of a simulated scene (absent for real data).
+
+    Attributes:
+        dem: Full-resolution truth DEM.
+        cameras: True camera file (native JSON) of each strip, by strip id.
+        ortho_offset_m: ``(dx, dy)`` map offset of the reference ortho: a feature's
+            position in the ortho minus its true position.
+        checkpoints: CSV of check points (strip, ccd, line, sample, X, Y, Z, lon, lat, h).
+        errors: JSON with the measured errors of the initial cameras.
+        craters: CSV of the crater population.
+        config: The full simulation config (TOML) that made the scene.
+    """
+
+    dem: str
+    cameras: dict[str, str]
+    ortho_offset_m: tuple[float, float] = (0.0, 0.0)
+    checkpoints: str | None = None
+    errors: str | None = None
+    craters: str | None = None
+    config: str | None = None
+
+
+class SceneManifest(_Model):
+    """The content of ``scene.toml``.
+
+    Attributes:
+        format: Always ``"planetref-scene"``.
+        version: Format version (1).
+        name: Scene name.
+        body: Reference body.
+        reference: Reference ortho and DEM.
+        strips: The strips (at least one).
+        truth: Ground truth (simulated scenes only).
+    """
+
+    format: Literal["planetref-scene"] = MANIFEST_FORMAT
+    version: Literal[1] = MANIFEST_VERSION
+    name: str = "scene"
+    body: BodySpec = BodySpec()
+    reference: ReferenceSpec
+    strips: tuple[StripSpec, ...] = Field(min_length=1)
+    truth: TruthSpec | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> SceneManifest:
+        ids = [s.id for s in self.strips]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"strip ids must be unique, got {ids}")
+        if self.truth is not None:
+            missing = sorted(set(ids) - set(self.truth.cameras))
+            if missing:
+                raise ValueError(f"truth.cameras lacks strips {missing}")
+        return self
+
+    def resolve(self, root: str | os.PathLike[str], relative: str) -> Path:
+        """The absolute path of a manifest path, relative to the manifest folder ``root``."""
+        p = Path(relative)
+        return p if p.is_absolute() else Path(root) / p
+
+    def paths(self) -> list[str]:
+        """Every file path the manifest names (for existence checks)."""
+        out = [self.reference.ortho, self.reference.dem]
+        for s in self.strips:
+            for c in s.ccds:
+                out += [c.image, c.camera] + ([c.rpc] if c.rpc else [])
+        if self.truth is not None:
+            t = self.truth
+            out += [t.dem, *t.cameras.values()]
+            out += [p for p in (t.checkpoints, t.errors, t.craters, t.config) if p]
+        return out
+
+    def strip(self, strip_id: str) -> StripSpec:
+        """The strip with this id.
+
+        Raises:
+            InputError: Unknown id (the message lists the valid ones).
+        """
+        for s in self.strips:
+            if s.id == strip_id:
+                return s
+        raise InputError(f"unknown strip {strip_id!r}; strips: {[s.id for s in self.strips]}")
+
+
+def load_manifest(path: str | os.PathLike[str], *, check_files: bool = True
+                  ) -> tuple[SceneManifest, Path]:
+    """Read and validate a scene manifest.
+
+    Args:
+        path: ``scene.toml``, or the scene folder that holds it.
+        check_files: Also check that every file it names exists.
+
+    Returns:
+        ``(manifest, root)``: the manifest and the folder its paths are relative to.
+
+    Raises:
+        MissingFileError: If the manifest (or, with ``check_files``, a file it names)
+            does not exist.
+        InputError: If it is not valid TOML or not a valid manifest (the message names
+            the key at fault and lists the valid keys).
+    """
+    p = Path(path)
+    if p.is_dir():
+        p = p / MANIFEST_NAME
+    if not p.is_file():
+        raise MissingFileError("scene manifest not found", path=p)
+    try:
+        data: dict[str, Any] = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML ({exc})", path=p) from None
+    fmt = data.get("format")
+    if fmt != MANIFEST_FORMAT:
+        raise InputError(f"expected format = {MANIFEST_FORMAT!r}, got {fmt!r}", path=p,
+                         field="format")
+    try:
+        manifest = SceneManifest.model_validate(data)
+    except ValidationError as exc:
+        raise InputError(f"invalid scene manifest: {format_validation_error(exc, SceneManifest)}",
+                         path=p) from None
+    root = p.parent
+    if check_files:
+        for rel in manifest.paths():
+            if not manifest.resolve(root, rel).exists():
+                raise MissingFileError(f"file named by the manifest not found: {rel}",
+                                       path=manifest.resolve(root, rel))
+    return manifest, root
+
+
+def manifest_to_dict(manifest: SceneManifest) -> dict[str, Any]:
+    """The manifest as a TOML-ready table (None values left out)."""
+    return manifest.model_dump(mode="json", exclude_none=True)
+
+
+def write_manifest(manifest: SceneManifest, path: str | os.PathLike[str]) -> Path:
+    """Write ``scene.toml`` (deterministic: same manifest, same bytes).
+
+    Args:
+        manifest: The manifest.
+        path: Output file.
+
+    Returns:
+        The path written.
+    """
+    import tomli_w
+
+    p = Path(path)
+    text = ("# planetref scene manifest; see docs/scene-manifest.md\n"
+            + tomli_w.dumps(manifest_to_dict(manifest)))
+    p.write_text(text, encoding="utf-8")
+    return p

@@ -1,0 +1,310 @@
+"""Truth and initial line-scan cameras of a strip, from orbit geometry.
+
+Orbit
+-----
+A circular orbit of radius ``R + altitude`` around the Mars sphere. At ``t = 0`` (the
+strip's centre line) the spacecraft is above the strip centre, and its *body-fixed*
+ground track there has the configured heading. With ``orbit.body_rotation`` the orbit
+is inertial and Mars turns under it (``omega = 350.89198226 deg/day`` about +Z): the
+inertial velocity at ``t = 0`` is solved so that the body-fixed velocity points along
+the heading, and positions are rotated into the body-fixed frame at every time.
+
+Orbit frame and attitude
+------------------------
+The orbit frame ``L(t)`` has x along the body-fixed velocity (made horizontal), z up
+(radial) and ``y = z x x`` (to the left of the track). The camera's rotation
+(camera -> body-fixed) is ``L(t) @ P @ J(t)`` for the truth and ``L(t) @ P @ E(t)``
+for the initial camera, where ``P`` is the strip's fixed pointing, ``J`` the jitter
+and ``E`` the attitude bias + drift; each of them is ``Rx(roll) @ Ry(pitch) @
+Rz(yaw)`` with right-handed rotations about the orbit-frame axes (a positive roll
+turns the boresight, the camera's -z axis, towards +y, the left of the track).
+These rotations are converted to the phi/omega/kappa node angles of
+:class:`~planetref.camera.linescan.LineScanCamera` relative to ``R0 = L(0)``, and the
+camera interpolates them (Lagrange, ``orbit.interpolation_order``) between nodes:
+the cameras written to disk *are* the truth; the analytic orbit only generates them.
+
+Time runs from ``-n_lines/2 * period`` (line 0) and is 0 at the centre line.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.camera.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
+from planetref.camera.linescan import (
+    InteriorOrientation,
+    LineRateTable,
+    LineScanCamera,
+)
+from planetref.camera.orbit import MARS_GM_M3_S2, ccd_row
+from planetref.simulate.config import SimulationConfig, StripConfig
+
+__all__ = [
+    "MARS_ROTATION_RAD_S",
+    "CircularOrbit",
+    "StripCameras",
+    "angles_from_rotation",
+    "build_strip_cameras",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+]
+
+F64 = NDArray[np.float64]
+
+MARS_ROTATION_RAD_S = math.radians(350.89198226) / 86400.0
+"""Sidereal rotation rate of Mars (IAU 2015), rad/s."""
+
+
+def rot_x(a: F64) -> F64:
+    """Right-handed rotations about x by angles ``a`` (rad), shape ``a.shape + (3, 3)``."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros((*a.shape, 3, 3))
+    r[..., 0, 0] = 1.0
+    r[..., 1, 1], r[..., 1, 2], r[..., 2, 1], r[..., 2, 2] = c, -s, s, c
+    return r
+
+
+def rot_y(a: F64) -> F64:
+    """Right-handed rotations about y by angles ``a`` (rad)."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros((*a.shape, 3, 3))
+    r[..., 1, 1] = 1.0
+    r[..., 0, 0], r[..., 0, 2], r[..., 2, 0], r[..., 2, 2] = c, s, -s, c
+    return r
+
+
+def rot_z(a: F64) -> F64:
+    """Right-handed rotations about z by angles ``a`` (rad)."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros((*a.shape, 3, 3))
+    r[..., 2, 2] = 1.0
+    r[..., 0, 0], r[..., 0, 1], r[..., 1, 0], r[..., 1, 1] = c, -s, s, c
+    return r
+
+
+def _rpy(roll: F64, pitch: F64, yaw: F64) -> F64:
+    return rot_x(roll) @ rot_y(pitch) @ rot_z(yaw)
+
+
+def angles_from_rotation(m: F64) -> F64:
+    """Inverse of :func:`planetref.camera.linescan.rotation_matrix`.
+
+    Args:
+        m: Rotations ``R_phi(Y) @ R_omega(X) @ R_kappa(Z)``, shape ``(..., 3, 3)``.
+
+    Returns:
+        ``(phi, omega, kappa)`` in radians, shape ``(..., 3)`` (``|omega| < pi/2``).
+    """
+    m = np.asarray(m, dtype=np.float64)
+    omega = -np.arcsin(np.clip(m[..., 1, 2], -1.0, 1.0))
+    kappa = np.arctan2(m[..., 1, 0], m[..., 1, 1])
+    phi = np.arctan2(-m[..., 0, 2], m[..., 2, 2])
+    return np.stack([phi, omega, kappa], axis=-1)
+
+
+@dataclass(frozen=True)
+class CircularOrbit:
+    """A circular orbit seen from the rotating body (see the module docstring).
+
+    Attributes:
+        lat_deg: Planetocentric latitude of the sub-spacecraft point at ``t = 0``.
+        lon_deg: East longitude of that point.
+        heading_deg: Body-fixed ground-track azimuth there (degrees from north).
+        altitude_m: Altitude above the sphere (m).
+        body_rotation: Whether the body rotates under the orbit.
+        ellipsoid: The body (a sphere is assumed for the orbit radius).
+        gm_m3_s2: Gravitational parameter.
+    """
+
+    lat_deg: float
+    lon_deg: float
+    heading_deg: float
+    altitude_m: float
+    body_rotation: bool = True
+    ellipsoid: Ellipsoid = MARS_IAU2015_SPHERE
+    gm_m3_s2: float = MARS_GM_M3_S2
+    _state: tuple[F64, F64, float, float] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        r = self.ellipsoid.semi_major_m + self.altitude_m
+        v = math.sqrt(self.gm_m3_s2 / r)
+        up = lonlat_to_xyz(self.lon_deg, self.lat_deg, 0.0, self.ellipsoid)
+        up = up / np.linalg.norm(up)
+        lon = math.radians(self.lon_deg)
+        east = np.array([-math.sin(lon), math.cos(lon), 0.0])
+        north = np.cross(up, east)
+        h = math.radians(self.heading_deg)
+        fwd = math.cos(h) * north + math.sin(h) * east
+        w = MARS_ROTATION_RAD_S if self.body_rotation else 0.0
+        # Inertial velocity = body-fixed velocity (s * fwd) + w z x r (eastward).
+        spin = w * r * math.cos(math.radians(self.lat_deg))
+        b = spin * math.sin(h)
+        s = -b + math.sqrt(b * b - (spin * spin - v * v))
+        v_in = s * fwd + spin * east
+        q = v_in / np.linalg.norm(v_in)
+        object.__setattr__(self, "_state", (up * r, q * r, v / r, w))
+
+    @property
+    def radius_m(self) -> float:
+        """Orbit radius (m)."""
+        return self.ellipsoid.semi_major_m + self.altitude_m
+
+    def position(self, t: F64) -> F64:
+        """Body-fixed positions (m) at times ``t`` (s), shape ``(M, 3)``."""
+        p0, q0, n, w = self._state
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        pi = np.cos(n * t)[:, None] * p0 + np.sin(n * t)[:, None] * q0
+        return (rot_z(-w * t) @ pi[..., None])[..., 0]
+
+    def velocity(self, t: F64) -> F64:
+        """Body-fixed velocities (m/s) at times ``t`` (s), shape ``(M, 3)``."""
+        p0, q0, n, w = self._state
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        vi = n * (-np.sin(n * t)[:, None] * p0 + np.cos(n * t)[:, None] * q0)
+        pos = self.position(t)
+        return (rot_z(-w * t) @ vi[..., None])[..., 0] - w * np.cross([0.0, 0.0, 1.0], pos)
+
+    def frame(self, t: F64) -> F64:
+        """Orbit frames ``L(t)`` (columns x along, y left, z up; body-fixed), ``(M, 3, 3)``."""
+        pos, vel = self.position(t), self.velocity(t)
+        z = pos / np.linalg.norm(pos, axis=-1, keepdims=True)
+        x = vel - np.sum(vel * z, axis=-1, keepdims=True) * z
+        x /= np.linalg.norm(x, axis=-1, keepdims=True)
+        y = np.cross(z, x)
+        return np.stack([x, y, z], axis=-1)
+
+    def ground_speed(self) -> float:
+        """Speed (m/s) of the sub-spacecraft point on the sphere at ``t = 0``."""
+        v = self.velocity(np.zeros(1))[0]
+        return float(np.linalg.norm(v) * self.ellipsoid.semi_major_m / self.radius_m)
+
+
+@dataclass(frozen=True)
+class StripCameras:
+    """The cameras of one strip.
+
+    Attributes:
+        strip: The strip's configuration.
+        truth: The true camera (with jitter).
+        initial: The initial (navigation) camera, biased and drifting.
+        orbit: The orbit that generated them.
+        facts: ``focal_length_mm``, ``gsd_m``, ``line_period_s``, ``ground_speed_m_s``,
+            ``altitude_m``, ``duration_s``.
+        jitter: ``(axis, amplitude_urad, frequency_hz, phase_rad)`` of each component.
+    """
+
+    strip: StripConfig
+    truth: LineScanCamera
+    initial: LineScanCamera
+    orbit: CircularOrbit
+    facts: dict[str, float]
+    jitter: tuple[tuple[str, float, float, float], ...]
+
+
+def _strip_centre(cfg: SimulationConfig, strip: StripConfig, heading_deg: float
+                  ) -> tuple[float, float]:
+    """Lon/lat of the strip's centre, offset from the site along/across the track."""
+    ell = MARS_IAU2015_SPHERE
+    lat, lon = math.radians(cfg.site.lat_deg), math.radians(cfg.site.lon_deg)
+    up = np.array([math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)])
+    east = np.array([-math.sin(lon), math.cos(lon), 0.0])
+    north = np.cross(up, east)
+    h = math.radians(heading_deg)
+    fwd = math.cos(h) * north + math.sin(h) * east
+    left = np.cross(up, fwd)
+    offset = strip.along_offset_m * fwd + strip.cross_offset_m * left
+    dist = float(np.linalg.norm(offset))
+    if dist == 0:
+        return cfg.site.lon_deg, cfg.site.lat_deg
+    ang = dist / ell.semi_major_m
+    p = math.cos(ang) * up + math.sin(ang) * offset / dist
+    return math.degrees(math.atan2(p[1], p[0])), math.degrees(math.asin(p[2]))
+
+
+def _node_lines(n_lines: int, spacing: int, order: int) -> F64:
+    margin = max(order, 4) * spacing
+    return np.arange(-margin, n_lines + margin + 0.5 * spacing, spacing, dtype=np.float64)
+
+
+def build_strip_cameras(cfg: SimulationConfig, strip: StripConfig, rng: np.random.Generator
+                        ) -> StripCameras:
+    """The truth and initial cameras of a strip.
+
+    Args:
+        cfg: The simulation config (camera, orbit, jitter, initial errors).
+        strip: The strip.
+        rng: Random generator of this strip (jitter phases).
+
+    Returns:
+        The strip's cameras and facts.
+    """
+    cam_cfg, orb = cfg.camera, cfg.orbit
+    heading = orb.heading_deg if strip.heading_deg is None else strip.heading_deg
+    lon, lat = _strip_centre(cfg, strip, heading)
+    orbit = CircularOrbit(lat, lon, heading, orb.altitude_m, orb.body_rotation)
+    focal = cam_cfg.pixel_pitch_mm * orb.altitude_m / cam_cfg.gsd_m
+    ground_speed = orbit.ground_speed()
+    period = cam_cfg.line_period_s or cam_cfg.gsd_m / ground_speed
+    n_lines = cam_cfg.n_lines
+    rates = LineRateTable(((0.0, -0.5 * n_lines * period, period),))
+    ccds = ccd_row(cam_cfg.n_ccds, cam_cfg.n_samples, n_lines, cam_cfg.pixel_pitch_mm,
+                   overlap_px=cam_cfg.overlap_samples, stagger_mm=cam_cfg.ccd_stagger_mm)
+    r0 = orbit.frame(np.zeros(1))[0]
+    pointing = _rpy(*np.radians(np.asarray(strip.pointing_deg, dtype=np.float64)))
+
+    jitter = tuple((j.axis, j.amplitude_urad, j.frequency_hz, float(rng.uniform(0, 2 * np.pi)))
+                   for j in cfg.jitter)
+
+    def jitter_angles(t: F64) -> F64:
+        out = np.zeros((len(t), 3))
+        for axis, amp, freq, ph in jitter:
+            k = {"roll": 0, "pitch": 1, "yaw": 2}[axis]
+            out[:, k] += amp * 1e-6 * np.sin(2 * np.pi * freq * t + ph)
+        return out
+
+    def nodes_for(lines: F64, attitude: F64, position_offset: F64) -> F64:
+        t = rates.time(lines)
+        frames = orbit.frame(t)
+        rot = frames @ pointing @ _rpy(attitude[:, 0], attitude[:, 1], attitude[:, 2])
+        rel = np.einsum("ji,mjk->mik", r0, rot)  # R0^T @ R
+        nodes = np.empty((len(lines), 6))
+        nodes[:, :3] = orbit.position(t) + np.einsum("mij,mj->mi", frames, position_offset)
+        nodes[:, 3:] = angles_from_rotation(rel)
+        return nodes
+
+    order = orb.interpolation_order
+    t_lines = _node_lines(n_lines, orb.truth_node_spacing_lines, order)
+    t_truth = rates.time(t_lines)
+    truth_nodes = nodes_for(t_lines, jitter_angles(t_truth), np.zeros((len(t_lines), 3)))
+    truth = LineScanCamera(ellipsoid=MARS_IAU2015_SPHERE, frame_rotation=r0, line_rates=rates,
+                           node_lines=t_lines, nodes=truth_nodes,
+                           interior=InteriorOrientation(focal_length_mm=focal), ccds=ccds,
+                           interpolation_order=order, name=f"{strip.id} (truth)")
+
+    e = cfg.initial_errors
+    i_lines = _node_lines(n_lines, orb.initial_node_spacing_lines, order)
+    t_init = rates.time(i_lines)[:, None]
+    att = (np.asarray(e.attitude_bias_urad) + np.asarray(e.attitude_drift_urad_per_s) * t_init
+           ) * 1e-6
+    pos = np.asarray(e.position_bias_m) + np.asarray(e.position_drift_m_per_s) * t_init
+    init_nodes = nodes_for(i_lines, att, pos)
+    initial = LineScanCamera(
+        ellipsoid=MARS_IAU2015_SPHERE, frame_rotation=r0, line_rates=rates,
+        node_lines=i_lines, nodes=init_nodes,
+        interior=InteriorOrientation(focal_length_mm=focal * (1.0 + e.focal_length_error_ppm
+                                                              * 1e-6)),
+        ccds=ccds, interpolation_order=order, name=f"{strip.id} (initial)")
+    facts = {"focal_length_mm": focal, "gsd_m": cam_cfg.gsd_m, "line_period_s": period,
+             "ground_speed_m_s": ground_speed, "altitude_m": orb.altitude_m,
+             "duration_s": n_lines * period, "centre_lon_deg": lon, "centre_lat_deg": lat,
+             "heading_deg": heading}
+    return StripCameras(strip=strip, truth=truth, initial=initial, orbit=orbit, facts=facts,
+                        jitter=jitter)

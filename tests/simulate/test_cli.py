@@ -1,0 +1,56 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from planetref.cli import main
+
+MINI_TOML = """
+[site]
+margin_m = 150.0
+[camera]
+n_samples = 48
+overlap_samples = 8
+n_lines = 64
+[terrain]
+dem_gsd_m = 2.0
+[reference]
+dem_pad_m = 500.0
+[render]
+write_rpc = false
+n_checkpoints = 2
+measure_grid = 3
+"""
+
+
+def test_simulate_command(tmp_path: Path) -> None:
+    cfg = tmp_path / "mini.toml"
+    cfg.write_text(MINI_TOML)
+    out = tmp_path / "scene"
+    runner = CliRunner()
+    res = runner.invoke(main, ["simulate", str(out), "--preset", "tiny", "--config", str(cfg),
+                               "--seed", "3", "--preview"])
+    assert res.exit_code == 0, res.output
+    assert (out / "scene.toml").is_file() and (out / "preview.png").stat().st_size > 1000
+    assert "initial geolocation error" in res.output
+    # A second run into the same, now non-empty, folder is refused ...
+    res = runner.invoke(main, ["simulate", str(out), "--preset", "tiny", "--config", str(cfg)])
+    assert res.exit_code == 1 and "--overwrite" in res.output
+    # ... unless --overwrite.
+    res = runner.invoke(main, ["-q", "simulate", str(out), "--preset", "tiny", "--config",
+                               str(cfg), "--overwrite"])
+    assert res.exit_code == 0, res.output
+
+
+def test_bad_preset_and_override(tmp_path: Path) -> None:
+    runner = CliRunner()
+    res = runner.invoke(main, ["simulate", str(tmp_path / "x"), "--preset", "nope"])
+    assert res.exit_code == 1
+    assert "tiny" in res.output and "hiric-strip" in res.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[sensor]\nbits = 12\n")
+    res = runner.invoke(main, ["simulate", str(tmp_path / "x"), "--config", str(bad)])
+    assert res.exit_code == 1
+    assert "sensor.bits" in res.output and "bit_depth" in res.output
+    assert not (tmp_path / "x").exists()
