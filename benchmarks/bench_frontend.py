@@ -1,0 +1,198 @@
+"""Time the matching front end per tile and split its overhead from the model time.
+
+For each matcher (whose weights are present), the script matches every tile of a
+simulated scene through the whole front end -- footprint, orthorectification (or
+downsampling) of the CCD tile, windowed reads of the reference, coarse stage, fine
+stage, USAC_MAGSAC verification and mapping back to raw pixels -- and reports per tile
+pair:
+
+* ``s/tile``: wall seconds of the whole front end (``TileResult.timings["total"]``);
+* ``match s``: seconds inside ``Matcher.match`` (both stages);
+* ``forward s``: seconds of the bare model calls (``Matcher.timings["forward"]``: the
+  detector, descriptor and matcher networks, or OpenCV's detection/correlation);
+* ``overhead``: ``(s/tile - forward) / forward``, the share of pipeline overhead over
+  the bare model forward time on the same tiles (target <= 30 %);
+* ``frontend``: ``(s/tile - match) / match``, what the front end itself adds around the
+  matcher calls;
+* the offset error of each tile against the simulated truth (reference pixels).
+
+One warm-up tile is matched first (it builds the model) and left out of the numbers.
+
+The scene is the simulator's ``tiny`` preset enlarged to 2 CCDs of 1536 x 1536 pixels at
+0.5 m with the reference lit like the images (``--scene DIR`` takes any scene folder
+instead).
+
+Usage::
+
+    python benchmarks/bench_frontend.py [--matchers sift ncc disk-lightglue ...]
+        [--tile 128] [--threads 1] [--weights-dir DIR] [--scene DIR] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SCENE_OVERRIDES = {
+    "photometry": {"reference_sun": {"azimuth_deg": 215.0, "elevation_deg": 40.0}},
+    "camera": {"n_ccds": 2, "n_samples": 1536, "n_lines": 1536, "gsd_m": 0.5,
+               "overlap_samples": 32},
+    "albedo": {"texture_gsd_m": 0.5},
+}
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights"
+
+
+def simulate(out: Path) -> Path:
+    from planetref.simulate import load_config, simulate_scene
+
+    simulate_scene(load_config("tiny", SCENE_OVERRIDES), out)
+    return out
+
+
+def load(root: Path) -> dict:
+    from planetref.camera.linescan import LineScanCamera
+    from planetref.raster.dem import GridTerrain
+    from planetref.raster.ortho import ReferenceOrtho
+    from planetref.simulate.manifest import load_manifest
+
+    man, root = load_manifest(root)
+    strip = man.strips[0]
+    out = {
+        "man": man,
+        "init": LineScanCamera.from_json(man.resolve(root, strip.ccds[0].camera)),
+        "ref": ReferenceOrtho(man.resolve(root, man.reference.ortho)),
+        "dem": GridTerrain.from_geotiff(man.resolve(root, man.reference.dem)),
+        "images": {c.name: man.resolve(root, c.image) for c in strip.ccds},
+        "true": None,
+    }
+    if man.truth is not None:
+        out["true"] = LineScanCamera.from_json(man.resolve(root, man.truth.cameras[strip.id]))
+        out["truth_dem"] = GridTerrain.from_geotiff(man.resolve(root, man.truth.dem))
+    return out
+
+
+def truth_error(s: dict, r) -> float:
+    from planetref.frontend.geometry import image_to_ref_pixel
+
+    if s["true"] is None or r.status != "ok":
+        return float("nan")
+    ref = s["ref"]
+    tc, tr = image_to_ref_pixel(s["true"], r.tile.ccd, r.line, r.sample, ref, s["truth_dem"])
+    dx, dy = s["man"].truth.ortho_offset_m
+    tc, tr = tc + dx / ref.transform.a, tr + dy / ref.transform.e
+    ic, ir = image_to_ref_pixel(s["init"], r.tile.ccd, r.line, r.sample, ref, s["dem"])
+    truth = np.array([np.mean(tc - ic), np.mean(tr - ir)])
+    return float(np.max(np.abs(np.asarray(r.offset_px) - truth)))
+
+
+def bench(name: str, s: dict, cfg, weights_dir: Path | None) -> dict:
+    from planetref.frontend.match_tile import match_tile
+    from planetref.frontend.tiles import plan_tiles
+    from planetref.matching import get_matcher
+    from planetref.raster.image import CcdImage
+
+    options = {"search_radius": 40, "spacing": 8} if name == "ncc" else {}
+    matcher = get_matcher(name, weights_dir=weights_dir, **options)
+    readers = {c: CcdImage(p) for c, p in s["images"].items()}
+    plans = {c: plan_tiles(s["init"], c, s["ref"], s["dem"], cfg) for c in readers}
+    tiles = [(t, plans[c].ratio) for c in readers for t in plans[c].tiles]
+    rows = []
+    for i, (t, ratio) in enumerate([tiles[0], *tiles]):
+        r = match_tile(t, image=readers[t.ccd], camera=s["init"], ref=s["ref"],
+                       terrain=s["dem"], matcher=matcher, config=cfg, ratio=ratio)
+        if i == 0:
+            continue  # warm-up: builds the model
+        tm = r.timings
+        rows.append({
+            "tile": t.tile_id, "status": r.status, "mcps": r.n_points,
+            "total_s": tm.get("total", 0.0),
+            "match_s": tm.get("coarse_match", 0.0) + tm.get("fine_match", 0.0),
+            "forward_s": tm.get("forward", 0.0),
+            "offset_error_px": truth_error(s, r),
+        })
+    for rd in readers.values():
+        rd.close()
+    tot = statistics.median(r["total_s"] for r in rows)
+    mat = statistics.median(r["match_s"] for r in rows)
+    fwd = statistics.median(r["forward_s"] for r in rows)
+    sum_tot = sum(r["total_s"] for r in rows)
+    sum_fwd = sum(r["forward_s"] for r in rows)
+    sum_mat = sum(r["match_s"] for r in rows)
+    errs = [r["offset_error_px"] for r in rows if np.isfinite(r["offset_error_px"])]
+    return {
+        "matcher": name, "tiles": len(rows),
+        "ok": sum(r["status"] == "ok" for r in rows),
+        "s_per_tile": tot, "match_s": mat, "forward_s": fwd,
+        "overhead_share": (sum_tot - sum_fwd) / sum_fwd if sum_fwd > 0 else float("nan"),
+        "frontend_share": (sum_tot - sum_mat) / sum_mat if sum_mat > 0 else float("nan"),
+        "max_offset_error_px": max(errs) if errs else float("nan"),
+        "rows": rows,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--matchers", nargs="+",
+                    default=["sift", "ncc", "disk-lightglue", "aliked-lightglue",
+                             "xfeat-lighterglue"])
+    ap.add_argument("--tile", type=int, default=128, help="tile size, reference pixels")
+    ap.add_argument("--geometry", default="orthorectify", choices=["orthorectify", "downsample"])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--weights-dir", type=Path, default=None)
+    ap.add_argument("--scene", type=Path, default=None, help="a scene folder (scene.toml)")
+    ap.add_argument("--json", action="store_true", help="print JSON only")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from planetref.frontend.config import FrontendConfig
+    from planetref.matching.registry import MATCHERS
+    from planetref.matching.weights import missing_weights
+
+    weights = args.weights_dir or (DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.is_dir() else None)
+    cfg = FrontendConfig(tile_size_ref_px=args.tile, coarse_factor=2, uncertainty_m=150.0,
+                         geometry=args.geometry)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        root = args.scene or simulate(Path(tmp) / "scene")
+        sim_s = time.perf_counter() - t0
+        s = load(root)
+        results, skipped = [], {}
+        for name in args.matchers:
+            spec = MATCHERS.get(name)
+            if spec is None:
+                skipped[name] = "unknown matcher"
+                continue
+            missing = missing_weights(spec.weights, weights)
+            if missing:
+                skipped[name] = f"weights missing: {missing}"
+                continue
+            results.append(bench(name, s, cfg, weights))
+        s["ref"].close()
+    if args.json:
+        print(json.dumps({"config": cfg.model_dump(), "threads": args.threads,
+                          "results": results, "skipped": skipped}, indent=2))
+        return 0
+    print(f"scene: {'given' if args.scene else f'simulated in {sim_s:.1f} s'}; tile "
+          f"{args.tile} ref px; {args.geometry}; torch threads {args.threads}")
+    print(f"{'matcher':<20}{'tiles':>6}{'ok':>4}{'s/tile':>9}{'match s':>9}{'forward s':>11}"
+          f"{'overhead':>10}{'frontend':>10}{'max err px':>12}")
+    for r in results:
+        print(f"{r['matcher']:<20}{r['tiles']:>6}{r['ok']:>4}{r['s_per_tile']:>9.3f}"
+              f"{r['match_s']:>9.3f}{r['forward_s']:>11.3f}{100 * r['overhead_share']:>9.0f}%"
+              f"{100 * r['frontend_share']:>9.0f}%{r['max_offset_error_px']:>12.3f}")
+    for name, why in skipped.items():
+        print(f"{name:<20} skipped: {why}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,129 @@
+"""Typed configuration of the matching front end.
+
+Sizes are in pixels of the full-resolution reference orthoimage ("reference pixels")
+unless a name says otherwise; the tile plan converts them to CCD image pixels with the
+ratio of the two ground sampling distances.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Mapping
+from os import PathLike
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from planetref.errors import InputError, MissingFileError
+
+__all__ = ["FrontendConfig", "GeometryMode", "RansacModel"]
+
+GeometryMode = Literal["orthorectify", "downsample"]
+RansacModel = Literal["homography", "affine"]
+
+
+class FrontendConfig(BaseModel):
+    """Settings of tiling, common geometry, coarse-to-fine matching and verification.
+
+    Attributes:
+        tile_size_ref_px: Side of a CCD tile, in reference pixels of the fine stage (the
+            tile covers about this many reference pixels on the ground).
+        tile_overlap_ref_px: Overlap of neighbouring tiles, reference pixels.
+        uncertainty_m: A-priori uncertainty of the initial camera on the ground (metres);
+            the coarse stage searches a window padded by this much.
+        geometry: ``"orthorectify"`` resamples the CCD tile onto the reference grid
+            through the initial camera and the DEM (removes scale, rotation and most
+            relief displacement); ``"downsample"`` only averages the raw tile down to the
+            reference GSD (the seed's way).
+        coarse: Run the coarse stage (otherwise the fine stage searches the whole
+            uncertainty window at full resolution).
+        coarse_factor: Downsampling of both images in the coarse stage.
+        coarse_min_matches: Fewest consistent coarse matches to trust the coarse offset.
+        coarse_radius_ref_px: Consensus radius of the coarse translation, reference px.
+        fine_pad_ref_px: Margin of the fine reference window around the footprint
+            shifted by the coarse offset, reference px.
+        lattice_step_ref_px: Spacing of the exactly projected lattice that the
+            orthorectification interpolates, reference px of the output grid.
+        ransac_model: Model verified per tile with OpenCV USAC_MAGSAC.
+        ransac_threshold_ref_px: Inlier threshold, reference px.
+        ransac_confidence: RANSAC confidence.
+        ransac_max_iters: RANSAC iteration cap.
+        fine_radius_ref_px: After RANSAC, inliers whose displacement (actual minus
+            predicted reference position) is farther than this from the tile's dominant
+            displacement are dropped: over one tile the initial camera's error is close
+            to a translation, and a model fitted to wrong matches is not.
+        min_inliers: A tile with fewer fine inliers gets status ``too_few_inliers``.
+        max_mcps_per_tile: At most this many MCPs per tile (spread over the tile,
+            highest confidence first); 0 keeps all.
+        min_valid_fraction: A tile whose image or reference window has a smaller
+            fraction of valid pixels gets status ``no_overlap``.
+        footprint_points_per_edge: Points per tile edge projected to the ground for the
+            footprint.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    tile_size_ref_px: int = Field(256, ge=32, le=4096)
+    tile_overlap_ref_px: int = Field(16, ge=0)
+    uncertainty_m: float = Field(300.0, gt=0.0)
+    geometry: GeometryMode = "orthorectify"
+    coarse: bool = True
+    coarse_factor: int = Field(4, ge=1, le=32)
+    coarse_min_matches: int = Field(6, ge=3)
+    coarse_radius_ref_px: float = Field(6.0, gt=0.0)
+    fine_pad_ref_px: int = Field(16, ge=0)
+    lattice_step_ref_px: int = Field(8, ge=1, le=64)
+    ransac_model: RansacModel = "homography"
+    ransac_threshold_ref_px: float = Field(1.0, gt=0.0)
+    ransac_confidence: float = Field(0.999, gt=0.0, lt=1.0)
+    ransac_max_iters: int = Field(10000, ge=10)
+    fine_radius_ref_px: float = Field(3.0, gt=0.0)
+    min_inliers: int = Field(8, ge=4)
+    max_mcps_per_tile: int = Field(200, ge=0)
+    min_valid_fraction: float = Field(0.1, ge=0.0, le=1.0)
+    footprint_points_per_edge: int = Field(5, ge=2, le=64)
+
+    @model_validator(mode="after")
+    def _check(self) -> FrontendConfig:
+        if self.tile_overlap_ref_px >= self.tile_size_ref_px:
+            raise ValueError(f"tile_overlap_ref_px ({self.tile_overlap_ref_px}) must be "
+                             f"smaller than tile_size_ref_px ({self.tile_size_ref_px})")
+        return self
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], *, source: str | None = None
+                     ) -> FrontendConfig:
+        """Validate a mapping of settings (e.g. a TOML table).
+
+        Raises:
+            InputError: Unknown keys (the message lists the valid ones) or bad values.
+        """
+        try:
+            return cls.model_validate(dict(values))
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"{'.'.join(str(p) for p in e['loc']) or 'config'}: {e['msg']}"
+                for e in exc.errors())
+            raise InputError(f"invalid front-end settings ({problems}); valid keys: "
+                             f"{', '.join(cls.model_fields)}", path=source) from None
+
+    @classmethod
+    def from_toml(cls, path: str | PathLike[str], table: str | None = "frontend"
+                  ) -> FrontendConfig:
+        """Read settings from a TOML file (its ``[frontend]`` table, or the whole file).
+
+        Raises:
+            MissingFileError: No such file.
+            InputError: Unreadable TOML, unknown keys or bad values.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise MissingFileError("front-end settings file not found", path=p)
+        try:
+            doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"not valid TOML ({exc})", path=p) from None
+        if table is not None and table in doc:
+            doc = doc[table]
+        return cls.from_mapping(doc, source=str(p))

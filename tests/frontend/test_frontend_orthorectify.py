@@ -1,0 +1,121 @@
+"""Orthorectification of CCD tiles onto the reference grid, and back to raw pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planetref.frontend.config import FrontendConfig
+from planetref.frontend.geometry import image_to_ref_pixel
+from planetref.frontend.orthorectify import downsample_tile, orthorectify
+from planetref.frontend.tiles import plan_tiles, tile_footprint
+from planetref.raster.image import CcdImage
+from planetref.raster.ortho import ReferenceOrtho
+
+CFG = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2)
+
+
+@pytest.fixture(scope="module")
+def setup(scene):
+    ref = ReferenceOrtho(scene.ortho_path)
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
+    img = CcdImage(scene.image_paths["ccd1"])
+    yield scene, ref, plan, img
+    img.close()
+    ref.close()
+
+
+def test_tile_plan_covers_image(setup):
+    scene, _, plan, _ = setup
+    assert 9.0 < plan.ratio < 10.5  # 0.5 m image over a ~4.85 m (geometric mean) grid
+    n_lines, n_samples = scene.init_cam.image_size("ccd1")
+    cover = np.zeros((n_lines, n_samples), bool)
+    for t in plan.tiles:
+        assert t.line0 >= 0 and t.sample0 >= 0
+        assert t.line0 + t.n_lines <= n_lines and t.sample0 + t.n_samples <= n_samples
+        cover[t.line0:t.line0 + t.n_lines, t.sample0:t.sample0 + t.n_samples] = True
+    assert cover.all()
+    assert len({t.tile_id for t in plan.tiles}) == len(plan.tiles)
+
+
+def test_round_trip_to_raw(setup):
+    scene, ref, plan, img = setup
+    tile = plan.tiles[2]
+    fp = tile_footprint(scene.init_cam, tile, ref, scene.dem)
+    win = fp.window.padded(8)
+    ortho = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, win, lattice_step=8)
+    rng = np.random.default_rng(3)
+    line = tile.line0 + rng.uniform(0, tile.n_lines, 200)
+    sample = tile.sample0 + rng.uniform(0, tile.n_samples, 200)
+    col, row = image_to_ref_pixel(scene.init_cam, "ccd1", line, sample, ref, scene.dem)
+    x, y = win.from_ref_pixel(col, row)
+    back_l, back_s, ok = ortho.to_raw(x, y)
+    assert ok.all()
+    err = np.hypot(back_l - line, back_s - sample)
+    assert err.max() < 0.05, err.max()
+    print(f"ortho round trip: max {err.max():.2e} px")
+    # The lattice interpolation that built the orthoimage is as good.
+    il, is_ = ortho.raw_coords(x, y)
+    lerr = np.hypot(il - line, is_ - sample)
+    print(f"lattice interpolation: max {lerr.max():.2e} px")
+    assert lerr.max() < 0.05
+    assert ortho.prefilter == int(np.floor(0.5 * plan.ratio))
+
+
+def test_true_camera_ortho_matches_reference(setup):
+    """Through the TRUE camera the orthoimage lands on the reference: NCC peaks at 0."""
+    scene, ref, plan, img = setup
+    tile = plan.tiles[3]
+    fp = tile_footprint(scene.true_cam, tile, ref, scene.dem)
+    win = fp.window
+    ortho = orthorectify(img, scene.true_cam, "ccd1", ref, scene.dem, win)
+    assert ortho.valid.mean() > 0.6  # a CCD-edge tile: the image ends inside the window
+    def ncc(dc, dr):
+        r, rv = ref.read(win.shifted(dc, dr))
+        m = ortho.valid & rv
+        a, b = ortho.image[m] - ortho.image[m].mean(), r[m] - r[m].mean()
+        return float(a @ b / np.sqrt((a @ a) * (b @ b)))
+    centre = ncc(0, 0)
+    assert centre > 0.95
+    assert all(ncc(dc, dr) < centre for dc, dr in [(1, 0), (-1, 0), (0, 1), (0, -1)])
+
+
+def test_validity_outside_image_and_nodata(scene, setup):
+    _, ref, plan, _ = setup
+    data = scene.images["ccd1"].copy()
+    data[:, :300] = np.nan  # a no-data stripe along the CCD's left edge
+    img = CcdImage(data)
+    tile = plan.tiles[0]
+    fp = tile_footprint(scene.init_cam, tile, ref, scene.dem)
+    win = fp.window.padded(60)
+    ortho = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, win)
+    gy, gx = np.mgrid[0:win.height, 0:win.width] + 0.5
+    line, sample = ortho.raw_coords(gx, gy)
+    outside = (line < 0) | (sample < 0) | (sample >= data.shape[1])
+    assert outside.any() and not ortho.valid[outside].any()
+    # No pixel whose raw position is deep in the no-data stripe is valid...
+    assert not ortho.valid[(sample < 290) & ~outside].any()
+    # ...and no-data never leaks into the values of valid pixels.
+    assert np.isfinite(ortho.image).all()
+    assert ortho.valid[(sample > 320) & ~outside & (line > 10)].mean() > 0.99
+    # Bounds restrict the raw pixels used.
+    o2 = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, win, bounds=tile.bounds)
+    l2, s2 = o2.raw_coords(gx, gy)
+    assert not o2.valid[~tile.contains(l2, s2)].any()
+
+
+def test_downsample_tile_mapping(setup):
+    scene, ref, plan, img = setup
+    tile = plan.tiles[1]
+    ds = downsample_tile(img, tile, 10, scene.init_cam, ref, scene.dem)
+    assert ds.image.shape == (-(-tile.n_lines // 10), -(-tile.n_samples // 10))
+    line, sample, ok = ds.to_raw([0.5, 3.25], [0.5, 7.0])
+    assert ok.all()
+    np.testing.assert_allclose(line, [tile.line0 + 5.0, tile.line0 + 70.0])
+    np.testing.assert_allclose(sample, [tile.sample0 + 5.0, tile.sample0 + 32.5])
+    col, row = ds.predicted_ref_pixel([0.5], [0.5])
+    c2, r2 = image_to_ref_pixel(scene.init_cam, "ccd1", line[:1], sample[:1], ref, scene.dem)
+    np.testing.assert_allclose([col[0], row[0]], [c2[0], r2[0]])
+    # The block image is the mean of the raw pixels of each block.
+    raw, _ = img.read(tile.line0, tile.sample0, 10, 10)
+    assert ds.image[0, 0] == pytest.approx(raw.mean(), rel=1e-5)

@@ -1,0 +1,144 @@
+"""Windowed CCD image and reference ortho readers: windows, no-data, ISIS specials."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from planetref.errors import CrsError, InputError, MissingFileError
+from planetref.raster.image import (
+    ISIS_VALID_RANGE,
+    CcdImage,
+    isis_valid_mask,
+    masked_block_mean,
+)
+from planetref.raster.ortho import ReferenceOrtho, RefWindow
+
+ISIS_NULL4 = float(np.array([0xFF7FFFFB], np.uint32).view(np.float32)[0])
+ISIS_HRS4 = float(np.array([0xFF7FFFFF], np.uint32).view(np.float32)[0])
+
+
+def _write(path, data, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0],
+                           count=1, dtype=data.dtype.name, **kw) as ds:
+            ds.write(data, 1)
+
+
+def test_ccd_window_reads_and_masks(tmp_path):
+    data = np.arange(60, dtype=np.float32).reshape(6, 10) + 1.0
+    data[1, 1] = np.nan
+    data[2, 2] = ISIS_NULL4
+    data[3, 3] = ISIS_HRS4
+    data[4, 4] = -9999.0
+    _write(tmp_path / "ccd.tif", data, nodata=-9999.0)
+    with CcdImage(tmp_path / "ccd.tif") as img:
+        assert img.shape == (6, 10)
+        vals, valid = img.read(-1, -2, 8, 14)
+    assert vals.shape == valid.shape == (8, 14)
+    # Outside the image: invalid and zero.
+    assert not valid[0].any() and not valid[-1].any() and not valid[:, :2].any()
+    inner = valid[1:7, 2:12]
+    expect = np.ones((6, 10), bool)
+    for r, c in [(1, 1), (2, 2), (3, 3), (4, 4)]:
+        expect[r, c] = False
+    np.testing.assert_array_equal(inner, expect)
+    np.testing.assert_array_equal(vals[1:7, 2:12][expect], data[expect])
+    assert np.all(vals[~valid] == 0)
+
+
+def test_ccd_isis_integer_specials_and_array_source():
+    raw = np.array([[0, 1, 2, 3], [65522, 65534, 65535, 1000]], np.uint16)
+    img = CcdImage(raw, isis_special=True)
+    _, valid = img.read(0, 0, 2, 4)
+    np.testing.assert_array_equal(valid, [[False, False, False, True], [True, False, False, True]])
+    # Without the flag an unsigned array has no special values.
+    assert CcdImage(raw).read(0, 0, 2, 4)[1].all()
+    assert isis_valid_mask(np.array([-32768, -32752, 0], np.int16)).tolist() == [False, True, True]
+    assert set(ISIS_VALID_RANGE) >= {"uint8", "int16", "uint16", "float32"}
+
+
+def test_ccd_errors(tmp_path):
+    with pytest.raises(MissingFileError):
+        CcdImage(tmp_path / "none.tif")
+    with pytest.raises(InputError):
+        CcdImage(np.zeros((2, 2, 2)))
+    with pytest.raises(InputError):
+        CcdImage(np.zeros((4, 4))).read(0, 0, 0, 3)
+
+
+def test_masked_block_mean_ignores_invalid_pixels():
+    data = np.array([[1, 3, 100, 5], [5, 7, 5, 5], [-1e30, 2, 8, 8]], np.float32)
+    valid = np.ones(data.shape, bool)
+    valid[0, 2] = False  # an outlier that must not enter the mean
+    valid[2, 0] = False
+    mean, ok = masked_block_mean(data, valid, 2)
+    assert mean.shape == (2, 2)
+    np.testing.assert_allclose(mean, [[4.0, 5.0], [2.0, 8.0]])
+    assert ok.all()
+    # Half-valid trailing block with min fraction 0.6: invalid.
+    _, ok = masked_block_mean(data, valid, 2, min_valid_fraction=0.6)
+    assert ok.tolist() == [[True, True], [False, True]]
+
+
+def test_block_mean_read_in_strips_equals_whole():
+    rng = np.random.default_rng(0)
+    data = rng.normal(size=(37, 23)).astype(np.float32)
+    data[5:9, 3:7] = np.nan
+    img = CcdImage(data)
+    a, va = img.read_block_mean(-3, 2, 40, 20, 4, max_pixels=50)
+    b, vb = masked_block_mean(*img.read(-3, 2, 40, 20), 4)
+    np.testing.assert_allclose(a, b, rtol=1e-6)
+    np.testing.assert_array_equal(va, vb)
+
+
+def test_reference_windows_and_factor(tmp_path):
+    data = np.arange(100, dtype=np.float32).reshape(10, 10)
+    data[0, 0] = -9999.0
+    t = Affine(5.0, 0, 1000.0, 0, -5.0, 2000.0)
+    crs = rasterio.crs.CRS.from_user_input("IAU_2015:49910")
+    _write(tmp_path / "ref.tif", data, nodata=-9999.0, crs=crs, transform=t)
+    with ReferenceOrtho(tmp_path / "ref.tif") as ref:
+        assert ref.shape == (10, 10)
+        win = RefWindow(-2, -2, 6, 6)
+        vals, valid = ref.read(win)
+        assert not valid[:2].any() and not valid[:, :2].any() and not valid[2, 2]
+        np.testing.assert_array_equal(vals[3:, 3:], data[1:4, 1:4])
+        coarse = RefWindow(0, 0, 5, 5, factor=2)
+        m, ok = ref.read(coarse)
+        # The first block averages its three valid pixels only.
+        assert m[0, 0] == pytest.approx((1 + 10 + 11) / 3)
+        assert ok.all()
+        # Window pixel (0.5, 0.5) of the coarse window is the centre of a 2x2 block.
+        col, row = coarse.to_ref_pixel(0.5, 0.5)
+        assert (col, row) == (1.0, 1.0)
+        x, y = ref.pixel_to_map(col, row)
+        assert (x, y) == (1005.0, 1995.0)
+        np.testing.assert_allclose(ref.map_to_pixel(x, y), (1.0, 1.0))
+        assert ref.window_transform(coarse) @ (0.5, 0.5) == (1005.0, 1995.0)
+        gx, gy = ref.ground_sampling_m()
+        assert gx == pytest.approx(5.0, rel=1e-3) and gy == pytest.approx(5.0, rel=1e-3)
+
+
+def test_reference_needs_crs(tmp_path):
+    _write(tmp_path / "nocrs.tif", np.zeros((4, 4), np.float32),
+           transform=Affine(1, 0, 0, 0, -1, 0))
+    with pytest.raises(CrsError):
+        ReferenceOrtho(tmp_path / "nocrs.tif")
+
+
+def test_ref_window_geometry():
+    w = RefWindow.around(10.2, 20.7, 50.1, 60.0, pad_px=5, factor=4)
+    assert (w.col0, w.row0) == (5, 15)
+    assert w.bounds_px[2] >= 56 and w.bounds_px[3] >= 65
+    assert w.shifted(2.6, -1.4).col0 == 8 and w.shifted(2.6, -1.4).row0 == 14
+    p = RefWindow(0, 0, 10, 10, 2).padded(3)
+    assert p.to_tuple() == (-4, -4, 14, 14, 2)
+    np.testing.assert_allclose(p.from_ref_pixel(*p.to_ref_pixel(3.3, 1.1)), (3.3, 1.1))
+    with pytest.raises(InputError):
+        RefWindow(0, 0, 0, 3)
