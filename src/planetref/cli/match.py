@@ -1,0 +1,310 @@
+"""``planetref matchers`` and ``planetref match``: list the matchers, match two rasters.
+
+Both commands are plain click commands; :mod:`planetref.cli` registers them. Errors end
+the command with a one-line message (``click.ClickException``), never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import click
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.errors import InputError, MatchingError, MissingFileError, PlanetrefError
+from planetref.matching.registry import MATCHERS, available_matchers, get_matcher
+
+__all__ = ["match_command", "matchers_command", "read_band", "write_matches_csv"]
+
+ISIS_SPECIAL_BELOW = -3.0e38
+"""Float32 ISIS special pixels (NULL, LRS, LIS, HIS, HRS) are all about -3.4e38."""
+
+
+def read_band(path: str | os.PathLike[str]) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Read the first band of a raster and its valid-pixel mask.
+
+    Invalid pixels: GDAL's mask (nodata, per-dataset masks), non-finite values, and ISIS
+    special pixels (NULL, LRS, LIS, HIS, HRS, all below -3e38 in float32 cubes; GDAL's
+    nodata covers only NULL).
+
+    Args:
+        path: Any raster rasterio/GDAL can read.
+
+    Returns:
+        ``(image float32 (H, W), valid bool (H, W))``.
+
+    Raises:
+        MissingFileError: The file does not exist.
+        InputError: Not a readable raster.
+    """
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    p = Path(path)
+    if not p.exists():
+        raise MissingFileError("no such file", path=p)
+    try:
+        with rasterio.open(p) as ds:
+            band = ds.read(1)
+            gdal_mask = ds.read_masks(1) > 0
+    except RasterioError as exc:
+        raise InputError(f"not a readable raster ({exc})", path=p) from None
+    image = band.astype(np.float32, copy=False)
+    valid = gdal_mask & np.isfinite(image)
+    if np.issubdtype(band.dtype, np.floating):
+        valid &= image > ISIS_SPECIAL_BELOW
+    return image, valid
+
+
+def _atomic_write(path: Path, write: Callable[[str], None], suffix: str) -> None:
+    """Write through a temporary file in the destination folder, then rename over ``path``."""
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise MissingFileError("output folder does not exist", path=folder)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=folder)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_matches_csv(path: str | os.PathLike[str], keypoints0, keypoints1, confidence) -> None:
+    """Write ``x0,y0,x1,y1,confidence`` rows atomically (temporary file + rename).
+
+    Coordinates are pixels with the first pixel centre at ``(0.5, 0.5)``, x = column.
+    """
+    rows = np.column_stack([keypoints0, keypoints1, confidence])
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", encoding="ascii", newline="\n") as fh:
+            fh.write("x0,y0,x1,y1,confidence\n")
+            np.savetxt(fh, rows, fmt=["%.4f", "%.4f", "%.4f", "%.4f", "%.6g"], delimiter=",")
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    _atomic_write(Path(path), write, ".csv.tmp")
+
+
+def _figure(
+    path: Path, image0, valid0, image1, valid1, k0, k1, title: str, max_lines: int = 400
+) -> None:
+    """Side-by-side images with lines joining matched keypoints (Agg, no pyplot state)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from planetref.matching.base import robust_normalise
+
+    def show(img, valid):
+        # decimate big rasters for display only; the extent keeps pixel coordinates
+        step = max(1, int(np.ceil(max(img.shape) / 2000)))
+        norm, _ = robust_normalise(img[::step, ::step], valid[::step, ::step])
+        return np.ma.masked_array(norm, ~valid[::step, ::step])
+
+    fig = Figure(figsize=(12, 6.5), dpi=100)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 2)
+    for ax, img, valid in ((axes[0], image0, valid0), (axes[1], image1, valid1)):
+        ax.imshow(
+            show(img, valid),
+            cmap="gray",
+            interpolation="nearest",
+            extent=(0, img.shape[1], img.shape[0], 0),
+        )
+        ax.set_axis_off()
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(k0), min(len(k0), max_lines), replace=False) if len(k0) else []
+    from matplotlib.patches import ConnectionPatch
+
+    for i in pick:
+        fig.add_artist(
+            ConnectionPatch(
+                xyA=tuple(k0[i]),
+                coordsA=axes[0].transData,
+                xyB=tuple(k1[i]),
+                coordsB=axes[1].transData,
+                color="yellow",
+                linewidth=0.5,
+                alpha=0.7,
+            )
+        )
+    axes[0].plot(k0[:, 0], k0[:, 1], ",", color="red")
+    axes[1].plot(k1[:, 0], k1[:, 1], ",", color="red")
+    fig.suptitle(title)
+    fig.tight_layout()
+    _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"), ".png.tmp")
+
+
+@click.command("matchers")
+@click.option(
+    "--weights-dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Weights directory (default: $PLANETREF_WEIGHTS, $TORCH_HOME, torch hub cache).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+def matchers_command(weights_dir: str | None, as_json: bool) -> None:
+    """List every matcher, its paradigm and whether its weights are present."""
+    from planetref.matching.weights import weights_dir as resolve_dir
+
+    rows = []
+    for avail in available_matchers(weights_dir):
+        spec = MATCHERS[avail.name]
+        rows.append(
+            {
+                "name": spec.name,
+                "paradigm": spec.paradigm,
+                "description": spec.description,
+                "weights": list(spec.weights),
+                "present": avail.present,
+                "missing": list(avail.missing),
+            }
+        )
+    if as_json:
+        click.echo(
+            json.dumps({"weights_dir": str(resolve_dir(weights_dir)), "matchers": rows}, indent=2)
+        )
+        return
+    click.echo(f"weights: {resolve_dir(weights_dir)}")
+    width = max(len(r["name"]) for r in rows)
+    pwidth = max(len(r["paradigm"]) for r in rows)
+    for r in rows:
+        if not r["weights"]:
+            status = "ready (no weights needed)"
+        elif r["present"]:
+            status = "ready"
+        else:
+            status = "missing: " + ", ".join(r["missing"])
+        click.echo(f"{r['name']:<{width}}  {r['paradigm']:<{pwidth}}  {status}")
+
+
+@click.command("match")
+@click.argument("image0", type=click.Path(dir_okay=False))
+@click.argument("image1", type=click.Path(dir_okay=False))
+@click.option(
+    "--matcher",
+    "matcher_name",
+    default="sift",
+    show_default=True,
+    type=click.Choice(list(MATCHERS)),
+    help="Matcher (see `planetref matchers`).",
+)
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output CSV: x0,y0,x1,y1,confidence per verified match.",
+)
+@click.option(
+    "--figure",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Optional PNG figure of the verified matches.",
+)
+@click.option(
+    "--weights-dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Weights directory (default: $PLANETREF_WEIGHTS, $TORCH_HOME, torch hub cache).",
+)
+@click.option(
+    "--device", default="cpu", show_default=True, help="Torch device of learned matchers."
+)
+@click.option(
+    "--tile-size",
+    default=1024,
+    show_default=True,
+    type=click.IntRange(64),
+    help="Images larger than this are matched in tiles (pixels).",
+)
+@click.option(
+    "--overlap",
+    default=128,
+    show_default=True,
+    type=click.IntRange(0),
+    help="Tile overlap (pixels).",
+)
+@click.option(
+    "--model",
+    "model",
+    default="homography",
+    show_default=True,
+    type=click.Choice(["homography", "affine", "fundamental"]),
+    help="Geometric model of the MAGSAC++ verification.",
+)
+@click.option(
+    "--threshold",
+    default=3.0,
+    show_default=True,
+    type=click.FloatRange(min=0, min_open=True),
+    help="Inlier threshold of the verification (pixels).",
+)
+def match_command(
+    image0: str,
+    image1: str,
+    matcher_name: str,
+    out: str,
+    figure: str | None,
+    weights_dir: str | None,
+    device: str,
+    tile_size: int,
+    overlap: int,
+    model: str,
+    threshold: float,
+) -> None:
+    """Match IMAGE0 against IMAGE1 and write the verified matches to a CSV.
+
+    Coordinates are pixels of each image (x = column, first pixel centre at 0.5, 0.5).
+    Prints one JSON line: {"matcher", "ncp", "seconds"}.
+    """
+    from planetref.matching.ransac import verify_matches
+    from planetref.matching.tiling import match_tiled
+
+    start = time.perf_counter()
+    try:
+        if overlap >= tile_size:
+            raise InputError(
+                f"--overlap ({overlap}) must be smaller than --tile-size ({tile_size})"
+            )
+        img0, valid0 = read_band(image0)
+        img1, valid1 = read_band(image1)
+        matcher = get_matcher(matcher_name, weights_dir=weights_dir, device=device)
+        found = match_tiled(
+            matcher, img0, img1, valid0, valid1, tile_size=tile_size, overlap=overlap
+        )
+        verdict = verify_matches(found, model, threshold=threshold)  # type: ignore[arg-type]
+        inliers = found.select(verdict.inliers)
+        if len(inliers) == 0:
+            raise MatchingError(
+                f"no verified matches between {image0} and {image1} with matcher {matcher_name} "
+                f"({len(found)} tentative matches, model {model}, threshold {threshold} px)"
+            )
+        write_matches_csv(out, inliers.keypoints0, inliers.keypoints1, inliers.confidence)
+        if figure:
+            _figure(
+                Path(figure),
+                img0,
+                valid0,
+                img1,
+                valid1,
+                inliers.keypoints0,
+                inliers.keypoints1,
+                f"{matcher_name}: {len(inliers)} verified matches",
+            )
+    except PlanetrefError as exc:
+        raise click.ClickException(str(exc)) from None
+    except (MemoryError, OSError, RuntimeError) as exc:  # e.g. out of (GPU) memory
+        raise click.ClickException(f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
+    seconds = time.perf_counter() - start
+    click.echo(
+        json.dumps({"matcher": matcher_name, "ncp": len(inliers), "seconds": round(seconds, 3)})
+    )

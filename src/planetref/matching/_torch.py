@@ -1,0 +1,416 @@
+"""Shared machinery of the torch/kornia matchers (imported only when one is built).
+
+Models are built with random weights (``pretrained=None`` / ``features=None``) and the
+checkpoints are loaded here with :func:`planetref.matching.weights.load_checkpoint`, so
+kornia's download code is never reached and torch.hub's directory is never touched.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from abc import abstractmethod
+from collections.abc import Iterable, Mapping
+from os import PathLike
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from numpy.typing import NDArray
+
+from planetref.errors import InputError, WeightsError
+from planetref.matching.base import BaseMatcher, Matches, keypoints_on_valid_pixels
+from planetref.matching.weights import load_checkpoint, require_weights, weights_dir
+
+__all__ = [
+    "SparseLightGlueMatcher",
+    "TorchMatcher",
+    "build_lightglue",
+    "lightglue_state_dict",
+    "load_into",
+    "resolve_device",
+]
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """Parse a device name and check that it can be used.
+
+    Args:
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``, a ``torch.device`` or ``None``
+            (CPU).
+
+    Returns:
+        The device.
+
+    Raises:
+        InputError: Unknown name, or a device this machine does not have.
+    """
+    try:
+        dev = torch.device("cpu" if device is None else device)
+    except (RuntimeError, TypeError) as exc:
+        raise InputError(f"not a torch device: {device!r} ({exc})", field="device") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("CUDA is not available on this machine", field="device")
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise InputError("MPS is not available on this machine", field="device")
+    if dev.type not in ("cpu", "cuda", "mps"):
+        raise InputError(f"unsupported device type {dev.type!r}", field="device")
+    return dev
+
+
+def load_into(
+    module: torch.nn.Module,
+    state_dict: Mapping[str, torch.Tensor],
+    *,
+    what: str,
+    derived: Iterable[str] = (),
+    ignore_unexpected: str | None = None,
+) -> torch.nn.Module:
+    """Load a state dict, failing loudly on anything but known-harmless differences.
+
+    Args:
+        module: Module built with random weights.
+        state_dict: Tensors keyed like ``module.state_dict()``.
+        what: File name used in error messages.
+        derived: Keys allowed to be missing: buffers the constructor computes (and
+            BatchNorm's ``num_batches_tracked``, which inference does not use).
+        ignore_unexpected: Regular expression of extra keys to tolerate (e.g. parts of a
+            checkpoint that belong to another network).
+
+    Returns:
+        The module, in evaluation mode.
+
+    Raises:
+        WeightsError: A learned parameter is missing, a key is unexpected, or a shape differs.
+    """
+    if not isinstance(state_dict, Mapping) or not all(
+        isinstance(v, torch.Tensor) for v in state_dict.values()
+    ):
+        raise WeightsError(f"{what}: not a state dict of tensors")
+    try:
+        result = module.load_state_dict(dict(state_dict), strict=False)
+    except RuntimeError as exc:  # shape mismatch
+        raise WeightsError(f"{what}: does not fit {type(module).__name__}: {exc}") from None
+    allowed = set(derived)
+    missing = [
+        k for k in result.missing_keys if k not in allowed and not k.endswith("num_batches_tracked")
+    ]
+    pattern = re.compile(ignore_unexpected) if ignore_unexpected else None
+    unexpected = [k for k in result.unexpected_keys if not (pattern and pattern.fullmatch(k))]
+    if missing or unexpected:
+        raise WeightsError(
+            f"{what}: not the expected checkpoint for {type(module).__name__}: "
+            f"{len(missing)} missing keys {missing[:5]}, {len(unexpected)} unexpected keys "
+            f"{unexpected[:5]}"
+        )
+    return module.eval()
+
+
+def lightglue_state_dict(raw: Mapping[str, Any], n_layers: int) -> dict[str, torch.Tensor]:
+    """Map a LightGlue checkpoint onto kornia's ``LightGlue`` key names.
+
+    Handles the layouts of the official files: cvg/LightGlue's first release
+    (``self_attn.<i>.*`` / ``cross_attn.<i>.*``), its later one (``transformers.<i>.*``), and
+    verlab's LighterGlue (keys prefixed ``matcher.``, next to ``extractor.*`` keys of the
+    XFeat backbone, which are dropped). The same renaming as kornia's own loader, restricted
+    to leading key components.
+
+    Args:
+        raw: State dict as stored in the file.
+        n_layers: Number of transformer layers of the configuration.
+
+    Returns:
+        A state dict keyed like ``kornia.feature.LightGlue``.
+    """
+    out: dict[str, torch.Tensor] = {}
+    for key, value in raw.items():
+        if key.startswith("extractor."):
+            continue
+        if key.startswith("matcher."):
+            key = key[len("matcher.") :]
+        for block in ("self_attn", "cross_attn"):
+            m = re.match(rf"{block}\.(\d+)\.(.*)", key)
+            if m and int(m.group(1)) < n_layers:
+                key = f"transformers.{m.group(1)}.{block}.{m.group(2)}"
+        out[key] = value
+    return out
+
+
+def build_lightglue(
+    features: str, raw_state: Mapping[str, Any], *, what: str, **overrides: Any
+) -> torch.nn.Module:
+    """Build kornia's LightGlue for ``features`` and load a checkpoint into it.
+
+    Args:
+        features: A key of ``kornia.feature.LightGlue.features`` (``"disk"``, ``"aliked"``,
+            ``"xfeat"``, ``"doghardnet"``).
+        raw_state: The checkpoint's state dict (see :func:`lightglue_state_dict`).
+        what: File name used in error messages.
+        **overrides: Configuration entries such as ``filter_threshold``,
+            ``depth_confidence`` or ``width_confidence``.
+
+    Returns:
+        The model in evaluation mode.
+    """
+    from kornia.feature import LightGlue
+
+    conf = {k: v for k, v in LightGlue.features[features].items() if k != "weights"}
+    conf.update(overrides)
+    model = LightGlue(None, **conf)
+    state = lightglue_state_dict(raw_state, model.conf.n_layers)
+    return load_into(
+        model,
+        state,
+        what=what,
+        derived=("confidence_thresholds",),
+        # the first release stores an unused per-layer temperature ``log_assignment.<i>.r``
+        ignore_unexpected=r"log_assignment\.\d+\.r",
+    )
+
+
+def image_tensor(
+    image: NDArray[np.float32], device: torch.device, channels: int = 1
+) -> torch.Tensor:
+    """``(H, W)`` array -> ``(1, channels, H, W)`` float32 tensor on ``device``."""
+    t = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
+    if channels > 1:
+        t = t.expand(1, channels, *image.shape).contiguous()
+    return t.to(device)
+
+
+def pad_to_multiple(t: torch.Tensor, multiple: int) -> torch.Tensor:
+    """Replicate-pad a ``(B, C, H, W)`` tensor at the bottom/right to multiples of ``multiple``.
+
+    Padding (not resizing) keeps pixel coordinates unchanged.
+    """
+    h, w = t.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    if ph == 0 and pw == 0:
+        return t
+    return F.pad(t, (0, pw, 0, ph), mode="replicate")
+
+
+def resize_image(
+    image: NDArray[np.float32], size_hw: tuple[int, int]
+) -> tuple[NDArray[np.float32], float, float]:
+    """Resize an image to ``(H', W')`` with area averaging (down) or bilinear (up).
+
+    Returns:
+        ``(resized, sx, sy)`` with ``sx = W'/W`` and ``sy = H'/H``. In planetref's corner
+        convention a coordinate maps exactly as ``x' = x * sx``, ``y' = y * sy``.
+    """
+    import cv2
+
+    h, w = image.shape
+    nh, nw = size_hw
+    if (nh, nw) == (h, w):
+        return image, 1.0, 1.0
+    interp = cv2.INTER_AREA if nh * nw < h * w else cv2.INTER_LINEAR
+    out = cv2.resize(image, (nw, nh), interpolation=interp)
+    return out.astype(np.float32, copy=False), nw / w, nh / h
+
+
+class TorchMatcher(BaseMatcher):
+    """A matcher with a torch model built lazily, once per instance.
+
+    Args:
+        weights_dir: Weights directory (see :func:`planetref.matching.weights.weights_dir`);
+            resolved when the matcher is created.
+        device: Torch device for inference (CPU by default).
+        verify_weights: Check each file's sha256 before loading it. Set ``False`` only for
+            checkpoints that are known not to be the official files (tests with random
+            weights in the official format).
+        polish: ``None`` (the network's own keypoints) or ``"ncc"``: refine every match by
+            local normalised cross-correlation
+            (:func:`~planetref.matching.ncc.refine_matches_ncc`: 15 px templates centred on
+            the image-0 pixel, +-3 px search), for sub-pixel accuracy; matches that do not
+            correlate are dropped.
+
+    Raises:
+        WeightsError: A weight file is missing (checked at construction, without hashing).
+        InputError: Unusable device.
+    """
+
+    weight_files: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(
+        self,
+        *,
+        weights_dir: str | PathLike[str] | None = None,
+        device: str | torch.device | None = "cpu",
+        verify_weights: bool = True,
+        polish: Literal["ncc"] | None = None,
+    ) -> None:
+        super().__init__()
+        if polish not in (None, "ncc"):
+            raise InputError(f"must be None or 'ncc', got {polish!r}", field="polish")
+        self.polish = polish
+        self.weights_dir = weights_dir_resolved = _resolve_dir(weights_dir)
+        self.device = resolve_device(device)
+        self.verify_weights = bool(verify_weights)
+        require_weights(self.weight_files, weights_dir_resolved)
+        self._model: Any = None
+        self._lock = threading.Lock()
+
+    def _checkpoint(self, name: str) -> Any:
+        return load_checkpoint(name, self.weights_dir, verify=self.verify_weights)
+
+    def build(self) -> None:
+        """Load the weights and build the model now (otherwise done on the first match)."""
+        with self._lock:
+            if self._model is None:
+                start = time.perf_counter()
+                self._model = self._build()
+                self.timings["build"] = time.perf_counter() - start
+
+    @abstractmethod
+    def _build(self) -> Any:
+        """Return the model(s), on :attr:`device`, in evaluation mode."""
+
+    def _match_normalised(
+        self,
+        image0: NDArray[np.float32],
+        valid0: NDArray[np.bool_],
+        image1: NDArray[np.float32],
+        valid1: NDArray[np.bool_],
+    ) -> Matches:
+        if self._model is None:
+            self.build()
+        with torch.inference_mode():
+            result = self._run(image0, valid0, image1, valid1)
+        if self.polish == "ncc":
+            from planetref.matching.ncc import refine_matches_ncc
+
+            with self._timed("polish"):
+                result = refine_matches_ncc(image0, valid0, image1, valid1, result)
+        return result
+
+    @abstractmethod
+    def _run(
+        self,
+        image0: NDArray[np.float32],
+        valid0: NDArray[np.bool_],
+        image1: NDArray[np.float32],
+        valid1: NDArray[np.bool_],
+    ) -> Matches:
+        """Match normalised images under ``torch.inference_mode``."""
+
+
+def _resolve_dir(value: str | PathLike[str] | None) -> Any:
+    # resolve once so that a later change of the environment does not move the files
+    return weights_dir(value)
+
+
+class SparseLightGlueMatcher(TorchMatcher):
+    """Detector/descriptor + LightGlue, the shared pipeline of the learned sparse matchers.
+
+    Subclasses build ``{"extractor": ..., "matcher": LightGlue}`` and implement
+    :meth:`_extract`. Keypoints on invalid pixels are dropped before LightGlue sees them.
+
+    Args:
+        max_keypoints: Keypoint budget per image.
+        max_size: Images whose longer side exceeds this many pixels are downscaled (area
+            averaging) for the model; keypoints are mapped back exactly.
+        filter_threshold: LightGlue match score threshold.
+        depth_confidence: LightGlue early stopping (``-1`` disables; ``None`` keeps the
+            configuration's default).
+        width_confidence: LightGlue point pruning (``-1`` disables; ``None`` keeps default).
+        weights_dir: See :class:`TorchMatcher`.
+        device: See :class:`TorchMatcher`.
+        verify_weights: See :class:`TorchMatcher`.
+        polish: See :class:`TorchMatcher`.
+    """
+
+    lightglue_features: ClassVar[str] = ""
+
+    def __init__(
+        self,
+        *,
+        max_keypoints: int = 4096,
+        max_size: int | None = 2048,
+        filter_threshold: float = 0.1,
+        depth_confidence: float | None = None,
+        width_confidence: float | None = None,
+        weights_dir: str | PathLike[str] | None = None,
+        device: str | torch.device | None = "cpu",
+        verify_weights: bool = True,
+        polish: Literal["ncc"] | None = None,
+    ) -> None:
+        if int(max_keypoints) < 2:
+            raise InputError(f"must be >= 2, got {max_keypoints}", field="max_keypoints")
+        if max_size is not None and int(max_size) < 32:
+            raise InputError(f"must be >= 32 or None, got {max_size}", field="max_size")
+        super().__init__(
+            weights_dir=weights_dir, device=device, verify_weights=verify_weights, polish=polish
+        )
+        self.max_keypoints = int(max_keypoints)
+        self.max_size = None if max_size is None else int(max_size)
+        self.lightglue_conf: dict[str, Any] = {"filter_threshold": float(filter_threshold)}
+        if depth_confidence is not None:
+            self.lightglue_conf["depth_confidence"] = float(depth_confidence)
+        if width_confidence is not None:
+            self.lightglue_conf["width_confidence"] = float(width_confidence)
+
+    @abstractmethod
+    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
+        """Detect and describe on a normalised image.
+
+        Returns:
+            ``keypoints`` ``(N, 2)`` in the library's pixel-centre-at-integer frame of the
+            given image, ``descriptors`` ``(N, D)``, and for DoG features ``scales`` and
+            ``oris`` ``(N,)`` as LightGlue expects them.
+        """
+
+    def _features(self, image: NDArray[np.float32], valid: NDArray[np.bool_]) -> dict[str, Any]:
+        h, w = image.shape
+        scale_x = scale_y = 1.0
+        model_image = image
+        if self.max_size is not None and max(h, w) > self.max_size:
+            s = self.max_size / max(h, w)
+            size = (max(16, round(h * s)), max(16, round(w * s)))
+            model_image, scale_x, scale_y = resize_image(image, size)
+        with self._timed("forward"):
+            feats = self._extract(model_image)
+        kpts = feats["keypoints"].detach().to("cpu", torch.float64).numpy().reshape(-1, 2)
+        # library frame (centres at integers) -> corner frame, then back to full resolution
+        corner = (kpts + 0.5) / np.array([scale_x, scale_y])
+        keep = keypoints_on_valid_pixels(corner, valid)
+        idx = torch.from_numpy(np.flatnonzero(keep)).to(feats["keypoints"].device)
+        out = {k: v.index_select(0, idx) for k, v in feats.items()}
+        out["corner"] = corner[keep]
+        out["image_size"] = (model_image.shape[1], model_image.shape[0])
+        return out
+
+    def _run(
+        self,
+        image0: NDArray[np.float32],
+        valid0: NDArray[np.bool_],
+        image1: NDArray[np.float32],
+        valid1: NDArray[np.bool_],
+    ) -> Matches:
+        f0 = self._features(image0, valid0)
+        f1 = self._features(image1, valid1)
+        if len(f0["corner"]) < 2 or len(f1["corner"]) < 2:
+            return Matches.empty()
+        data = {}
+        for key, f in (("image0", f0), ("image1", f1)):
+            entry = {
+                "keypoints": f["keypoints"][None].float(),
+                "descriptors": f["descriptors"][None].float(),
+                "image_size": torch.tensor(
+                    [f["image_size"]], device=self.device, dtype=torch.float32
+                ),
+            }
+            for extra in ("scales", "oris"):
+                if extra in f:
+                    entry[extra] = f[extra][None].float()
+            data[key] = entry
+        with self._timed("forward"):
+            out = self._model["matcher"](data)
+        pairs = out["matches"][0].to("cpu").numpy()
+        scores = out["scores"][0].to("cpu", torch.float64).numpy()
+        if len(pairs) == 0:
+            return Matches.empty()
+        return Matches(f0["corner"][pairs[:, 0]], f1["corner"][pairs[:, 1]], scores)

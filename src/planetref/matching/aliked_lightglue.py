@@ -1,0 +1,102 @@
+"""ALIKED ("aliked-n16") keypoints and descriptors matched by LightGlue("aliked").
+
+kornia's ALIKED returns sub-pixel ``(x, y)`` with pixel centres at integers (it maps its
+``[-1, 1]`` grid with ``align_corners=True``: -1 is the centre of the first pixel);
+planetref adds 0.5. ALIKED pads internally to multiples of 32 around the image and crops
+its maps back, so no resizing happens for images up to ``max_size``.
+
+Checkpoints: ``aliked-n16.pth`` is Shiaoming/ALIKED's raw state dict (the derived buffer
+``dkd.hw_grid`` is not stored); ``aliked_lightglue_v0-1_arxiv-pth`` is cvg/LightGlue's
+release asset, a raw state dict in the later ``transformers.<i>.*`` layout.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from planetref.matching._torch import (
+    SparseLightGlueMatcher,
+    build_lightglue,
+    image_tensor,
+    load_into,
+)
+
+__all__ = ["AlikedLightGlueMatcher"]
+
+ALIKED_WEIGHTS = "aliked-n16.pth"
+LIGHTGLUE_WEIGHTS = "aliked_lightglue_v0-1_arxiv-pth"
+
+
+class AlikedLightGlueMatcher(SparseLightGlueMatcher):
+    """ALIKED-N16 + LightGlue, a learned sparse matcher.
+
+    Args:
+        max_keypoints: Keypoint budget per image.
+        detection_threshold: ALIKED score threshold; a value ``<= 0`` selects top-k mode
+            (the ``max_keypoints`` strongest maxima), which suits low-contrast Mars scenes
+            better than the upstream threshold of 0.2.
+        nms_radius: ALIKED NMS radius, pixels.
+        **kwargs: See :class:`~planetref.matching._torch.SparseLightGlueMatcher`.
+    """
+
+    name: ClassVar[str] = "aliked-lightglue"
+    weight_files: ClassVar[tuple[str, ...]] = (ALIKED_WEIGHTS, LIGHTGLUE_WEIGHTS)
+    lightglue_features: ClassVar[str] = "aliked"
+
+    def __init__(
+        self,
+        *,
+        max_keypoints: int = 4096,
+        detection_threshold: float = 0.0,
+        nms_radius: int = 2,
+        max_size: int | None = 2048,
+        filter_threshold: float = 0.1,
+        depth_confidence: float | None = None,
+        width_confidence: float | None = None,
+        weights_dir: str | PathLike[str] | None = None,
+        device: str | torch.device | None = "cpu",
+        verify_weights: bool = True,
+        polish: Literal["ncc"] | None = None,
+    ) -> None:
+        super().__init__(
+            max_keypoints=max_keypoints,
+            max_size=max_size,
+            filter_threshold=filter_threshold,
+            depth_confidence=depth_confidence,
+            width_confidence=width_confidence,
+            weights_dir=weights_dir,
+            device=device,
+            verify_weights=verify_weights,
+            polish=polish,
+        )
+        self.detection_threshold = float(detection_threshold)
+        self.nms_radius = int(nms_radius)
+
+    def _build(self) -> dict[str, Any]:
+        from kornia.feature import ALIKED
+
+        aliked = ALIKED(
+            "aliked-n16",
+            max_num_keypoints=self.max_keypoints,
+            detection_threshold=self.detection_threshold,
+            nms_radius=self.nms_radius,
+        )
+        load_into(
+            aliked, self._checkpoint(ALIKED_WEIGHTS), what=ALIKED_WEIGHTS, derived=("dkd.hw_grid",)
+        )
+        matcher = build_lightglue(
+            "aliked",
+            self._checkpoint(LIGHTGLUE_WEIGHTS),
+            what=LIGHTGLUE_WEIGHTS,
+            **self.lightglue_conf,
+        )
+        return {"extractor": aliked.to(self.device), "matcher": matcher.to(self.device)}
+
+    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
+        feats = self._model["extractor"](image_tensor(image, self.device, channels=3))[0]
+        return {"keypoints": feats.keypoints, "descriptors": feats.descriptors}

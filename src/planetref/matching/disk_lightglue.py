@@ -1,0 +1,110 @@
+"""DISK ("depth" weights) keypoints and descriptors matched by LightGlue("disk").
+
+kornia's DISK returns integer ``(x, y)`` heatmap maxima with pixel centres at integers
+(kornia's local-feature frame); planetref adds 0.5. The image is replicate-padded to a
+multiple of 16 at the bottom/right (padding, not resizing, so coordinates are unchanged)
+and maxima in the padding are discarded.
+
+Checkpoints: ``depth-save.pth`` is cvlab-epfl/disk's file, ``{"extractor": state_dict}``
+with keys ``unet.*`` (what ``DISK.from_pretrained`` reads); ``disk_lightglue_v0-1_arxiv-pth``
+is cvg/LightGlue's release asset, a raw state dict in the first-release layout
+(``self_attn.<i>.*``, ``cross_attn.<i>.*``, plus unused ``log_assignment.<i>.r``).
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from planetref.errors import WeightsError
+from planetref.matching._torch import (
+    SparseLightGlueMatcher,
+    build_lightglue,
+    image_tensor,
+    load_into,
+    pad_to_multiple,
+)
+
+__all__ = ["DiskLightGlueMatcher"]
+
+DISK_WEIGHTS = "depth-save.pth"
+LIGHTGLUE_WEIGHTS = "disk_lightglue_v0-1_arxiv-pth"
+
+
+class DiskLightGlueMatcher(SparseLightGlueMatcher):
+    """DISK + LightGlue, a learned sparse matcher.
+
+    Args:
+        max_keypoints: DISK keypoints kept per image (strongest maxima).
+        nms_window: DISK non-maximum suppression window, pixels.
+        score_threshold: DISK heatmap threshold (maxima strictly above it are kept).
+        **kwargs: See :class:`~planetref.matching._torch.SparseLightGlueMatcher`
+            (``max_size``, ``filter_threshold``, ``depth_confidence``, ``width_confidence``,
+            ``weights_dir``, ``device``, ``verify_weights``, ``polish``).
+    """
+
+    name: ClassVar[str] = "disk-lightglue"
+    weight_files: ClassVar[tuple[str, ...]] = (DISK_WEIGHTS, LIGHTGLUE_WEIGHTS)
+    lightglue_features: ClassVar[str] = "disk"
+
+    def __init__(
+        self,
+        *,
+        max_keypoints: int = 4096,
+        nms_window: int = 5,
+        score_threshold: float = 0.0,
+        max_size: int | None = 2048,
+        filter_threshold: float = 0.1,
+        depth_confidence: float | None = None,
+        width_confidence: float | None = None,
+        weights_dir: str | PathLike[str] | None = None,
+        device: str | torch.device | None = "cpu",
+        verify_weights: bool = True,
+        polish: Literal["ncc"] | None = None,
+    ) -> None:
+        super().__init__(
+            max_keypoints=max_keypoints,
+            max_size=max_size,
+            filter_threshold=filter_threshold,
+            depth_confidence=depth_confidence,
+            width_confidence=width_confidence,
+            weights_dir=weights_dir,
+            device=device,
+            verify_weights=verify_weights,
+            polish=polish,
+        )
+        self.nms_window = int(nms_window)
+        self.score_threshold = float(score_threshold)
+
+    def _build(self) -> dict[str, Any]:
+        from kornia.feature import DISK
+
+        raw = self._checkpoint(DISK_WEIGHTS)
+        if not isinstance(raw, dict) or "extractor" not in raw:
+            raise WeightsError(f"{DISK_WEIGHTS}: expected a dict with an 'extractor' state dict")
+        disk = load_into(DISK(desc_dim=128), raw["extractor"], what=DISK_WEIGHTS)
+        matcher = build_lightglue(
+            "disk",
+            self._checkpoint(LIGHTGLUE_WEIGHTS),
+            what=LIGHTGLUE_WEIGHTS,
+            **self.lightglue_conf,
+        )
+        return {"extractor": disk.to(self.device), "matcher": matcher.to(self.device)}
+
+    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
+        h, w = image.shape
+        t = pad_to_multiple(image_tensor(image, self.device, channels=3), 16)
+        feats = self._model["extractor"](
+            t, n=None, window_size=self.nms_window, score_threshold=self.score_threshold
+        )[0]
+        kpts, desc, scores = feats.keypoints, feats.descriptors, feats.detection_scores
+        inside = (kpts[:, 0] < w) & (kpts[:, 1] < h)
+        kpts, desc, scores = kpts[inside], desc[inside], scores[inside]
+        if len(scores) > self.max_keypoints:
+            top = torch.topk(scores, self.max_keypoints).indices
+            kpts, desc = kpts[top], desc[top]
+        return {"keypoints": kpts, "descriptors": desc}
