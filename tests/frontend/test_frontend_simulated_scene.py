@@ -1,10 +1,10 @@
 """The front end on the simulator's ``tiny`` scene: offsets vs the simulated truth.
 
 The ``tiny`` preset lights the reference ortho and the CCD images with different suns
-(as real CTX and HiRIC images are). Shading then moves the apparent position of relief
-features by about half a reference pixel, which no matcher can undo, so the offset
-accuracy is checked on the same scene with the reference lit like the images; the
-preset itself must still run end to end with every tile reported.
+(as real CTX and HiRIC images are), 35 degrees of azimuth and 6 of elevation apart:
+enough to make the radiometry differ non-linearly, moderate enough that every matcher
+finds its tiles and the offsets agree with the truth to a fraction of a reference pixel.
+The tests run on the preset as it is (no override).
 """
 
 from __future__ import annotations
@@ -16,10 +16,13 @@ from planetref.frontend.config import FrontendConfig
 from planetref.frontend.geometry import image_to_ref_pixel
 from planetref.frontend.match_tile import STATUSES, match_strip
 
-# CCDs of 256 x 512 px at 1 m over a 5 m reference: one tile per CCD; the initial error
-# is about 107 m (21 reference pixels).
+# CCDs of 320 x 640 px at 2.5 m over a 5 m reference (160 x 320 reference px): 2 x 3
+# tiles of 128 reference px per CCD, 18 in all; the initial error is about 107 m
+# (21 reference pixels).
 CFG = FrontendConfig(tile_size_ref_px=128, coarse_factor=2, uncertainty_m=150.0)
-SAME_SUN = {"photometry": {"reference_sun": {"azimuth_deg": 215.0, "elevation_deg": 40.0}}}
+N_TILES = {"ccd1": 6, "ccd2": 6, "ccd3": 6}
+# The learned matchers run on CPU here: they match the middle CCD only (6 tiles).
+LEARNED_CCDS = ("ccd2",)
 
 
 def _load(root):
@@ -53,8 +56,9 @@ def _simulate(tmp_path_factory, name, overrides=None):
 
 
 @pytest.fixture(scope="module")
-def same_sun(tmp_path_factory):
-    s = _simulate(tmp_path_factory, "tiny_same_sun", SAME_SUN)
+def tiny(tmp_path_factory):
+    """The ``tiny`` preset as shipped (reference and images under different suns)."""
+    s = _simulate(tmp_path_factory, "tiny")
     yield s
     s["ref"].close()
 
@@ -69,21 +73,22 @@ def _truth_offset(s, r):
     return np.array([np.mean(tc - ic), np.mean(tr - ir)])
 
 
-@pytest.mark.parametrize("name, min_ok", [
-    ("sift", 3), ("ncc", 3),
-    pytest.param("disk-lightglue", 2, marks=pytest.mark.shared),
-    pytest.param("aliked-lightglue", 2, marks=pytest.mark.shared),
-    pytest.param("xfeat-lighterglue", 1, marks=[pytest.mark.shared, pytest.mark.xfail(
-        strict=False, reason="XFeat + LighterGlue finds fewer than 8 inliers on the tiny "
-        "scene's 51 x 102 reference-pixel CCDs")]),
+@pytest.mark.parametrize("name, ccds, min_ok", [
+    ("sift", None, 18), ("ncc", None, 18),
+    pytest.param("disk-lightglue", LEARNED_CCDS, 4, marks=pytest.mark.shared),
+    pytest.param("aliked-lightglue", LEARNED_CCDS, 4, marks=pytest.mark.shared),
+    pytest.param("xfeat-lighterglue", LEARNED_CCDS, 2, marks=[
+        pytest.mark.shared, pytest.mark.xfail(
+            strict=False, reason="XFeat + LighterGlue matches every tile, but its keypoints "
+            "are coarser: its worst tile's offset error is close to the 0.5 px bound")]),
 ])
-def test_tiny_offsets_agree_with_truth(same_sun, make_matcher, name, min_ok):
-    s = same_sun
+def test_tiny_offsets_agree_with_truth(tiny, make_matcher, name, ccds, min_ok):
+    s = tiny
     # An area-based search must reach the initial error (21 px here).
     options = {"search_radius": 40, "spacing": 8} if name == "ncc" else {}
     matcher = make_matcher(name, **options)
     strip = match_strip(s["init"], s["images"], s["ref"], s["dem"], matcher, CFG,
-                        progress=False, raise_errors=True)
+                        ccds=ccds, progress=False, raise_errors=True)
     errs = {r.tile_id: float(np.max(np.abs(np.asarray(r.offset_px) - _truth_offset(s, r))))
             for r in strip.tiles if r.status == "ok"}
     print(f"tiny/{name}: {strip.status_counts()}, max |offset - truth| (ref px): "
@@ -92,16 +97,14 @@ def test_tiny_offsets_agree_with_truth(same_sun, make_matcher, name, min_ok):
     assert max(errs.values()) < 0.5
 
 
-def test_tiny_preset_runs_and_reports_every_tile(tmp_path_factory):
+def test_tiny_preset_runs_and_reports_every_tile(tiny):
     from planetref.matching import get_matcher
 
-    s = _simulate(tmp_path_factory, "tiny")
-    try:
-        strip = match_strip(s["init"], s["images"], s["ref"], s["dem"], get_matcher("sift"), CFG,
-                            progress=False)
-    finally:
-        s["ref"].close()
-    assert len(strip.tiles) == 3
+    s = tiny
+    strip = match_strip(s["init"], s["images"], s["ref"], s["dem"], get_matcher("sift"), CFG,
+                        progress=False)
+    # At least 2 x 2 tiles of 128 reference px per CCD.
+    assert {c: sum(t.tile.ccd == c for t in strip.tiles) for c in N_TILES} == N_TILES
     for t in strip.tiles:
         assert t.status in STATUSES and t.status != "error", t.message
         assert t.status == "ok" or t.message

@@ -26,6 +26,21 @@ def test_presets_are_valid_typed_and_frozen() -> None:
         cfg.seed = 3  # type: ignore[misc]
 
 
+def test_tiny_preset_is_matchable_against_its_reference() -> None:
+    """``tiny`` is the front end's end-to-end fixture: each CCD must span several tiles of
+    the 5 m reference, and the reference sun must differ from the images' moderately."""
+    cfg = load_config("tiny")
+    cam, ratio = cfg.camera, cfg.camera.gsd_m / cfg.reference.ortho_gsd_m
+    assert cam.n_ccds == 3 and 0 < cam.overlap_samples < cam.n_samples // 10
+    assert cam.n_samples * ratio >= 150 and cam.n_lines * ratio >= 300  # reference px
+    assert cam.n_ccds * cam.n_samples * cam.n_lines <= 1_000_000  # stays quick to render
+    assert cfg.terrain.dem_gsd_m < cam.gsd_m and cfg.albedo.texture_gsd_m < cam.gsd_m
+    tgt, ref = cfg.photometry.target_sun, cfg.photometry.reference_sun
+    d_az = abs((ref.azimuth_deg - tgt.azimuth_deg + 180.0) % 360.0 - 180.0)
+    assert 20.0 <= d_az <= 35.0
+    assert 0.0 < abs(ref.elevation_deg - tgt.elevation_deg) <= 10.0
+
+
 def test_unknown_preset_lists_valid_names() -> None:
     with pytest.raises(InputError) as err:
         load_config("hirise")
