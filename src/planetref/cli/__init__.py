@@ -27,6 +27,10 @@ COMMANDS: dict[str, str] = {
     "matchers": "planetref.cli.match:matchers_command",
     "match": "planetref.cli.match:match_command",
     "simulate": "planetref.cli.simulate:simulate_command",
+    "adjust": "planetref.cli.adjust:adjust_command",
+    "georef": "planetref.cli.georef:georef_command",
+    "compare": "planetref.cli.georef:compare_command",
+    "demo": "planetref.cli.georef:demo_command",
 }
 
 log = logging.getLogger("planetref")
@@ -57,6 +61,20 @@ class _LazyGroup(click.Group):
             if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
                 raise
             raise click.ClickException(str(exc)) from None
+        except (click.ClickException, click.exceptions.Exit, click.exceptions.Abort,
+                KeyboardInterrupt):
+            raise
+        except (OSError, MemoryError) as exc:
+            if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
+                raise
+            raise click.ClickException(f"{type(exc).__name__}: {exc}") from None
+        except Exception as exc:
+            # A bug, not bad input: one line here, the traceback with -vv.
+            if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
+                raise
+            raise click.ClickException(
+                f"internal error ({type(exc).__name__}: {exc}); rerun with -vv for the "
+                "traceback and please report it") from None
 
 
 def _configure_logging(verbosity: int) -> None:

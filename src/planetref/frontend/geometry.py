@@ -155,19 +155,29 @@ def image_gsd_m(camera: Camera, ccd: str, terrain: Terrain,
     """Ground sampling distance (m) of a CCD image at a pixel (default: its centre).
 
     The geometric mean of the along-line and along-sample ground steps of one pixel.
+    Without an explicit pixel, the centre is tried first and then a 5 x 5 grid over the
+    image, so a hole in the DEM under the centre does not stop the measurement.
 
     Raises:
-        GeometryError: If the rays of the pixel miss the terrain.
+        GeometryError: If the rays of the pixel (every tried pixel) miss the terrain.
     """
     from planetref.errors import GeometryError
 
     n_lines, n_samples = camera.image_size(ccd)
-    lc = n_lines / 2.0 if line is None else float(line)
-    sc = n_samples / 2.0 if sample is None else float(sample)
-    xyz = rays_to_ground(camera, ccd, [lc, lc + 1.0, lc], [sc, sc, sc + 1.0], terrain)
-    if not np.all(np.isfinite(xyz)):
-        raise GeometryError(f"the rays of CCD {ccd!r} at (line {lc}, sample {sc}) miss the "
-                            "terrain; cannot measure its ground sampling distance")
-    d_line = float(np.linalg.norm(xyz[1] - xyz[0]))
-    d_sample = float(np.linalg.norm(xyz[2] - xyz[0]))
-    return float(np.sqrt(d_line * d_sample))
+    if line is not None or sample is not None:
+        tries = [(n_lines / 2.0 if line is None else float(line),
+                  n_samples / 2.0 if sample is None else float(sample))]
+    else:
+        f = np.linspace(0.1, 0.9, 5)
+        tries = [(n_lines / 2.0, n_samples / 2.0)] + [(a * n_lines, b * n_samples)
+                                                      for a in f for b in f]
+    for lc, sc in tries:
+        xyz = rays_to_ground(camera, ccd, [lc, lc + 1.0, lc], [sc, sc, sc + 1.0], terrain)
+        if np.all(np.isfinite(xyz)):
+            d_line = float(np.linalg.norm(xyz[1] - xyz[0]))
+            d_sample = float(np.linalg.norm(xyz[2] - xyz[0]))
+            return float(np.sqrt(d_line * d_sample))
+    lc, sc = tries[0]
+    raise GeometryError(f"the rays of CCD {ccd!r} at (line {lc}, sample {sc})"
+                        f"{' and elsewhere' if len(tries) > 1 else ''} miss the terrain; "
+                        "cannot measure its ground sampling distance")

@@ -152,13 +152,16 @@ def plan_tiles(camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain,
         (less where the image is smaller).
 
     Raises:
-        GeometryError: If the centre of the image does not project onto the DEM.
+        GeometryError: If no ray of the image meets the DEM.
     """
     n_lines, n_samples = camera.image_size(ccd)
     gsd_img = image_gsd_m(camera, ccd, terrain)
     col, row = image_to_ref_pixel(camera, ccd, [n_lines / 2.0], [n_samples / 2.0], ref,
                                   terrain)
-    gx, gy = ref.ground_sampling_m(float(col[0]), float(row[0]))
+    if np.isfinite(col[0]) and np.isfinite(row[0]):
+        gx, gy = ref.ground_sampling_m(float(col[0]), float(row[0]))
+    else:  # the centre's ray falls in a DEM hole: the ortho's own centre will do
+        gx, gy = ref.ground_sampling_m()
     gsd_ref = math.sqrt(gx * gy)
     ratio = gsd_ref / gsd_img
     size = max(16, round(config.tile_size_ref_px * ratio))

@@ -271,7 +271,10 @@ class PhotometryConfig(_Model):
 
     model: Literal["lambert", "lunar-lambert"] = "lunar-lambert"
     target_sun: SunConfig = SunConfig(azimuth_deg=215.0, elevation_deg=40.0)
-    reference_sun: SunConfig = SunConfig(azimuth_deg=285.0, elevation_deg=25.0)
+    # 35 deg of azimuth and 6 deg of elevation apart: a non-linear radiometric difference
+    # every matcher must bear, without the cross-lighting that no point matcher survives
+    # (at 70 deg apart SIFT matches no tile of the hiric-strip scene).
+    reference_sun: SunConfig = SunConfig(azimuth_deg=250.0, elevation_deg=34.0)
     sky_fraction: float = Field(default=0.06, ge=0.0, le=1.0)
     target_haze: float = Field(default=0.03, ge=0.0)
     reference_haze: float = Field(default=0.10, ge=0.0)

@@ -1,0 +1,41 @@
+"""Rigorous line-scan bundle adjustment with matched control points and tie points.
+
+The entry point is :func:`adjust`, which takes a :class:`Network` (cameras, ground
+points, image observations) and an :class:`AdjustConfig` and returns an
+:class:`AdjustmentResult` (adjusted cameras, parameters with a-posteriori sigmas and
+correlations, residuals, inlier flags, metrics before/after). :func:`read_network`
+reads a ``NETWORK.toml`` control network; :func:`write_outputs` writes the adjusted
+cameras, residual table, report.json/report.md and residual plots. See docs/adjust.md.
+"""
+
+from planetref.adjust.api import AdjustmentResult, adjust, triangulate
+from planetref.adjust.config import AdjustConfig, validate_config
+from planetref.adjust.models import (
+    AdjustableCamera,
+    CsmParameterization,
+    Evaluation,
+    LineScanParameterization,
+    parameterize,
+    register_parameterization,
+)
+from planetref.adjust.network import NetworkFile, read_network
+from planetref.adjust.problem import Network
+from planetref.adjust.report import write_outputs
+
+__all__ = [
+    "AdjustConfig",
+    "AdjustableCamera",
+    "AdjustmentResult",
+    "CsmParameterization",
+    "Evaluation",
+    "LineScanParameterization",
+    "Network",
+    "NetworkFile",
+    "adjust",
+    "parameterize",
+    "read_network",
+    "register_parameterization",
+    "triangulate",
+    "validate_config",
+    "write_outputs",
+]

@@ -1,0 +1,412 @@
+"""Typed configuration of the bundle adjustment.
+
+Every unknown of the adjustment belongs to a *block* (the positions of a strip's
+orientation nodes, their attitudes, the interior orientation, the offset of a CSM
+image's pointing...), and every block is ``free`` (estimated without a-priori
+information), ``fixed`` (kept at its initial value) or ``weighted`` (estimated with an
+a-priori standard deviation around its initial value, a pseudo-observation).
+
+Units are in the field names: ``_m`` metres, ``_mm`` millimetres, ``_rad`` radians,
+``_m_s`` metres per second, ``_rad_s`` radians per second, ``_rad_s2`` radians per second
+squared, ``_px`` pixels. A sigma may also be written as a string with an explicit unit,
+converted to the field's unit: ``"20 urad"``, ``"5 arcsec"``, ``"0.1 mrad"``,
+``"2 km"``, ``"10 um"``, ``"3 arcsec/s"``. Recognised units: lengths ``m km cm mm um``;
+angles ``rad mrad urad µrad arcsec deg``; rates of either with ``/s``; angular
+accelerations with ``/s2`` (or ``/s^2``).
+
+All models are frozen pydantic models that reject unknown keys, so a typo in a TOML
+file is an error and not a silent default.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
+
+from planetref.errors import InputError
+
+__all__ = [
+    "AdjustConfig",
+    "AngleBlock",
+    "AngularAccelerationBlock",
+    "AngularRateBlock",
+    "CsmParameters",
+    "FocalLengthBlock",
+    "InteriorBlock",
+    "LengthBlock",
+    "LineScanParameters",
+    "Mode",
+    "ObservationConfig",
+    "OutlierConfig",
+    "SolverConfig",
+    "VelocityBlock",
+    "parse_quantity",
+    "validate_config",
+]
+
+Mode = Literal["free", "fixed", "weighted"]
+
+_LENGTH = {"m": 1.0, "km": 1e3, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6}
+_ANGLE = {"rad": 1.0, "mrad": 1e-3, "urad": 1e-6, "µrad": 1e-6,
+          "arcsec": math.pi / 648000.0, "deg": math.pi / 180.0}
+_KINDS: dict[str, dict[str, float]] = {
+    "m": _LENGTH,
+    "mm": {k: v * 1e3 for k, v in _LENGTH.items()},
+    "rad": _ANGLE,
+    "m/s": {f"{k}/s": v for k, v in _LENGTH.items()},
+    "rad/s": {f"{k}/s": v for k, v in _ANGLE.items()},
+    "rad/s2": {**{f"{k}/s2": v for k, v in _ANGLE.items()},
+               **{f"{k}/s^2": v for k, v in _ANGLE.items()}},
+}
+_QUANTITY = re.compile(r"^\s*([-+0-9.eE]+)\s*([^\s]+)\s*$")
+
+
+def parse_quantity(value: Any, unit: str) -> float | None:
+    """A number in ``unit``, from a number (already in ``unit``) or a string with a unit.
+
+    Args:
+        value: ``None``, a number, or a string such as ``"20 urad"``.
+        unit: The target unit: ``"m"``, ``"mm"``, ``"rad"``, ``"m/s"``, ``"rad/s"`` or
+            ``"rad/s2"``.
+
+    Returns:
+        The value converted to ``unit`` (``None`` stays ``None``).
+
+    Raises:
+        ValueError: For an unknown unit or a malformed string (pydantic turns it into a
+            validation error naming the field).
+    """
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number or a string with a unit, got {value!r}")
+    if isinstance(value, int | float):
+        return float(value)
+    if isinstance(value, str):
+        m = _QUANTITY.match(value)
+        table = _KINDS[unit]
+        if m is None or m.group(2) not in table:
+            raise ValueError(f"expected '<number> <unit>' with a unit among "
+                             f"{sorted(table)}, got {value!r}")
+        try:
+            number = float(m.group(1))
+        except ValueError:
+            raise ValueError(f"malformed number in {value!r}") from None
+        return number * table[m.group(2)]
+    raise ValueError(f"expected a number or a string with a unit, got {value!r}")
+
+
+def _unit(unit: str) -> BeforeValidator:
+    return BeforeValidator(lambda v: parse_quantity(v, unit))
+
+
+Metres = Annotated[float | None, _unit("m")]
+Millimetres = Annotated[float | None, _unit("mm")]
+Radians = Annotated[float | None, _unit("rad")]
+MetresPerSecond = Annotated[float | None, _unit("m/s")]
+RadiansPerSecond = Annotated[float | None, _unit("rad/s")]
+RadiansPerSecond2 = Annotated[float | None, _unit("rad/s2")]
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class _Block(_Frozen):
+    """Common checks: a weighted block needs a positive finite sigma."""
+
+    mode: Mode = "free"
+
+    def _sigma_values(self) -> dict[str, float | None]:
+        return {k: getattr(self, k) for k in type(self).model_fields if k.startswith("sigma")}
+
+    @model_validator(mode="after")
+    def _check_sigma(self) -> _Block:
+        for name, value in self._sigma_values().items():
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value}")
+            if self.mode == "weighted" and value is None:
+                raise ValueError(f"mode 'weighted' needs {name}")
+        return self
+
+
+class LengthBlock(_Block):
+    """A block of lengths (positions, position offsets).
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted``.
+        sigma_m: A-priori standard deviation (metres), required when weighted.
+    """
+
+    sigma_m: Metres = None
+
+
+class VelocityBlock(_Block):
+    """A block of rates of lengths (position drift).
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted``.
+        sigma_m_s: A-priori standard deviation (metres per second).
+    """
+
+    sigma_m_s: MetresPerSecond = None
+
+
+class AngleBlock(_Block):
+    """A block of angles (attitudes, pointing offsets).
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted``.
+        sigma_rad: A-priori standard deviation (radians; e.g. ``"20 urad"``).
+    """
+
+    sigma_rad: Radians = None
+
+
+class AngularRateBlock(_Block):
+    """A block of angular rates (pointing drift).
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted``.
+        sigma_rad_s: A-priori standard deviation (radians per second).
+    """
+
+    sigma_rad_s: RadiansPerSecond = None
+
+
+class AngularAccelerationBlock(_Block):
+    """A block of angular accelerations (quadratic pointing term).
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted``.
+        sigma_rad_s2: A-priori standard deviation (radians per second squared).
+    """
+
+    sigma_rad_s2: RadiansPerSecond2 = None
+
+
+class FocalLengthBlock(_Block):
+    """A focal-length correction.
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted``.
+        sigma_mm: A-priori standard deviation (millimetres).
+    """
+
+    sigma_mm: Millimetres = None
+
+
+class InteriorBlock(_Block):
+    """Interior orientation (principal point ``x0, y0`` and focal length ``f``).
+
+    Attributes:
+        mode: ``free``, ``fixed`` or ``weighted`` (applies to all three).
+        scope: ``strip``: one ``(x0, y0, f)`` per strip, shared by its CCDs; ``ccd``: one
+            per CCD (realised in the native camera file by moving and scaling each CCD
+            in the focal plane, which is exactly equivalent).
+        sigma_principal_point_mm: A-priori sigma of ``x0`` and ``y0`` (mm).
+        sigma_focal_length_mm: A-priori sigma of ``f`` (mm).
+    """
+
+    mode: Mode = "fixed"
+    scope: Literal["strip", "ccd"] = "strip"
+    sigma_principal_point_mm: Millimetres = None
+    sigma_focal_length_mm: Millimetres = None
+
+
+class LineScanParameters(_Frozen):
+    """Unknowns of a native line-scan strip (:class:`~planetref.camera.linescan.LineScanCamera`).
+
+    Attributes:
+        position: The ``X, Y, Z`` of every orientation node (metres).
+        attitude: The ``phi, omega, kappa`` of every node (radians).
+        interior: Interior orientation.
+        min_obs_per_node: A node that is not fixed needs at least this many observations
+            near it (between its two neighbouring nodes); see ``weak_nodes``.
+        weak_nodes: What to do with nodes below ``min_obs_per_node``: ``error`` raises an
+            :class:`~planetref.errors.AdjustmentError` naming them; ``weight`` ties them
+            to their initial values with ``weak_node_position_sigma_m`` and
+            ``weak_node_attitude_sigma_rad`` and logs a warning.
+        weak_node_position_sigma_m: Sigma for weak nodes' positions (metres).
+        weak_node_attitude_sigma_rad: Sigma for weak nodes' attitudes (radians).
+    """
+
+    position: LengthBlock = LengthBlock(mode="weighted", sigma_m=100.0)
+    attitude: AngleBlock = AngleBlock(mode="free")
+    interior: InteriorBlock = InteriorBlock()
+    min_obs_per_node: int = Field(3, ge=0)
+    weak_nodes: Literal["error", "weight"] = "error"
+    weak_node_position_sigma_m: Metres = 100.0
+    weak_node_attitude_sigma_rad: Radians = 1e-4
+
+
+class CsmParameters(_Frozen):
+    """Per-image corrections of CSM/ALE line-scan cameras (usgscsm's adjustable parameters).
+
+    Position: offset and linear drift along the in-track, cross-track and radial axes.
+    Pointing: offset, rate and acceleration of the omega, phi, kappa angles in the
+    sensor frame. The sigmas are physical; they are converted to usgscsm's parameter
+    scaling (metres) with each image's half duration, flying height and half swath.
+
+    Attributes:
+        position_offset: Sensor position offset (metres).
+        position_rate: Sensor position drift (metres per second).
+        pointing_offset: Pointing angle offsets (radians).
+        pointing_rate: Pointing angle rates (radians per second).
+        pointing_acceleration: Pointing angle accelerations (radians per second²).
+        focal_length: Focal length correction (millimetres).
+        fd_step_m: Central finite-difference step of the corrections, in usgscsm's
+            metre units (the correction enters linearly to first order, so the step
+            barely matters; 1 m is a fraction of a pixel for orbital cameras).
+        fd_ground_step_m: Finite-difference step for ground coordinates (metres).
+    """
+
+    position_offset: LengthBlock = LengthBlock(mode="fixed")
+    position_rate: VelocityBlock = VelocityBlock(mode="fixed")
+    pointing_offset: AngleBlock = AngleBlock(mode="weighted", sigma_rad=1e-3)
+    pointing_rate: AngularRateBlock = AngularRateBlock(mode="weighted", sigma_rad_s=1e-4)
+    pointing_acceleration: AngularAccelerationBlock = AngularAccelerationBlock(mode="fixed")
+    focal_length: FocalLengthBlock = FocalLengthBlock(mode="fixed")
+    fd_step_m: float = Field(1.0, gt=0.0)
+    fd_ground_step_m: float = Field(1.0, gt=0.0)
+
+
+class ObservationConfig(_Frozen):
+    """Default weights of observations and ground points.
+
+    Attributes:
+        sigma_px: Standard deviation of an image measure (pixels), for observations
+            that carry none.
+        mcp_ground: How the ground point of an MCP enters: ``fixed`` (taken as known) or
+            ``weighted`` by ``mcp_ground_sigma_m`` (e.g. the reference GSD).
+        mcp_ground_sigma_m: Ground sigma of weighted MCPs (metres, per axis).
+        tie_apriori_sigma_m: A-priori sigma of tie-point coordinates (metres, per axis);
+            ``None`` leaves them free.
+        min_tie_observations: A free tie point needs at least this many observations
+            (2); points with fewer are left out of the adjustment (status ``unusable``).
+    """
+
+    sigma_px: float = Field(1.0, gt=0.0)
+    mcp_ground: Literal["fixed", "weighted"] = "fixed"
+    mcp_ground_sigma_m: Metres = None
+    tie_apriori_sigma_m: Metres = None
+    min_tie_observations: int = Field(2, ge=2)
+
+    @model_validator(mode="after")
+    def _check(self) -> ObservationConfig:
+        if self.mcp_ground == "weighted" and self.mcp_ground_sigma_m is None:
+            raise ValueError("mcp_ground 'weighted' needs mcp_ground_sigma_m")
+        for name in ("mcp_ground_sigma_m", "tie_apriori_sigma_m"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
+        return self
+
+
+class SolverConfig(_Frozen):
+    """Levenberg-Marquardt settings.
+
+    Attributes:
+        max_iterations: Most LM iterations per outlier round.
+        ftol: Stop when the relative decrease of the cost is below this.
+        xtol: Stop when every step is below this many standard deviations of its
+            parameter (unit weight: ``sqrt(S^-1_ii)`` of the reduced system for camera
+            parameters, ``1/sqrt(V_ii)`` for point coordinates).
+        initial_lambda: Initial Marquardt damping (relative to the diagonal).
+        min_lambda: Damping below which the solver takes pure Gauss-Newton steps.
+        max_lambda: Damping beyond which the solver gives up (diverged).
+        loss: Robust loss: ``linear`` (plain least squares), ``huber`` or ``cauchy``,
+            applied by iteratively reweighted least squares to the normalised residual
+            length of each observation.
+        loss_scale_px: Scale of the robust loss in pixels; ``None`` estimates it at the
+            start of every outlier round from the median absolute residual (MAD).
+        loss_threshold: The loss turns from quadratic to robust at this many scales.
+        loss_rounds: ``first``: the robust loss protects the first outlier round only
+            (before any rejection), later rounds are plain least squares on the inliers,
+            as the seed's rule defines the solution; ``all``: every round is robust.
+        chunk_size: Observations evaluated at once (memory/speed trade-off).
+        min_rcond: Reciprocal condition number of the (Jacobi-scaled) reduced normal
+            matrix below which the problem is declared degenerate.
+    """
+
+    max_iterations: int = Field(50, ge=1)
+    ftol: float = Field(1e-12, ge=0.0)
+    xtol: float = Field(1e-8, ge=0.0)
+    initial_lambda: float = Field(1e-8, ge=0.0)
+    min_lambda: float = Field(1e-10, gt=0.0)
+    max_lambda: float = Field(1e12, gt=0.0)
+    loss: Literal["linear", "huber", "cauchy"] = "huber"
+    loss_scale_px: float | None = Field(None, gt=0.0)
+    loss_threshold: float = Field(3.0, gt=0.0)
+    loss_rounds: Literal["first", "all"] = "first"
+    chunk_size: int = Field(8192, ge=256)
+    min_rcond: float = Field(1e-14, gt=0.0, lt=1.0)
+
+
+class OutlierConfig(_Frozen):
+    """The seed's outlier rule: inlier if the reprojection error is below k x RMSE.
+
+    Attributes:
+        enabled: Apply the rule (otherwise every valid observation is an inlier).
+        k_rmse: The factor ``k`` (3 in the seed).
+        max_rounds: Most adjust-and-reject rounds before giving up on a stable set.
+    """
+
+    enabled: bool = True
+    k_rmse: float = Field(3.0, gt=0.0)
+    max_rounds: int = Field(20, ge=1)
+
+
+class AdjustConfig(_Frozen):
+    """Everything the adjustment can be told.
+
+    Attributes:
+        linescan: Unknowns of native line-scan strips.
+        csm: Unknowns of CSM/ALE line-scan images.
+        fixed_cameras: Ids of cameras (strips or images) held fixed entirely.
+        observations: Default weights of observations and ground points.
+        solver: Levenberg-Marquardt settings.
+        outliers: The outlier rule.
+    """
+
+    linescan: LineScanParameters = LineScanParameters()
+    csm: CsmParameters = CsmParameters()
+    fixed_cameras: tuple[str, ...] = ()
+    observations: ObservationConfig = ObservationConfig()
+    solver: SolverConfig = SolverConfig()
+    outliers: OutlierConfig = OutlierConfig()
+
+
+def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:
+    """Validate a plain mapping (e.g. a TOML table) into an :class:`AdjustConfig`.
+
+    Args:
+        data: The mapping, or an :class:`AdjustConfig` (returned unchanged).
+        source: File the mapping came from, for messages.
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        InputError: Naming the source, the first offending field and what was expected.
+    """
+    if isinstance(data, AdjustConfig):
+        return data
+    try:
+        return AdjustConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"]) or None
+        raise InputError(f"{err['msg']} (input: {err.get('input')!r}); "
+                         f"{exc.error_count()} error(s) in the adjustment configuration",
+                         path=source, field=loc) from None

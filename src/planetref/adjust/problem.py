@@ -1,0 +1,291 @@
+"""What an adjustment works on: cameras, ground points and image observations.
+
+A :class:`Network` holds
+
+* the cameras (each a strip or an image, identified by a string id; a camera may have
+  several CCDs),
+* the ground points, each with a priori body-fixed XYZ (metres) and a per-axis sigma
+  that says how the point enters: ``0`` = fixed (an MCP taken as known), finite > 0 =
+  weighted (an MCP weighted by the reference resolution, or a constrained tie point),
+  ``inf`` = free (a tie point whose coordinates are unknowns),
+* the observations: one image measure ``(line, sample)`` of one point in one CCD of one
+  camera, in planetref's pixel convention (first pixel centre at ``(0.5, 0.5)``), with a
+  sigma in pixels. Observations flagged ``check`` are held out: they do not enter the
+  adjustment and are only evaluated (check MCPs).
+
+Free points with NaN coordinates are triangulated from their observations before the
+adjustment starts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planetref.camera.base import Camera
+from planetref.errors import InputError
+
+__all__ = ["Network", "PointKind"]
+
+PointKind = str  # "mcp" or "tie" (informative: how a point is reported)
+F64 = NDArray[np.float64]
+
+
+def _as_float(a: ArrayLike, shape: tuple[int, ...], name: str) -> F64:
+    try:
+        arr = np.array(np.broadcast_to(np.asarray(a, dtype=np.float64), shape))
+    except ValueError:
+        raise InputError(f"expected shape {shape} (or broadcastable), got {np.shape(a)}",
+                         field=name) from None
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Network:
+    """Cameras, ground points and observations (see the module doc).
+
+    Attributes:
+        cameras: The cameras, ``len == len(camera_ids)``.
+        camera_ids: Unique camera (strip/image) ids.
+        point_ids: Unique point ids, ``(P,)``.
+        point_xyz: A priori body-fixed XYZ in metres, ``(P, 3)``; NaN allowed for free
+            points (triangulated).
+        point_sigma_m: Per-axis a-priori sigma (metres), ``(P, 3)``: 0 fixed, inf free.
+        point_kind: ``"mcp"`` or ``"tie"`` per point, ``(P,)`` (reporting only).
+        obs_camera: Camera index of each observation, ``(M,)``.
+        obs_ccd: CCD index (into the camera's ``ccd_names``), ``(M,)``.
+        obs_point: Point index, ``(M,)``.
+        obs_line: Observed line (pixels, first pixel centre at 0.5), ``(M,)``.
+        obs_sample: Observed sample, ``(M,)``.
+        obs_sigma_px: Sigma of ``(line, sample)`` in pixels, ``(M, 2)``.
+        obs_check: True for held-out check observations, ``(M,)``.
+        obs_ids: Observation ids, ``(M,)`` strings.
+    """
+
+    cameras: tuple[Camera, ...]
+    camera_ids: tuple[str, ...]
+    point_ids: NDArray[np.str_]
+    point_xyz: F64
+    point_sigma_m: F64
+    point_kind: NDArray[np.str_]
+    obs_camera: NDArray[np.intp]
+    obs_ccd: NDArray[np.intp]
+    obs_point: NDArray[np.intp]
+    obs_line: F64
+    obs_sample: F64
+    obs_sigma_px: F64
+    obs_check: NDArray[np.bool_]
+    obs_ids: NDArray[np.str_]
+
+    def __post_init__(self) -> None:
+        cams = tuple(self.cameras)
+        ids = tuple(str(c) for c in self.camera_ids)
+        if not cams:
+            raise InputError("a network needs at least one camera", field="cameras")
+        if len(ids) != len(cams):
+            raise InputError(f"{len(ids)} camera ids for {len(cams)} cameras",
+                             field="camera_ids")
+        if len(set(ids)) != len(ids):
+            raise InputError(f"camera ids must be unique, got {list(ids)}", field="camera_ids")
+        n_pts = len(np.atleast_1d(self.point_ids))
+        pids = np.asarray(self.point_ids, dtype=str).reshape(n_pts)
+        if len(np.unique(pids)) != n_pts:
+            raise InputError("point ids must be unique", field="point_ids")
+        xyz = _as_float(self.point_xyz, (n_pts, 3), "point_xyz")
+        sig = _as_float(self.point_sigma_m, (n_pts, 3), "point_sigma_m")
+        if np.any(np.isnan(sig)) or np.any(sig < 0):
+            raise InputError("point sigmas must be >= 0 (0 fixed, inf free)",
+                             field="point_sigma_m")
+        kind = np.asarray(np.broadcast_to(np.asarray(self.point_kind, dtype=str), (n_pts,)))
+        bad_xyz = ~np.all(np.isfinite(xyz), axis=1) & ~np.all(np.isinf(sig), axis=1)
+        if np.any(bad_xyz):
+            i = int(np.flatnonzero(bad_xyz)[0])
+            raise InputError(f"point {pids[i]!r} is fixed or weighted but has no finite "
+                             f"a priori XYZ", field="point_xyz")
+        m = len(np.atleast_1d(self.obs_point))
+        cam_i = np.asarray(self.obs_camera, dtype=np.intp).reshape(m)
+        ccd_i = np.asarray(np.broadcast_to(np.asarray(self.obs_ccd, dtype=np.intp), (m,)))
+        pt_i = np.asarray(self.obs_point, dtype=np.intp).reshape(m)
+        if m and (cam_i.min() < 0 or cam_i.max() >= len(cams)):
+            raise InputError("observation camera index out of range", field="obs_camera")
+        if m and (pt_i.min() < 0 or pt_i.max() >= n_pts):
+            raise InputError("observation point index out of range", field="obs_point")
+        n_ccd = np.array([len(c.ccd_names) for c in cams])
+        if m and (np.any(ccd_i < 0) or np.any(ccd_i >= n_ccd[cam_i])):
+            raise InputError("observation CCD index out of range", field="obs_ccd")
+        line = _as_float(self.obs_line, (m,), "obs_line")
+        sample = _as_float(self.obs_sample, (m,), "obs_sample")
+        if not (np.all(np.isfinite(line)) and np.all(np.isfinite(sample))):
+            raise InputError("observed lines and samples must be finite", field="obs_line")
+        sig_px = np.array(np.asarray(self.obs_sigma_px, dtype=np.float64))
+        sig_px = _as_float(sig_px[..., None] if sig_px.ndim == 1 else sig_px, (m, 2),
+                           "obs_sigma_px")
+        if not np.all(np.isfinite(sig_px) & (sig_px > 0)):
+            raise InputError("observation sigmas must be finite and > 0 pixels",
+                             field="obs_sigma_px")
+        check = np.asarray(np.broadcast_to(np.asarray(self.obs_check, dtype=bool), (m,)))
+        oids = np.asarray(self.obs_ids, dtype=str).reshape(m) if np.size(self.obs_ids) \
+            else np.array([str(i) for i in range(m)], dtype=str)
+        for name, value in (("cameras", cams), ("camera_ids", ids), ("point_ids", pids),
+                            ("point_xyz", xyz), ("point_sigma_m", sig), ("point_kind", kind),
+                            ("obs_camera", cam_i), ("obs_ccd", ccd_i), ("obs_point", pt_i),
+                            ("obs_line", line), ("obs_sample", sample),
+                            ("obs_sigma_px", sig_px), ("obs_check", check),
+                            ("obs_ids", oids)):
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def n_obs(self) -> int:
+        """Number of observations (including check observations)."""
+        return len(self.obs_point)
+
+    @property
+    def n_points(self) -> int:
+        """Number of ground points."""
+        return len(self.point_ids)
+
+    def ccd_name(self, obs: int) -> str:
+        """CCD name of an observation."""
+        return self.cameras[self.obs_camera[obs]].ccd_names[self.obs_ccd[obs]]
+
+    def image_labels(self) -> NDArray[np.str_]:
+        """``"camera_id"`` (single-CCD cameras) or ``"camera_id/ccd"`` per observation."""
+        labels = []
+        for ci, cam in enumerate(self.cameras):
+            names = cam.ccd_names
+            labels.append([self.camera_ids[ci] if len(names) == 1
+                           else f"{self.camera_ids[ci]}/{n}" for n in names])
+        return np.array([labels[c][k] for c, k in zip(self.obs_camera, self.obs_ccd,
+                                                        strict=True)], dtype=str)
+
+    def replace_points(self, point_xyz: F64) -> Network:
+        """A copy with other a priori point coordinates."""
+        return Network(**{**self._fields(), "point_xyz": point_xyz})
+
+    def _fields(self) -> dict[str, object]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    # ------------------------------------------------------------------ builders
+    @classmethod
+    def from_records(cls, cameras: Mapping[str, Camera], *, obs_camera: Sequence[str],
+                     obs_point: Sequence[str], line: ArrayLike, sample: ArrayLike,
+                     point_xyz: Mapping[str, ArrayLike], point_sigma_m: ArrayLike |
+                     Mapping[str, ArrayLike] = np.inf, point_kind: str |
+                     Mapping[str, str] = "tie", obs_ccd: Sequence[str | None] | None = None,
+                     sigma_px: ArrayLike = 1.0, check: ArrayLike = False,
+                     obs_ids: Sequence[str] | None = None) -> Network:
+        """Build a network from string ids (e.g. rows of a measures table).
+
+        Args:
+            cameras: Camera id -> camera.
+            obs_camera: Camera id of each observation.
+            obs_point: Point id of each observation.
+            line: Observed lines (planetref convention).
+            sample: Observed samples.
+            point_xyz: Point id -> a priori XYZ (metres; NaN for unknown free points).
+            point_sigma_m: A scalar/3-vector for all points, or point id -> sigma(s).
+            point_kind: ``"mcp"``/``"tie"`` for all points, or point id -> kind.
+            obs_ccd: CCD name per observation (``None``: the camera's first CCD).
+            sigma_px: Sigma of each observation (pixels), scalar, ``(M,)`` or ``(M, 2)``.
+            check: Held-out check flags.
+            obs_ids: Observation ids (default: row numbers).
+
+        Raises:
+            InputError: Unknown camera, point or CCD names.
+        """
+        cam_ids = list(cameras)
+        cam_index = {c: i for i, c in enumerate(cam_ids)}
+        pids = list(point_xyz)
+        p_index = {p: i for i, p in enumerate(pids)}
+        m = len(obs_point)
+        ci = np.empty(m, np.intp)
+        pi = np.empty(m, np.intp)
+        ki = np.zeros(m, np.intp)
+        for k in range(m):
+            c = obs_camera[k]
+            if c not in cam_index:
+                raise InputError(f"observation {k}: unknown camera {c!r}; known: {cam_ids}",
+                                 field="obs_camera")
+            ci[k] = cam_index[c]
+            p = obs_point[k]
+            if p not in p_index:
+                raise InputError(f"observation {k}: unknown point {p!r}", field="obs_point")
+            pi[k] = p_index[p]
+            if obs_ccd is not None and obs_ccd[k] is not None:
+                names = cameras[c].ccd_names
+                if obs_ccd[k] not in names:
+                    raise InputError(f"observation {k}: camera {c!r} has no CCD "
+                                     f"{obs_ccd[k]!r} (it has {list(names)})", field="ccd")
+                ki[k] = names.index(obs_ccd[k])
+        xyz = np.array([np.asarray(point_xyz[p], dtype=np.float64) for p in pids]).reshape(-1, 3)
+        if isinstance(point_sigma_m, Mapping):
+            sig = np.array([np.broadcast_to(np.asarray(point_sigma_m[p], np.float64), (3,))
+                            for p in pids]).reshape(-1, 3)
+        else:
+            sig = np.broadcast_to(np.asarray(point_sigma_m, np.float64), (len(pids), 3))
+        if isinstance(point_kind, Mapping):
+            kind = np.array([point_kind[p] for p in pids], dtype=str)
+        else:
+            kind = np.full(len(pids), point_kind, dtype=str)
+        return cls(cameras=tuple(cameras.values()), camera_ids=tuple(cam_ids),
+                   point_ids=np.array(pids, dtype=str), point_xyz=xyz, point_sigma_m=sig,
+                   point_kind=kind, obs_camera=ci, obs_ccd=ki, obs_point=pi,
+                   obs_line=np.asarray(line, np.float64),
+                   obs_sample=np.asarray(sample, np.float64),
+                   obs_sigma_px=np.asarray(sigma_px, np.float64),
+                   obs_check=np.asarray(check, bool),
+                   obs_ids=np.array(obs_ids if obs_ids is not None else
+                                    [str(i) for i in range(m)], dtype=str))
+
+    @classmethod
+    def mcps(cls, camera: Camera, *, line: ArrayLike, sample: ArrayLike, xyz: ArrayLike,
+             ccd: ArrayLike | str | None = None, camera_id: str = "strip",
+             ground_sigma_m: ArrayLike = 0.0, sigma_px: ArrayLike = 1.0,
+             check: ArrayLike = False) -> Network:
+        """A network of matched control points of one camera (one point per observation).
+
+        Args:
+            camera: The camera (strip).
+            line: Observed lines, ``(M,)``.
+            sample: Observed samples, ``(M,)``.
+            xyz: Reference ground points (metres), ``(M, 3)``.
+            ccd: CCD name(s) of the observations (a name, ``(M,)`` names, or ``None`` for
+                the first CCD).
+            camera_id: Id of the camera.
+            ground_sigma_m: 0 (known ground, default), or a sigma in metres: one for all,
+                ``(M,)`` per point, or ``(M, 3)`` per point and axis.
+            sigma_px: Sigma of each measure (pixels).
+            check: Held-out check flags.
+        """
+        line = np.atleast_1d(np.asarray(line, np.float64))
+        m = len(line)
+        names = camera.ccd_names
+        if ccd is None:
+            ki = np.zeros(m, np.intp)
+        else:
+            arr = np.broadcast_to(np.asarray(ccd, dtype=str), (m,))
+            lookup = {n: i for i, n in enumerate(names)}
+            unknown = sorted(set(np.unique(arr)) - set(lookup))
+            if unknown:
+                raise InputError(f"unknown CCD(s) {unknown}; the camera has {list(names)}",
+                                 field="ccd")
+            ki = np.array([lookup[n] for n in arr], dtype=np.intp)
+        gs = np.asarray(ground_sigma_m, np.float64)
+        if gs.ndim == 1:  # one sigma per point, the same on every axis
+            gs = gs[:, None]
+        return cls(cameras=(camera,), camera_ids=(camera_id,),
+                   point_ids=np.array([f"mcp{i}" for i in range(m)], dtype=str),
+                   point_xyz=np.asarray(xyz, np.float64).reshape(m, 3),
+                   point_sigma_m=_as_float(gs, (m, 3), "ground_sigma_m"),
+                   point_kind=np.full(m, "mcp", dtype=str), obs_camera=np.zeros(m, np.intp),
+                   obs_ccd=ki, obs_point=np.arange(m), obs_line=line,
+                   obs_sample=np.asarray(sample, np.float64),
+                   obs_sigma_px=np.asarray(sigma_px, np.float64),
+                   obs_check=np.asarray(check, bool),
+                   obs_ids=np.array([str(i) for i in range(m)], dtype=str))

@@ -1,0 +1,505 @@
+"""Outputs of an adjustment: cameras, residual table, report.json/report.md, plots.
+
+Layout of the output folder::
+
+    report.json            headline numbers, metrics, parameters, rounds, configuration
+    report.md              the same for people (the seed's Table 2 per camera and CCD)
+    residuals.csv          one row per observation
+    parameters.csv         one row per parameter (initial, adjusted, sigma)
+    covariance.npz         names, covariance and correlation matrices of the parameters
+    config.json            the resolved configuration
+    cameras/<id>.json      adjusted native line-scan cameras
+    cameras/<id>.isd.json  adjusted CSM ISDs (correction stored as usgscsm parameters)
+    cameras/<id>[_<ccd>]_RPC.TXT   RPCs refitted to the adjusted rigorous model
+    plots/residuals_<id>[_<ccd>].png   residual vectors over each CCD image
+
+Every file is written atomically (a temporary file in the same folder, then a rename).
+Residual columns follow the seed: ``dx`` is the sample residual and ``dy`` the line
+residual, both ``projected - observed`` in pixels.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from planetref.adjust.api import AdjustmentResult
+from planetref.adjust.network import safe_name
+from planetref.camera.geodesy import xyz_to_lonlat
+from planetref.camera.linescan import LineScanCamera
+from planetref.errors import PlanetrefError
+from planetref.metrics import geolocation_error
+
+__all__ = ["geolocation_metrics", "write_outputs"]
+
+log = logging.getLogger("planetref.adjust")
+MODE_NAMES = {0: "free", 1: "weighted", 2: "fixed"}
+#: A refitted RPC worse than this (check RMS, pixels) is reported as a warning.
+RPC_WARN_PX = 0.1
+
+
+# --------------------------------------------------------------------- atomic files
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _atomic_bytes(path: Path, data: bytes) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        # mkstemp creates 0600 files; outputs get the usual permissions.
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _atomic_text(path: Path, text: str) -> Path:
+    return _atomic_bytes(path, text.encode("utf-8"))
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-safe: numpy scalars to Python, NaN/inf to None."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+# ------------------------------------------------------------------------ metrics
+def geolocation_metrics(result: AdjustmentResult, truth: Mapping[str, Any], *,
+                        terrain: Any = 0.0, grid: tuple[int, int] = (21, 21)
+                        ) -> dict[str, Any]:
+    """Geolocation error before and after, per camera and CCD, against true cameras.
+
+    Args:
+        result: The adjustment result.
+        truth: Camera id -> true camera (ids missing here are skipped).
+        terrain: Height (m) or :class:`~planetref.camera.base.Terrain` of the grid points.
+        grid: Image grid ``(n_lines, n_samples)``.
+
+    Returns:
+        ``{camera_id: {ccd: {"before": {...}, "after": {...}}}}`` with the fields of
+        :func:`~planetref.metrics.geolocation_error` (metres and pixels, RMS and max).
+    """
+    out: dict[str, Any] = {}
+    for cid, true_cam in truth.items():
+        if cid not in result.cameras:
+            continue
+        per = {}
+        for ccd in true_cam.ccd_names:
+            per[ccd] = {
+                "before": geolocation_error(result.cameras_initial[cid], true_cam, ccd=ccd,
+                                            terrain=terrain, grid=grid),
+                "after": geolocation_error(result.cameras[cid], true_cam, ccd=ccd,
+                                           terrain=terrain, grid=grid),
+            }
+        out[cid] = per
+    return out
+
+
+# ------------------------------------------------------------------------ writing
+def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
+                  truth: Mapping[str, Any] | None = None, terrain: Any = 0.0,
+                  rpc: bool = True, plots: bool = True, extra: Mapping[str, Any] | None = None
+                  ) -> dict[str, Any]:
+    """Write every output of an adjustment into a folder (see the module doc).
+
+    Args:
+        result: The adjustment result.
+        out_dir: Output folder (created if needed).
+        truth: Optional camera id -> true camera: adds the geolocation error before and
+            after (metres and pixels) to the reports.
+        terrain: Height (m) or terrain for the geolocation grid and nothing else.
+        rpc: Refit and write RPCs of the adjusted cameras.
+        plots: Draw the residual-vector plots.
+        extra: Additional entries for report.json (e.g. the input files).
+
+    Returns:
+        ``{"report_json", "report_md", "residuals", "parameters", "covariance", "config",
+        "cameras": {id: [paths]}, "plots": [paths]}``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Any] = {"cameras": {}, "plots": []}
+    geo = geolocation_metrics(result, truth, terrain=terrain) if truth else None
+    written["residuals"] = str(_write_residuals(result, out / "residuals.csv"))
+    written["parameters"] = str(_write_parameters(result, out / "parameters.csv"))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, names=np.array(result.parameter_names),
+                        covariance=result.covariance, correlation=result.correlation)
+    written["covariance"] = str(_atomic_bytes(out / "covariance.npz", buf.getvalue()))
+    written["config"] = str(_atomic_text(
+        out / "config.json", json.dumps(result.config.model_dump(mode="json"), indent=1) + "\n"))
+    rpc_reports: dict[str, Any] = {}
+    notes: list[str] = []
+    for cid, cam in result.cameras.items():
+        paths, rep = _write_camera(result, cid, cam, out / "cameras", rpc)
+        written["cameras"][cid] = [str(p) for p in paths]
+        if rep:
+            rpc_reports[cid] = rep
+            for ccd, r in rep.items():
+                if "error" in r:
+                    notes.append(f"camera {cid} CCD {ccd}: no RPC ({r['error']})")
+                elif not r["check_rms_px"] < RPC_WARN_PX:
+                    notes.append(f"camera {cid} CCD {ccd}: the refitted RPC reproduces the "
+                                 f"adjusted camera to {r['check_rms_px']:.3g} px RMS only "
+                                 f"(max {r['check_max_px']:.3g} px); use the rigorous camera")
+    for n in notes:
+        log.warning("%s", n)
+    if notes:
+        extra = {**(extra or {}), "output_warnings": notes}
+    if plots:
+        written["plots"] = [str(p) for p in _write_plots(result, out / "plots")]
+    report = _report_dict(result, geo, rpc_reports, written, extra)
+    written["report_json"] = str(_atomic_text(
+        out / "report.json", json.dumps(_clean(report), indent=1, allow_nan=False) + "\n"))
+    written["report_md"] = str(_atomic_text(out / "report.md", _report_md(result, geo,
+                                                                        rpc_reports, notes)))
+    return written
+
+
+def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
+    net = result.network
+    labels = [result.network.cameras[c].ccd_names[k] for c, k in zip(net.obs_camera,
+                                                                     net.obs_ccd, strict=True)]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["obs_id", "point_id", "point_kind", "camera_id", "ccd", "line", "sample",
+                "dx_px", "dy_px", "residual_px", "dx_before_px", "dy_before_px", "status",
+                "inlier"])
+    r, r0 = result.residual, result.residual_initial
+
+    def f(v: float) -> str:
+        return "" if not math.isfinite(v) else f"{v:.6f}"
+
+    for i in range(net.n_obs):
+        pid = net.obs_point[i]
+        w.writerow([net.obs_ids[i], net.point_ids[pid], net.point_kind[pid],
+                    net.camera_ids[net.obs_camera[i]], labels[i], f"{net.obs_line[i]:.6f}",
+                    f"{net.obs_sample[i]:.6f}", f(r[i, 1]), f(r[i, 0]),
+                    f(math.hypot(r[i, 0], r[i, 1])), f(r0[i, 1]), f(r0[i, 0]),
+                    result.status[i], int(result.status[i] == "inlier")])
+    return _atomic_text(path, buf.getvalue())
+
+
+def _write_parameters(result: AdjustmentResult, path: Path) -> Path:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["name", "unit", "mode", "initial", "adjusted", "correction", "sigma"])
+    for i, name in enumerate(result.parameter_names):
+        w.writerow([name, result.parameter_units[i], MODE_NAMES[int(result.parameter_mode[i])],
+                    repr(float(result.x0[i])), repr(float(result.x[i])),
+                    repr(float(result.x[i] - result.x0[i])), repr(float(result.sigma[i]))])
+    return _atomic_text(path, buf.getvalue())
+
+
+def _height_range(result: AdjustmentResult, cid: str, cam: Any) -> tuple[float, float]:
+    """Heights (m) an RPC of the camera must cover: those of its points, padded.
+
+    The a priori coordinates are used (for MCPs the reference ground; tie points of weak
+    stereo geometry can float kilometres in height in the adjustment), trimmed to the
+    0.5-99.5 percentiles.
+    """
+    net = result.network
+    ci = net.camera_ids.index(cid)
+    pts = np.unique(net.obs_point[net.obs_camera == ci])
+    xyz = result.point_xyz_initial[pts]
+    xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+    if not len(xyz):
+        return -1000.0, 1000.0
+    _, _, h = xyz_to_lonlat(xyz, cam.ellipsoid)
+    lo, hi = (float(v) for v in np.percentile(h, [0.5, 99.5]))
+    pad = max(500.0, 0.2 * (hi - lo))
+    return lo - pad, hi + pad
+
+
+def _write_camera(result: AdjustmentResult, cid: str, cam: Any, folder: Path, rpc: bool
+                  ) -> tuple[list[Path], dict[str, Any]]:
+    folder.mkdir(parents=True, exist_ok=True)
+    name = safe_name(cid)
+    paths: list[Path] = []
+    if isinstance(cam, LineScanCamera):
+        paths.append(cam.to_json(folder / f"{name}.json"))
+    else:
+        try:
+            from planetref.camera.csm import CsmLineScanCamera, write_isd
+        except ImportError:  # pragma: no cover
+            CsmLineScanCamera = None  # type: ignore[assignment,misc]
+        if CsmLineScanCamera is not None and isinstance(cam, CsmLineScanCamera):
+            paths.append(write_isd(cam, folder / f"{name}.isd.json"))
+    reports: dict[str, Any] = {}
+    if rpc:
+        from planetref.camera.rpc import RpcBody, write_rpc
+
+        body = RpcBody(cam.ellipsoid, cam.latitude_kind)
+        hr = _height_range(result, cid, cam)
+        for ccd in cam.ccd_names:
+            suffix = "" if len(cam.ccd_names) == 1 else f"_{safe_name(ccd)}"
+            try:
+                model, fit = _best_rpc(cam, hr, None if len(cam.ccd_names) == 1 else ccd)
+            except PlanetrefError as exc:
+                log.warning("camera %s CCD %s: no RPC (%s)", cid, ccd, exc)
+                reports[ccd] = {"error": str(exc)}
+                continue
+            paths.append(write_rpc(model, folder / f"{name}{suffix}_RPC.TXT", fmt="txt",
+                                   body=body))
+            reports[ccd] = {"fit_rms_px": fit.fit_rms_px, "check_rms_px": fit.check_rms_px,
+                            "check_max_px": fit.check_max_px,
+                            "min_abs_denominator": fit.min_abs_denominator,
+                            "regularization": fit.regularization, "height_range_m": list(hr)}
+    return paths, reports
+
+
+def _best_rpc(cam: Any, height_range: tuple[float, float], ccd: str | None) -> tuple[Any, Any]:
+    """Fit an RPC, strengthening the regularisation while the fit is poorly behaved.
+
+    An adjusted strip's mapping is a smooth but not exactly rational function; with
+    ``fit_rpc``'s default (very weak) Tikhonov term the least-squares rational fit can
+    then place a pole of the denominator near the image (``min |D|`` ~ 1e-4, errors of
+    tens of pixels). Stronger regularisation keeps ``D`` near 1 at a cost of hundredths
+    of a pixel; the fit with the smallest maximum check error is kept.
+    """
+    from planetref.camera.rpc import fit_rpc
+
+    best = None
+    for reg in (1e-12, 1e-9, 1e-6, 1e-4):
+        model, fit = fit_rpc(cam, height_range_m=height_range, ccd=ccd, regularization=reg)
+        if best is None or fit.check_max_px < best[1].check_max_px:
+            best = (model, fit)
+        if fit.check_max_px < 0.05 and fit.min_abs_denominator > 0.5:
+            break
+    return best  # type: ignore[return-value]
+
+
+def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    net = result.network
+    paths = []
+    for ci, cid in enumerate(net.camera_ids):
+        cam = result.cameras[cid]
+        for k, ccd in enumerate(cam.ccd_names):
+            sel = np.flatnonzero((net.obs_camera == ci) & (net.obs_ccd == k))
+            n_lines, n_samples = cam.image_size(ccd)
+            r = result.residual[sel]
+            ok = np.all(np.isfinite(r), axis=1)
+            sel, r = sel[ok], r[ok]
+            status = result.status[sel]
+            length = np.hypot(r[:, 0], r[:, 1])
+            ref = float(np.percentile(length[status == "inlier"], 95)) if np.any(
+                status == "inlier") else (float(length.max()) if length.size else 1.0)
+            ref = ref if ref > 0 else 1.0
+            # Arrows are exaggerated so that a 95th-percentile inlier residual is 4% of
+            # the image width; gross errors are clipped to 15% of it.
+            exag = 0.04 * n_samples / ref
+            cap = 0.15 * n_samples
+            with np.errstate(divide="ignore", invalid="ignore"):
+                shrink = np.where(length * exag > cap, cap / (length * exag), 1.0)
+            r = r * shrink[:, None]
+            clipped = bool(np.any(shrink < 1.0))
+            height = min(12.0, max(4.0, 6.0 * n_lines / max(n_samples, 1)))
+            fig, ax = plt.subplots(figsize=(6.5, height))
+            ax.set_xlim(0, n_samples)
+            ax.set_ylim(n_lines, 0)
+            for st, colour in (("inlier", "tab:blue"), ("outlier", "tab:red"),
+                               ("check", "tab:green"), ("unusable", "0.5")):
+                m = status == st
+                if not np.any(m):
+                    continue
+                ax.quiver(net.obs_sample[sel][m], net.obs_line[sel][m], r[m, 1] * exag,
+                          r[m, 0] * exag, angles="xy", scale_units="xy", scale=1.0,
+                          color=colour, width=0.003, label=f"{st} ({int(m.sum())})")
+            label = cid if len(cam.ccd_names) == 1 else f"{cid} / {ccd}"
+            met = result.metrics["cameras"][cid]
+            if len(cam.ccd_names) > 1:
+                met = met["ccds"][ccd]
+            ax.set_title(f"{label}\nRMSE {met['after']['rmse_px']:.3g} px (before "
+                         f"{met['before']['rmse_px']:.3g}); arrows x{exag:.3g}"
+                         f"{', long ones clipped' if clipped else ''}", fontsize=9)
+            ax.set_xlabel("sample (px)")
+            ax.set_ylabel("line (px)")
+            if len(sel):
+                ax.legend(loc="upper right", fontsize=7)
+            fig.tight_layout()
+            suffix = "" if len(cam.ccd_names) == 1 else f"_{safe_name(ccd)}"
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png", dpi=110)
+            plt.close(fig)
+            paths.append(_atomic_bytes(folder / f"residuals_{safe_name(cid)}{suffix}.png",
+                                       buf.getvalue()))
+    return paths
+
+
+def _top_correlations(result: AdjustmentResult, n: int = 20) -> list[list[Any]]:
+    c = np.abs(np.triu(result.correlation, 1))
+    if not c.size:
+        return []
+    flat = np.argsort(c, axis=None)[::-1][:n]
+    out = []
+    for f in flat:
+        i, j = np.unravel_index(f, c.shape)
+        if c[i, j] <= 0:
+            break
+        out.append([result.parameter_names[i], result.parameter_names[j],
+                    float(result.correlation[i, j])])
+    return out
+
+
+def _report_dict(result: AdjustmentResult, geo: dict[str, Any] | None,
+                 rpc: dict[str, Any], written: dict[str, Any],
+                 extra: Mapping[str, Any] | None) -> dict[str, Any]:
+    from planetref import __version__
+
+    params = []
+    for i, name in enumerate(result.parameter_names):
+        params.append({"name": name, "unit": result.parameter_units[i],
+                       "mode": MODE_NAMES[int(result.parameter_mode[i])],
+                       "initial": float(result.x0[i]), "adjusted": float(result.x[i]),
+                       "correction": float(result.x[i] - result.x0[i]),
+                       "sigma": float(result.sigma[i])})
+    physical = {}
+    for model in result.models:
+        if hasattr(model, "physical"):
+            i = result.network.camera_ids.index(model.camera_id)
+            lo = sum(len(m.x0) for m in result.models[:i])
+            physical[model.camera_id] = model.physical(result.x[lo:lo + len(model.x0)])
+    report: dict[str, Any] = {
+        "planetref_version": __version__,
+        "adjustment": result.summary(),
+        "metrics": result.metrics,
+        "parameters": params,
+        "corrections_physical": physical,
+        "correlations": {"max_abs": float(np.max(np.abs(np.triu(result.correlation, 1))))
+                         if result.correlation.size > 1 else 0.0,
+                         "top": _top_correlations(result)},
+        "rounds": result.rounds,
+        "warnings": result.warnings,
+        "rpc_fits": rpc,
+        "config": result.config.model_dump(mode="json"),
+        "outputs": {k: v for k, v in written.items()},
+    }
+    if geo is not None:
+        report["geolocation"] = geo
+    if extra:
+        report.update(extra)
+    return report
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    return f"{v:.{digits}g}"
+
+
+def _table2_rows(label: str, m: dict[str, Any], sigma0: float | None) -> list[str]:
+    rows = []
+    for when in ("before", "after"):
+        s = m[when]
+        rows.append(f"| {label} | {when} | {_fmt(s['rmse_px'])} | {_fmt(s['mean_px'])} | "
+                    f"{_fmt(s['max_dx_px'])} | {_fmt(s['min_dx_px'])} | "
+                    f"{_fmt(s['max_dy_px'])} | {_fmt(s['min_dy_px'])} | "
+                    f"{_fmt(s['outlier_ratio_pct'], 3)} | {s['n_inliers']}/{s['n_total']} | "
+                    f"{_fmt(sigma0) if when == 'after' and sigma0 is not None else '-'} |")
+    return rows
+
+
+def _report_md(result: AdjustmentResult, geo: dict[str, Any] | None,
+               rpc: dict[str, Any], notes: list[str]) -> str:
+    s = result.summary()
+    lines = ["# Bundle adjustment report", "",
+             f"RMSE {_fmt(s['rmse_px_before'])} px -> **{_fmt(s['rmse_px'])} px**; "
+             f"outlier ratio {_fmt(s['outlier_ratio_pct'], 3)} % "
+             f"({s['n_inliers']} of {s['n_total']} observations are inliers); "
+             f"sigma0 {_fmt(s['sigma0'])}, {s['dof']} degrees of freedom; "
+             f"{s['rounds']} round(s); converged: {s['converged']}.", "",
+             "Residuals are projected - observed; dx = sample, dy = line, pixels. "
+             "'before' uses the initial cameras on the same (final) inliers; the outlier "
+             "ratio is that of the final k x RMSE classification.", "",
+             "## Reprojection residuals (Table 2)", "",
+             "| camera / CCD | | RMSE | mean | max dx | min dx | max dy | min dy | OR % | "
+             "inliers | sigma0 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += _table2_rows("all", result.metrics["all"], result.sigma0)
+    for cid, m in result.metrics["cameras"].items():
+        lines += _table2_rows(cid, m, None)
+        for ccd, mc in m.get("ccds", {}).items():
+            lines += _table2_rows(f"{cid} / {ccd}", mc, None)
+    chk = result.metrics.get("check")
+    if chk:
+        lines += ["", "## Check observations (held out)", "",
+                  "| | RMS px | max px | RMS m | max m | n |", "|---|---|---|---|---|---|"]
+        for when in ("before", "after"):
+            c = chk[when]
+            lines.append(f"| {when} | {_fmt(c['rms_px'])} | {_fmt(c['max_px'])} | "
+                         f"{_fmt(c['rms_m'])} | {_fmt(c['max_m'])} | {c['n']} |")
+    if geo:
+        lines += ["", "## Geolocation error against the true cameras", "",
+                  "| camera / CCD | | RMS m | max m | RMS px | max px |",
+                  "|---|---|---|---|---|---|"]
+        for cid, per in geo.items():
+            for ccd, g in per.items():
+                for when in ("before", "after"):
+                    e = g[when]
+                    lines.append(f"| {cid} / {ccd} | {when} | {_fmt(e['rms_m'])} | "
+                                 f"{_fmt(e['max_m'])} | {_fmt(e['rms_px'])} | "
+                                 f"{_fmt(e['max_px'])} |")
+    lines += ["", "## Rounds", "", "| round | observations | RMSE px | iterations | "
+              "evaluations | converged |", "|---|---|---|---|---|---|"]
+    for r in result.rounds:
+        lines.append(f"| {r['round']} | {r['n_observations']} | {_fmt(r['rmse_px'])} | "
+                     f"{r['iterations']} | {r['evaluations']} | {r['converged']} |")
+    act = np.flatnonzero(result.parameter_mode != 2)
+    lines += ["", f"## Parameters ({act.size} adjusted of {len(result.parameter_names)}; "
+              f"all in parameters.csv)", "", "| parameter | unit | mode | correction | sigma |",
+              "|---|---|---|---|---|"]
+    for i in act[:60]:
+        lines.append(f"| {result.parameter_names[i]} | {result.parameter_units[i]} | "
+                     f"{MODE_NAMES[int(result.parameter_mode[i])]} | "
+                     f"{_fmt(result.x[i] - result.x0[i])} | {_fmt(result.sigma[i])} |")
+    if act.size > 60:
+        lines.append(f"| ... {act.size - 60} more | | | | |")
+    top = _top_correlations(result, 10)
+    if top:
+        lines += ["", "## Strongest correlations", "", "| parameter | parameter | r |",
+                  "|---|---|---|"]
+        lines += [f"| {a} | {b} | {r:.4f} |" for a, b, r in top]
+    if rpc:
+        lines += ["", "## Refitted RPCs", "", "| camera | CCD | fit RMS px | check RMS px |",
+                  "|---|---|---|---|"]
+        for cid, per in rpc.items():
+            for ccd, rep in per.items():
+                lines.append(f"| {cid} | {ccd} | {_fmt(rep.get('fit_rms_px'))} | "
+                             f"{_fmt(rep.get('check_rms_px'))} |")
+    if result.warnings or notes:
+        lines += ["", "## Warnings", ""] + [f"* {w}" for w in [*result.warnings, *notes]]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,190 @@
+"""``planetref adjust NETWORK.toml --out DIR``: bundle-adjust an existing control network.
+
+The configuration is layered: defaults, then the network file's ``[adjustment]`` table,
+then ``--config FILE`` (TOML or JSON with the same structure), then the shorthand options
+(``--solve``, ``--loss``, ``--sigma-px``, ``--no-outliers``...), then ``--set KEY=VALUE``
+overrides (dotted keys, TOML values: ``--set 'csm.pointing_offset.sigma_rad="2 mrad"'``).
+The resolved configuration is written next to the outputs (config.json, config.toml).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import click
+
+from planetref.errors import InputError
+
+__all__ = ["adjust_command"]
+
+#: ``--solve`` names -> configuration blocks (CSM images and native strips).
+SOLVE_BLOCKS: dict[str, tuple[str, str]] = {
+    "position": ("csm", "position_offset"),
+    "position-rate": ("csm", "position_rate"),
+    "pointing": ("csm", "pointing_offset"),
+    "pointing-rate": ("csm", "pointing_rate"),
+    "pointing-acceleration": ("csm", "pointing_acceleration"),
+    "focal-length": ("csm", "focal_length"),
+    "node-position": ("linescan", "position"),
+    "node-attitude": ("linescan", "attitude"),
+    "interior": ("linescan", "interior"),
+}
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _load_config_file(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read the configuration ({exc})", path=path) from None
+    try:
+        data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"malformed configuration ({exc})", path=path) from None
+    if not isinstance(data, dict):
+        raise InputError("the configuration must be a table", path=path)
+    return data.get("adjustment", data) if isinstance(data.get("adjustment"), dict) else data
+
+
+def _set(cfg: dict[str, Any], assignment: str) -> None:
+    if "=" not in assignment:
+        raise InputError(f"--set expects KEY=VALUE, got {assignment!r}")
+    key, raw = assignment.split("=", 1)
+    parts = [p for p in key.strip().split(".") if p]
+    if not parts:
+        raise InputError(f"--set has an empty key: {assignment!r}")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    node = cfg
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+        if not isinstance(node, dict):
+            raise InputError(f"--set {key}: {p!r} is not a table")
+    node[parts[-1]] = value
+
+
+def _apply_solve(cfg: dict[str, Any], names: str) -> None:
+    """Solve the named terms; fix the other terms of the same camera family."""
+    chosen = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = sorted(set(chosen) - set(SOLVE_BLOCKS))
+    if unknown or not chosen:
+        raise InputError(f"--solve: unknown or no term(s) {unknown}; choose from "
+                         f"{sorted(SOLVE_BLOCKS)}")
+    from planetref.adjust.config import AdjustConfig
+
+    current = _merge(AdjustConfig().model_dump(), cfg)
+    families = {SOLVE_BLOCKS[n][0] for n in chosen}
+    for name, (section, block) in SOLVE_BLOCKS.items():
+        if section not in families:
+            continue
+        # The whole block, so that its configured (or default) sigmas stay with it.
+        blk = dict(current[section][block])
+        cfg.setdefault(section, {})
+        if name in chosen:
+            # Weighted when the block has an a-priori sigma, free otherwise.
+            has_sigma = any(k.startswith("sigma") and v is not None
+                            for k, v in current[section][block].items())
+            blk["mode"] = "weighted" if has_sigma else "free"
+        else:
+            blk["mode"] = "fixed"
+        cfg[section][block] = blk
+
+
+def _toml_safe(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _toml_safe(v) for k, v in obj.items() if v is not None}
+    if isinstance(obj, list | tuple):
+        return [_toml_safe(v) for v in obj]
+    return obj
+
+
+@click.command("adjust")
+@click.argument("network", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              required=True, help="Output folder (must be empty unless --overwrite).")
+@click.option("--overwrite", is_flag=True, help="Write into a non-empty --out.")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path),
+              default=None, help="Configuration file (TOML or JSON), over the network's.")
+@click.option("--solve", default=None, metavar="TERMS",
+              help="Comma-separated terms to solve, others fixed: CSM images: position, "
+                   "position-rate, pointing, pointing-rate, pointing-acceleration, "
+                   "focal-length; native strips: node-position, node-attitude, interior.")
+@click.option("--loss", type=click.Choice(["linear", "huber", "cauchy"]), default=None,
+              help="Robust loss of the first round.")
+@click.option("--sigma-px", type=float, default=None,
+              help="Sigma of measures without their own (pixels).")
+@click.option("--no-outliers", is_flag=True, help="Do not apply the 3 x RMSE rule.")
+@click.option("--max-iterations", type=int, default=None, help="LM iterations per round.")
+@click.option("--set", "assignments", multiple=True, metavar="KEY=VALUE",
+              help="Override a configuration entry (dotted key, TOML value); repeatable.")
+@click.option("--no-rpc", is_flag=True, help="Do not refit RPCs to the adjusted cameras.")
+@click.option("--no-plots", is_flag=True, help="Do not draw residual plots.")
+@click.pass_context
+def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: bool,
+                   config_file: Path | None, solve: str | None, loss: str | None,
+                   sigma_px: float | None, no_outliers: bool, max_iterations: int | None,
+                   assignments: tuple[str, ...], no_rpc: bool, no_plots: bool) -> None:
+    """Bundle-adjust the control network NETWORK.toml and write the results to --out.
+
+    Prints the headline numbers as JSON (the 'adjustment' block of report.json).
+    """
+    import tomli_w
+
+    from planetref.adjust.api import adjust
+    from planetref.adjust.network import _load_toml, read_network
+    from planetref.adjust.report import _atomic_text, write_outputs
+
+    quiet = bool(ctx.obj.get("quiet")) if ctx.obj else False
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError("--out exists and is not a folder", path=out_dir)
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise InputError("--out is not empty; pass --overwrite to write into it", path=out_dir)
+    doc = _load_toml(network)
+    cfg: dict[str, Any] = dict(doc.get("adjustment", {})) if isinstance(
+        doc.get("adjustment"), dict) else {}
+    if config_file is not None:
+        cfg = _merge(cfg, _load_config_file(config_file))
+    if solve is not None:
+        _apply_solve(cfg, solve)
+    if loss is not None:
+        cfg.setdefault("solver", {})["loss"] = loss
+    if sigma_px is not None:
+        cfg.setdefault("observations", {})["sigma_px"] = sigma_px
+    if no_outliers:
+        cfg.setdefault("outliers", {})["enabled"] = False
+    if max_iterations is not None:
+        cfg.setdefault("solver", {})["max_iterations"] = max_iterations
+    for a in assignments:
+        _set(cfg, a)
+    nf = read_network(network, config=cfg)
+
+    def progress(msg: str) -> None:
+        if not quiet:
+            click.echo(msg, err=True)
+
+    result = adjust(nf.network, nf.config, progress=progress)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    resolved = nf.config.model_dump(mode="json")
+    _atomic_text(out_dir / "config.toml", tomli_w.dumps({"adjustment": _toml_safe(resolved)}))
+    write_outputs(result, out_dir, rpc=not no_rpc, plots=not no_plots,
+                  extra={"inputs": {"network": str(network.resolve()),
+                                    "measures": str(nf.measures_path),
+                                    "convention": nf.convention,
+                                    "cameras": {k: str(v) for k, v in
+                                                nf.camera_files.items()}}})
+    click.echo(json.dumps({k: v for k, v in result.summary().items()}, indent=1))

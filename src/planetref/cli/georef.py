@@ -1,0 +1,118 @@
+"""``planetref georef``, ``planetref compare`` and ``planetref demo``."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import click
+
+__all__ = ["compare_command", "demo_command", "georef_command"]
+
+
+def _common(f: Any) -> Any:
+    f = click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+                     help="TOML with [frontend], [adjust], [mcp], [ortho], [matchers.NAME].")(f)
+    f = click.option("--weights-dir", type=click.Path(file_okay=False), default=None,
+                     help="Pretrained weights (default: $PLANETREF_WEIGHTS, $TORCH_HOME, "
+                          "the torch hub cache).")(f)
+    f = click.option("--overwrite", is_flag=True,
+                     help="Replace a different earlier run in --out (never other files).")(f)
+    return f
+
+
+def _quiet(ctx: click.Context) -> bool:
+    return bool(ctx.obj and ctx.obj.get("quiet"))
+
+
+@click.command("georef")
+@click.argument("scene", type=click.Path())
+@click.option("--matcher", required=True, help="Matcher name (see planetref matchers).")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False),
+              help="Run directory (re-running resumes finished tiles).")
+@_common
+@click.pass_context
+def georef_command(ctx: click.Context, scene: str, matcher: str, out: str,
+                   config_path: str | None, weights_dir: str | None, overwrite: bool) -> None:
+    """Georeference SCENE (scene.toml or its folder) with one matcher.
+
+    Tiling, matching, MCPs, bundle adjustment, metrics, report, adjusted cameras and
+    orthoimages. Prints the report's headline as JSON.
+    """
+    from planetref.pipeline.config import load_config
+    from planetref.pipeline.georef import run_georef
+
+    cfg = load_config(config_path)
+    outcome = run_georef(scene, matcher, out, config=cfg, weights_dir=weights_dir,
+                         overwrite=overwrite, progress=not _quiet(ctx))
+    r = outcome.report
+    click.echo(json.dumps({"matcher": r["matcher"], "ncp": r["matching"]["ncp"],
+                           "sdu_pct": r["matching"]["sdu_pct"],
+                           "rmse_px": r["adjustment"]["rmse_px"],
+                           "geoloc_rmse_m": (r["check"] or {}).get("geoloc_rmse_m"),
+                           "report": str(outcome.run_dir / "report.json")}))
+
+
+@click.command("compare")
+@click.argument("scene", type=click.Path())
+@click.option("--matchers", default="all", show_default=True,
+              help="Comma-separated matcher names, or 'all'.")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False))
+@_common
+@click.pass_context
+def compare_command(ctx: click.Context, scene: str, matchers: str, out: str,
+                    config_path: str | None, weights_dir: str | None, overwrite: bool) -> None:
+    """Run georef on SCENE once per matcher and tabulate the results side by side."""
+    from planetref.pipeline.compare import run_compare
+    from planetref.pipeline.config import load_config
+
+    cfg = load_config(config_path)
+    outcome = run_compare(scene, matchers, out, config=cfg, weights_dir=weights_dir,
+                          overwrite=overwrite, progress=not _quiet(ctx))
+    click.echo(outcome.tables_markdown)
+    click.echo(f"report: {outcome.run_dir / 'report.json'}")
+
+
+def _default_demo_dir() -> Path:
+    return Path(os.environ.get("PLANETREF_DEMO_DIR", "planetref-demo"))
+
+
+@click.command("demo")
+@click.option("--out", "out", type=click.Path(file_okay=False), default=None,
+              help="Folder for the scene (cached) and the results [default: ./planetref-demo].")
+@click.option("--preset", default="hiric-strip", show_default=True,
+              help="Simulator preset of the scene.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--matchers", default="all", show_default=True,
+              help="Comma-separated matcher names, or 'all' (those with weights).")
+@_common
+@click.pass_context
+def demo_command(ctx: click.Context, out: str | None, preset: str, seed: int, matchers: str,
+                 config_path: str | None, weights_dir: str | None, overwrite: bool) -> None:
+    """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
+    from planetref.pipeline.compare import run_compare
+    from planetref.pipeline.config import load_config
+    from planetref.simulate.config import load_config as load_sim_config
+    from planetref.simulate.scene import simulate_scene
+
+    quiet = _quiet(ctx)
+    base = Path(out) if out else _default_demo_dir()
+    scene_dir = base / f"scene-{preset}-seed{seed}"
+    if not (scene_dir / "scene.toml").is_file():
+        if not quiet:
+            click.echo(f"simulating the {preset} scene (seed {seed}) into {scene_dir} ...",
+                       err=True)
+        simulate_scene(load_sim_config(preset, seed=seed), scene_dir, preview=True,
+                       progress=not quiet)
+    elif not quiet:
+        click.echo(f"using the cached scene {scene_dir}", err=True)
+    cfg = load_config(config_path)
+    outcome = run_compare(scene_dir, matchers, base / f"compare-{preset}-seed{seed}",
+                          config=cfg, weights_dir=weights_dir, overwrite=overwrite,
+                          progress=not quiet)
+    click.echo(outcome.tables_markdown)
+    click.echo(f"report:  {outcome.run_dir / 'report.md'} (and report.json)")
+    click.echo(f"figures: {outcome.run_dir / 'figures'}")
+    click.echo(f"scene:   {scene_dir} (preview.png)")

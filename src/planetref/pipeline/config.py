@@ -1,0 +1,162 @@
+"""Configuration of a georef run (typed, frozen, rejecting unknown keys).
+
+A TOML file given with ``--config`` may hold the tables ``[frontend]``
+(:class:`~planetref.frontend.config.FrontendConfig`), ``[adjust]``
+(:class:`~planetref.adjust.config.AdjustConfig`), ``[mcp]``, ``[ortho]`` and
+``[matchers.<name>]`` (options passed to that matcher's constructor). Everything left
+out takes the defaults below; the resolved configuration is written into every run
+directory (``config.json``).
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from planetref.adjust.config import AdjustConfig, validate_config
+from planetref.errors import InputError, MissingFileError
+from planetref.frontend.config import FrontendConfig
+
+__all__ = [
+    "DEFAULT_ADJUST",
+    "DEFAULT_MATCHER_OPTIONS",
+    "GeorefConfig",
+    "McpOptions",
+    "OrthoOptions",
+    "load_config",
+]
+
+#: The adjustment every matcher is judged by unless a config says otherwise: node
+#: positions weighted (100 m), attitudes free, interior orientation fixed, weak nodes
+#: (few MCPs near them, e.g. under failed tiles) tied to their initial values instead of
+#: failing the run, Huber loss for the first round then the seed's 3 x RMSE rule.
+DEFAULT_ADJUST: dict[str, Any] = {"linescan": {"weak_nodes": "weight"}}
+
+
+#: Matcher options applied unless a config says otherwise. XFeat*'s refinement head
+#: pulls matches towards its 8-px cell centres (measured in planetref.matching.xfeat), a
+#: bias of several metres on the ground, so its matches are re-centred by local NCC.
+DEFAULT_MATCHER_OPTIONS: dict[str, dict[str, Any]] = {"xfeat-star": {"polish": "ncc"}}
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class McpOptions(_Frozen):
+    """How matched control points enter the adjustment.
+
+    Attributes:
+        sigma_px: Standard deviation of an MCP's image measure (pixels of the CCD image).
+        check_fraction: Share of MCPs held out as check points (not adjusted; their
+            residuals are reported), drawn with ``seed``.
+        seed: Seed of the check-point draw.
+        min_mcps: Fewest MCPs a strip needs to be adjusted.
+    """
+
+    sigma_px: float = Field(1.0, gt=0.0)
+    check_fraction: float = Field(0.1, ge=0.0, lt=1.0)
+    seed: int = 0
+    min_mcps: int = Field(12, ge=1)
+
+
+class OrthoOptions(_Frozen):
+    """The orthoimage of each CCD through the adjusted camera and the reference DEM.
+
+    Attributes:
+        enabled: Write them.
+        gsd_m: Pixel size (metres); ``None``: the CCD image's own GSD.
+    """
+
+    enabled: bool = True
+    gsd_m: float | None = Field(None, gt=0.0)
+
+
+class GeorefConfig(_Frozen):
+    """Everything a georef run can be told (see the module doc)."""
+
+    frontend: FrontendConfig = FrontendConfig()
+    adjust: AdjustConfig = Field(default_factory=lambda: validate_config(DEFAULT_ADJUST))
+    mcp: McpOptions = McpOptions()
+    ortho: OrthoOptions = OrthoOptions()
+    matchers: dict[str, dict[str, Any]] = Field(
+        default_factory=lambda: {k: dict(v) for k, v in DEFAULT_MATCHER_OPTIONS.items()})
+
+    @field_validator("adjust", mode="before")
+    @classmethod
+    def _adjust(cls, v: Any) -> Any:
+        if isinstance(v, dict):
+            merged = _merge(DEFAULT_ADJUST, v)
+            return validate_config(merged)
+        return v
+
+    @field_validator("matchers", mode="before")
+    @classmethod
+    def _matchers(cls, v: Any) -> Any:
+        if isinstance(v, dict):
+            return {**{k: dict(o) for k, o in DEFAULT_MATCHER_OPTIONS.items()}, **v}
+        return v
+
+    def to_json(self) -> dict[str, Any]:
+        """The resolved configuration as plain JSON types."""
+        return self.model_dump(mode="json")
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
+            else v
+    return out
+
+
+def load_config(path: str | os.PathLike[str] | None = None) -> GeorefConfig:
+    """Read a georef configuration TOML file (``None``: the defaults).
+
+    Raises:
+        MissingFileError: No such file.
+        InputError: Unreadable TOML, unknown keys (the message lists the valid ones) or
+            bad values, naming the file and the key.
+    """
+    if path is None:
+        return GeorefConfig()
+    p = Path(path)
+    if not p.is_file():
+        raise MissingFileError("configuration file not found", path=p)
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML ({exc})", path=p) from None
+    return config_from_mapping(doc, source=str(p))
+
+
+def config_from_mapping(doc: dict[str, Any], *, source: str | None = None) -> GeorefConfig:
+    """Validate a mapping into a :class:`GeorefConfig` with one-line errors."""
+    try:
+        return GeorefConfig.model_validate(doc)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"])
+        valid = ", ".join(_valid_keys(err["loc"]))
+        raise InputError(f"{err['msg']}; valid keys here: {valid}", path=source,
+                         field=loc or None) from None
+    except InputError as exc:
+        raise InputError(str(exc), path=source) from None
+
+
+def _valid_keys(loc: tuple[Any, ...]) -> list[str]:
+    model: Any = GeorefConfig
+    for part in loc[:-1]:
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            break
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            model = ann
+        else:
+            break
+    return sorted(getattr(model, "model_fields", {}))

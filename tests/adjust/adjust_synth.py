@@ -1,0 +1,88 @@
+"""Synthetic line-scan problems for the adjustment tests (small, deterministic)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from planetref.adjust import Network
+from planetref.camera.geodesy import ray_ellipsoid_intersection
+from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared"
+
+N_LINES, N_SAMPLES, N_NODES = 3000, 512, 6
+
+
+def true_strip(n_nodes: int = N_NODES, lat: float = 20.0, lon: float = 74.0,
+               heading: float = 30.0, name: str = ""):
+    ccds = ccd_row(3, N_SAMPLES, N_LINES, 0.010, overlap_px=16, stagger_mm=1.0)
+    cam, _ = orbit_camera(OrbitGeometry(lat, lon, heading), focal_length_mm=4640.0,
+                          ccds=ccds, n_nodes=n_nodes, name=name)
+    return cam
+
+
+def perturb(cam, *, pos_bias=(30.0, -20.0, 10.0), pos_drift=(5.0, 3.0, -2.0),
+            att_bias=(2e-5, -3e-5, 1e-5), att_drift=(1e-6, 2e-6, -1e-6)):
+    """Biases and linear drifts of the node EOPs (metres, radians)."""
+    nodes = cam.nodes.copy()
+    t = np.linspace(-1.0, 1.0, cam.n_nodes)[:, None]
+    nodes[:, :3] += np.asarray(pos_bias) + t * np.asarray(pos_drift)
+    nodes[:, 3:] += np.asarray(att_bias) + t * np.asarray(att_drift)
+    return cam.replace(nodes=nodes)
+
+
+def ground_points(cam, ccd_idx, line, sample, heights):
+    """Ground XYZ that ``cam`` sees at the given pixels and heights above the sphere."""
+    xyz = np.empty((len(line), 3))
+    for k, name in enumerate(cam.ccd_names):
+        m = ccd_idx == k
+        if not np.any(m):
+            continue
+        o, d = cam.look_rays(line[m], sample[m], ccd=name)
+        s = ray_ellipsoid_intersection(o, d, cam.ellipsoid, heights[m])
+        xyz[m] = o + s[:, None] * d
+    return xyz
+
+
+def mcp_problem(n: int = 600, *, noise_px: float = 0.3, seed: int = 0, gross: int = 0,
+                ground_sigma_m: float = 0.0, check: int = 0, init=None, true=None):
+    """An MCP network of a perturbed strip: returns ``(network, true camera, info)``."""
+    true = true if true is not None else true_strip()
+    init = init if init is not None else perturb(true)
+    rng = np.random.default_rng(seed)
+    ccd = rng.integers(0, 3, n)
+    line = rng.uniform(1.0, N_LINES - 1.0, n)
+    sample = rng.uniform(1.0, N_SAMPLES - 1.0, n)
+    xyz = ground_points(true, ccd, line, sample, rng.uniform(-2000.0, 2000.0, n))
+    obs_line = line + rng.normal(0.0, noise_px, n)
+    obs_sample = sample + rng.normal(0.0, noise_px, n)
+    bad = rng.choice(n, gross, replace=False) if gross else np.zeros(0, int)
+    if gross:
+        ang = rng.uniform(0, 2 * np.pi, gross)
+        mag = rng.uniform(8.0, 40.0, gross)
+        obs_line[bad] += mag * np.sin(ang)
+        obs_sample[bad] += mag * np.cos(ang)
+    chk = np.zeros(n, bool)
+    if check:
+        chk[rng.choice(np.setdiff1d(np.arange(n), bad), check, replace=False)] = True
+    if ground_sigma_m:
+        xyz = xyz + rng.normal(0.0, ground_sigma_m / 4.0, xyz.shape)
+    net = Network.mcps(init, line=obs_line, sample=obs_sample, xyz=xyz,
+                       ccd=np.array(init.ccd_names)[ccd], sigma_px=noise_px,
+                       ground_sigma_m=ground_sigma_m, check=chk)
+    return net, true, {"gross": bad, "check": chk}
+
+
+def true_parameters(cam):
+    """The parameter vector of a strip (nodes, then strip interior)."""
+    return np.concatenate([cam.nodes.ravel(), cam.interior.as_array()])
+
+
+def shared_data() -> Path:
+    """``../shared/data``; skips the calling test when it is absent."""
+    if not SHARED.is_dir():
+        pytest.skip(f"{SHARED} not found (the real data of this test live in ../shared)")
+    return SHARED / "data"

@@ -1,0 +1,149 @@
+"""End-to-end georef on the tiny simulated scene: the true error must drop below 5 m."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import rasterio
+import torch
+from click.testing import CliRunner
+
+from planetref.cli import main
+from planetref.errors import InputError
+from planetref.matching.registry import available_matchers
+from planetref.pipeline.georef import run_georef
+
+torch.set_num_threads(1)
+
+REPORT_KEYS = {"matcher", "scene", "planetref_version", "matching", "adjustment", "check",
+               "timing_s"}
+ADJ_KEYS = {"rmse_px_before", "rmse_px", "mean_px", "max_x_px", "max_y_px", "min_x_px",
+            "min_y_px", "outlier_ratio_pct", "n_total", "n_inliers", "sigma0", "converged"}
+
+
+def _present(weights_dir):
+    return {name for name, ok, _ in available_matchers(weights_dir) if ok}
+
+
+# Fast matchers always; the learned ones where their weights are present.
+MATCHERS = ["sift", "ncc", "disk-lightglue", "aliked-lightglue", "xfeat-star"]
+
+
+@pytest.mark.parametrize("matcher", MATCHERS)
+def test_georef_reduces_true_error_below_reference_gsd(tiny_scene, tmp_path, weights_dir,
+                                                       matcher):
+    if matcher not in _present(weights_dir):
+        pytest.skip(f"weights of {matcher} not present (set PLANETREF_WEIGHTS)")
+    out = run_georef(tiny_scene, matcher, tmp_path / "run", weights_dir=weights_dir,
+                     progress=False)
+    r = out.report
+    assert REPORT_KEYS <= set(r)
+    assert ADJ_KEYS <= set(r["adjustment"])
+    c = r["check"]
+    # The simulated initial error is ~100 m; the adjusted cameras must be within 5 m.
+    assert c["geoloc_rmse_m_before"] > 50.0
+    assert c["geoloc_rmse_m"] < 5.0, (matcher, c)
+    assert r["adjustment"]["rmse_px"] < r["adjustment"]["rmse_px_before"]
+    assert r["adjustment"]["n_inliers"] <= r["adjustment"]["n_total"]
+    assert r["matching"]["ncp"] >= 12
+    assert set(r["matching"]["ccds"]) == {"ccd1", "ccd2", "ccd3"}
+    for ccd in r["matching"]["ccds"].values():
+        assert 0.0 <= ccd["sdu_pct"] <= 100.0
+    # Outputs: cameras, RPCs, residuals, orthoimages in the reference CRS, figures.
+    run = out.run_dir
+    assert json.loads((run / "report.json").read_text())["matcher"] == matcher
+    assert (run / "config.json").is_file() and (run / "planetref.log").is_file()
+    assert list((run / "strip1" / "adjustment" / "cameras").glob("*.json"))
+    assert (run / "strip1" / "adjustment" / "residuals.csv").is_file()
+    with rasterio.open(tiny_scene / "reference" / "ortho.tif") as ref:
+        ref_crs = ref.crs
+    orthos = sorted((run / "strip1" / "ortho").glob("*.tif"))
+    assert len(orthos) == 3
+    with rasterio.open(orthos[0]) as o:
+        assert o.crs == ref_crs
+        assert np.isfinite(o.read(1)).mean() > 0.3
+    for png in ("strip1_mcp_distribution.png", "strip1_residuals.png"):
+        assert (run / "figures" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    first = run_georef(tiny_scene, "sift", out, progress=False)
+    journal = (out / "strip1" / "tiles.jsonl").read_text()
+    again = run_georef(tiny_scene, "sift", out, progress=False)
+    assert (out / "strip1" / "tiles.jsonl").read_text() == journal  # nothing re-matched
+    assert again.report["matching"] == first.report["matching"]
+    # Another matcher into the same directory is refused without --overwrite...
+    with pytest.raises(InputError, match="another run"):
+        run_georef(tiny_scene, "ncc", out, progress=False)
+    # ...and a non-empty folder planetref did not write is refused even with it.
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "precious.txt").write_text("keep me")
+    with pytest.raises(InputError, match="not written by planetref"):
+        run_georef(tiny_scene, "sift", foreign, progress=False, overwrite=True)
+    assert (foreign / "precious.txt").read_text() == "keep me"
+
+
+def test_georef_cli(tiny_scene, tmp_path):
+    r = CliRunner().invoke(main, ["-q", "georef", str(tiny_scene), "--matcher", "sift",
+                                  "--out", str(tmp_path / "cli")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.stdout.strip().splitlines()[-1])
+    assert doc["matcher"] == "sift" and doc["geoloc_rmse_m"] < 5.0
+
+
+def _copy_scene(src, dst):
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_reference_without_overlap(tiny_scene, tmp_path):
+    scene = _copy_scene(tiny_scene, tmp_path / "far")
+    ortho = scene / "reference" / "ortho.tif"
+    with rasterio.open(ortho, "r+") as ds:
+        t = ds.transform
+        ds.transform = rasterio.Affine(t.a, t.b, t.c + 200e3, t.d, t.e, t.f)
+    r = CliRunner().invoke(main, ["-q", "georef", str(scene), "--matcher", "sift", "--out",
+                                  str(tmp_path / "run")])
+    assert r.exit_code == 1
+    assert "do not overlap the reference" in r.output and "Traceback" not in r.output
+
+
+def test_corrupt_raster(tiny_scene, tmp_path):
+    scene = _copy_scene(tiny_scene, tmp_path / "corrupt")
+    img = scene / "strips" / "strip1" / "ccd2.tif"
+    img.write_bytes(img.read_bytes()[:300])
+    r = CliRunner().invoke(main, ["-q", "georef", str(scene), "--matcher", "sift", "--out",
+                                  str(tmp_path / "run")])
+    assert r.exit_code == 1
+    assert "ccd2.tif" in r.output and "Traceback" not in r.output
+
+
+def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path):
+    scene = _copy_scene(tiny_scene, tmp_path / "holes")
+    # A blank (textureless) block over part of ccd3.
+    img = scene / "strips" / "strip1" / "ccd3.tif"
+    with rasterio.open(img, "r+") as ds:
+        a = ds.read(1)
+        a[: a.shape[0] // 2, :] = int(np.median(a))
+        ds.write(a, 1)
+    # A hole in the reference DEM under one corner of the strip.
+    dem = scene / "reference" / "dem.tif"
+    with rasterio.open(dem, "r+") as ds:
+        h = ds.read(1)
+        rows, cols = h.shape
+        h[rows // 2:, : cols // 2] = np.nan
+        ds.write(h, 1)
+    out = run_georef(scene, "sift", tmp_path / "run", progress=False)
+    lost = out.report["matching"]["tiles_lost"]
+    statuses = {t["status"] for t in lost}
+    assert lost, "the blank block must cost at least one tile"
+    assert statuses & {"no_texture", "too_few_inliers", "no_overlap"}
+    counts = out.report["strips"]["strip1"]["matching"]["mcp_counts"]
+    assert "nan_dem" in counts
+    md = (out.run_dir / "report.md").read_text()
+    assert "Tiles without MCPs" in md
