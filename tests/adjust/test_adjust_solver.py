@@ -332,3 +332,25 @@ def test_unprojectable_observations_are_unusable():
     res = adjust(net.replace_points(xyz))
     assert np.all(res.status[:3] == "unusable")
     assert any("cannot be projected" in w for w in res.warnings)
+
+
+def test_smooth_weak_nodes_extrapolate_the_observed_correction():
+    """Nodes beyond the observed lines follow their neighbours instead of staying wrong."""
+    from planetref.metrics import geolocation_error
+
+    true = true_strip(n_nodes=8)
+    net, _true, _ = mcp_problem(600, seed=12, true=true, init=perturb(true_strip(n_nodes=8)))
+    keep = net.obs_line < 2000  # the last nodes see nothing
+    sub = Network(**{**net._fields(), "obs_check": ~keep})
+    lines = np.linspace(2200.0, 2600.0, 9)  # the unobserved end of the strip
+    samples = np.full_like(lines, 300.0)
+    errs = {}
+    for mode in ("weight", "smooth"):
+        res = adjust(sub, {"linescan": {"weak_nodes": mode}})
+        assert any("weak node" in w for w in res.warnings)
+        assert res.summary()["rmse_px"] < 0.5
+        errs[mode] = geolocation_error(res.cameras["strip"], true, ccd="ccd1", terrain=0.0,
+                                       grid=(lines, samples))["rms_m"]
+    # Tying unobserved nodes to their (wrong) initial values bends the strip's end;
+    # continuing the observed correction keeps it close to the truth.
+    assert errs["smooth"] < 0.5 * errs["weight"], errs

@@ -236,18 +236,29 @@ class LineScanParameters(_Frozen):
         weak_nodes: What to do with nodes below ``min_obs_per_node``: ``error`` raises an
             :class:`~planetref.errors.AdjustmentError` naming them; ``weight`` ties them
             to their initial values with ``weak_node_position_sigma_m`` and
-            ``weak_node_attitude_sigma_rad`` and logs a warning.
+            ``weak_node_attitude_sigma_rad`` and logs a warning; ``smooth`` makes the
+            correction of a weak node continue the corrections of its neighbours
+            towards the strip's centre (zero second difference, within
+            ``weak_node_smooth_sigma_m`` / ``weak_node_smooth_sigma_rad``) and logs a
+            warning. ``smooth`` suits nodes beyond the observed lines: their initial
+            values are as wrong as the rest of the trajectory, so pulling them back to
+            those values would bend the adjusted trajectory near the image ends.
         weak_node_position_sigma_m: Sigma for weak nodes' positions (metres).
         weak_node_attitude_sigma_rad: Sigma for weak nodes' attitudes (radians).
+        weak_node_smooth_sigma_m: Sigma of the second difference of position
+            corrections at a weak node (metres), with ``smooth``.
+        weak_node_smooth_sigma_rad: The same for attitude corrections (radians).
     """
 
     position: LengthBlock = LengthBlock(mode="weighted", sigma_m=100.0)
     attitude: AngleBlock = AngleBlock(mode="free")
     interior: InteriorBlock = InteriorBlock()
     min_obs_per_node: int = Field(3, ge=0)
-    weak_nodes: Literal["error", "weight"] = "error"
+    weak_nodes: Literal["error", "weight", "smooth"] = "error"
     weak_node_position_sigma_m: Metres = 100.0
     weak_node_attitude_sigma_rad: Radians = 1e-4
+    weak_node_smooth_sigma_m: Metres = 0.1
+    weak_node_smooth_sigma_rad: Radians = 1e-7
 
 
 class CsmParameters(_Frozen):

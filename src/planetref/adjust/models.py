@@ -281,6 +281,8 @@ class LineScanParameterization:
                 mode[base + j], sigma[base + j] = m_[0], s_[0]
         self.mode = mode
         self.sigma = sigma
+        #: Linear pseudo-observations ``A (x - x0) = 0`` with weights ``w`` (or None).
+        self.constraints: tuple[F64, F64] | None = None
         n_win = n - self._k + 1
         cols = np.full((n_win * self._groups, 6 * self._k + 3), -1, np.intp)
         for s in range(n_win):
@@ -617,6 +619,10 @@ class LineScanParameterization:
                 f"strip {self.camera_id!r}: too few observations near orientation node(s) "
                 f"{listing}; add observations, use fewer nodes, fix them, or set "
                 f"linescan.weak_nodes = 'weight'")
+        if cfg.weak_nodes == "smooth" and self._n_nodes >= 3:
+            self._smooth(issues)
+            return [f"strip {self.camera_id!r}: weak node(s) follow the corrections of their "
+                    f"neighbours ({listing})"]
         for issue in issues:
             for j in issue.indices:
                 if self.mode[j] == 2:
@@ -626,6 +632,39 @@ class LineScanParameterization:
                                  else cfg.weak_node_attitude_sigma_rad)
         return [f"strip {self.camera_id!r}: weighted weak node(s) towards their initial "
                 f"values ({listing})"]
+
+    def _smooth(self, issues: list[CoverageIssue]) -> None:
+        """Zero-second-difference constraints on the corrections of weak nodes.
+
+        Each weak node ``i`` gets, per parameter, ``d_i - 2 d_j + d_k = 0`` with ``d`` the
+        correction ``x - x0`` and ``j, k`` its next two nodes towards the middle of the
+        strip, so runs of weak nodes at the ends extrapolate the observed part linearly.
+        """
+        cfg = self.config
+        n = len(self.x0)
+        rows, weights = [], []
+        mid = (self._n_nodes - 1) / 2.0
+        for issue in issues:
+            i = issue.indices[0] // 6
+            step = 1 if i < mid else -1
+            j, k = i + step, i + 2 * step
+            if not (0 <= j < self._n_nodes and 0 <= k < self._n_nodes):
+                continue
+            for c in range(6):
+                if self.mode[6 * i + c] == 2:
+                    continue
+                row = np.zeros(n)
+                row[6 * i + c], row[6 * j + c], row[6 * k + c] = 1.0, -2.0, 1.0
+                rows.append(row)
+                sig = cfg.weak_node_smooth_sigma_m if c < 3 else cfg.weak_node_smooth_sigma_rad
+                weights.append(1.0 / sig**2)
+        if rows:
+            a = np.array(rows)
+            w = np.array(weights)
+            if self.constraints is not None:
+                a = np.vstack([self.constraints[0], a])
+                w = np.concatenate([self.constraints[1], w])
+            self.constraints = (a, w)
 
 
 # ------------------------------------------------------------------------- CSM

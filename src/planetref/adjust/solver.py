@@ -223,6 +223,34 @@ class BundleSolver:
         self.active = np.flatnonzero(self.mode != 2)
         with np.errstate(divide="ignore"):
             self.prior_w = np.where(self.mode == 1, 1.0 / self.sigma ** 2, 0.0)
+        # Linear pseudo-observations A (c - x0) = 0 of the models (e.g. smooth weak
+        # nodes), gathered into one global matrix; their normal contribution is A^T W A.
+        rows, weights = [], []
+        for i, m in enumerate(self.models):
+            con = getattr(m, "constraints", None)
+            if con is None:
+                continue
+            a_loc, w_loc = con
+            a = np.zeros((len(a_loc), self.n_params))
+            a[:, self.offsets[i]:self.offsets[i + 1]] = a_loc
+            rows.append(a)
+            weights.append(np.asarray(w_loc, np.float64))
+        if rows:
+            self.con_a = np.vstack(rows)
+            self.con_w = np.concatenate(weights)
+            self.con_n = self.con_a.T @ (self.con_w[:, None] * self.con_a)
+        else:
+            self.con_a = np.zeros((0, self.n_params))
+            self.con_w = np.zeros(0)
+            self.con_n = None
+
+    def _prior_cost(self, c: F64) -> float:
+        """``0.5 (c - x0)^T (P + A^T W A) (c - x0)``: a-priori weights and constraints."""
+        dc = c - self.x0
+        cost = 0.5 * float(np.sum(self.prior_w * dc * dc))
+        if self.con_n is not None:
+            cost += 0.5 * float(dc @ self.con_n @ dc)
+        return cost
 
     def cameras(self, c: F64) -> list[object]:
         """The cameras built from a global parameter vector."""
@@ -369,8 +397,7 @@ class BundleSolver:
         else:
             rho = np.where(valid, s_all, 0.0)
         cost = 0.5 * float(np.sum(rho)) if np.all(valid) else math.inf
-        dc = c - self.x0
-        cost += 0.5 * float(np.sum(self.prior_w * dc * dc))
+        cost += self._prior_cost(c)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
             cost += 0.5 * float(np.sum(self.point_prior_w[unknown] * dx * dx))
@@ -443,6 +470,9 @@ class BundleSolver:
         s_mat[diag, diag] += self.prior_w
         grad = lin.g_c.copy()
         grad[:p] += self.prior_w * (c - self.x0)
+        if self.con_n is not None:
+            s_mat[:p, :p] += self.con_n
+            grad[:p] += self.con_n @ (c - self.x0)
         d_c = s_mat[diag, diag].copy()
         if lam:
             s_mat[diag, diag] += lam * d_c
@@ -723,6 +753,8 @@ class BundleSolver:
             return
         # Parameters that no observation (and no prior) touches at all.
         full_diag = np.diag(lin.n_cc)[:self.n_params][act] + self.prior_w[act]
+        if self.con_n is not None:
+            full_diag = full_diag + np.diag(self.con_n)[act]
         zero = np.flatnonzero(~(full_diag > 0))
         if zero.size:
             names = [self.names[act[i]] for i in zero[:8]]
@@ -756,9 +788,8 @@ class BundleSolver:
         act = self.active
         # v^T P v with the final (robust) weights, plus the pseudo-observations.
         vtpv = float(np.sum(lin.weight * np.where(lin.valid[:, None], lin.r, 0.0) ** 2))
-        dc = c - self.x0
-        vtpv += float(np.sum(self.prior_w * dc * dc))
-        n_prior = int(np.count_nonzero(self.prior_w))
+        vtpv += 2.0 * self._prior_cost(c)
+        n_prior = int(np.count_nonzero(self.prior_w)) + len(self.con_w)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
             vtpv += float(np.sum(self.point_prior_w[unknown] * dx * dx))
@@ -798,7 +829,10 @@ class BundleSolver:
 def _camera_gradient(lin: _Linearization, solver: BundleSolver, c: F64) -> F64:
     """Gradient of the cost w.r.t. the camera parameters (observations and priors)."""
     p = solver.n_params
-    return lin.g_c[:p] + solver.prior_w * (c - solver.x0)
+    grad = lin.g_c[:p] + solver.prior_w * (c - solver.x0)
+    if solver.con_n is not None:
+        grad = grad + solver.con_n @ (c - solver.x0)
+    return grad
 
 
 def _first_singular(v: F64) -> int:

@@ -32,9 +32,10 @@ __all__ = [
 
 #: The adjustment every matcher is judged by unless a config says otherwise: node
 #: positions weighted (100 m), attitudes free, interior orientation fixed, weak nodes
-#: (few MCPs near them, e.g. under failed tiles) tied to their initial values instead of
-#: failing the run, Huber loss for the first round then the seed's 3 x RMSE rule.
-DEFAULT_ADJUST: dict[str, Any] = {"linescan": {"weak_nodes": "weight"}}
+#: (few MCPs near them: beyond the image ends or under failed tiles) continuing their
+#: neighbours' corrections instead of failing the run, Huber loss for the first round
+#: then the seed's 3 x RMSE rule.
+DEFAULT_ADJUST: dict[str, Any] = {"linescan": {"weak_nodes": "smooth"}}
 
 
 #: Matcher options applied unless a config says otherwise. XFeat*'s refinement head
