@@ -32,19 +32,10 @@ from scipy import ndimage
 
 def texture_pair(size: int, shift=(5.0, -3.0), seed: int = 0):
     """Multi-scale noise + blobs, and a copy shifted by ``shift`` with a radiometric change."""
-    rng = np.random.default_rng(seed)
+    from planetref.matching._synthetic import texture
+
     pad = 32
-    n = size + 2 * pad
-    img = np.zeros((n, n))
-    for sigma, weight in ((1.0, 0.35), (2.0, 0.5), (4.0, 0.8), (8.0, 1.0), (16.0, 1.0)):
-        layer = ndimage.gaussian_filter(rng.standard_normal((n, n)), sigma, mode="wrap")
-        img += weight * layer / layer.std()
-    yy, xx = np.mgrid[0:n, 0:n]
-    for _ in range(n * n // 900):
-        cy, cx = rng.uniform(0, n, 2)
-        r = rng.uniform(2, 9)
-        img[(yy - cy) ** 2 + (xx - cx) ** 2 < r * r] += rng.normal(0, 2.0)
-    img = ndimage.gaussian_filter(img, 1.0, mode="wrap")
+    img = texture(size, seed, pad)
     moved = np.real(np.fft.ifft2(ndimage.fourier_shift(np.fft.fft2(img), (shift[1], shift[0]))))
     a = img[pad:-pad, pad:-pad]
     b = 0.8 * moved[pad:-pad, pad:-pad] + 0.3

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from planetref.matching._synthetic import texture
+
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 try:
@@ -21,22 +23,6 @@ except ImportError:  # pragma: no cover - torch is a dependency
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 SHARED_WEIGHTS = SHARED / "weights"
 HIRISE = SHARED / "data" / "hirise_pairs"
-
-
-def texture(size: int, seed: int = 0, pad: int = 32) -> np.ndarray:
-    """Multi-scale noise plus random blobs, lightly blurred so it is nearly band-limited."""
-    rng = np.random.default_rng(seed)
-    n = size + 2 * pad
-    img = np.zeros((n, n))
-    for sigma, weight in ((1.0, 0.35), (2.0, 0.5), (4.0, 0.8), (8.0, 1.0), (16.0, 1.0)):
-        layer = ndimage.gaussian_filter(rng.standard_normal((n, n)), sigma, mode="wrap")
-        img += weight * layer / layer.std()
-    yy, xx = np.mgrid[0:n, 0:n]
-    for _ in range(n * n // 900):
-        cy, cx = rng.uniform(0, n, 2)
-        r = rng.uniform(2, 9)
-        img[(yy - cy) ** 2 + (xx - cx) ** 2 < r * r] += rng.normal(0, 2.0)
-    return ndimage.gaussian_filter(img, 1.0, mode="wrap")
 
 
 def make_shifted_pair(

@@ -192,6 +192,16 @@ def pad_to_multiple(t: torch.Tensor, multiple: int) -> torch.Tensor:
     return F.pad(t, (0, pw, 0, ph), mode="replicate")
 
 
+def unpadded(keypoints: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """Say which ``(N, 2)`` ``(x, y)`` keypoints of a padded image lie in the original.
+
+    The counterpart of :func:`pad_to_multiple`: ``shape`` is the ``(H, W)`` before padding,
+    keypoints in the added bottom/right margin are ``False``.
+    """
+    h, w = shape
+    return (keypoints[:, 0] < w) & (keypoints[:, 1] < h)
+
+
 def resize_image(
     image: NDArray[np.float32], size_hw: tuple[int, int]
 ) -> tuple[NDArray[np.float32], float, float]:
@@ -306,8 +316,10 @@ def _resolve_dir(value: str | PathLike[str] | None) -> Any:
 class SparseLightGlueMatcher(TorchMatcher):
     """Detector/descriptor + LightGlue, the shared pipeline of the learned sparse matchers.
 
-    Subclasses build ``{"extractor": ..., "matcher": LightGlue}`` and implement
-    :meth:`_extract`. Keypoints on invalid pixels are dropped before LightGlue sees them.
+    Subclasses set :attr:`lightglue_features` and :attr:`lightglue_weights` and implement
+    :meth:`_build_extractor` and :meth:`_extract`; :meth:`_build` loads LightGlue and
+    :meth:`_run` does the rest (resizing, coordinate conversion, LightGlue inputs, scores).
+    Keypoints on invalid pixels are dropped before LightGlue sees them.
 
     Args:
         max_keypoints: Keypoint budget per image.
@@ -323,7 +335,10 @@ class SparseLightGlueMatcher(TorchMatcher):
         polish: See :class:`TorchMatcher`.
     """
 
+    #: key of ``kornia.feature.LightGlue.features`` (``"disk"``, ``"aliked"``, ...)
     lightglue_features: ClassVar[str] = ""
+    #: cache file name of the LightGlue checkpoint (see :func:`build_lightglue`)
+    lightglue_weights: ClassVar[str] = ""
 
     def __init__(
         self,
@@ -352,6 +367,25 @@ class SparseLightGlueMatcher(TorchMatcher):
             self.lightglue_conf["depth_confidence"] = float(depth_confidence)
         if width_confidence is not None:
             self.lightglue_conf["width_confidence"] = float(width_confidence)
+
+    def _build(self) -> dict[str, torch.nn.Module]:
+        """Build ``{"extractor": ..., "matcher": LightGlue}`` on :attr:`device`."""
+        extractor = self._build_extractor()
+        matcher = build_lightglue(
+            self.lightglue_features,
+            self._checkpoint(self.lightglue_weights),
+            what=self.lightglue_weights,
+            **self.lightglue_conf,
+        )
+        return {"extractor": extractor.to(self.device), "matcher": matcher.to(self.device)}
+
+    @abstractmethod
+    def _build_extractor(self) -> torch.nn.Module:
+        """Return the detector/descriptor with its weights loaded, in evaluation mode.
+
+        It is moved to :attr:`device` by :meth:`_build` and called by :meth:`_extract` as
+        ``self._model["extractor"]``.
+        """
 
     @abstractmethod
     def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:

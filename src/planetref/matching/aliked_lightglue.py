@@ -21,7 +21,6 @@ from numpy.typing import NDArray
 
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
-    build_lightglue,
     image_tensor,
     load_into,
 )
@@ -47,6 +46,7 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
     name: ClassVar[str] = "aliked-lightglue"
     weight_files: ClassVar[tuple[str, ...]] = (ALIKED_WEIGHTS, LIGHTGLUE_WEIGHTS)
     lightglue_features: ClassVar[str] = "aliked"
+    lightglue_weights: ClassVar[str] = LIGHTGLUE_WEIGHTS
 
     def __init__(
         self,
@@ -77,7 +77,7 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
         self.detection_threshold = float(detection_threshold)
         self.nms_radius = int(nms_radius)
 
-    def _build(self) -> dict[str, Any]:
+    def _build_extractor(self) -> Any:
         from kornia.feature import ALIKED
 
         aliked = ALIKED(
@@ -86,16 +86,9 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
             detection_threshold=self.detection_threshold,
             nms_radius=self.nms_radius,
         )
-        load_into(
+        return load_into(
             aliked, self._checkpoint(ALIKED_WEIGHTS), what=ALIKED_WEIGHTS, derived=("dkd.hw_grid",)
         )
-        matcher = build_lightglue(
-            "aliked",
-            self._checkpoint(LIGHTGLUE_WEIGHTS),
-            what=LIGHTGLUE_WEIGHTS,
-            **self.lightglue_conf,
-        )
-        return {"extractor": aliked.to(self.device), "matcher": matcher.to(self.device)}
 
     def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
         feats = self._model["extractor"](image_tensor(image, self.device, channels=3))[0]

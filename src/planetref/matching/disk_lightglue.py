@@ -23,10 +23,10 @@ from numpy.typing import NDArray
 from planetref.errors import WeightsError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
-    build_lightglue,
     image_tensor,
     load_into,
     pad_to_multiple,
+    unpadded,
 )
 
 __all__ = ["DiskLightGlueMatcher"]
@@ -50,6 +50,7 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
     name: ClassVar[str] = "disk-lightglue"
     weight_files: ClassVar[tuple[str, ...]] = (DISK_WEIGHTS, LIGHTGLUE_WEIGHTS)
     lightglue_features: ClassVar[str] = "disk"
+    lightglue_weights: ClassVar[str] = LIGHTGLUE_WEIGHTS
 
     def __init__(
         self,
@@ -80,29 +81,21 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
         self.nms_window = int(nms_window)
         self.score_threshold = float(score_threshold)
 
-    def _build(self) -> dict[str, Any]:
+    def _build_extractor(self) -> Any:
         from kornia.feature import DISK
 
         raw = self._checkpoint(DISK_WEIGHTS)
         if not isinstance(raw, dict) or "extractor" not in raw:
             raise WeightsError(f"{DISK_WEIGHTS}: expected a dict with an 'extractor' state dict")
-        disk = load_into(DISK(desc_dim=128), raw["extractor"], what=DISK_WEIGHTS)
-        matcher = build_lightglue(
-            "disk",
-            self._checkpoint(LIGHTGLUE_WEIGHTS),
-            what=LIGHTGLUE_WEIGHTS,
-            **self.lightglue_conf,
-        )
-        return {"extractor": disk.to(self.device), "matcher": matcher.to(self.device)}
+        return load_into(DISK(desc_dim=128), raw["extractor"], what=DISK_WEIGHTS)
 
     def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
-        h, w = image.shape
         t = pad_to_multiple(image_tensor(image, self.device, channels=3), 16)
         feats = self._model["extractor"](
             t, n=None, window_size=self.nms_window, score_threshold=self.score_threshold
         )[0]
         kpts, desc, scores = feats.keypoints, feats.descriptors, feats.detection_scores
-        inside = (kpts[:, 0] < w) & (kpts[:, 1] < h)
+        inside = unpadded(kpts, image.shape)
         kpts, desc, scores = kpts[inside], desc[inside], scores[inside]
         if len(scores) > self.max_keypoints:
             top = torch.topk(scores, self.max_keypoints).indices

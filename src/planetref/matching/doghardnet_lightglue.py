@@ -35,7 +35,6 @@ from numpy.typing import NDArray
 from planetref.errors import WeightsError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
-    build_lightglue,
     image_tensor,
     load_into,
 )
@@ -74,6 +73,7 @@ class DogHardNetLightGlueMatcher(SparseLightGlueMatcher):
     name: ClassVar[str] = "doghardnet-lightglue"
     weight_files: ClassVar[tuple[str, ...]] = (HARDNET_WEIGHTS, LIGHTGLUE_WEIGHTS)
     lightglue_features: ClassVar[str] = "doghardnet"
+    lightglue_weights: ClassVar[str] = LIGHTGLUE_WEIGHTS
 
     def __init__(
         self,
@@ -106,21 +106,14 @@ class DogHardNetLightGlueMatcher(SparseLightGlueMatcher):
         self.edge_threshold = float(edge_threshold)
         self.n_octave_layers = int(n_octave_layers)
 
-    def _build(self) -> dict[str, Any]:
+    def _build_extractor(self) -> Any:
         from kornia.feature import HardNet, LAFDescriptor
 
         hardnet = HardNet(pretrained=False)
         load_into(
             hardnet, hardnet_state_dict(self._checkpoint(HARDNET_WEIGHTS)), what=HARDNET_WEIGHTS
         )
-        descriptor = LAFDescriptor(hardnet, patch_size=32, grayscale_descriptor=True).eval()
-        matcher = build_lightglue(
-            "doghardnet",
-            self._checkpoint(LIGHTGLUE_WEIGHTS),
-            what=LIGHTGLUE_WEIGHTS,
-            **self.lightglue_conf,
-        )
-        return {"extractor": descriptor.to(self.device), "matcher": matcher.to(self.device)}
+        return LAFDescriptor(hardnet, patch_size=32, grayscale_descriptor=True).eval()
 
     def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
         from kornia.feature import laf_from_center_scale_ori

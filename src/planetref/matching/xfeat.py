@@ -53,10 +53,10 @@ from planetref.errors import InputError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
     TorchMatcher,
-    build_lightglue,
     image_tensor,
     load_into,
     pad_to_multiple,
+    unpadded,
 )
 from planetref.matching.base import Matches, keypoints_on_valid_pixels
 
@@ -86,6 +86,7 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
     name: ClassVar[str] = "xfeat-lighterglue"
     weight_files: ClassVar[tuple[str, ...]] = (XFEAT_WEIGHTS, LIGHTERGLUE_WEIGHTS)
     lightglue_features: ClassVar[str] = "xfeat"
+    lightglue_weights: ClassVar[str] = LIGHTERGLUE_WEIGHTS
 
     def __init__(
         self,
@@ -114,24 +115,16 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
         )
         self.detection_threshold = float(detection_threshold)
 
-    def _build(self) -> dict[str, Any]:
-        xfeat = _build_xfeat(
+    def _build_extractor(self) -> Any:
+        return _build_xfeat(
             self._checkpoint(XFEAT_WEIGHTS), self.max_keypoints, self.detection_threshold
         )
-        matcher = build_lightglue(
-            "xfeat",
-            self._checkpoint(LIGHTERGLUE_WEIGHTS),
-            what=LIGHTERGLUE_WEIGHTS,
-            **self.lightglue_conf,
-        )
-        return {"extractor": xfeat.to(self.device), "matcher": matcher.to(self.device)}
 
     def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
-        h, w = image.shape
         t = pad_to_multiple(image_tensor(image, self.device), 32)
         out = self._model["extractor"].detectAndCompute(t, top_k=self.max_keypoints)[0]
         kpts = out["keypoints"].float()
-        inside = (kpts[:, 0] < w) & (kpts[:, 1] < h)
+        inside = unpadded(kpts, image.shape)
         return {"keypoints": kpts[inside], "descriptors": out["descriptors"][inside]}
 
 
