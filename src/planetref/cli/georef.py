@@ -12,6 +12,18 @@ import click
 __all__ = ["compare_command", "demo_command", "georef_command"]
 
 
+def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None
+                     ) -> str | None:
+    from planetref.errors import InputError
+    from planetref.execute import make_executor
+
+    try:
+        make_executor(value)  # parse only: nothing starts before it is used
+    except InputError as exc:
+        raise click.BadParameter(str(exc)) from None
+    return value
+
+
 def _common(f: Any) -> Any:
     f = click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
                      help="TOML with [frontend], [adjust], [mcp], [ortho], [matchers.NAME].")(f)
@@ -20,6 +32,9 @@ def _common(f: Any) -> Any:
                           "the torch hub cache).")(f)
     f = click.option("--overwrite", is_flag=True,
                      help="Replace a different earlier run in --out (never other files).")(f)
+    f = click.option("--scheduler", default=None, metavar="SPEC", callback=_check_scheduler,
+                     help="Where tiles are matched: inprocess (default), pool:N, "
+                          "dask-local:N, or tcp://HOST:PORT.")(f)
     return f
 
 
@@ -35,7 +50,8 @@ def _quiet(ctx: click.Context) -> bool:
 @_common
 @click.pass_context
 def georef_command(ctx: click.Context, scene: str, matcher: str, out: str,
-                   config_path: str | None, weights_dir: str | None, overwrite: bool) -> None:
+                   config_path: str | None, weights_dir: str | None, overwrite: bool,
+                   scheduler: str | None) -> None:
     """Georeference SCENE (scene.toml or its folder) with one matcher.
 
     Tiling, matching, MCPs, bundle adjustment, metrics, report, adjusted cameras and
@@ -46,7 +62,7 @@ def georef_command(ctx: click.Context, scene: str, matcher: str, out: str,
 
     cfg = load_config(config_path)
     outcome = run_georef(scene, matcher, out, config=cfg, weights_dir=weights_dir,
-                         overwrite=overwrite, progress=not _quiet(ctx))
+                         overwrite=overwrite, progress=not _quiet(ctx), executor=scheduler)
     r = outcome.report
     click.echo(json.dumps({"matcher": r["matcher"], "ncp": r["matching"]["ncp"],
                            "sdu_pct": r["matching"]["sdu_pct"],
@@ -63,14 +79,15 @@ def georef_command(ctx: click.Context, scene: str, matcher: str, out: str,
 @_common
 @click.pass_context
 def compare_command(ctx: click.Context, scene: str, matchers: str, out: str,
-                    config_path: str | None, weights_dir: str | None, overwrite: bool) -> None:
+                    config_path: str | None, weights_dir: str | None, overwrite: bool,
+                   scheduler: str | None) -> None:
     """Run georef on SCENE once per matcher and tabulate the results side by side."""
     from planetref.pipeline.compare import run_compare
     from planetref.pipeline.config import load_config
 
     cfg = load_config(config_path)
     outcome = run_compare(scene, matchers, out, config=cfg, weights_dir=weights_dir,
-                          overwrite=overwrite, progress=not _quiet(ctx))
+                          overwrite=overwrite, progress=not _quiet(ctx), executor=scheduler)
     click.echo(outcome.tables_markdown)
     click.echo(f"report: {outcome.run_dir / 'report.json'}")
 
@@ -90,7 +107,8 @@ def _default_demo_dir() -> Path:
 @_common
 @click.pass_context
 def demo_command(ctx: click.Context, out: str | None, preset: str, seed: int, matchers: str,
-                 config_path: str | None, weights_dir: str | None, overwrite: bool) -> None:
+                 config_path: str | None, weights_dir: str | None, overwrite: bool,
+                   scheduler: str | None) -> None:
     """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
     from planetref.pipeline.compare import run_compare
     from planetref.pipeline.config import load_config
@@ -111,7 +129,7 @@ def demo_command(ctx: click.Context, out: str | None, preset: str, seed: int, ma
     cfg = load_config(config_path)
     outcome = run_compare(scene_dir, matchers, base / f"compare-{preset}-seed{seed}",
                           config=cfg, weights_dir=weights_dir, overwrite=overwrite,
-                          progress=not quiet)
+                          progress=not quiet, executor=scheduler)
     click.echo(outcome.tables_markdown)
     click.echo(f"report:  {outcome.run_dir / 'report.md'} (and report.json)")
     click.echo(f"figures: {outcome.run_dir / 'figures'}")

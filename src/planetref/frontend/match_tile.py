@@ -659,7 +659,8 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
                 matcher: Any, config: FrontendConfig | None = None, *,
                 ccds: Sequence[str] | None = None, journal: str | PathLike[str] | None = None,
                 progress: bool = True, raise_errors: bool = False,
-                debug_tiles: Sequence[str] = (), coarse_matcher: Any = None) -> StripMatches:
+                debug_tiles: Sequence[str] = (), coarse_matcher: Any = None,
+                executor: Any = None, sources: Any = None) -> StripMatches:
     """Match every tile of every CCD image of a strip against the reference.
 
     Rasters are only read through windows (one tile at a time), so memory stays bounded
@@ -681,12 +682,19 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
         raise_errors: Re-raise exceptions of a tile instead of recording status ``error``.
         debug_tiles: Tile ids whose stage images are kept (``result.debug``).
         coarse_matcher: Matcher of the coarse stage (default: ``matcher``).
+        executor: A :class:`planetref.execute.Executor` for the tiles (default: in this
+            process, one after another). A parallel one sends each worker only ``sources``
+            and the tile; results are journalled as they arrive, and the strip's results
+            are in plan order whatever the executor. ``debug_tiles`` are matched here.
+        sources: A :class:`planetref.execute.TileSources` (paths and matcher spec of
+            these very inputs); required by a parallel ``executor``.
 
     Returns:
         The strip's tile results.
 
     Raises:
-        InputError: Unknown CCD names, or a journal of another matcher/config.
+        InputError: Unknown CCD names, a journal of another matcher/config, or a parallel
+            executor without ``sources``.
     """
     from tqdm.auto import tqdm
 
@@ -735,26 +743,35 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
         if jpath is not None:
             jpath.parent.mkdir(parents=True, exist_ok=True)
             fh = jpath.open("a", encoding="utf-8")
+
+        def match_here(t: Tile) -> TileResult:
+            try:
+                return match_tile(t, image=readers[t.ccd], camera=camera, ref=ref,
+                                  terrain=terrain, matcher=matcher, config=cfg,
+                                  ratio=plans[t.ccd].ratio, debug=t.tile_id in debug_tiles,
+                                  coarse_matcher=coarse_matcher)
+            except Exception as exc:
+                if raise_errors:
+                    raise
+                return _error_result(t, name, cfg, exc)
+
+        def record(r: TileResult) -> None:
+            results[r.tile_id] = r
+            if fh is not None:
+                fh.write(json.dumps({"digest": digest, "result": r.to_dict()}) + "\n")
+                fh.flush()
+                os.fsync(fh.fileno())
+
         try:
-            bar = tqdm(pending, desc=f"matching ({name})", unit="tile", disable=not progress)
-            for t in bar:
-                try:
-                    r = match_tile(t, image=readers[t.ccd], camera=camera, ref=ref,
-                                   terrain=terrain, matcher=matcher, config=cfg,
-                                   ratio=plans[t.ccd].ratio, debug=t.tile_id in debug_tiles,
-                                   coarse_matcher=coarse_matcher)
-                except Exception as exc:
-                    if raise_errors:
-                        raise
-                    r = TileResult(tile=t, matcher=name, status="error",
-                                   message=f"{type(exc).__name__}: {exc}",
-                                   geometry=cfg.geometry)
-                results[t.tile_id] = r
-                if fh is not None:
-                    fh.write(json.dumps({"digest": digest, "result": r.to_dict()}) + "\n")
-                    fh.flush()
-                    os.fsync(fh.fileno())
-                bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
+            if executor is not None and getattr(executor, "parallel", False):
+                _match_parallel(executor, sources, pending, plans, cfg, name, match_here,
+                                record, raise_errors, progress, debug_tiles, results)
+            else:
+                bar = tqdm(pending, desc=f"matching ({name})", unit="tile",
+                           disable=not progress)
+                for t in bar:
+                    record(match_here(t))
+                    bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
         finally:
             if fh is not None:
                 fh.close()
@@ -762,3 +779,58 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
     finally:
         for obj in opened:
             obj.close()
+
+
+
+def _error_result(t: Tile, name: str, cfg: FrontendConfig, exc: BaseException) -> TileResult:
+    return TileResult(tile=t, matcher=name, status="error",
+                      message=f"{type(exc).__name__}: {exc}", geometry=cfg.geometry)
+
+
+def _match_parallel(executor: Any, sources: Any, pending: list[Tile],
+                    plans: Mapping[str, TilePlan], cfg: FrontendConfig, name: str,
+                    match_here: Any, record: Any, raise_errors: bool, progress: bool,
+                    debug_tiles: Sequence[str], results: Mapping[str, TileResult]) -> None:
+    """The pending tiles of :func:`match_strip` on a parallel executor.
+
+    Each result is recorded (and journalled) as it arrives; ``debug_tiles`` are matched
+    here with ``match_here`` (their stage images do not travel).
+    """
+    from tqdm.auto import tqdm
+
+    from planetref.execute import TileSources, run_tile_task
+
+    if not isinstance(sources, TileSources):
+        raise InputError(f"the {executor.name} executor needs sources= (a TileSources with "
+                         "the camera, image, reference and DEM paths and the matcher spec)")
+    lacking = sorted({t.ccd for t in pending} - {c for c, _ in sources.images})
+    if lacking:
+        raise InputError(f"sources= has no image path for CCDs {lacking}")
+    if sources.matcher != name:
+        raise InputError(f"sources= names matcher {sources.matcher!r} but the matcher is "
+                         f"{name!r}")
+    debug = set(debug_tiles)
+    remote = [t for t in pending if t.tile_id not in debug]
+    key = sources.key()
+    config = cfg.model_dump()
+    tasks = [{"sources": key, "tile": t.to_dict(), "config": config,
+              "ratio": plans[t.ccd].ratio, "raise_errors": raise_errors} for t in remote]
+    bar = tqdm(total=len(pending), desc=f"matching ({name}, {executor.name})", unit="tile",
+               disable=not progress)
+    try:
+        for t in pending:
+            if t.tile_id in debug:
+                record(match_here(t))
+                bar.update(1)
+        for out in executor.map_unordered(run_tile_task, tasks):
+            t = remote[out.index]
+            if out.error is not None:
+                if raise_errors:
+                    raise out.error
+                record(_error_result(t, name, cfg, out.error))
+            else:
+                record(TileResult.from_dict(out.result))
+            bar.update(1)
+            bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
+    finally:
+        bar.close()

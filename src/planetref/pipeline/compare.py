@@ -84,16 +84,44 @@ def resolve_matchers(spec: str | Sequence[str], weights_dir: str | os.PathLike[s
 def run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
                 out: str | os.PathLike[str], *, config: GeorefConfig | None = None,
                 weights_dir: str | os.PathLike[str] | None = None, overwrite: bool = False,
-                progress: bool = True) -> CompareOutcome:
+                progress: bool = True, executor: Any = None) -> CompareOutcome:
     """Run georef once per matcher with identical settings and tabulate the results.
 
     A matcher whose run fails (missing weights, too few matches, a degenerate
     adjustment) is listed under ``skipped`` with the reason; the others go on.
 
+    Args:
+        scene: ``scene.toml`` or its folder.
+        matchers: ``"a,b,c"``, ``"all"`` or a list of matcher names.
+        out: Output directory.
+        config: Settings (defaults when ``None``).
+        weights_dir: Folder of pretrained weights.
+        overwrite: Replace a different previous run in ``out``.
+        progress: Show progress bars.
+        executor: Where the tiles are matched (see :func:`~planetref.pipeline.georef.
+            run_georef`); a spec string starts one executor (e.g. one Dask cluster) that
+            serves every matcher and is closed at the end.
+
     Raises:
         InputError: Unknown matcher names, a bad scene, or an output directory holding
             another run.
     """
+    from planetref.execute import Executor, make_executor
+
+    owned = executor is not None and not isinstance(executor, Executor)
+    ex = make_executor(executor)
+    try:
+        return _run_compare(scene, matchers, out, config, weights_dir, overwrite, progress,
+                            ex)
+    finally:
+        if owned:
+            ex.close()
+
+
+def _run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
+                 out: str | os.PathLike[str], config: GeorefConfig | None,
+                 weights_dir: str | os.PathLike[str] | None, overwrite: bool, progress: bool,
+                 executor: Any) -> CompareOutcome:
     from planetref.pipeline.georef import _scene_path, run_georef
     from planetref.report.georef import figure_headline_bars, write_compare_tables
 
@@ -113,7 +141,7 @@ def run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
             try:
                 outcome = run_georef(scene_path, name, run.path / "runs" / name, config=cfg,
                                      weights_dir=weights_dir, overwrite=overwrite,
-                                     progress=progress)
+                                     progress=progress, executor=executor)
             except (WeightsError, PlanetrefError) as exc:
                 log.warning("compare: %s skipped: %s", name, exc)
                 skipped[name] = str(exc)

@@ -30,7 +30,7 @@ from planetref.errors import InputError, MatchingError, PlanetrefError
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
 
-__all__ = ["GeorefOutcome", "build_matchers", "run_georef"]
+__all__ = ["GeorefOutcome", "build_matchers", "matcher_options", "run_georef"]
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +63,24 @@ def build_matchers(name: str, cfg: GeorefConfig, ref_gsd_m: float, *,
     """
     from planetref.matching.registry import get_matcher
 
-    options = dict(cfg.matchers.get(name, {}))
-    fine = get_matcher(name, weights_dir=weights_dir, **options)
-    if name != "ncc":
+    fine_opts, coarse_opts = matcher_options(name, cfg, ref_gsd_m)
+    fine = get_matcher(name, weights_dir=weights_dir, **fine_opts)
+    if coarse_opts is None:
         return fine, fine
+    return fine, get_matcher(name, weights_dir=weights_dir, **coarse_opts)
+
+
+def matcher_options(name: str, cfg: GeorefConfig, ref_gsd_m: float
+                    ) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """The registry options of a run's fine and coarse matchers (see :func:`build_matchers`).
+
+    Returns:
+        ``(fine_options, coarse_options)``; ``coarse_options`` is None when the fine
+        matcher serves both stages.
+    """
+    options = dict(cfg.matchers.get(name, {}))
+    if name != "ncc":
+        return options, None
     fe = cfg.frontend
     # NCC looks for each template around the same pixel of the other window, and the
     # front end's windows are padded: the fine stage must reach the pad plus what the
@@ -74,11 +88,9 @@ def build_matchers(name: str, cfg: GeorefConfig, ref_gsd_m: float, *,
     fine_radius = fe.fine_pad_ref_px + int(np.ceil(fe.coarse_radius_ref_px)) + 4
     coarse_radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_factor))) + 4
     base = {"spacing": 8, **options}
-    fine = get_matcher(name, weights_dir=weights_dir,
-                       **{"search_radius": fine_radius, **base})
     coarse_opts = {**base, "search_radius": max(coarse_radius,
                                                 int(base.get("search_radius", 0)))}
-    return fine, get_matcher(name, weights_dir=weights_dir, **coarse_opts)
+    return {"search_radius": fine_radius, **base}, coarse_opts
 
 
 def _scene_path(scene: str | os.PathLike[str]) -> Path:
@@ -174,8 +186,8 @@ def _truth(manifest: Any, root: Path) -> tuple[dict[str, Any], Any]:
 def run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathLike[str], *,
                config: GeorefConfig | None = None,
                weights_dir: str | os.PathLike[str] | None = None, overwrite: bool = False,
-               progress: bool = True, matchers: tuple[Any, Any] | None = None
-               ) -> GeorefOutcome:
+               progress: bool = True, matchers: tuple[Any, Any] | None = None,
+               executor: Any = None) -> GeorefOutcome:
     """Georeference every strip of a scene with one matcher.
 
     Args:
@@ -187,6 +199,10 @@ def run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathLi
         overwrite: Replace a different previous run in ``out``.
         progress: Show progress bars.
         matchers: Prebuilt ``(fine, coarse)`` matchers (reused across runs by ``compare``).
+        executor: Where the tiles are matched: a :class:`planetref.execute.Executor`
+            (left open), or a ``--scheduler`` spec (``"pool:4"``, ``"dask-local:4"``,
+            ``"tcp://HOST:PORT"``; started for this run and closed after). Default: in
+            this process. The results do not depend on it.
 
     Returns:
         The report and where things were written.
@@ -195,6 +211,22 @@ def run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathLi
         PlanetrefError: Bad scene, reference or camera files, missing weights, no
             overlap, a strip without enough MCPs, a degenerate adjustment.
     """
+    from planetref.execute import Executor, make_executor
+
+    owned = executor is not None and not isinstance(executor, Executor)
+    ex = make_executor(executor)
+    try:
+        return _run_georef(scene, matcher, out, config, weights_dir, overwrite, progress,
+                           matchers, ex)
+    finally:
+        if owned:
+            ex.close()
+
+
+def _run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathLike[str],
+                config: GeorefConfig | None, weights_dir: str | os.PathLike[str] | None,
+                overwrite: bool, progress: bool, matchers: tuple[Any, Any] | None,
+                executor: Any) -> GeorefOutcome:
     from planetref.simulate.manifest import load_manifest
 
     t_start = time.perf_counter()
@@ -216,12 +248,23 @@ def run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathLi
         fine, coarse = matchers or build_matchers(matcher, cfg, ref_gsd,
                                                   weights_dir=weights_dir)
         truth_cams, truth_dem = _truth(manifest, root)
+        sources = None
+        if executor.parallel:
+            log.info("matching tiles on %s", executor.name)
+            fine_opts, coarse_opts = matcher_options(matcher, cfg, ref_gsd)
+            sources = {
+                "ref": str(manifest.resolve(root, manifest.reference.ortho)),
+                "ref_band": manifest.reference.ortho_band,
+                "dem": str(manifest.resolve(root, manifest.reference.dem)),
+                "dem_band": manifest.reference.dem_band, "matcher": matcher,
+                "matcher_options": fine_opts, "coarse_options": coarse_opts,
+                "weights_dir": None if weights_dir is None else str(Path(weights_dir).resolve())}
         strips: dict[str, Any] = {}
         timing = {"matching": 0.0, "adjustment": 0.0, "outputs": 0.0}
         for strip in manifest.strips:
             strips[strip.id] = _georef_strip(run, manifest, root, strip, ref, dem, fine,
                                              coarse, cfg, progress, truth_cams, truth_dem,
-                                             timing)
+                                             timing, executor=executor, sources=sources)
         timing["total"] = time.perf_counter() - t_start
         report = _combined_report(matcher, manifest.name, strips, timing)
         run.write_json("report.json", report)
@@ -237,7 +280,8 @@ def run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathLi
 
 def _georef_strip(run: RunDir, manifest: Any, root: Path, strip: Any, ref: Any, dem: Any,
                   fine: Any, coarse: Any, cfg: GeorefConfig, progress: bool,
-                  truth_cams: dict[str, Any], truth_dem: Any, timing: dict[str, float]
+                  truth_cams: dict[str, Any], truth_dem: Any, timing: dict[str, float], *,
+                  executor: Any = None, sources: dict[str, Any] | None = None
                   ) -> dict[str, Any]:
     from planetref.adjust.api import adjust
     from planetref.adjust.problem import Network
@@ -252,9 +296,17 @@ def _georef_strip(run: RunDir, manifest: Any, root: Path, strip: Any, ref: Any, 
     out: dict[str, Any] = {"files": {}}
 
     t0 = time.perf_counter()
+    tile_sources = None
+    if sources is not None:
+        from planetref.execute import TileSources
+
+        tile_sources = TileSources(
+            camera=str(manifest.resolve(root, strip.ccds[0].camera)),
+            images=tuple((c, str(Path(img.path).resolve())) for c, img in images.items()),
+            **sources)
     matches = match_strip(camera, images, ref, dem, fine, cfg.frontend,
                           journal=run.file(strip.id, "tiles.jsonl"), progress=progress,
-                          coarse_matcher=coarse)
+                          coarse_matcher=coarse, executor=executor, sources=tile_sources)
     table = mcps_from_tiles(matches, ref=ref, dem=dem)
     timing["matching"] += time.perf_counter() - t0
     written = write_mcps(table, run.file(strip.id, "mcps.parquet"))
