@@ -20,8 +20,6 @@ never sees a half-written file.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from os import PathLike
@@ -31,6 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.atomic import atomic_path
 from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
 
 __all__ = [
@@ -348,27 +347,16 @@ def mcps_from_tiles(results: Iterable[Any], *, ref: Any, dem: Any,
 # --------------------------------------------------------------------------- files
 
 
-def _atomic_target(path: Path, suffix: str) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{suffix}", dir=path.parent)
-    os.close(fd)
-    os.unlink(tmp)  # GDAL and pyarrow want to create the file themselves
-    return Path(tmp)
-
-
 def _write_table(table: McpTable, path: Path) -> None:
     import pyarrow.csv as pacsv
     import pyarrow.parquet as pq
 
-    tmp = _atomic_target(path, path.suffix)
-    try:
+    # pyarrow wants to create the file itself.
+    with atomic_path(path, create=False) as tmp:
         if path.suffix.lower() == ".parquet":
             pq.write_table(table.to_arrow(), tmp)
         else:
             pacsv.write_csv(table.to_arrow(), tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _wkb_points(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[Any]:
@@ -383,16 +371,11 @@ def _write_gpkg(table: McpTable, path: Path) -> None:
 
     if not table.crs_wkt:
         raise InputError("a GeoPackage needs the reference CRS; the table has none")
-    tmp = _atomic_target(path, ".gpkg")
     names = [c for c in MCP_COLUMNS]
     values = [table.columns[c] for c in names]
-    try:
+    with atomic_path(path, create=False) as tmp:  # GDAL creates the GeoPackage itself
         write(str(tmp), _wkb_points(table["ref_x"], table["ref_y"]), values, names,
               driver="GPKG", layer=GPKG_LAYER, geometry_type="Point", crs=table.crs_wkt)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def write_mcps(table: McpTable, path: str | PathLike[str], *,

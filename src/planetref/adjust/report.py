@@ -26,7 +26,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -35,6 +34,7 @@ import numpy as np
 
 from planetref.adjust.api import AdjustmentResult
 from planetref.adjust.network import safe_name
+from planetref.atomic import write_bytes_atomic, write_text_atomic
 from planetref.camera.geodesy import xyz_to_lonlat
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import PlanetrefError
@@ -46,32 +46,6 @@ log = logging.getLogger("planetref.adjust")
 MODE_NAMES = {0: "free", 1: "weighted", 2: "fixed"}
 #: A refitted RPC worse than this (check RMS, pixels) is reported as a warning.
 RPC_WARN_PX = 0.1
-
-
-# --------------------------------------------------------------------- atomic files
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _atomic_bytes(path: Path, data: bytes) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        # mkstemp creates 0600 files; outputs get the usual permissions.
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _atomic_text(path: Path, text: str) -> Path:
-    return _atomic_bytes(path, text.encode("utf-8"))
 
 
 def _clean(obj: Any) -> Any:
@@ -151,8 +125,8 @@ def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
     buf = io.BytesIO()
     np.savez_compressed(buf, names=np.array(result.parameter_names),
                         covariance=result.covariance, correlation=result.correlation)
-    written["covariance"] = str(_atomic_bytes(out / "covariance.npz", buf.getvalue()))
-    written["config"] = str(_atomic_text(
+    written["covariance"] = str(write_bytes_atomic(out / "covariance.npz", buf.getvalue()))
+    written["config"] = str(write_text_atomic(
         out / "config.json", json.dumps(result.config.model_dump(mode="json"), indent=1) + "\n"))
     rpc_reports: dict[str, Any] = {}
     notes: list[str] = []
@@ -175,9 +149,9 @@ def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
     if plots:
         written["plots"] = [str(p) for p in _write_plots(result, out / "plots")]
     report = _report_dict(result, geo, rpc_reports, written, extra)
-    written["report_json"] = str(_atomic_text(
+    written["report_json"] = str(write_text_atomic(
         out / "report.json", json.dumps(_clean(report), indent=1, allow_nan=False) + "\n"))
-    written["report_md"] = str(_atomic_text(out / "report.md", _report_md(result, geo,
+    written["report_md"] = str(write_text_atomic(out / "report.md", _report_md(result, geo,
                                                                         rpc_reports, notes)))
     return written
 
@@ -203,7 +177,7 @@ def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
                     f"{net.obs_sample[i]:.6f}", f(r[i, 1]), f(r[i, 0]),
                     f(math.hypot(r[i, 0], r[i, 1])), f(r0[i, 1]), f(r0[i, 0]),
                     result.status[i], int(result.status[i] == "inlier")])
-    return _atomic_text(path, buf.getvalue())
+    return write_text_atomic(path, buf.getvalue())
 
 
 def _write_parameters(result: AdjustmentResult, path: Path) -> Path:
@@ -214,7 +188,7 @@ def _write_parameters(result: AdjustmentResult, path: Path) -> Path:
         w.writerow([name, result.parameter_units[i], MODE_NAMES[int(result.parameter_mode[i])],
                     repr(float(result.x0[i])), repr(float(result.x[i])),
                     repr(float(result.x[i] - result.x0[i])), repr(float(result.sigma[i]))])
-    return _atomic_text(path, buf.getvalue())
+    return write_text_atomic(path, buf.getvalue())
 
 
 def _height_range(result: AdjustmentResult, cid: str, cam: Any) -> tuple[float, float]:
@@ -353,7 +327,7 @@ def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:
             buf = io.BytesIO()
             fig.savefig(buf, format="png", dpi=110)
             plt.close(fig)
-            paths.append(_atomic_bytes(folder / f"residuals_{safe_name(cid)}{suffix}.png",
+            paths.append(write_bytes_atomic(folder / f"residuals_{safe_name(cid)}{suffix}.png",
                                        buf.getvalue()))
     return paths
 

@@ -45,12 +45,10 @@ the first pixel at ``(0.5, 0.5)``. Ground coordinates are body-fixed XYZ in metr
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import json
 import math
 import os
-import tempfile
 import types
 import warnings
 from collections.abc import Mapping, Sequence
@@ -62,6 +60,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.atomic import write_text_atomic
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.camera.raycast import intersect_terrain
@@ -785,20 +784,9 @@ def write_isd(camera_or_isd: CsmLineScanCamera | CsmIsd, path: str | os.PathLike
         text = json.dumps(isd.to_dict(), indent=1, allow_nan=False)
     except ValueError as exc:
         raise InputError(f"cannot write the ISD: {exc}", path=p) from None
-    tmp_name = None
     try:
-        with tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=p.parent or ".",
-                                         prefix=f".{p.name}.", suffix=".tmp",
-                                         delete=False) as tmp:
-            tmp_name = tmp.name
-            tmp.write(text)
-            tmp.flush()
-            os.fsync(tmp.fileno())
-        os.replace(tmp_name, p)
+        write_text_atomic(p, text, parents=False)
     except OSError as exc:
-        if tmp_name is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp_name)
         raise InputError(f"cannot write the ISD ({exc})", path=p) from None
     return p
 

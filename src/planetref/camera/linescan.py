@@ -33,10 +33,8 @@ as everywhere in planetref.
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -44,6 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.atomic import write_json_atomic
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.errors import GeometryError, InputError
@@ -765,7 +764,7 @@ class LineScanCamera:
 
     def to_json(self, path: str | os.PathLike[str]) -> Path:
         """Write the native JSON camera file atomically (temporary file, then rename)."""
-        return write_json_atomic(self.to_dict(), path)
+        return write_json_atomic(path, self.to_dict())
 
 
 
@@ -777,25 +776,6 @@ def _detector_jac(c: CcdGeometry, m: int) -> F64:
 
 def _bcast(a: F64, like: F64) -> F64:
     return a.reshape(a.shape + (1,) * (like.ndim - 1))
-
-
-def write_json_atomic(doc: Any, path: str | os.PathLike[str]) -> Path:
-    """Write ``doc`` as JSON to ``path`` through a temporary file in the same folder.
-
-    A crash half-way leaves any existing file untouched.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(doc, fh, indent=1, allow_nan=False)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def evenly_spaced_nodes(n_lines: int, n_nodes: int, margin_lines: float = 0.0

@@ -51,9 +51,7 @@ import math
 import os
 import re
 import shutil
-import tempfile
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from functools import cached_property
 from pathlib import Path
@@ -62,6 +60,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.atomic import atomic_path, write_text_atomic
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.geodesy import (
     EARTH_WGS84,
@@ -811,30 +810,6 @@ def rpc_sidecar_path(image_path: str | os.PathLike[str], fmt: Literal["rpb", "tx
     raise InputError(f"unknown sidecar format {fmt!r}; expected 'rpb' or 'txt'", field="fmt")
 
 
-@contextmanager
-def _atomic_target(path: Path, suffix: str = ".tmp") -> Iterator[Path]:
-    # Write next to the target and rename over it, so readers never see a partial file
-    # and a failed write leaves any previous file intact.
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        os.chmod(tmp_path, 0o644)
-        os.replace(tmp_path, path)
-    except BaseException:
-        tmp_path.unlink(missing_ok=True)
-        raise
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    with _atomic_target(path) as tmp:
-        with open(tmp, "w", encoding="ascii", newline="\n") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-
-
 def write_rpc_rpb(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | None = None
                   ) -> Path:
     """Write a DigitalGlobe ``.RPB`` file in the layout GDAL's ``GDALWriteRPBFile`` uses.
@@ -869,7 +844,7 @@ def write_rpc_rpb(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | Non
         out.append(f"planetrefSemiMinorAxis = {items['SEMI_MINOR_M']};")
         out.append(f'planetrefLatitude = "{items["LATITUDE"]}";')
     out.append("END;")
-    _write_text_atomic(p, "\n".join(out) + "\n")
+    write_text_atomic(p, "\n".join(out) + "\n", encoding="ascii")
     return p
 
 
@@ -903,7 +878,7 @@ def write_rpc_txt(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | Non
         out.extend(f"{gdal_name}_{i}: {_fmt(v)}" for i, v in enumerate(getattr(rpc, attr), 1))
     if body is not None:
         out.extend(f"PLANETREF_{k}: {_quote_safe(v)[:60]}" for k, v in body._items().items())
-    _write_text_atomic(p, "\n".join(out) + "\n")
+    write_text_atomic(p, "\n".join(out) + "\n", encoding="ascii")
     return p
 
 
@@ -943,7 +918,7 @@ def write_rpc_geotiff(rpc: Rpc, path: str | os.PathLike[str], *,
         if not p.exists():
             raise MissingFileError("GeoTIFF to update not found (pass data= to create one)",
                                    path=p)
-        with _atomic_target(p, suffix=".tif") as tmp:
+        with atomic_path(p) as tmp:
             shutil.copyfile(p, tmp)
             with rasterio.open(tmp, "r+") as dst:
                 # The setter replaces the whole RPC domain; rasterio drops an error
@@ -957,7 +932,7 @@ def write_rpc_geotiff(rpc: Rpc, path: str | os.PathLike[str], *,
         arr = arr[None]
     if arr.ndim != 3:
         raise InputError(f"expected a 2-D or 3-D image, got shape {arr.shape}", field="data")
-    with _atomic_target(p, suffix=".tif") as tmp:
+    with atomic_path(p) as tmp:
         with rasterio.open(tmp, "w", driver="GTiff", width=arr.shape[2], height=arr.shape[1],
                            count=arr.shape[0], dtype=arr.dtype, rpcs=rpc.to_gdal()) as dst:
             dst.write(arr)

@@ -147,7 +147,8 @@ def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: 
 
     from planetref.adjust.api import adjust
     from planetref.adjust.network import _load_toml, read_network
-    from planetref.adjust.report import _atomic_text, write_outputs
+    from planetref.adjust.report import write_outputs
+    from planetref.atomic import write_text_atomic
 
     quiet = bool(ctx.obj.get("quiet")) if ctx.obj else False
     if out_dir.exists() and not out_dir.is_dir():
@@ -180,7 +181,7 @@ def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: 
     result = adjust(nf.network, nf.config, progress=progress)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = nf.config.model_dump(mode="json")
-    _atomic_text(out_dir / "config.toml", tomli_w.dumps({"adjustment": _toml_safe(resolved)}))
+    write_text_atomic(out_dir / "config.toml", tomli_w.dumps({"adjustment": _toml_safe(resolved)}))
     write_outputs(result, out_dir, rpc=not no_rpc, plots=not no_plots,
                   extra={"inputs": {"network": str(network.resolve()),
                                     "measures": str(nf.measures_path),

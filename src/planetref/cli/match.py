@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +16,7 @@ import click
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.atomic import atomic_path
 from planetref.errors import InputError, MatchingError, MissingFileError, PlanetrefError
 from planetref.matching.registry import MATCHERS, available_matchers, get_matcher
 
@@ -67,14 +67,8 @@ def _atomic_write(path: Path, write: Callable[[str], None], suffix: str) -> None
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise MissingFileError("output folder does not exist", path=folder)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=folder)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        write(str(tmp))
 
 
 def write_matches_csv(path: str | os.PathLike[str], keypoints0, keypoints1, confidence) -> None:

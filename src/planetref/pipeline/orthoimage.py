@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.atomic import atomic_path
 from planetref.camera.base import Camera, Terrain
 from planetref.errors import GeometryError
 from planetref.frontend.geometry import project_to_image, rays_to_ground
-from planetref.pipeline.rundir import atomic_path
 
 __all__ = ["orthorectify_ccd"]
 

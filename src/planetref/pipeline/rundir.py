@@ -16,15 +16,15 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from planetref import __version__
+from planetref.atomic import write_json_atomic as _write_json
 from planetref.errors import InputError
 
-__all__ = ["RunDir", "atomic_path", "config_digest", "write_json_atomic", "write_text_atomic"]
+__all__ = ["RunDir", "config_digest", "write_json_atomic"]
 
 MARKER = "run.json"
 
@@ -35,35 +35,9 @@ def config_digest(doc: Mapping[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
-
-    On failure the temporary file is removed and any existing ``path`` is untouched.
-    """
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}",
-                               dir=target.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        os.replace(tmp_path, target)
-    finally:
-        tmp_path.unlink(missing_ok=True)
-
-
-def write_text_atomic(path: str | os.PathLike[str], text: str) -> Path:
-    """Write text through a temporary file and a rename."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-    return Path(path)
-
-
 def write_json_atomic(path: str | os.PathLike[str], doc: Any) -> Path:
-    """Write JSON (indented, NaN written as null) through a temporary file and a rename."""
-    return write_text_atomic(path, json.dumps(_jsonable(doc), indent=2, allow_nan=False) + "\n")
+    """Write JSON (numpy values converted, NaN written as null) atomically."""
+    return _write_json(path, _jsonable(doc), indent=2)
 
 
 def _jsonable(obj: Any) -> Any:

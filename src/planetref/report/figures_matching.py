@@ -16,8 +16,6 @@ Keypoints are ``(x, y)`` in pixels of the array they lie on, first pixel centre 
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from os import PathLike
@@ -27,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.atomic import atomic_path
 from planetref.errors import InputError
 
 __all__ = ["MatchPanel", "figure_mcp_distribution", "figure_tile_matches", "panels_from_tile"]
@@ -92,18 +91,10 @@ def _display(image: NDArray[Any], valid: NDArray[np.bool_] | None) -> NDArray[np
 def _save(fig: Any, path: str | PathLike[str], dpi: int) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=".tmp.png", dir=p.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, p)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return p
+    return Path(path)
 
 
 def figure_tile_matches(panels: Sequence[MatchPanel], path: str | PathLike[str], *,

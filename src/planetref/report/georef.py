@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from planetref.pipeline.rundir import write_text_atomic
+from planetref.atomic import write_text_atomic
 from planetref.report.figures_matching import _save
 
 __all__ = [
