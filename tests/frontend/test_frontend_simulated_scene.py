@@ -73,28 +73,29 @@ def _truth_offset(s, r):
     return np.array([np.mean(tc - ic), np.mean(tr - ir)])
 
 
-@pytest.mark.parametrize("name, ccds, min_ok", [
-    ("sift", None, 18), ("ncc", None, 18),
-    pytest.param("disk-lightglue", LEARNED_CCDS, 4, marks=pytest.mark.shared),
-    pytest.param("aliked-lightglue", LEARNED_CCDS, 4, marks=pytest.mark.shared),
-    pytest.param("xfeat-lighterglue", LEARNED_CCDS, 2, marks=[
-        pytest.mark.shared, pytest.mark.xfail(
-            strict=False, reason="XFeat + LighterGlue matches every tile, but its keypoints "
-            "are coarser: its worst tile's offset error is close to the 0.5 px bound")]),
-])
-def test_tiny_offsets_agree_with_truth(tiny, make_matcher, name, ccds, min_ok):
-    s = tiny
+@pytest.mark.parametrize("name, options, ccds, min_ok, bound", [
     # An area-based search must reach the initial error (21 px here).
-    options = {"search_radius": 40, "spacing": 8} if name == "ncc" else {}
+    ("sift", {}, None, 18, 0.5), ("ncc", {"search_radius": 40, "spacing": 8}, None, 18, 0.5),
+    pytest.param("disk-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
+    pytest.param("aliked-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
+    # XFeat's keypoints sit on whole pixels (see planetref.matching.xfeat): re-centred by
+    # local NCC they meet the same bound; raw, their worst tile is ~0.5 px off.
+    pytest.param("xfeat-lighterglue", {"polish": "ncc"}, LEARNED_CCDS, 2, 0.5,
+                 marks=pytest.mark.shared),
+    pytest.param("xfeat-lighterglue", {}, LEARNED_CCDS, 2, 1.0, marks=pytest.mark.shared),
+])
+def test_tiny_offsets_agree_with_truth(tiny, make_matcher, name, options, ccds, min_ok,
+                                       bound):
+    s = tiny
     matcher = make_matcher(name, **options)
     strip = match_strip(s["init"], s["images"], s["ref"], s["dem"], matcher, CFG,
                         ccds=ccds, progress=False, raise_errors=True)
     errs = {r.tile_id: float(np.max(np.abs(np.asarray(r.offset_px) - _truth_offset(s, r))))
             for r in strip.tiles if r.status == "ok"}
-    print(f"tiny/{name}: {strip.status_counts()}, max |offset - truth| (ref px): "
+    print(f"tiny/{name} {options}: {strip.status_counts()}, max |offset - truth| (ref px): "
           f"{ {k: round(v, 3) for k, v in errs.items()} }")
     assert len(errs) >= min_ok, [t.message for t in strip.tiles]
-    assert max(errs.values()) < 0.5
+    assert max(errs.values()) < bound
 
 
 def test_tiny_preset_runs_and_reports_every_tile(tiny):
