@@ -261,12 +261,24 @@ def _run_georef(scene: str | os.PathLike[str], matcher: str, out: str | os.PathL
                 "weights_dir": None if weights_dir is None else str(Path(weights_dir).resolve())}
         strips: dict[str, Any] = {}
         timing = {"matching": 0.0, "adjustment": 0.0, "outputs": 0.0}
-        for strip in manifest.strips:
-            strips[strip.id] = _georef_strip(run, manifest, root, strip, ref, dem, fine,
-                                             coarse, cfg, progress, truth_cams, truth_dem,
-                                             timing, executor=executor, sources=sources)
+        campaign = None
+        if cfg.campaign.adjust_together and len(manifest.strips) > 1:
+            preps = [_strip_mcps(run, manifest, root, strip, ref, dem, fine, coarse, cfg,
+                                 progress, timing, executor=executor, sources=sources)
+                     for strip in manifest.strips]
+            strips, campaign = _adjust_together(run, preps, ref, dem, fine, cfg, truth_cams,
+                                                truth_dem, timing)
+        else:
+            for strip in manifest.strips:
+                strips[strip.id] = _georef_strip(run, manifest, root, strip, ref, dem, fine,
+                                                 coarse, cfg, progress, truth_cams,
+                                                 truth_dem, timing, executor=executor,
+                                                 sources=sources)
         timing["total"] = time.perf_counter() - t_start
         report = _combined_report(matcher, manifest.name, strips, timing)
+        if campaign is not None:
+            report["adjustment"] = campaign.pop("adjustment")
+            report["campaign"] = campaign
         run.write_json("report.json", report)
         from planetref.report.georef import write_georef_markdown
 
@@ -283,9 +295,29 @@ def _georef_strip(run: RunDir, manifest: Any, root: Path, strip: Any, ref: Any, 
                   truth_cams: dict[str, Any], truth_dem: Any, timing: dict[str, float], *,
                   executor: Any = None, sources: dict[str, Any] | None = None
                   ) -> dict[str, Any]:
-    from planetref.adjust.api import adjust
-    from planetref.adjust.problem import Network
-    from planetref.adjust.report import write_outputs
+    prep = _strip_mcps(run, manifest, root, strip, ref, dem, fine, coarse, cfg, progress,
+                       timing, executor=executor, sources=sources)
+    return _adjust_strip(run, prep, ref, dem, cfg, truth_cams, truth_dem, timing)
+
+
+@dataclass
+class _StripMcps:
+    """A strip after matching: its camera, images, MCPs and check flags."""
+
+    id: str
+    camera: Any
+    images: dict[str, Any]
+    sizes: dict[str, tuple[int, int]]
+    table: Any
+    check: Any
+    out: dict[str, Any]
+
+
+def _strip_mcps(run: RunDir, manifest: Any, root: Path, strip: Any, ref: Any, dem: Any,
+                fine: Any, coarse: Any, cfg: GeorefConfig, progress: bool,
+                timing: dict[str, float], *, executor: Any = None,
+                sources: dict[str, Any] | None = None) -> _StripMcps:
+    """Match a strip's tiles, write its MCPs and draw its check points."""
     from planetref.control import mcps_from_tiles, write_mcps
     from planetref.frontend.match_tile import match_strip
     from planetref.frontend.stats import sdu_per_ccd
@@ -342,6 +374,19 @@ def _georef_strip(run: RunDir, manifest: Any, root: Path, strip: Any, ref: Any, 
     n_check = round(cfg.mcp.check_fraction * n)
     if n_check and n - n_check >= cfg.mcp.min_mcps:
         check[rng.choice(n, n_check, replace=False)] = True
+    return _StripMcps(strip.id, camera, images, sizes, table, check, out)
+
+
+def _adjust_strip(run: RunDir, prep: _StripMcps, ref: Any, dem: Any, cfg: GeorefConfig,
+                  truth_cams: dict[str, Any], truth_dem: Any, timing: dict[str, float]
+                  ) -> dict[str, Any]:
+    """Adjust one strip on its own with its MCPs and write its outputs."""
+    from planetref.adjust.api import adjust
+    from planetref.adjust.problem import Network
+    from planetref.adjust.report import write_outputs
+
+    strip, camera, images, sizes = prep, prep.camera, prep.images, prep.sizes
+    table, check, out = prep.table, prep.check, prep.out
     network = Network.mcps(camera, line=table["line"], sample=table["sample"],
                            xyz=table.xyz(), ccd=np.asarray(table["ccd"]).astype(str),
                            camera_id=strip.id, sigma_px=cfg.mcp.sigma_px, check=check)
@@ -363,6 +408,145 @@ def _georef_strip(run: RunDir, manifest: Any, root: Path, strip: Any, ref: Any, 
     timing["outputs"] += time.perf_counter() - t0
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+def _adjust_together(run: RunDir, preps: list[_StripMcps], ref: Any, dem: Any, fine: Any,
+                     cfg: GeorefConfig, truth_cams: dict[str, Any], truth_dem: Any,
+                     timing: dict[str, float]
+                     ) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    """Adjust every strip in one network: all MCPs plus tie points between strips.
+
+    The joint adjustment's outputs (every camera, residuals, parameters) go to
+    ``campaign/adjustment``; each strip keeps its own blocks (metrics of its
+    observations, true geolocation error, orthoimages) computed from the joint result.
+
+    Returns:
+        ``(strips, campaign)``: the per-strip blocks (as :func:`_adjust_strip` returns)
+        and the ``campaign`` block of report.json (its ``adjustment`` entry is the joint
+        adjustment's).
+    """
+    from planetref.adjust.api import adjust
+    from planetref.adjust.problem import Network
+    from planetref.adjust.report import write_outputs
+    from planetref.pipeline.campaign import find_tie_points
+
+    opts = cfg.campaign
+    if opts.tie_sigma_m is not None and opts.tie_sigma_m < cfg.frontend.uncertainty_m:
+        log.warning("campaign.tie_sigma_m = %g m is below the initial cameras' uncertainty "
+                    "(%g m) that the tie points' a-priori ground comes from: it will pull "
+                    "the strips towards their initial error", opts.tie_sigma_m,
+                    cfg.frontend.uncertainty_m)
+    t0 = time.perf_counter()
+    ties = find_tie_points({p.id: (p.camera, p.images) for p in preps}, ref, dem, fine,
+                           cfg.frontend, opts)
+    timing["tie_points"] = time.perf_counter() - t0
+    log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
+    cams = {p.id: p.camera for p in preps}
+    obs_cam: list[str] = []
+    obs_pt: list[str] = []
+    obs_ccd: list[str] = []
+    line: list[Any] = []
+    sample: list[Any] = []
+    sig_px: list[Any] = []
+    check: list[Any] = []
+    xyz: dict[str, Any] = {}
+    sig_m: dict[str, float] = {}
+    kind: dict[str, str] = {}
+    for p in preps:
+        t = p.table
+        pts = [f"{p.id}:mcp{i}" for i in range(len(t))]
+        pxyz = t.xyz()
+        for i, pid in enumerate(pts):
+            xyz[pid], sig_m[pid], kind[pid] = pxyz[i], 0.0, "mcp"
+        obs_cam += [p.id] * len(t)
+        obs_pt += pts
+        obs_ccd += list(np.asarray(t["ccd"]).astype(str))
+        line.append(np.asarray(t["line"], float))
+        sample.append(np.asarray(t["sample"], float))
+        sig_px.append(np.full(len(t), cfg.mcp.sigma_px))
+        check.append(p.check)
+    tie_sigma = np.inf if opts.tie_sigma_m is None else float(opts.tie_sigma_m)
+    for i, pid in enumerate(ties.point_ids):
+        xyz[pid], sig_m[pid], kind[pid] = ties.xyz[i], tie_sigma, "tie"
+        for k in range(2):
+            obs_cam.append(str(ties.strip[i, k]))
+            obs_pt.append(pid)
+            obs_ccd.append(str(ties.ccd[i, k]))
+        line.append(ties.line[i])
+        sample.append(ties.sample[i])
+        sig_px.append(np.full(2, opts.tie_sigma_px))
+        check.append(np.zeros(2, bool))
+    network = Network.from_records(
+        cams, obs_camera=obs_cam, obs_point=obs_pt, line=np.concatenate(line),
+        sample=np.concatenate(sample), point_xyz=xyz, point_sigma_m=sig_m,
+        point_kind=kind, obs_ccd=obs_ccd, sigma_px=np.concatenate(sig_px),
+        check=np.concatenate(check))
+    t0 = time.perf_counter()
+    result = adjust(network, cfg.adjust)
+    timing["adjustment"] += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    truth = {sid: truth_cams[sid] for sid in cams if sid in truth_cams} or None
+    joint_files = write_outputs(result, run.file("campaign", "adjustment"), truth=truth,
+                                terrain=truth_dem if truth_dem is not None else dem)
+    strips: dict[str, dict[str, Any]] = {}
+    is_tie = np.asarray(network.point_kind)[network.obs_point] == "tie"
+    for ci, p in enumerate(preps):
+        out = p.out
+        out["files"]["adjustment"] = joint_files
+        cm = result.metrics["cameras"][p.id]
+        on = network.obs_camera == ci
+        after = cm["after"]
+        out["adjustment"] = {
+            "rmse_px_before": cm["before"]["rmse_px"], "rmse_px": after["rmse_px"],
+            "mean_px": after["mean_px"], "max_x_px": after["max_dx_px"],
+            "max_y_px": after["max_dy_px"], "min_x_px": after["min_dx_px"],
+            "min_y_px": after["min_dy_px"], "outlier_ratio_pct": after["outlier_ratio_pct"],
+            "n_total": after["n_total"], "n_inliers": after["n_inliers"],
+            "sigma0": result.sigma0, "converged": result.converged,
+            "n_tie_observations": int(np.count_nonzero(on & is_tie)),
+            "ccds": {c: m["after"] for c, m in cm.get("ccds", {}).items()}}
+        one = {p.id: truth_cams[p.id]} if p.id in truth_cams else None
+        out["check"] = _check_block(result, one, truth_dem, p.camera) if one else None
+        out["warnings"] = list(result.warnings)
+        if cfg.ortho.enabled:
+            out["files"]["ortho"] = _orthoimages(run, p.id, result.cameras[p.id], p.images,
+                                                 dem, ref, cfg)
+        out["_residuals"] = (result.residual[on], result.inlier[on])
+        _figure_residuals(run, p.id, _camera_view(result, ci), p.sizes)
+        strips[p.id] = out
+    timing["outputs"] += time.perf_counter() - t0
+    campaign = {"adjust_together": True, "n_tie_points": len(ties),
+                "n_tie_observations": 2 * len(ties),
+                "tie_points_per_strip_pair": ties.per_strip_pair(),
+                "tie_points_per_image_pair": dict(ties.pairs),
+                "tie_sigma_m": opts.tie_sigma_m,
+                "adjustment": _adjustment_block(result) | {
+                    "n_tie_points": len(ties),
+                    "tie_rmse_px": None if not len(ties)
+                    else _rmse(result.residual[is_tie & result.inlier]),
+                    "tie_rmse_px_before": None if not len(ties)
+                    else _rmse(result.residual_initial[is_tie])},
+                "files": {k: v for k, v in joint_files.items() if k != "cameras"}}
+    return strips, campaign
+
+
+def _camera_view(result: Any, index: int) -> Any:
+    """The observations of one camera of a joint result, as the residual figure reads it."""
+    from types import SimpleNamespace
+
+    net = result.network
+    on = net.obs_camera == index
+    cid = net.camera_ids[index]
+    sub = SimpleNamespace(camera_ids=(cid,), obs_ccd=net.obs_ccd[on],
+                          obs_line=net.obs_line[on], obs_sample=net.obs_sample[on])
+    return SimpleNamespace(network=sub, cameras={cid: result.cameras[cid]},
+                           residual=result.residual[on], status=result.status[on])
+
+
+def _rmse(res: Any) -> float | None:
+    r = np.asarray(res, float).reshape(-1, 2)
+    r = r[np.all(np.isfinite(r), axis=1)]
+    return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else None
 
 
 def _adjustment_block(result: Any) -> dict[str, Any]:
