@@ -110,11 +110,12 @@ def main(argv: list[str] | None = None) -> int:
             r["speedup"] = base["match_s"] / r["match_s"]
             r["same_mcps"] = _same_mcps(base["mcps"], r.pop("mcps"))
     if args.json:
-        print(json.dumps({"preset": args.preset, "matcher": args.matcher, "rows": rows}))
+        print(json.dumps({"scene": args.scene or args.preset, "matcher": args.matcher,
+                          "rows": rows}))
         return 0
     head = (f"{'executor':<14}{'tiles':>6}{'match s':>9}{'tiles/h':>9}{'s/tile':>8}"
             f"{'tiles/h/worker':>15}{'speed-up':>9}{'peak MiB/worker':>16}{'same MCPs':>10}")
-    print(f"preset {args.preset}, matcher {args.matcher}")
+    print(f"scene {args.scene or args.preset}, matcher {args.matcher}")
     print(head)
     for r in rows:
         print(f"{r['executor']:<14}{r['tiles']:>6}{r['match_s']:>9.2f}{r['tiles_per_h']:>9.0f}"
