@@ -32,7 +32,6 @@ import csv
 import math
 import os
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,6 +43,7 @@ from planetref.adjust.problem import Network
 from planetref.camera.base import isis_to_csm
 from planetref.camera.io import load_camera
 from planetref.errors import InputError, MissingFileError
+from planetref.tomlfile import read_toml
 
 __all__ = ["NetworkFile", "read_network", "safe_name"]
 
@@ -83,18 +83,6 @@ class NetworkFile:
 def safe_name(text: str) -> str:
     """A file-name-safe version of an id (``MRO/CTX/08:200`` -> ``MRO_CTX_08_200``)."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "camera"
-
-
-def _load_toml(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise MissingFileError("no such network file", path=path)
-    try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"malformed TOML ({exc})", path=path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read the file ({exc})", path=path) from None
 
 
 def _float(text: str, path: Path, row: int, column: str, *, allow_empty: bool = False
@@ -138,7 +126,7 @@ def read_network(path: str | os.PathLike[str],
         InputError: Naming the file, row and column at fault.
     """
     p = Path(path)
-    doc = _load_toml(p)
+    doc = read_toml(p, "network file")
     unknown = sorted(set(doc) - _TOP_KEYS)
     if unknown:
         raise InputError(f"unknown key(s) {unknown}; expected {sorted(_TOP_KEYS)}", path=p)

@@ -146,16 +146,17 @@ def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: 
     import tomli_w
 
     from planetref.adjust.api import adjust
-    from planetref.adjust.network import _load_toml, read_network
+    from planetref.adjust.network import read_network
     from planetref.adjust.report import write_outputs
     from planetref.atomic import write_text_atomic
+    from planetref.tomlfile import read_toml
 
     quiet = bool(ctx.obj.get("quiet")) if ctx.obj else False
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("--out exists and is not a folder", path=out_dir)
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
         raise InputError("--out is not empty; pass --overwrite to write into it", path=out_dir)
-    doc = _load_toml(network)
+    doc = read_toml(network, "network file")
     cfg: dict[str, Any] = dict(doc.get("adjustment", {})) if isinstance(
         doc.get("adjustment"), dict) else {}
     if config_file is not None:

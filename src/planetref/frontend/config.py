@@ -7,7 +7,6 @@ ratio of the two ground sampling distances.
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping
 from os import PathLike
 from pathlib import Path
@@ -15,7 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from planetref.errors import InputError, MissingFileError
+from planetref.errors import InputError
+from planetref.tomlfile import read_toml
 
 __all__ = ["FrontendConfig", "GeometryMode", "RansacModel"]
 
@@ -118,12 +118,7 @@ class FrontendConfig(BaseModel):
             InputError: Unreadable TOML, unknown keys or bad values.
         """
         p = Path(path)
-        if not p.is_file():
-            raise MissingFileError("front-end settings file not found", path=p)
-        try:
-            doc = tomllib.loads(p.read_text(encoding="utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise InputError(f"not valid TOML ({exc})", path=p) from None
+        doc = read_toml(p, "front-end settings file")
         if table is not None and table in doc:
             doc = doc[table]
         return cls.from_mapping(doc, source=str(p))

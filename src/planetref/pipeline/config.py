@@ -12,15 +12,14 @@ directory (``config.json``).
 from __future__ import annotations
 
 import os
-import tomllib
-from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from planetref.adjust.config import AdjustConfig, validate_config
-from planetref.errors import InputError, MissingFileError
+from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
+from planetref.tomlfile import read_toml
 
 __all__ = [
     "DEFAULT_ADJUST",
@@ -169,14 +168,7 @@ def load_config(path: str | os.PathLike[str] | None = None) -> GeorefConfig:
     """
     if path is None:
         return GeorefConfig()
-    p = Path(path)
-    if not p.is_file():
-        raise MissingFileError("configuration file not found", path=p)
-    try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML ({exc})", path=p) from None
-    return config_from_mapping(doc, source=str(p))
+    return config_from_mapping(read_toml(path, "configuration file"), source=str(path))
 
 
 def config_from_mapping(doc: dict[str, Any], *, source: str | None = None) -> GeorefConfig:

@@ -20,12 +20,12 @@ import copy
 import tomllib
 from importlib import resources
 from os import PathLike
-from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from planetref.errors import InputError, MissingFileError
+from planetref.errors import InputError
+from planetref.tomlfile import read_toml
 
 __all__ = [
     "AlbedoConfig",
@@ -635,14 +635,8 @@ def load_config(preset: str = "tiny",
         if isinstance(overrides, dict):
             table = overrides
         else:
-            path = Path(overrides)
-            source = str(path)
-            if not path.is_file():
-                raise MissingFileError("override file not found", path=path)
-            try:
-                table = tomllib.loads(path.read_text(encoding="utf-8"))
-            except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-                raise InputError(f"not valid TOML ({exc})", path=path) from None
+            source = str(overrides)
+            table = read_toml(overrides, "override file")
         data = merge_overrides(data, table)
     if seed is not None:
         data["seed"] = seed

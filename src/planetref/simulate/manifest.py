@@ -41,7 +41,6 @@ Example::
 from __future__ import annotations
 
 import os
-import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
@@ -50,6 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from planetref.camera.geodesy import Ellipsoid
 from planetref.errors import InputError, MissingFileError
 from planetref.simulate.config import format_validation_error
+from planetref.tomlfile import read_toml
 
 __all__ = [
     "MANIFEST_FORMAT",
@@ -253,12 +253,7 @@ def load_manifest(path: str | os.PathLike[str], *, check_files: bool = True
     p = Path(path)
     if p.is_dir():
         p = p / MANIFEST_NAME
-    if not p.is_file():
-        raise MissingFileError("scene manifest not found", path=p)
-    try:
-        data: dict[str, Any] = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML ({exc})", path=p) from None
+    data = read_toml(p, "scene manifest")
     fmt = data.get("format")
     if fmt != MANIFEST_FORMAT:
         raise InputError(f"expected format = {MANIFEST_FORMAT!r}, got {fmt!r}", path=p,
