@@ -14,7 +14,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "write_bytes_atomic", "write_json_atomic", "write_text_atomic"]
+__all__ = [
+    "atomic_path",
+    "json_safe",
+    "write_bytes_atomic",
+    "write_json_atomic",
+    "write_text_atomic",
+]
 
 
 def _umask() -> int:
@@ -73,6 +79,32 @@ def write_text_atomic(path: str | os.PathLike[str], text: str, encoding: str = "
                       *, parents: bool = True) -> Path:
     """Write text atomically, encoded with ``encoding``; see :func:`atomic_path`."""
     return write_bytes_atomic(path, text.encode(encoding), parents=parents)
+
+
+def json_safe(obj: Any) -> Any:
+    """A copy of ``obj`` that ``json.dumps(..., allow_nan=False)`` accepts.
+
+    Mappings and sequences are walked; numpy arrays and scalars become Python values,
+    paths strings, and NaN or infinite floats ``None``.
+    """
+    import math
+    from collections.abc import Mapping
+
+    import numpy as np
+
+    if isinstance(obj, Mapping):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, np.generic):
+        return json_safe(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
 
 
 def write_json_atomic(path: str | os.PathLike[str], doc: Any, *, indent: int = 1) -> Path:

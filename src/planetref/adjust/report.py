@@ -34,7 +34,7 @@ import numpy as np
 
 from planetref.adjust.api import AdjustmentResult
 from planetref.adjust.network import safe_name
-from planetref.atomic import write_bytes_atomic, write_text_atomic
+from planetref.atomic import json_safe, write_bytes_atomic, write_text_atomic
 from planetref.camera.geodesy import xyz_to_lonlat
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import PlanetrefError
@@ -46,21 +46,6 @@ log = logging.getLogger("planetref.adjust")
 MODE_NAMES = {0: "free", 1: "weighted", 2: "fixed"}
 #: A refitted RPC worse than this (check RMS, pixels) is reported as a warning.
 RPC_WARN_PX = 0.1
-
-
-def _clean(obj: Any) -> Any:
-    """JSON-safe: numpy scalars to Python, NaN/inf to None."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 # ------------------------------------------------------------------------ metrics
@@ -150,7 +135,7 @@ def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
         written["plots"] = [str(p) for p in _write_plots(result, out / "plots")]
     report = _report_dict(result, geo, rpc_reports, written, extra)
     written["report_json"] = str(write_text_atomic(
-        out / "report.json", json.dumps(_clean(report), indent=1, allow_nan=False) + "\n"))
+        out / "report.json", json.dumps(json_safe(report), indent=1, allow_nan=False) + "\n"))
     written["report_md"] = str(write_text_atomic(out / "report.md", _report_md(result, geo,
                                                                         rpc_reports, notes)))
     return written

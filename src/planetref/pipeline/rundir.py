@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from planetref import __version__
+from planetref.atomic import json_safe
 from planetref.atomic import write_json_atomic as _write_json
 from planetref.errors import InputError
 
@@ -37,27 +38,7 @@ def config_digest(doc: Mapping[str, Any]) -> str:
 
 def write_json_atomic(path: str | os.PathLike[str], doc: Any) -> Path:
     """Write JSON (numpy values converted, NaN written as null) atomically."""
-    return _write_json(path, _jsonable(doc), indent=2)
-
-
-def _jsonable(obj: Any) -> Any:
-    import math
-
-    import numpy as np
-
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _jsonable(obj.item())
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
+    return _write_json(path, json_safe(doc), indent=2)
 
 
 class RunDir:
@@ -80,7 +61,7 @@ class RunDir:
                  *, overwrite: bool = False) -> None:
         self.path = Path(path)
         self.kind = kind
-        self.identity = _jsonable(dict(identity))
+        self.identity = json_safe(dict(identity))
         if self.path.exists() and not self.path.is_dir():
             raise InputError("the output path exists and is not a directory", path=self.path)
         marker = self.path / MARKER
