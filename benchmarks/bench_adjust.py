@@ -49,8 +49,9 @@ def peak_rss_mb() -> float:
 
 def build_problem(n_obs: int, seed: int, noise_px: float, n_nodes: int, n_tie: int = 0):
     ccds = ccd_row(3, 2048, 20000, 0.010, overlap_px=16, stagger_mm=1.0)
-    true, _ = orbit_camera(OrbitGeometry(20.0, 74.0, 30.0), focal_length_mm=4640.0,
-                           ccds=ccds, n_nodes=n_nodes)
+    true, _ = orbit_camera(
+        OrbitGeometry(20.0, 74.0, 30.0), focal_length_mm=4640.0, ccds=ccds, n_nodes=n_nodes
+    )
     rng = np.random.default_rng(seed)
     n_mcp = n_obs - 2 * n_tie
     ccd = rng.integers(0, 3, n_mcp)
@@ -80,28 +81,38 @@ def build_problem(n_obs: int, seed: int, noise_px: float, n_nodes: int, n_tie: i
     nodes[:, 3:] += np.array([2e-5, -3e-5, 1e-5]) + t * np.array([4e-6, 6e-6, -3e-6])
     init = true.replace(nodes=nodes)
     m_all = n_mcp + 2 * n_tie
-    point = np.concatenate([np.arange(n_mcp), n_mcp + np.arange(n_tie),
-                            n_mcp + np.arange(n_tie)])
+    point = np.concatenate([np.arange(n_mcp), n_mcp + np.arange(n_tie), n_mcp + np.arange(n_tie)])
     obs_ccd = np.concatenate([ccd, pair, pair + 1])
     obs_line = np.concatenate([line, t_line, t_obs[:, 0]]) + rng.normal(0.0, noise_px, m_all)
-    obs_sample = np.concatenate([sample, t_sample, t_obs[:, 1]]) + rng.normal(0.0, noise_px,
-                                                                             m_all)
+    obs_sample = np.concatenate([sample, t_sample, t_obs[:, 1]]) + rng.normal(0.0, noise_px, m_all)
     # Tie points start 20 m off and are free; MCP ground is known.
     p_xyz = np.concatenate([xyz, t_xyz + rng.normal(0.0, 20.0, t_xyz.shape)])
     p_sig = np.concatenate([np.zeros((n_mcp, 3)), np.full((n_tie, 3), np.inf)])
-    net = Network(cameras=(init,), camera_ids=("strip",),
-                  point_ids=np.array([f"p{i}" for i in range(n_mcp + n_tie)]),
-                  point_xyz=p_xyz, point_sigma_m=p_sig,
-                  point_kind=np.array(["mcp"] * n_mcp + ["tie"] * n_tie),
-                  obs_camera=np.zeros(m_all, np.intp), obs_ccd=obs_ccd, obs_point=point,
-                  obs_line=obs_line, obs_sample=obs_sample, obs_sigma_px=np.full(m_all, noise_px),
-                  obs_check=np.zeros(m_all, bool), obs_ids=np.array([], dtype=str))
+    net = Network(
+        cameras=(init,),
+        camera_ids=("strip",),
+        point_ids=np.array([f"p{i}" for i in range(n_mcp + n_tie)]),
+        point_xyz=p_xyz,
+        point_sigma_m=p_sig,
+        point_kind=np.array(["mcp"] * n_mcp + ["tie"] * n_tie),
+        obs_camera=np.zeros(m_all, np.intp),
+        obs_ccd=obs_ccd,
+        obs_point=point,
+        obs_line=obs_line,
+        obs_sample=obs_sample,
+        obs_sigma_px=np.full(m_all, noise_px),
+        obs_check=np.zeros(m_all, bool),
+        obs_ids=np.array([], dtype=str),
+    )
     return net, true
 
 
 CONFIG = {
-    "linescan": {"position": {"mode": "fixed"}, "attitude": {"mode": "free"},
-                 "interior": {"mode": "fixed"}},
+    "linescan": {
+        "position": {"mode": "fixed"},
+        "attitude": {"mode": "free"},
+        "interior": {"mode": "fixed"},
+    },
     "solver": {"loss": "linear"},
     "outliers": {"enabled": False},
 }
@@ -113,11 +124,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--noise-px", type=float, default=0.3)
     ap.add_argument("--n-nodes", type=int, default=12)
-    ap.add_argument("--n-tie", type=int, default=0,
-                    help="tie points (free XYZ, 2 observations each) among the N observations")
+    ap.add_argument(
+        "--n-tie",
+        type=int,
+        default=0,
+        help="tie points (free XYZ, 2 observations each) among the N observations",
+    )
     ap.add_argument("--no-scipy", action="store_true", help="skip scipy (large N)")
-    ap.add_argument("--scipy-kernel", choices=["camera", "planetref", "both"], default="both",
-                    help="residual/Jacobian source of the scipy runs")
+    ap.add_argument(
+        "--scipy-kernel",
+        choices=["camera", "planetref", "both"],
+        default="both",
+        help="residual/Jacobian source of the scipy runs",
+    )
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
@@ -133,28 +152,39 @@ def main(argv: list[str] | None = None) -> int:
     true_x = np.concatenate([true.nodes.ravel(), true.interior.as_array()])
     err_sigma = float(np.max(np.abs(res.x - true_x)[act] / res.sigma[act]))
 
-    out = {"n_obs": args.n_obs, "n_tie_points": args.n_tie,
-           "planetref_s": round(planetref_s, 3), "scipy_s": None,
-           "speedup": None, "max_param_diff_sigma": None, "peak_rss_mb": round(rss, 1),
-           "planetref_evaluations": sum(r["evaluations"] for r in res.rounds),
-           "rmse_px": res.summary()["rmse_px"], "rmse_px_before": res.summary()["rmse_px_before"],
-           "max_error_vs_truth_sigma": round(err_sigma, 3), "build_s": round(build_s, 3)}
+    out = {
+        "n_obs": args.n_obs,
+        "n_tie_points": args.n_tie,
+        "planetref_s": round(planetref_s, 3),
+        "scipy_s": None,
+        "speedup": None,
+        "max_param_diff_sigma": None,
+        "peak_rss_mb": round(rss, 1),
+        "planetref_evaluations": sum(r["evaluations"] for r in res.rounds),
+        "rmse_px": res.summary()["rmse_px"],
+        "rmse_px_before": res.summary()["rmse_px_before"],
+        "max_error_vs_truth_sigma": round(err_sigma, 3),
+        "build_s": round(build_s, 3),
+    }
     if not args.no_scipy:
         from planetref.adjust.reference import solve_with_scipy
 
-        kernels = ["camera", "planetref"] if args.scipy_kernel == "both" else [
-            args.scipy_kernel]
+        kernels = ["camera", "planetref"] if args.scipy_kernel == "both" else [args.scipy_kernel]
         for kernel in kernels:
             t0 = time.perf_counter()
             c, _, sp = solve_with_scipy(net, CONFIG, kernel=kernel)
             scipy_s = time.perf_counter() - t0
             diff = float(f"{np.max(np.abs(res.x - c)[act] / res.sigma[act]):.3g}")
             tag = "" if kernel == "camera" else "_same_kernel"
-            out.update({f"scipy{tag}_s": round(scipy_s, 3),
-                        f"speedup{tag}": round(scipy_s / planetref_s, 2),
-                        f"max_param_diff_sigma{tag}": diff,
-                        f"scipy{tag}_nfev": int(sp.nfev),
-                        f"scipy{tag}_status": int(sp.status)})
+            out.update(
+                {
+                    f"scipy{tag}_s": round(scipy_s, 3),
+                    f"speedup{tag}": round(scipy_s / planetref_s, 2),
+                    f"max_param_diff_sigma{tag}": diff,
+                    f"scipy{tag}_nfev": int(sp.nfev),
+                    f"scipy{tag}_status": int(sp.status),
+                }
+            )
         if "max_param_diff_sigma" not in out or out["max_param_diff_sigma"] is None:
             out["max_param_diff_sigma"] = out.get("max_param_diff_sigma_same_kernel")
             out["scipy_s"] = out.get("scipy_same_kernel_s")

@@ -42,8 +42,13 @@ import numpy as np
 
 SCENE_OVERRIDES = {
     "photometry": {"reference_sun": {"azimuth_deg": 215.0, "elevation_deg": 40.0}},
-    "camera": {"n_ccds": 2, "n_samples": 1536, "n_lines": 1536, "gsd_m": 0.5,
-               "overlap_samples": 32},
+    "camera": {
+        "n_ccds": 2,
+        "n_samples": 1536,
+        "n_lines": 1536,
+        "gsd_m": 0.5,
+        "overlap_samples": 32,
+    },
     "albedo": {"texture_gsd_m": 0.5},
 }
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights"
@@ -105,18 +110,30 @@ def bench(name: str, s: dict, cfg, weights_dir: Path | None) -> dict:
     tiles = [(t, plans[c].ratio) for c in readers for t in plans[c].tiles]
     rows = []
     for i, (t, ratio) in enumerate([tiles[0], *tiles]):
-        r = match_tile(t, image=readers[t.ccd], camera=s["init"], ref=s["ref"],
-                       terrain=s["dem"], matcher=matcher, config=cfg, ratio=ratio)
+        r = match_tile(
+            t,
+            image=readers[t.ccd],
+            camera=s["init"],
+            ref=s["ref"],
+            terrain=s["dem"],
+            matcher=matcher,
+            config=cfg,
+            ratio=ratio,
+        )
         if i == 0:
             continue  # warm-up: builds the model
         tm = r.timings
-        rows.append({
-            "tile": t.tile_id, "status": r.status, "mcps": r.n_points,
-            "total_s": tm.get("total", 0.0),
-            "match_s": tm.get("coarse_match", 0.0) + tm.get("fine_match", 0.0),
-            "forward_s": tm.get("forward", 0.0),
-            "offset_error_px": truth_error(s, r),
-        })
+        rows.append(
+            {
+                "tile": t.tile_id,
+                "status": r.status,
+                "mcps": r.n_points,
+                "total_s": tm.get("total", 0.0),
+                "match_s": tm.get("coarse_match", 0.0) + tm.get("fine_match", 0.0),
+                "forward_s": tm.get("forward", 0.0),
+                "offset_error_px": truth_error(s, r),
+            }
+        )
     for rd in readers.values():
         rd.close()
     tot = statistics.median(r["total_s"] for r in rows)
@@ -127,9 +144,12 @@ def bench(name: str, s: dict, cfg, weights_dir: Path | None) -> dict:
     sum_mat = sum(r["match_s"] for r in rows)
     errs = [r["offset_error_px"] for r in rows if np.isfinite(r["offset_error_px"])]
     return {
-        "matcher": name, "tiles": len(rows),
+        "matcher": name,
+        "tiles": len(rows),
         "ok": sum(r["status"] == "ok" for r in rows),
-        "s_per_tile": tot, "match_s": mat, "forward_s": fwd,
+        "s_per_tile": tot,
+        "match_s": mat,
+        "forward_s": fwd,
         "overhead_share": (sum_tot - sum_fwd) / sum_fwd if sum_fwd > 0 else float("nan"),
         "frontend_share": (sum_tot - sum_mat) / sum_mat if sum_mat > 0 else float("nan"),
         "max_offset_error_px": max(errs) if errs else float("nan"),
@@ -139,9 +159,11 @@ def bench(name: str, s: dict, cfg, weights_dir: Path | None) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--matchers", nargs="+",
-                    default=["sift", "ncc", "disk-lightglue", "aliked-lightglue",
-                             "xfeat-lighterglue"])
+    ap.add_argument(
+        "--matchers",
+        nargs="+",
+        default=["sift", "ncc", "disk-lightglue", "aliked-lightglue", "xfeat-lighterglue"],
+    )
     ap.add_argument("--tile", type=int, default=128, help="tile size, reference pixels")
     ap.add_argument("--geometry", default="orthorectify", choices=["orthorectify", "downsample"])
     ap.add_argument("--threads", type=int, default=1)
@@ -158,8 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     from planetref.matching.weights import missing_weights
 
     weights = args.weights_dir or (DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.is_dir() else None)
-    cfg = FrontendConfig(tile_size_ref_px=args.tile, coarse_factor=2, uncertainty_m=150.0,
-                         geometry=args.geometry)
+    cfg = FrontendConfig(
+        tile_size_ref_px=args.tile, coarse_factor=2, uncertainty_m=150.0, geometry=args.geometry
+    )
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         root = args.scene or simulate(Path(tmp) / "scene")
@@ -178,17 +201,32 @@ def main(argv: list[str] | None = None) -> int:
             results.append(bench(name, s, cfg, weights))
         s["ref"].close()
     if args.json:
-        print(json.dumps({"config": cfg.model_dump(), "threads": args.threads,
-                          "results": results, "skipped": skipped}, indent=2))
+        print(
+            json.dumps(
+                {
+                    "config": cfg.model_dump(),
+                    "threads": args.threads,
+                    "results": results,
+                    "skipped": skipped,
+                },
+                indent=2,
+            )
+        )
         return 0
-    print(f"scene: {'given' if args.scene else f'simulated in {sim_s:.1f} s'}; tile "
-          f"{args.tile} ref px; {args.geometry}; torch threads {args.threads}")
-    print(f"{'matcher':<20}{'tiles':>6}{'ok':>4}{'s/tile':>9}{'match s':>9}{'forward s':>11}"
-          f"{'overhead':>10}{'frontend':>10}{'max err px':>12}")
+    print(
+        f"scene: {'given' if args.scene else f'simulated in {sim_s:.1f} s'}; tile "
+        f"{args.tile} ref px; {args.geometry}; torch threads {args.threads}"
+    )
+    print(
+        f"{'matcher':<20}{'tiles':>6}{'ok':>4}{'s/tile':>9}{'match s':>9}{'forward s':>11}"
+        f"{'overhead':>10}{'frontend':>10}{'max err px':>12}"
+    )
     for r in results:
-        print(f"{r['matcher']:<20}{r['tiles']:>6}{r['ok']:>4}{r['s_per_tile']:>9.3f}"
-              f"{r['match_s']:>9.3f}{r['forward_s']:>11.3f}{100 * r['overhead_share']:>9.0f}%"
-              f"{100 * r['frontend_share']:>9.0f}%{r['max_offset_error_px']:>12.3f}")
+        print(
+            f"{r['matcher']:<20}{r['tiles']:>6}{r['ok']:>4}{r['s_per_tile']:>9.3f}"
+            f"{r['match_s']:>9.3f}{r['forward_s']:>11.3f}{100 * r['overhead_share']:>9.0f}%"
+            f"{100 * r['frontend_share']:>9.0f}%{r['max_offset_error_px']:>12.3f}"
+        )
     for name, why in skipped.items():
         print(f"{name:<20} skipped: {why}")
     return 0

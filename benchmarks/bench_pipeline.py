@@ -79,9 +79,21 @@ def main() -> int:
     rows = {}
     for name in names:
         run_dir = base / f"run-{args.preset}-{name}"
-        proc = subprocess.run([sys.executable, "-c", CHILD, str(scene), name, str(run_dir),
-                               args.weights_dir, str(args.threads)],
-                              capture_output=True, text=True, check=False)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                CHILD,
+                str(scene),
+                name,
+                str(run_dir),
+                args.weights_dir,
+                str(args.threads),
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         if proc.returncode != 0:
             skipped[name] = proc.stderr.strip().splitlines()[-1] if proc.stderr else "failed"
             continue
@@ -97,18 +109,36 @@ def main() -> int:
             "geoloc_m_before": (doc["check"] or {}).get("geoloc_rmse_m_before"),
             "geoloc_m_after": (doc["check"] or {}).get("geoloc_rmse_m"),
         }
-    result = {"preset": args.preset, "area_km2": area, "threads": args.threads,
-              "runs": rows, "skipped": skipped}
+    result = {
+        "preset": args.preset,
+        "area_km2": area,
+        "threads": args.threads,
+        "runs": rows,
+        "skipped": skipped,
+    }
     if args.json:
         print(json.dumps(result, indent=1))
         return 0
     print(f"{args.preset}: {area:.2f} km^2 imaged, {args.threads} torch threads")
-    cols = ["matching_s", "adjustment_s", "outputs_s", "total_s", "s_per_km2",
-            "matching_share_pct", "peak_rss_mb", "ncp", "geoloc_m_after"]
+    cols = [
+        "matching_s",
+        "adjustment_s",
+        "outputs_s",
+        "total_s",
+        "s_per_km2",
+        "matching_share_pct",
+        "peak_rss_mb",
+        "ncp",
+        "geoloc_m_after",
+    ]
     print(f"{'matcher':<20}" + "".join(f"{c:>20}" for c in cols))
     for name, r in rows.items():
-        print(f"{name:<20}" + "".join(
-            f"{r[c]:>20.2f}" if isinstance(r[c], float) else f"{r[c]!s:>20}" for c in cols))
+        print(
+            f"{name:<20}"
+            + "".join(
+                f"{r[c]:>20.2f}" if isinstance(r[c], float) else f"{r[c]!s:>20}" for c in cols
+            )
+        )
     for name, why in skipped.items():
         print(f"skipped {name}: {why}")
     return 0

@@ -57,10 +57,16 @@ def run_one(scene: Path, out: Path, matcher: str, executor) -> dict:
         costs += _journal_costs(j)
     match_s = float(res.report["timing_s"]["matching"])
     per_tile = statistics.fmean(costs) if costs else float("nan")
-    return {"match_s": match_s, "total_s": wall, "tiles": len(costs),
-            "tiles_per_h": 3600.0 * len(costs) / match_s if match_s > 0 else float("nan"),
-            "s_per_tile": per_tile, "tiles_per_h_per_worker": 3600.0 / per_tile,
-            "ncp": res.report["matching"]["ncp"], "mcps": out / "strip1" / "mcps.parquet"}
+    return {
+        "match_s": match_s,
+        "total_s": wall,
+        "tiles": len(costs),
+        "tiles_per_h": 3600.0 * len(costs) / match_s if match_s > 0 else float("nan"),
+        "s_per_tile": per_tile,
+        "tiles_per_h_per_worker": 3600.0 / per_tile,
+        "ncp": res.report["matching"]["ncp"],
+        "mcps": out / "strip1" / "mcps.parquet",
+    }
 
 
 def _same_mcps(a: Path, b: Path) -> bool:
@@ -68,7 +74,8 @@ def _same_mcps(a: Path, b: Path) -> bool:
 
     ta, tb = pq.read_table(a), pq.read_table(b)
     return ta.column_names == tb.column_names and all(
-        ta.column(c).to_pylist() == tb.column(c).to_pylist() for c in ta.column_names)
+        ta.column(c).to_pylist() == tb.column(c).to_pylist() for c in ta.column_names
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -94,8 +101,9 @@ def main(argv: list[str] | None = None) -> int:
             simulate_scene(load_config(args.preset, seed=args.seed), scene, progress=False)
         rows = []
         base = run_one(scene, tmp_path / "inprocess", args.matcher, None)
-        rows.append({"executor": "inprocess", "workers": 1, **base,
-                     "peak_mib_per_worker": _maxrss_mib()})
+        rows.append(
+            {"executor": "inprocess", "workers": 1, **base, "peak_mib_per_worker": _maxrss_mib()}
+        )
         for n in args.workers:
             ex = DaskExecutor(f"dask-local:{n}")
             try:
@@ -104,24 +112,35 @@ def main(argv: list[str] | None = None) -> int:
                 rss = ex.client.run(_maxrss_mib)
             finally:
                 ex.close()
-            rows.append({"executor": f"dask-local:{n}", "workers": n, **r,
-                         "peak_mib_per_worker": max(rss.values())})
+            rows.append(
+                {
+                    "executor": f"dask-local:{n}",
+                    "workers": n,
+                    **r,
+                    "peak_mib_per_worker": max(rss.values()),
+                }
+            )
         for r in rows:
             r["speedup"] = base["match_s"] / r["match_s"]
             r["same_mcps"] = _same_mcps(base["mcps"], r.pop("mcps"))
     if args.json:
-        print(json.dumps({"scene": args.scene or args.preset, "matcher": args.matcher,
-                          "rows": rows}))
+        print(
+            json.dumps({"scene": args.scene or args.preset, "matcher": args.matcher, "rows": rows})
+        )
         return 0
-    head = (f"{'executor':<14}{'tiles':>6}{'match s':>9}{'tiles/h':>9}{'s/tile':>8}"
-            f"{'tiles/h/worker':>15}{'speed-up':>9}{'peak MiB/worker':>16}{'same MCPs':>10}")
+    head = (
+        f"{'executor':<14}{'tiles':>6}{'match s':>9}{'tiles/h':>9}{'s/tile':>8}"
+        f"{'tiles/h/worker':>15}{'speed-up':>9}{'peak MiB/worker':>16}{'same MCPs':>10}"
+    )
     print(f"scene {args.scene or args.preset}, matcher {args.matcher}")
     print(head)
     for r in rows:
-        print(f"{r['executor']:<14}{r['tiles']:>6}{r['match_s']:>9.2f}{r['tiles_per_h']:>9.0f}"
-              f"{r['s_per_tile']:>8.3f}{r['tiles_per_h_per_worker']:>15.0f}"
-              f"{r['speedup']:>9.2f}{r['peak_mib_per_worker']:>16.0f}"
-              f"{r['same_mcps']!s:>10}")
+        print(
+            f"{r['executor']:<14}{r['tiles']:>6}{r['match_s']:>9.2f}{r['tiles_per_h']:>9.0f}"
+            f"{r['s_per_tile']:>8.3f}{r['tiles_per_h_per_worker']:>15.0f}"
+            f"{r['speedup']:>9.2f}{r['peak_mib_per_worker']:>16.0f}"
+            f"{r['same_mcps']!s:>10}"
+        )
     return 0
 
 

@@ -49,8 +49,9 @@ print(json.dumps({
 
 def run(preset: str, out: Path) -> dict[str, object]:
     """Simulate ``preset`` into ``out`` in a child process and return its measurements."""
-    proc = subprocess.run([sys.executable, "-c", CHILD, preset, str(out)], check=True,
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, preset, str(out)], check=True, capture_output=True, text=True
+    )
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
@@ -69,12 +70,15 @@ def main() -> None:
             for i in range(args.repeat):
                 r = run(preset, base / f"{preset}-{i}")
                 results.append(r)
-                print(f"{preset:12s} wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:7.1f} s  "
-                      f"peak RSS {r['peak_rss_mb']:7.0f} MB  "
-                      f"{r['pixels'] / 1e6:6.1f} Mpx  "
-                      f"initial error {r['initial_error_rms_m']:6.1f} m RMS "
-                      f"({r['initial_error_rms_px']:.0f} px)  "
-                      f"roundtrip {r['roundtrip_max_px']:.1e} px", flush=True)
+                print(
+                    f"{preset:12s} wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:7.1f} s  "
+                    f"peak RSS {r['peak_rss_mb']:7.0f} MB  "
+                    f"{r['pixels'] / 1e6:6.1f} Mpx  "
+                    f"initial error {r['initial_error_rms_m']:6.1f} m RMS "
+                    f"({r['initial_error_rms_px']:.0f} px)  "
+                    f"roundtrip {r['roundtrip_max_px']:.1e} px",
+                    flush=True,
+                )
                 stages = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_s"].items())  # type: ignore[union-attr]
                 print(f"{'':12s} stages: {stages}", flush=True)
     if args.json:

@@ -27,8 +27,9 @@ X0, Y0 = 4_387_000.0, 1_185_000.0  # about 74 E, 20 N on the Mars sphere
 
 @pytest.fixture(scope="module")
 def ref_and_dem():
-    ref = ReferenceOrtho(np.ones((200, 200), np.float32), transform=Affine(5, 0, X0, 0, -5, Y0),
-                         crs=CRS)
+    ref = ReferenceOrtho(
+        np.ones((200, 200), np.float32), transform=Affine(5, 0, X0, 0, -5, Y0), crs=CRS
+    )
     h = np.fromfunction(lambda r, c: 10.0 * r + c - 2000.0, (30, 30))
     h[4:6, 4:6] = np.nan  # a hole
     dem = GridTerrain(h, Affine(50, 0, X0 - 200, 0, -50, Y0 + 200), CRS)
@@ -55,8 +56,18 @@ def test_mcps_heights_xyz_and_counts(ref_and_dem):
     sample = np.r_[10.5, 20.5, 30.5, 40.5, 50.5, 60.5, 70.5, 10.4, 20.5]
     conf = np.r_[0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.9]
     ccd = ["ccd1"] * 8 + ["ccd2"]
-    t = mcps_from_matches(ccd=ccd, tile_id="ccd1:r000c000", line=line, sample=sample,
-                          ref_x=xs, ref_y=ys, confidence=conf, matcher="sift", ref=ref, dem=dem)
+    t = mcps_from_matches(
+        ccd=ccd,
+        tile_id="ccd1:r000c000",
+        line=line,
+        sample=sample,
+        ref_x=xs,
+        ref_y=ys,
+        confidence=conf,
+        matcher="sift",
+        ref=ref,
+        dem=dem,
+    )
     c = t.counts
     assert (c.candidates, c.nan_dem, c.outside_reference, c.duplicates, c.kept) == (9, 1, 1, 1, 6)
     assert len(t) == 6 and list(t["mcp_id"]) == list(range(6))
@@ -71,19 +82,38 @@ def test_mcps_heights_xyz_and_counts(ref_and_dem):
     assert 73 < t["lon_deg"].mean() < 75 and 19 < t["lat_deg"].mean() < 21
     # Bilinear: midway between DEM cells the height is the mean of its neighbours.
     mx, my = dem.transform @ (15.0, 15.0)
-    t2 = mcps_from_matches(ccd="a", tile_id="t", line=[1.0], sample=[1.0], ref_x=[mx],
-                           ref_y=[my], confidence=[1.0], matcher="m", ref=ref, dem=dem)
-    assert t2["height_m"][0] == pytest.approx(np.mean([10.0 * r + c - 2000 for r in (14, 15)
-                                                       for c in (14, 15)]))
+    t2 = mcps_from_matches(
+        ccd="a",
+        tile_id="t",
+        line=[1.0],
+        sample=[1.0],
+        ref_x=[mx],
+        ref_y=[my],
+        confidence=[1.0],
+        matcher="m",
+        ref=ref,
+        dem=dem,
+    )
+    assert t2["height_m"][0] == pytest.approx(
+        np.mean([10.0 * r + c - 2000 for r in (14, 15) for c in (14, 15)])
+    )
 
 
 def test_round_trips(tmp_path, ref_and_dem):
     ref, dem = ref_and_dem
     x, y = _points(ref)
-    t = mcps_from_matches(ccd=["ccd1", "ccd1", "ccd2", "ccd2", "ccd3"], tile_id="ccd1:r001c002",
-                          line=np.arange(5) * 10.5, sample=np.arange(5) * 3.25, ref_x=x,
-                          ref_y=y, confidence=np.linspace(0.1, 1, 5), matcher="disk-lightglue",
-                          ref=ref, dem=dem)
+    t = mcps_from_matches(
+        ccd=["ccd1", "ccd1", "ccd2", "ccd2", "ccd3"],
+        tile_id="ccd1:r001c002",
+        line=np.arange(5) * 10.5,
+        sample=np.arange(5) * 3.25,
+        ref_x=x,
+        ref_y=y,
+        confidence=np.linspace(0.1, 1, 5),
+        matcher="disk-lightglue",
+        ref=ref,
+        dem=dem,
+    )
     files = write_mcps(t, tmp_path / "out" / "mcps.parquet")
     assert [f.suffix for f in files] == [".parquet", ".gpkg"]
     csv_files = write_mcps(t, tmp_path / "mcps.csv", gpkg=tmp_path / "points.gpkg")
@@ -95,8 +125,12 @@ def test_round_trips(tmp_path, ref_and_dem):
             if t[c].dtype == object:
                 assert list(back[c]) == list(t[c]), (f, c)
             else:
-                np.testing.assert_allclose(np.asarray(back[c], float), t[c], rtol=0,
-                                           atol=1e-9 * max(1.0, np.abs(t[c]).max()))
+                np.testing.assert_allclose(
+                    np.asarray(back[c], float),
+                    t[c],
+                    rtol=0,
+                    atol=1e-9 * max(1.0, np.abs(t[c]).max()),
+                )
     from pyproj import CRS as PCRS
 
     assert PCRS.from_wkt(read_mcps(files[0]).crs_wkt).equals(PCRS(CRS))
@@ -124,20 +158,46 @@ def test_mcps_from_tiles(ref_and_dem):
     ref, dem = ref_and_dem
     x, y = _points(ref)
     tile = Tile("ccd1:r000c000", "ccd1", 0, 0, 1000, 1000)
-    ok = TileResult(tile=tile, matcher="sift", status="ok", line=np.arange(5.0) * 100 + 0.5,
-                    sample=np.arange(5.0) * 50 + 0.5, ref_col=np.zeros(5), ref_row=np.zeros(5),
-                    ref_x=x, ref_y=y, confidence=np.ones(5))
-    bad = TileResult(tile=Tile("ccd1:r000c001", "ccd1", 0, 900, 1000, 1000), matcher="sift",
-                     status="too_few_inliers", line=np.array([1.0]), sample=np.array([1.0]),
-                     ref_col=np.zeros(1), ref_row=np.zeros(1), ref_x=x[:1], ref_y=y[:1],
-                     confidence=np.ones(1))
+    ok = TileResult(
+        tile=tile,
+        matcher="sift",
+        status="ok",
+        line=np.arange(5.0) * 100 + 0.5,
+        sample=np.arange(5.0) * 50 + 0.5,
+        ref_col=np.zeros(5),
+        ref_row=np.zeros(5),
+        ref_x=x,
+        ref_y=y,
+        confidence=np.ones(5),
+    )
+    bad = TileResult(
+        tile=Tile("ccd1:r000c001", "ccd1", 0, 900, 1000, 1000),
+        matcher="sift",
+        status="too_few_inliers",
+        line=np.array([1.0]),
+        sample=np.array([1.0]),
+        ref_col=np.zeros(1),
+        ref_row=np.zeros(1),
+        ref_x=x[:1],
+        ref_y=y[:1],
+        confidence=np.ones(1),
+    )
     t = mcps_from_tiles([ok, bad], ref=ref, dem=dem)
     assert len(t) == 5 and t.counts.tiles_skipped == 1 and set(t["tile_id"]) == {tile.tile_id}
     assert set(t["matcher"]) == {"sift"}
     assert len(mcps_from_tiles([bad], ref=ref, dem=dem)) == 0
-    other = TileResult(tile=tile, matcher="ncc", status="ok", line=np.ones(1),
-                       sample=np.ones(1), ref_col=np.zeros(1), ref_row=np.zeros(1),
-                       ref_x=x[:1], ref_y=y[:1], confidence=np.ones(1))
+    other = TileResult(
+        tile=tile,
+        matcher="ncc",
+        status="ok",
+        line=np.ones(1),
+        sample=np.ones(1),
+        ref_col=np.zeros(1),
+        ref_row=np.zeros(1),
+        ref_x=x[:1],
+        ref_y=y[:1],
+        confidence=np.ones(1),
+    )
     with pytest.raises(InputError, match="several matchers"):
         mcps_from_tiles([ok, other], ref=ref, dem=dem)
     both = McpTable.concatenate([t, t])

@@ -54,8 +54,7 @@ def _assert_same_mcps(a, b):
         assert ta.column(name).to_pylist() == tb.column(name).to_pylist(), name
 
 
-def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inprocess_run,
-                                                        dask_local):
+def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inprocess_run, dask_local):
     out = run_georef(scene, "sift", tmp_path / "dask", progress=False, executor=dask_local)
     a, b = inprocess_run.run_dir, out.run_dir
     _assert_same_mcps(a / "strip1" / "mcps.parquet", b / "strip1" / "mcps.parquet")
@@ -65,8 +64,9 @@ def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inproce
     assert ra["matching"] == rb["matching"]
     # Every tile journalled once, in whatever order the workers finished.
     ja, jb = _journal(a / "strip1" / "tiles.jsonl"), _journal(b / "strip1" / "tiles.jsonl")
-    assert sorted(d["result"]["tile"]["tile_id"] for d in ja) == \
-        sorted(d["result"]["tile"]["tile_id"] for d in jb)
+    assert sorted(d["result"]["tile"]["tile_id"] for d in ja) == sorted(
+        d["result"]["tile"]["tile_id"] for d in jb
+    )
 
 
 def test_killed_run_resumes_without_recomputing(scene, tmp_path, inprocess_run, dask_local):
@@ -84,9 +84,10 @@ def test_killed_run_resumes_without_recomputing(scene, tmp_path, inprocess_run, 
     assert after[: len(half)] == half  # kept as they were
     ids = [d["result"]["tile"]["tile_id"] for d in after]
     assert len(ids) == len(set(ids)) == len(docs)  # the rest matched exactly once
-    assert all(d["result"]["timings"].get("total", 0) >= 0 for d in after[len(half):])
-    _assert_same_mcps(inprocess_run.run_dir / "strip1" / "mcps.parquet",
-                      run / "strip1" / "mcps.parquet")
+    assert all(d["result"]["timings"].get("total", 0) >= 0 for d in after[len(half) :])
+    _assert_same_mcps(
+        inprocess_run.run_dir / "strip1" / "mcps.parquet", run / "strip1" / "mcps.parquet"
+    )
     assert out.report["adjustment"] == inprocess_run.report["adjustment"]
 
 
@@ -96,8 +97,9 @@ def _fail_on_negative(x: int) -> int:
     return x * 2
 
 
-@pytest.mark.parametrize("executor", [InProcessExecutor(), LocalPoolExecutor(2)],
-                         ids=["inprocess", "pool"])
+@pytest.mark.parametrize(
+    "executor", [InProcessExecutor(), LocalPoolExecutor(2)], ids=["inprocess", "pool"]
+)
 def test_executors_stream_results_and_report_failures(executor):
     with executor:
         outs = list(executor.map_unordered(_fail_on_negative, [1, 2, -3, 4]))
@@ -127,7 +129,18 @@ def test_cli_rejects_a_bad_scheduler(tmp_path):
 
     from planetref.cli import main
 
-    r = CliRunner().invoke(main, ["georef", str(tmp_path), "--matcher", "sift", "--out",
-                                  str(tmp_path / "o"), "--scheduler", "threads:2"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "georef",
+            str(tmp_path),
+            "--matcher",
+            "sift",
+            "--out",
+            str(tmp_path / "o"),
+            "--scheduler",
+            "threads:2",
+        ],
+    )
     assert r.exit_code != 0
     assert "pool:N, dask-local:N, or tcp://HOST:PORT" in r.output

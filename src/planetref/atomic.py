@@ -30,8 +30,9 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike[str], *, create: bool = True,
-                parents: bool = True) -> Iterator[Path]:
+def atomic_path(
+    path: str | os.PathLike[str], *, create: bool = True, parents: bool = True
+) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` when the block ends.
 
     The temporary name keeps the target's suffix (``.tmp.tif``, ``.tmp.gpkg``...), so
@@ -50,8 +51,9 @@ def atomic_path(path: str | os.PathLike[str], *, create: bool = True,
     target = Path(path)
     if parents:
         target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}",
-                               dir=target.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
+    )
     os.close(fd)
     tmp_path = Path(tmp)
     if not create:
@@ -65,8 +67,7 @@ def atomic_path(path: str | os.PathLike[str], *, create: bool = True,
         tmp_path.unlink(missing_ok=True)
 
 
-def write_bytes_atomic(path: str | os.PathLike[str], data: bytes, *,
-                       parents: bool = True) -> Path:
+def write_bytes_atomic(path: str | os.PathLike[str], data: bytes, *, parents: bool = True) -> Path:
     """Write bytes atomically (flushed to disk before the rename); see :func:`atomic_path`."""
     with atomic_path(path, parents=parents) as tmp, open(tmp, "wb") as fh:
         fh.write(data)
@@ -75,8 +76,9 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes, *,
     return Path(path)
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str, encoding: str = "utf-8",
-                      *, parents: bool = True) -> Path:
+def write_text_atomic(
+    path: str | os.PathLike[str], text: str, encoding: str = "utf-8", *, parents: bool = True
+) -> Path:
     """Write text atomically, encoded with ``encoding``; see :func:`atomic_path`."""
     return write_bytes_atomic(path, text.encode(encoding), parents=parents)
 

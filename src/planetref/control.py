@@ -43,8 +43,21 @@ __all__ = [
 ]
 
 MCP_COLUMNS: tuple[str, ...] = (
-    "mcp_id", "ccd", "tile_id", "line", "sample", "ref_x", "ref_y", "lon_deg", "lat_deg",
-    "height_m", "x_m", "y_m", "z_m", "confidence", "matcher",
+    "mcp_id",
+    "ccd",
+    "tile_id",
+    "line",
+    "sample",
+    "ref_x",
+    "ref_y",
+    "lon_deg",
+    "lat_deg",
+    "height_m",
+    "x_m",
+    "y_m",
+    "z_m",
+    "confidence",
+    "matcher",
 )
 """Columns of an MCP table, in file order."""
 
@@ -185,7 +198,8 @@ class McpTable:
         if self.counts is not None:
             meta[_COUNTS_KEY] = json.dumps(self.counts.to_dict()).encode()
         return pa.Table.from_arrays(arrays, names=list(MCP_COLUMNS)).replace_schema_metadata(
-            meta or None)
+            meta or None
+        )
 
     @classmethod
     def from_arrow(cls, table: Any, crs_wkt: str | None = None) -> McpTable:
@@ -201,19 +215,28 @@ class McpTable:
         for c in MCP_COLUMNS:
             col = table.column(c)
             if c in _STR:
-                cols[c] = np.array(["" if v is None else str(v) for v in col.to_pylist()],
-                                   dtype=object)
+                cols[c] = np.array(
+                    ["" if v is None else str(v) for v in col.to_pylist()], dtype=object
+                )
             else:
                 cols[c] = col.to_numpy(zero_copy_only=False)
-        return cls(cols, crs.decode() if crs else crs_wkt,
-                   McpCounts(**json.loads(counts)) if counts else None)
+        return cls(
+            cols,
+            crs.decode() if crs else crs_wkt,
+            McpCounts(**json.loads(counts)) if counts else None,
+        )
 
 
 # --------------------------------------------------------------------------- building
 
 
-def _duplicates(ccd: NDArray[Any], line: NDArray[np.float64], sample: NDArray[np.float64],
-                conf: NDArray[np.float64], radius: float) -> NDArray[np.bool_]:
+def _duplicates(
+    ccd: NDArray[Any],
+    line: NDArray[np.float64],
+    sample: NDArray[np.float64],
+    conf: NDArray[np.float64],
+    radius: float,
+) -> NDArray[np.bool_]:
     """True for points to drop: a more confident point of the same CCD is within radius."""
     from scipy.spatial import cKDTree
 
@@ -247,10 +270,20 @@ def _duplicates(ccd: NDArray[Any], line: NDArray[np.float64], sample: NDArray[np
     return drop
 
 
-def mcps_from_matches(*, ccd: ArrayLike, tile_id: ArrayLike, line: ArrayLike,
-                      sample: ArrayLike, ref_x: ArrayLike, ref_y: ArrayLike,
-                      confidence: ArrayLike, matcher: str, ref: Any, dem: Any,
-                      duplicate_radius_px: float = 1.0) -> McpTable:
+def mcps_from_matches(
+    *,
+    ccd: ArrayLike,
+    tile_id: ArrayLike,
+    line: ArrayLike,
+    sample: ArrayLike,
+    ref_x: ArrayLike,
+    ref_y: ArrayLike,
+    confidence: ArrayLike,
+    matcher: str,
+    ref: Any,
+    dem: Any,
+    duplicate_radius_px: float = 1.0,
+) -> McpTable:
     """Turn correspondences into MCPs, sampling heights from the reference DEM.
 
     Args:
@@ -276,9 +309,12 @@ def mcps_from_matches(*, ccd: ArrayLike, tile_id: ArrayLike, line: ArrayLike,
     line_a = np.asarray(line, np.float64).ravel()
     n = len(line_a)
     cols: dict[str, NDArray[Any]] = {
-        "ccd": _as_column("ccd", ccd, n), "tile_id": _as_column("tile_id", tile_id, n),
-        "line": line_a, "sample": _as_column("sample", sample, n),
-        "ref_x": _as_column("ref_x", ref_x, n), "ref_y": _as_column("ref_y", ref_y, n),
+        "ccd": _as_column("ccd", ccd, n),
+        "tile_id": _as_column("tile_id", tile_id, n),
+        "line": line_a,
+        "sample": _as_column("sample", sample, n),
+        "ref_x": _as_column("ref_x", ref_x, n),
+        "ref_y": _as_column("ref_y", ref_y, n),
         "confidence": _as_column("confidence", confidence, n),
     }
     lengths = {k: len(v) for k, v in cols.items()}
@@ -295,20 +331,33 @@ def mcps_from_matches(*, ccd: ArrayLike, tile_id: ArrayLike, line: ArrayLike,
     if duplicate_radius_px >= 0:
         dup = np.zeros(n, bool)
         k = np.flatnonzero(keep)
-        dup[k] = _duplicates(cols["ccd"][k], cols["line"][k], cols["sample"][k],
-                             cols["confidence"][k], duplicate_radius_px)
+        dup[k] = _duplicates(
+            cols["ccd"][k],
+            cols["line"][k],
+            cols["sample"][k],
+            cols["confidence"][k],
+            duplicate_radius_px,
+        )
         counts.duplicates = int(dup.sum())
         keep &= ~dup
     counts.kept = int(keep.sum())
     out = {k: v[keep] for k, v in cols.items()}
-    out.update(mcp_id=np.arange(counts.kept, dtype=np.int64), lon_deg=lon[keep],
-               lat_deg=lat[keep], height_m=h[keep], x_m=xyz[keep, 0], y_m=xyz[keep, 1],
-               z_m=xyz[keep, 2], matcher=np.array([matcher] * counts.kept, dtype=object))
+    out.update(
+        mcp_id=np.arange(counts.kept, dtype=np.int64),
+        lon_deg=lon[keep],
+        lat_deg=lat[keep],
+        height_m=h[keep],
+        x_m=xyz[keep, 0],
+        y_m=xyz[keep, 1],
+        z_m=xyz[keep, 2],
+        matcher=np.array([matcher] * counts.kept, dtype=object),
+    )
     return McpTable(out, ref.crs.to_wkt(), counts)
 
 
-def mcps_from_tiles(results: Iterable[Any], *, ref: Any, dem: Any,
-                    duplicate_radius_px: float = 1.0) -> McpTable:
+def mcps_from_tiles(
+    results: Iterable[Any], *, ref: Any, dem: Any, duplicate_radius_px: float = 1.0
+) -> McpTable:
     """MCPs from the front end's tile results (only tiles with status ``ok``).
 
     Args:
@@ -325,20 +374,32 @@ def mcps_from_tiles(results: Iterable[Any], *, ref: Any, dem: Any,
     ok = [r for r in results if r.status == "ok"]
     matchers = sorted({r.matcher for r in ok})
     if len(matchers) > 1:
-        raise InputError(f"tile results of several matchers {matchers}; build one MCP table "
-                         "per matcher")
+        raise InputError(
+            f"tile results of several matchers {matchers}; build one MCP table per matcher"
+        )
 
     def cat(name: str) -> NDArray[np.float64]:
-        return (np.concatenate([np.asarray(getattr(r, name), np.float64) for r in ok])
-                if ok else np.empty(0))
+        return (
+            np.concatenate([np.asarray(getattr(r, name), np.float64) for r in ok])
+            if ok
+            else np.empty(0)
+        )
 
     ccd = np.concatenate([[r.tile.ccd] * r.n_points for r in ok]) if ok else np.empty(0)
     tid = np.concatenate([[r.tile_id] * r.n_points for r in ok]) if ok else np.empty(0)
-    table = mcps_from_matches(ccd=ccd, tile_id=tid, line=cat("line"), sample=cat("sample"),
-                              ref_x=cat("ref_x"), ref_y=cat("ref_y"),
-                              confidence=cat("confidence"),
-                              matcher=matchers[0] if matchers else "", ref=ref, dem=dem,
-                              duplicate_radius_px=duplicate_radius_px)
+    table = mcps_from_matches(
+        ccd=ccd,
+        tile_id=tid,
+        line=cat("line"),
+        sample=cat("sample"),
+        ref_x=cat("ref_x"),
+        ref_y=cat("ref_y"),
+        confidence=cat("confidence"),
+        matcher=matchers[0] if matchers else "",
+        ref=ref,
+        dem=dem,
+        duplicate_radius_px=duplicate_radius_px,
+    )
     if table.counts is not None:
         table.counts.tiles_skipped = len(results) - len(ok)
     return table
@@ -360,8 +421,7 @@ def _write_table(table: McpTable, path: Path) -> None:
 
 
 def _wkb_points(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[Any]:
-    rec = np.zeros(len(x), np.dtype([("order", "u1"), ("type", "<u4"), ("x", "<f8"),
-                                     ("y", "<f8")]))
+    rec = np.zeros(len(x), np.dtype([("order", "u1"), ("type", "<u4"), ("x", "<f8"), ("y", "<f8")]))
     rec["order"], rec["type"], rec["x"], rec["y"] = 1, 1, x, y  # little-endian Point
     return np.array([r.tobytes() for r in rec], dtype=object)
 
@@ -374,12 +434,21 @@ def _write_gpkg(table: McpTable, path: Path) -> None:
     names = [c for c in MCP_COLUMNS]
     values = [table.columns[c] for c in names]
     with atomic_path(path, create=False) as tmp:  # GDAL creates the GeoPackage itself
-        write(str(tmp), _wkb_points(table["ref_x"], table["ref_y"]), values, names,
-              driver="GPKG", layer=GPKG_LAYER, geometry_type="Point", crs=table.crs_wkt)
+        write(
+            str(tmp),
+            _wkb_points(table["ref_x"], table["ref_y"]),
+            values,
+            names,
+            driver="GPKG",
+            layer=GPKG_LAYER,
+            geometry_type="Point",
+            crs=table.crs_wkt,
+        )
 
 
-def write_mcps(table: McpTable, path: str | PathLike[str], *,
-               gpkg: bool | str | PathLike[str] = True) -> list[Path]:
+def write_mcps(
+    table: McpTable, path: str | PathLike[str], *, gpkg: bool | str | PathLike[str] = True
+) -> list[Path]:
     """Write an MCP table as Parquet or CSV, plus a GeoPackage point layer.
 
     Args:
@@ -444,8 +513,10 @@ def read_mcps(path: str | PathLike[str], *, crs: object = None) -> McpTable:
             import pyarrow as pa
             import pyarrow.csv as pacsv
 
-            types = {c: (pa.string() if c in _STR else pa.int64() if c in _INT
-                         else pa.float64()) for c in MCP_COLUMNS}
+            types = {
+                c: (pa.string() if c in _STR else pa.int64() if c in _INT else pa.float64())
+                for c in MCP_COLUMNS
+            }
             opts = pacsv.ConvertOptions(column_types=types, strings_can_be_null=False)
             return McpTable.from_arrow(pacsv.read_csv(p, convert_options=opts), crs_wkt)
         if suffix == ".gpkg":

@@ -19,8 +19,9 @@ class PlanetrefError(Exception):
 class InputError(PlanetrefError, ValueError):
     """Malformed or inconsistent input (a file, a field, an argument)."""
 
-    def __init__(self, message: str, *, path: str | PathLike[str] | None = None,
-                 field: str | None = None) -> None:
+    def __init__(
+        self, message: str, *, path: str | PathLike[str] | None = None, field: str | None = None
+    ) -> None:
         self.path = None if path is None else str(path)
         self.field = field
         parts = []

@@ -103,16 +103,20 @@ def _worker_context(key: str) -> _WorkerContext:
     from planetref.raster.ortho import ReferenceOrtho
 
     doc = json.loads(key)
-    fine = get_matcher(doc["matcher"], weights_dir=doc["weights_dir"],
-                       **doc["matcher_options"])
-    coarse = fine if doc["coarse_options"] is None else get_matcher(
-        doc["matcher"], weights_dir=doc["weights_dir"], **doc["coarse_options"])
+    fine = get_matcher(doc["matcher"], weights_dir=doc["weights_dir"], **doc["matcher_options"])
+    coarse = (
+        fine
+        if doc["coarse_options"] is None
+        else get_matcher(doc["matcher"], weights_dir=doc["weights_dir"], **doc["coarse_options"])
+    )
     return _WorkerContext(
         camera=load_camera(doc["camera"]),
         images={ccd: CcdImage(path) for ccd, path in doc["images"]},
         ref=ReferenceOrtho(doc["ref"], band=int(doc["ref_band"])),
         dem=GridTerrain.from_geotiff(doc["dem"], band=int(doc["dem_band"])),
-        fine=fine, coarse=coarse)
+        fine=fine,
+        coarse=coarse,
+    )
 
 
 def run_tile_task(task: Mapping[str, Any]) -> dict[str, Any]:
@@ -135,15 +139,28 @@ def run_tile_task(task: Mapping[str, Any]) -> dict[str, Any]:
     cfg = FrontendConfig.model_validate(task["config"])
     tile = Tile.from_dict(task["tile"])
     try:
-        res = match_tile(tile, image=ctx.images[tile.ccd], camera=ctx.camera, ref=ctx.ref,
-                         terrain=ctx.dem, matcher=ctx.fine, config=cfg, ratio=task["ratio"],
-                         coarse_matcher=ctx.coarse)
+        res = match_tile(
+            tile,
+            image=ctx.images[tile.ccd],
+            camera=ctx.camera,
+            ref=ctx.ref,
+            terrain=ctx.dem,
+            matcher=ctx.fine,
+            config=cfg,
+            ratio=task["ratio"],
+            coarse_matcher=ctx.coarse,
+        )
     except Exception as exc:
         if task.get("raise_errors"):
             raise
         name = str(getattr(ctx.fine, "name", type(ctx.fine).__name__))
-        res = TileResult(tile=tile, matcher=name, status="error",
-                         message=f"{type(exc).__name__}: {exc}", geometry=cfg.geometry)
+        res = TileResult(
+            tile=tile,
+            matcher=name,
+            status="error",
+            message=f"{type(exc).__name__}: {exc}",
+            geometry=cfg.geometry,
+        )
     return res.to_dict()
 
 
@@ -175,8 +192,9 @@ class Executor:
     name = "executor"
     parallel = True
 
-    def map_unordered(self, fn: Callable[[Any], Any], tasks: Sequence[Any]
-                      ) -> Iterator[TaskOutcome]:
+    def map_unordered(
+        self, fn: Callable[[Any], Any], tasks: Sequence[Any]
+    ) -> Iterator[TaskOutcome]:
         """Run ``fn`` on every task; yield a :class:`TaskOutcome` per task, in finishing order."""
         raise NotImplementedError
 
@@ -199,8 +217,9 @@ class InProcessExecutor(Executor):
     name = "inprocess"
     parallel = False
 
-    def map_unordered(self, fn: Callable[[Any], Any], tasks: Sequence[Any]
-                      ) -> Iterator[TaskOutcome]:
+    def map_unordered(
+        self, fn: Callable[[Any], Any], tasks: Sequence[Any]
+    ) -> Iterator[TaskOutcome]:
         """Run the tasks in order, here."""
         for i, task in enumerate(tasks):
             try:
@@ -229,11 +248,13 @@ class LocalPoolExecutor(Executor):
             from concurrent.futures import ProcessPoolExecutor
 
             self._pool = ProcessPoolExecutor(
-                max_workers=self.n_workers, mp_context=multiprocessing.get_context("spawn"))
+                max_workers=self.n_workers, mp_context=multiprocessing.get_context("spawn")
+            )
         return self._pool
 
-    def map_unordered(self, fn: Callable[[Any], Any], tasks: Sequence[Any]
-                      ) -> Iterator[TaskOutcome]:
+    def map_unordered(
+        self, fn: Callable[[Any], Any], tasks: Sequence[Any]
+    ) -> Iterator[TaskOutcome]:
         """Submit every task, yield outcomes as they complete, resubmit a failure once."""
         from concurrent.futures import FIRST_COMPLETED, wait
         from concurrent.futures.process import BrokenProcessPool
@@ -292,22 +313,28 @@ class DaskExecutor(Executor):
 
             m = re.fullmatch(r"dask-local:(\d+)", self.address)
             if m:
-                self._cluster = LocalCluster(n_workers=int(m.group(1)), threads_per_worker=1,
-                                             processes=True, host="127.0.0.1",
-                                             dashboard_address=None)
+                self._cluster = LocalCluster(
+                    n_workers=int(m.group(1)),
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=None,
+                )
                 self._client = Client(self._cluster)
             else:
                 self._client = Client(self.address)
         return self._client
 
-    def map_unordered(self, fn: Callable[[Any], Any], tasks: Sequence[Any]
-                      ) -> Iterator[TaskOutcome]:
+    def map_unordered(
+        self, fn: Callable[[Any], Any], tasks: Sequence[Any]
+    ) -> Iterator[TaskOutcome]:
         """Submit every task (``retries``), yield outcomes with ``as_completed``."""
         from distributed import as_completed
 
         client = self.client
-        futures = {client.submit(fn, t, retries=self.retries, pure=False): i
-                   for i, t in enumerate(tasks)}
+        futures = {
+            client.submit(fn, t, retries=self.retries, pure=False): i for i, t in enumerate(tasks)
+        }
         try:
             for fut in as_completed(list(futures)):
                 i = futures[fut]
@@ -353,5 +380,7 @@ def make_executor(spec: str | Executor | None) -> Executor:
         return LocalPoolExecutor(n) if m.group(1) == "pool" else DaskExecutor(f"dask-local:{n}")
     if re.fullmatch(r"tcp://([^\s:/\[\]]+|\[[0-9A-Fa-f:.]+\]):\d+/?", s):
         return DaskExecutor(s.rstrip("/"))
-    raise InputError(f"unknown scheduler {spec!r}; valid: {SCHEDULER_HELP} "
-                     "(N a positive integer)", field="scheduler")
+    raise InputError(
+        f"unknown scheduler {spec!r}; valid: {SCHEDULER_HELP} (N a positive integer)",
+        field="scheduler",
+    )

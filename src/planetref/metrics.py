@@ -33,8 +33,9 @@ __all__ = ["geolocation_error", "image_grid", "reprojection_metrics"]
 F64 = NDArray[np.float64]
 
 
-def reprojection_metrics(dx: ArrayLike, dy: ArrayLike, inlier: ArrayLike | None = None
-                         ) -> dict[str, float | int]:
+def reprojection_metrics(
+    dx: ArrayLike, dy: ArrayLike, inlier: ArrayLike | None = None
+) -> dict[str, float | int]:
     """RMSE, mean length, signed extremes and outlier ratio of reprojection residuals.
 
     Args:
@@ -76,8 +77,9 @@ def reprojection_metrics(dx: ArrayLike, dy: ArrayLike, inlier: ArrayLike | None 
     }
 
 
-def image_grid(camera: Any, ccd: str | None = None, n: tuple[int, int] = (21, 21)
-               ) -> tuple[F64, F64]:
+def image_grid(
+    camera: Any, ccd: str | None = None, n: tuple[int, int] = (21, 21)
+) -> tuple[F64, F64]:
     """A regular grid of pixel centres spanning a CCD image, edge to edge.
 
     Args:
@@ -95,9 +97,14 @@ def image_grid(camera: Any, ccd: str | None = None, n: tuple[int, int] = (21, 21
     return ll.ravel(), ss.ravel()
 
 
-def geolocation_error(camera_adjusted: Any, camera_true: Any, *, ccd: str | None = None,
-                      terrain: Any = 0.0, grid: tuple[int, int] | tuple[ArrayLike, ArrayLike]
-                      = (21, 21)) -> dict[str, float | int]:
+def geolocation_error(
+    camera_adjusted: Any,
+    camera_true: Any,
+    *,
+    ccd: str | None = None,
+    terrain: Any = 0.0,
+    grid: tuple[int, int] | tuple[ArrayLike, ArrayLike] = (21, 21),
+) -> dict[str, float | int]:
     """Geolocation error of a camera against the true one over a grid of image pixels.
 
     Args:

@@ -16,16 +16,32 @@ SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 N_LINES, N_SAMPLES, N_NODES = 3000, 512, 6
 
 
-def true_strip(n_nodes: int = N_NODES, lat: float = 20.0, lon: float = 74.0,
-               heading: float = 30.0, name: str = ""):
+def true_strip(
+    n_nodes: int = N_NODES,
+    lat: float = 20.0,
+    lon: float = 74.0,
+    heading: float = 30.0,
+    name: str = "",
+):
     ccds = ccd_row(3, N_SAMPLES, N_LINES, 0.010, overlap_px=16, stagger_mm=1.0)
-    cam, _ = orbit_camera(OrbitGeometry(lat, lon, heading), focal_length_mm=4640.0,
-                          ccds=ccds, n_nodes=n_nodes, name=name)
+    cam, _ = orbit_camera(
+        OrbitGeometry(lat, lon, heading),
+        focal_length_mm=4640.0,
+        ccds=ccds,
+        n_nodes=n_nodes,
+        name=name,
+    )
     return cam
 
 
-def perturb(cam, *, pos_bias=(30.0, -20.0, 10.0), pos_drift=(5.0, 3.0, -2.0),
-            att_bias=(2e-5, -3e-5, 1e-5), att_drift=(1e-6, 2e-6, -1e-6)):
+def perturb(
+    cam,
+    *,
+    pos_bias=(30.0, -20.0, 10.0),
+    pos_drift=(5.0, 3.0, -2.0),
+    att_bias=(2e-5, -3e-5, 1e-5),
+    att_drift=(1e-6, 2e-6, -1e-6),
+):
     """Biases and linear drifts of the node EOPs (metres, radians)."""
     nodes = cam.nodes.copy()
     t = np.linspace(-1.0, 1.0, cam.n_nodes)[:, None]
@@ -47,8 +63,17 @@ def ground_points(cam, ccd_idx, line, sample, heights):
     return xyz
 
 
-def mcp_problem(n: int = 600, *, noise_px: float = 0.3, seed: int = 0, gross: int = 0,
-                ground_sigma_m: float = 0.0, check: int = 0, init=None, true=None):
+def mcp_problem(
+    n: int = 600,
+    *,
+    noise_px: float = 0.3,
+    seed: int = 0,
+    gross: int = 0,
+    ground_sigma_m: float = 0.0,
+    check: int = 0,
+    init=None,
+    true=None,
+):
     """An MCP network of a perturbed strip: returns ``(network, true camera, info)``."""
     true = true if true is not None else true_strip()
     init = init if init is not None else perturb(true)
@@ -70,9 +95,16 @@ def mcp_problem(n: int = 600, *, noise_px: float = 0.3, seed: int = 0, gross: in
         chk[rng.choice(np.setdiff1d(np.arange(n), bad), check, replace=False)] = True
     if ground_sigma_m:
         xyz = xyz + rng.normal(0.0, ground_sigma_m / 4.0, xyz.shape)
-    net = Network.mcps(init, line=obs_line, sample=obs_sample, xyz=xyz,
-                       ccd=np.array(init.ccd_names)[ccd], sigma_px=noise_px,
-                       ground_sigma_m=ground_sigma_m, check=chk)
+    net = Network.mcps(
+        init,
+        line=obs_line,
+        sample=obs_sample,
+        xyz=xyz,
+        ccd=np.array(init.ccd_names)[ccd],
+        sigma_px=noise_px,
+        ground_sigma_m=ground_sigma_m,
+        check=chk,
+    )
     return net, true, {"gross": bad, "check": chk}
 
 

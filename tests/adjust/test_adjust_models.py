@@ -17,8 +17,9 @@ def dense(par, ev):
     """The evaluation's partials scattered into (m, 2, n_params)."""
     m = len(ev.line)
     out = np.zeros((m, 2, len(par.x0) + 1))
-    cols = np.where(par.pattern_columns[ev.pattern] >= 0, par.pattern_columns[ev.pattern],
-                    len(par.x0))
+    cols = np.where(
+        par.pattern_columns[ev.pattern] >= 0, par.pattern_columns[ev.pattern], len(par.x0)
+    )
     for r in range(2):
         np.add.at(out[:, r], (np.arange(m)[:, None], cols), ev.d_params[:, r])
     return out[:, :, :-1]
@@ -41,34 +42,45 @@ def test_linescan_kernel_matches_image_partials(cam, ccd, guess_offset):
     d = dense(par, ev)
     ref_nodes = ref.dense_nodes(cam.n_nodes)
     scale = np.abs(ref_nodes).max(axis=(0, 1)) + 1e-300
-    assert (np.abs(d[:, :, :6 * cam.n_nodes] - ref_nodes) / scale).max() < 1e-7
-    np.testing.assert_allclose(d[:, :, 6 * cam.n_nodes:], ref.d_interior, rtol=1e-7,
-                               atol=1e-7 * np.abs(ref.d_interior).max())
-    np.testing.assert_allclose(ev.d_ground, ref.d_ground, rtol=1e-7,
-                               atol=1e-7 * np.abs(ref.d_ground).max())
+    assert (np.abs(d[:, :, : 6 * cam.n_nodes] - ref_nodes) / scale).max() < 1e-7
+    np.testing.assert_allclose(
+        d[:, :, 6 * cam.n_nodes :],
+        ref.d_interior,
+        rtol=1e-7,
+        atol=1e-7 * np.abs(ref.d_interior).max(),
+    )
+    np.testing.assert_allclose(
+        ev.d_ground, ref.d_ground, rtol=1e-7, atol=1e-7 * np.abs(ref.d_ground).max()
+    )
     # Projection only gives the same coordinates.
     ev2 = par.evaluate(par.x0, xyz, ccd, line, partials=False)
     assert np.abs(ev2.line - ev.line).max() < 1e-8 and np.abs(ev2.sample - ev.sample).max() < 1e-8
 
 
 def test_linescan_names_modes_and_build(cam):
-    cfg = LineScanParameters(position={"mode": "weighted", "sigma_m": 10.0},
-                             attitude={"mode": "free"},
-                             interior={"mode": "weighted", "scope": "ccd",
-                                       "sigma_principal_point_mm": 0.01,
-                                       "sigma_focal_length_mm": 2.0})
+    cfg = LineScanParameters(
+        position={"mode": "weighted", "sigma_m": 10.0},
+        attitude={"mode": "free"},
+        interior={
+            "mode": "weighted",
+            "scope": "ccd",
+            "sigma_principal_point_mm": 0.01,
+            "sigma_focal_length_mm": 2.0,
+        },
+    )
     par = LineScanParameterization("s", cam, cfg)
     n = cam.n_nodes
     assert len(par.x0) == 6 * n + 9
     assert par.names[0] == "node0.X" and par.names[5] == "node0.kappa"
     assert par.names[6 * n] == "interior[ccd1].x0" and par.units[6 * n + 2] == "mm"
-    assert np.all(par.sigma[:6 * n:6] == 10.0) and np.all(par.mode[3:6 * n:6] == 0)
+    assert np.all(par.sigma[: 6 * n : 6] == 10.0) and np.all(par.mode[3 : 6 * n : 6] == 0)
     assert par.sigma[6 * n + 2] == 2.0
     built = par.build(par.x0)
     np.testing.assert_array_equal(built.nodes, cam.nodes)
     for a, b in zip(built.ccds, cam.ccds, strict=True):
         assert a.x_mm == pytest.approx(b.x_mm) and a.pixel_pitch_mm == pytest.approx(
-            b.pixel_pitch_mm)
+            b.pixel_pitch_mm
+        )
     fixed = LineScanParameterization("s", cam, cfg, fixed=True)
     assert np.all(fixed.mode == 2)
 
@@ -92,8 +104,14 @@ def test_csm_parameterization_on_a_real_isd():
     line, sample = rng.uniform(0, n_lines, 60), rng.uniform(0, n_samples, 60)
     xyz = cam.image_to_ground(line, sample, -1500.0)
     par = CsmParameterization("ctx", cam, CsmParameters())
-    assert par.names == ("omega_m", "phi_m", "kappa_m", "omega_rate_m", "phi_rate_m",
-                         "kappa_rate_m")
+    assert par.names == (
+        "omega_m",
+        "phi_m",
+        "kappa_m",
+        "omega_rate_m",
+        "phi_rate_m",
+        "kappa_rate_m",
+    )
     # Physical sigmas become usgscsm's metre units with the camera's scale factors.
     assert par.sigma[0] == pytest.approx(1e-3 * cam.flying_height_m)
     assert par.sigma[5] == pytest.approx(1e-4 * cam.half_swath_m * cam.half_time_s)
@@ -104,10 +122,12 @@ def test_csm_parameterization_on_a_real_isd():
     # Central differences agree with a smaller step (the model is nearly linear).
     fine = CsmParameterization("ctx", cam, CsmParameters(fd_step_m=0.1, fd_ground_step_m=0.1))
     ev2 = fine.evaluate(x, xyz, 0, line)
-    np.testing.assert_allclose(ev.d_params, ev2.d_params, rtol=1e-5,
-                               atol=1e-6 * np.abs(ev.d_params).max())
-    np.testing.assert_allclose(ev.d_ground, ev2.d_ground, rtol=1e-5,
-                               atol=1e-6 * np.abs(ev.d_ground).max())
+    np.testing.assert_allclose(
+        ev.d_params, ev2.d_params, rtol=1e-5, atol=1e-6 * np.abs(ev.d_params).max()
+    )
+    np.testing.assert_allclose(
+        ev.d_ground, ev2.d_ground, rtol=1e-5, atol=1e-6 * np.abs(ev.d_ground).max()
+    )
     phys = par.physical(x)
     assert phys["omega_rad"] == pytest.approx(30.0 / cam.flying_height_m)
     assert phys["kappa_rate_rad_s"] == pytest.approx(-5.0 / (cam.half_swath_m * cam.half_time_s))

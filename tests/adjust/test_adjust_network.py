@@ -12,12 +12,21 @@ from planetref.adjust.network import read_network
 from planetref.cli.adjust import adjust_command
 from planetref.errors import InputError, MissingFileError
 
-HEADER = ["point_id", "point_type", "apriori_x_m", "apriori_y_m", "apriori_z_m", "image_id",
-          "sample", "line"]
+HEADER = [
+    "point_id",
+    "point_type",
+    "apriori_x_m",
+    "apriori_y_m",
+    "apriori_z_m",
+    "image_id",
+    "sample",
+    "line",
+]
 
 
-def write_network(tmp_path, *, n_mcp=300, n_tie=60, convention="isis", seed=0, extra_toml="",
-                  rows_hook=None):
+def write_network(
+    tmp_path, *, n_mcp=300, n_tie=60, convention="isis", seed=0, extra_toml="", rows_hook=None
+):
     """A strip (3 CCDs, one image id per CCD) with MCPs and CCD-overlap tie points."""
     true = true_strip()
     init = perturb(true)
@@ -30,8 +39,16 @@ def write_network(tmp_path, *, n_mcp=300, n_tie=60, convention="isis", seed=0, e
     sample = rng.uniform(0, N_SAMPLES, n_mcp)
     xyz = ground_points(true, ccd, line, sample, rng.uniform(-1000, 1000, n_mcp))
     for i in range(n_mcp):
-        rows.append([f"m{i}", "Fixed", *xyz[i], f"img/ccd{ccd[i] + 1}",
-                     sample[i] + shift + rng.normal(0, 0.3), line[i] + shift + rng.normal(0, 0.3)])
+        rows.append(
+            [
+                f"m{i}",
+                "Fixed",
+                *xyz[i],
+                f"img/ccd{ccd[i] + 1}",
+                sample[i] + shift + rng.normal(0, 0.3),
+                line[i] + shift + rng.normal(0, 0.3),
+            ]
+        )
     tl = rng.uniform(200, N_LINES - 200, n_tie)
     ts = rng.uniform(N_SAMPLES - 14, N_SAMPLES - 2, n_tie)
     txyz = ground_points(true, np.zeros(n_tie, int), tl, ts, np.zeros(n_tie))
@@ -39,8 +56,9 @@ def write_network(tmp_path, *, n_mcp=300, n_tie=60, convention="isis", seed=0, e
     for i in range(n_tie):
         approx = txyz[i] + rng.normal(0, 30, 3)
         rows.append([f"t{i}", "Free", *approx, "img/ccd1", ts[i] + shift, tl[i] + shift])
-        rows.append([f"t{i}", "Free", *approx, "img/ccd2", ip.sample[i] + shift,
-                     ip.line[i] + shift])
+        rows.append(
+            [f"t{i}", "Free", *approx, "img/ccd2", ip.sample[i] + shift, ip.line[i] + shift]
+        )
     header = list(HEADER)
     if rows_hook is not None:
         header, rows = rows_hook(header, rows)
@@ -48,11 +66,13 @@ def write_network(tmp_path, *, n_mcp=300, n_tie=60, convention="isis", seed=0, e
         w = csv.writer(fh)
         w.writerow(header)
         w.writerows(rows)
-    images = "\n".join(f'"img/ccd{k}" = {{ camera = "strip.json", ccd = "ccd{k}" }}'
-                       for k in (1, 2, 3))
+    images = "\n".join(
+        f'"img/ccd{k}" = {{ camera = "strip.json", ccd = "ccd{k}" }}' for k in (1, 2, 3)
+    )
     (tmp_path / "network.toml").write_text(
         f'measures = "measures.csv"\nconvention = "{convention}"\n{extra_toml}\n'
-        f"[images]\n{images}\n")
+        f"[images]\n{images}\n"
+    )
     return tmp_path / "network.toml", true
 
 
@@ -76,37 +96,49 @@ def test_read_and_adjust_network(tmp_path):
 
 def test_half_pixel_convention_matters(tmp_path):
     path, _ = write_network(tmp_path, convention="isis", n_tie=0)
-    good = adjust(read_network(path).network, {"linescan": {"position": {"mode": "fixed"},
-                                                             "attitude": {"mode": "fixed"}}})
+    good = adjust(
+        read_network(path).network,
+        {"linescan": {"position": {"mode": "fixed"}, "attitude": {"mode": "fixed"}}},
+    )
     text = path.read_text().replace('convention = "isis"', 'convention = "csm"')
     path.write_text(text)
-    bad = adjust(read_network(path).network, {"linescan": {"position": {"mode": "fixed"},
-                                                            "attitude": {"mode": "fixed"}}})
+    bad = adjust(
+        read_network(path).network,
+        {"linescan": {"position": {"mode": "fixed"}, "attitude": {"mode": "fixed"}}},
+    )
     # Read with the wrong convention every measure is off by half a pixel in both axes.
     shift = bad.residual_initial - good.residual_initial
     np.testing.assert_allclose(shift, -0.5, atol=1e-6)
 
 
 def test_adjustment_table_in_network_file(tmp_path):
-    path, _ = write_network(tmp_path, extra_toml='[adjustment]\nlinescan.position = '
-                            '{ mode = "weighted", sigma_m = "50 m" }\n'
-                            'linescan.attitude = { mode = "weighted", sigma_rad = "20 arcsec" }')
+    path, _ = write_network(
+        tmp_path,
+        extra_toml="[adjustment]\nlinescan.position = "
+        '{ mode = "weighted", sigma_m = "50 m" }\n'
+        'linescan.attitude = { mode = "weighted", sigma_rad = "20 arcsec" }',
+    )
     nf = read_network(path)
     assert nf.config.linescan.position.sigma_m == 50.0
     assert nf.config.linescan.attitude.sigma_rad == pytest.approx(20 * np.pi / 648000)
 
 
-@pytest.mark.parametrize(("hook", "message"), [
-    (lambda h, r: ([c for c in h if c != "line"], [x[:-1] for x in r]), "missing column"),
-    (lambda h, r: ([*h, "colour"], [[*x, "red"] for x in r]), "unknown column"),
-    (lambda h, r: (h, [[*r[0][:7], "abc"], *r[1:]]), r"field 'line': row 2: expected a number"),
-    (lambda h, r: (h, [[*r[0][:5], "img/ccd9", *r[0][6:]], *r[1:]]), "row 2: image"),
-    (lambda h, r: (h, [[r[0][0], "Wobbly", *r[0][2:]], *r[1:]]), "unknown point type"),
-    (lambda h, r: (h, [*r, [r[0][0], "Fixed", "1", "2", "3", *r[0][5:]]]),
-     "other a priori coordinates"),
-    (lambda h, r: (h, [[r[0][0], "Constrained", *r[0][2:]], *r[1:]]), "needs sigma"),
-    (lambda h, r: (h, [r[0][:3], *r[1:]]), "fields for"),
-])
+@pytest.mark.parametrize(
+    ("hook", "message"),
+    [
+        (lambda h, r: ([c for c in h if c != "line"], [x[:-1] for x in r]), "missing column"),
+        (lambda h, r: ([*h, "colour"], [[*x, "red"] for x in r]), "unknown column"),
+        (lambda h, r: (h, [[*r[0][:7], "abc"], *r[1:]]), r"field 'line': row 2: expected a number"),
+        (lambda h, r: (h, [[*r[0][:5], "img/ccd9", *r[0][6:]], *r[1:]]), "row 2: image"),
+        (lambda h, r: (h, [[r[0][0], "Wobbly", *r[0][2:]], *r[1:]]), "unknown point type"),
+        (
+            lambda h, r: (h, [*r, [r[0][0], "Fixed", "1", "2", "3", *r[0][5:]]]),
+            "other a priori coordinates",
+        ),
+        (lambda h, r: (h, [[r[0][0], "Constrained", *r[0][2:]], *r[1:]]), "needs sigma"),
+        (lambda h, r: (h, [r[0][:3], *r[1:]]), "fields for"),
+    ],
+)
 def test_measures_errors_name_file_row_column(tmp_path, hook, message):
     path, _ = write_network(tmp_path, n_mcp=20, n_tie=0, rows_hook=hook)
     with pytest.raises(InputError, match=message) as exc:
@@ -137,10 +169,15 @@ def test_network_file_errors(tmp_path):
 
 
 def test_config_units_and_validation():
-    cfg = validate_config({"csm": {"pointing_offset": {"mode": "weighted", "sigma_rad": "5 urad"},
-                                   "pointing_rate": {"mode": "weighted",
-                                                     "sigma_rad_s": "2 arcsec/s"}},
-                           "linescan": {"position": {"mode": "weighted", "sigma_m": "0.2 km"}}})
+    cfg = validate_config(
+        {
+            "csm": {
+                "pointing_offset": {"mode": "weighted", "sigma_rad": "5 urad"},
+                "pointing_rate": {"mode": "weighted", "sigma_rad_s": "2 arcsec/s"},
+            },
+            "linescan": {"position": {"mode": "weighted", "sigma_m": "0.2 km"}},
+        }
+    )
     assert cfg.csm.pointing_offset.sigma_rad == pytest.approx(5e-6)
     assert cfg.csm.pointing_rate.sigma_rad_s == pytest.approx(2 * np.pi / 648000)
     assert cfg.linescan.position.sigma_m == 200.0
@@ -153,15 +190,24 @@ def test_config_units_and_validation():
 
 
 def run_cli(*args):
-    return CliRunner().invoke(adjust_command, [str(a) for a in args], obj={"quiet": True},
-                              catch_exceptions=False)
+    return CliRunner().invoke(
+        adjust_command, [str(a) for a in args], obj={"quiet": True}, catch_exceptions=False
+    )
 
 
 def test_cli_writes_outputs(tmp_path):
     path, _ = write_network(tmp_path, n_mcp=200, n_tie=30)
     out = tmp_path / "out"
-    r = run_cli(path, "--out", out, "--solve", "node-attitude,node-position", "--set",
-                'linescan.position.sigma_m="80 m"', "--no-rpc")
+    r = run_cli(
+        path,
+        "--out",
+        out,
+        "--solve",
+        "node-attitude,node-position",
+        "--set",
+        'linescan.position.sigma_m="80 m"',
+        "--no-rpc",
+    )
     assert r.exit_code == 0, r.output
     summary = json.loads(r.output)
     report = json.loads((out / "report.json").read_text())
@@ -182,6 +228,7 @@ def test_cli_writes_outputs(tmp_path):
     # (The planetref click group turns these errors into one-line messages.)
     r = CliRunner().invoke(adjust_command, [str(path), "--out", str(out)], obj={})
     assert isinstance(r.exception, InputError) and "--overwrite" in str(r.exception)
-    r = CliRunner().invoke(adjust_command, [str(path), "--out", str(out), "--overwrite",
-                                            "--solve", "wings"], obj={})
+    r = CliRunner().invoke(
+        adjust_command, [str(path), "--out", str(out), "--overwrite", "--solve", "wings"], obj={}
+    )
     assert isinstance(r.exception, InputError) and "unknown" in str(r.exception)

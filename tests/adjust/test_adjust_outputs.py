@@ -41,8 +41,10 @@ def test_outputs_with_truth_rpc_and_plots(tmp_path):
     geo = report["geolocation"]["strip"]
     for ccd in ("ccd1", "ccd2", "ccd3"):
         before, after = geo[ccd]["before"], geo[ccd]["after"]
-        print(f"\n{ccd}: geolocation RMS {before['rms_m']:.2f} m / {before['rms_px']:.2f} px "
-              f"-> {after['rms_m']:.3f} m / {after['rms_px']:.3f} px")
+        print(
+            f"\n{ccd}: geolocation RMS {before['rms_m']:.2f} m / {before['rms_px']:.2f} px "
+            f"-> {after['rms_m']:.3f} m / {after['rms_px']:.3f} px"
+        )
         assert after["rms_px"] < 0.3 < 5.0 < before["rms_px"]
     assert report["metrics"]["check"]["after"]["rms_px"] < 1.0
     assert report["adjustment"]["n_check"] == 20
@@ -74,10 +76,12 @@ def test_real_ctx_network_adjusts_below_a_pixel(tmp_path):
     nf = read_network(data / "ctx_syrtis" / "network.toml")
     res = adjust(nf.network, nf.config)
     s = res.summary()
-    print(f"\nCTX Syrtis network: {s['n_total']} measures, RMS {s['rmse_px_before']:.3f} px "
-          f"(all: {s['rmse_px_before_all']:.3f}) -> {s['rmse_px']:.3f} px, OR "
-          f"{s['outlier_ratio_pct']:.2f} %, sigma0 {s['sigma0']:.3f}, "
-          f"{time.perf_counter() - t0:.1f} s")
+    print(
+        f"\nCTX Syrtis network: {s['n_total']} measures, RMS {s['rmse_px_before']:.3f} px "
+        f"(all: {s['rmse_px_before_all']:.3f}) -> {s['rmse_px']:.3f} px, OR "
+        f"{s['outlier_ratio_pct']:.2f} %, sigma0 {s['sigma0']:.3f}, "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
     assert s["rmse_px_before_all"] > 3.0
     assert s["rmse_px"] < 0.35
     assert s["outlier_ratio_pct"] < 2.0

@@ -28,9 +28,11 @@ def test_recovers_parameters_within_sigmas():
     net, true, _ = mcp_problem(1500, seed=1)
     res = adjust(net, {"linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}}})
     z = z_scores(res, true)
-    print(f"\nRMSE {res.summary()['rmse_px_before']:.2f} -> {res.summary()['rmse_px']:.3f} px; "
-          f"|z| max {np.abs(z).max():.2f}, rms {np.sqrt(np.mean(z**2)):.2f}, "
-          f"sigma0 {res.sigma0:.3f}")
+    print(
+        f"\nRMSE {res.summary()['rmse_px_before']:.2f} -> {res.summary()['rmse_px']:.3f} px; "
+        f"|z| max {np.abs(z).max():.2f}, rms {np.sqrt(np.mean(z**2)):.2f}, "
+        f"sigma0 {res.sigma0:.3f}"
+    )
     assert res.converged
     assert np.abs(z).max() < 4.0
     assert 0.5 < np.sqrt(np.mean(z**2)) < 1.5
@@ -45,12 +47,13 @@ def test_interior_per_ccd_recovered_and_realised_in_camera():
     from planetref.adjust.config import LineScanParameters
     from planetref.adjust.models import LineScanParameterization
 
-    par = LineScanParameterization("s", true, LineScanParameters(
-        interior={"mode": "free", "scope": "ccd"}))
+    par = LineScanParameterization(
+        "s", true, LineScanParameters(interior={"mode": "free", "scope": "ccd"})
+    )
     x_true = par.x0.copy()
-    io = x_true[6 * true.n_nodes:].reshape(3, 3)
+    io = x_true[6 * true.n_nodes :].reshape(3, 3)
     io += np.array([[0.002, -0.003, 0.5], [0.0, 0.001, -0.3], [-0.002, 0.002, 0.2]])
-    x_true[6 * true.n_nodes:] = io.ravel()
+    x_true[6 * true.n_nodes :] = io.ravel()
     true_ccd = par.build(x_true)
     # The built camera projects exactly as the parameterisation evaluates.
     rng = np.random.default_rng(3)
@@ -60,8 +63,13 @@ def test_interior_per_ccd_recovered_and_realised_in_camera():
     assert np.abs(ev.line - line).max() < 1e-6 and np.abs(ev.sample - sample).max() < 1e-6
 
     net, _, _ = mcp_problem(1500, seed=2, true=true_ccd, init=true, noise_px=0.1)
-    cfg = {"linescan": {"position": {"mode": "fixed"}, "attitude": {"mode": "fixed"},
-                        "interior": {"mode": "free", "scope": "ccd"}}}
+    cfg = {
+        "linescan": {
+            "position": {"mode": "fixed"},
+            "attitude": {"mode": "fixed"},
+            "interior": {"mode": "free", "scope": "ccd"},
+        }
+    }
     res = adjust(net, cfg)
     act = res.parameter_mode != 2
     z = (res.x - x_true)[act] / res.sigma[act]
@@ -76,8 +84,10 @@ def test_gross_errors_rejected_and_rest_at_noise_level():
     res = adjust(net, {"linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}}})
     s = res.summary()
     flagged = np.flatnonzero(res.status == "outlier")
-    print(f"\n{len(info['gross'])} gross errors; flagged {flagged.size}; OR "
-          f"{s['outlier_ratio_pct']:.2f} %; RMSE {s['rmse_px']:.3f} px; rounds {s['rounds']}")
+    print(
+        f"\n{len(info['gross'])} gross errors; flagged {flagged.size}; OR "
+        f"{s['outlier_ratio_pct']:.2f} %; RMSE {s['rmse_px']:.3f} px; rounds {s['rounds']}"
+    )
     assert set(info["gross"]) <= set(flagged)
     assert flagged.size <= len(info["gross"]) + 3
     assert s["rmse_px"] == pytest.approx(0.3 * np.sqrt(2), rel=0.1)
@@ -88,8 +98,13 @@ def test_gross_errors_rejected_and_rest_at_noise_level():
 @pytest.mark.parametrize("loss", ["huber", "cauchy", "linear"])
 def test_losses_all_reject_gross_errors(loss):
     net, _, info = mcp_problem(600, seed=5, gross=20)
-    res = adjust(net, {"solver": {"loss": loss},
-                       "linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}}})
+    res = adjust(
+        net,
+        {
+            "solver": {"loss": loss},
+            "linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}},
+        },
+    )
     assert set(info["gross"]) <= set(np.flatnonzero(res.status == "outlier"))
     assert res.summary()["rmse_px"] < 0.5
 
@@ -106,9 +121,16 @@ def test_robust_rho_is_quadratic_below_threshold():
 
 def _scipy_lm(net, cfg):
     prob = ScipyProblem(net, cfg)
-    out = scipy.optimize.least_squares(prob.fun, prob.x0(), jac=lambda x: prob.jac(x).toarray(),
-                                       method="lm", x_scale="jac", ftol=1e-15, xtol=1e-15,
-                                       gtol=1e-15)
+    out = scipy.optimize.least_squares(
+        prob.fun,
+        prob.x0(),
+        jac=lambda x: prob.jac(x).toarray(),
+        method="lm",
+        x_scale="jac",
+        ftol=1e-15,
+        xtol=1e-15,
+        gtol=1e-15,
+    )
     return prob.split(out.x), out
 
 
@@ -116,10 +138,18 @@ def _scipy_lm(net, cfg):
 def test_agrees_with_scipy_least_squares(ground_sigma):
     # Weighted ground points are unknowns too: fewer of them keep scipy's dense solve fast.
     net, _, _ = mcp_problem(120 if ground_sigma else 300, seed=6, ground_sigma_m=ground_sigma)
-    cfg = {**LINEAR, "solver": {"loss": "linear", "ftol": 1e-15, "xtol": 1e-10},
-           "linescan": {"position": {"mode": "weighted", "sigma_m": 100.0},
-                        "interior": {"mode": "weighted", "sigma_principal_point_mm": 0.01,
-                                     "sigma_focal_length_mm": 1.0}}}
+    cfg = {
+        **LINEAR,
+        "solver": {"loss": "linear", "ftol": 1e-15, "xtol": 1e-10},
+        "linescan": {
+            "position": {"mode": "weighted", "sigma_m": 100.0},
+            "interior": {
+                "mode": "weighted",
+                "sigma_principal_point_mm": 0.01,
+                "sigma_focal_length_mm": 1.0,
+            },
+        },
+    }
     res = adjust(net, cfg)
     (c, xyz), out = _scipy_lm(net, cfg)
     act = res.parameter_mode != 2
@@ -139,10 +169,12 @@ def test_agrees_with_scipy_least_squares(ground_sigma):
     # answer reaches the common optimum.
     polished = x_scipy + gn_step(x_scipy)
     diff_polished = np.abs(x_ours - polished)[:n_act] / res.sigma[act]
-    print(f"\nmax |planetref - scipy| = {diff.max():.2g} sigma ({out.nfev} scipy evaluations); "
-          f"Gauss-Newton step left: planetref {left_ours.max():.2g} sigma, scipy "
-          f"{left_scipy.max():.2g} sigma; after one step from scipy's answer "
-          f"{diff_polished.max():.2g} sigma")
+    print(
+        f"\nmax |planetref - scipy| = {diff.max():.2g} sigma ({out.nfev} scipy evaluations); "
+        f"Gauss-Newton step left: planetref {left_ours.max():.2g} sigma, scipy "
+        f"{left_scipy.max():.2g} sigma; after one step from scipy's answer "
+        f"{diff_polished.max():.2g} sigma"
+    )
     assert diff.max() < 1e-4
     # Weighted ground points absorb most of each residual (RMSE ~0.01 px): the cost is
     # then flat to ~1e-10 over steps of ~1e-5 sigma, the floor of any solver here.
@@ -153,8 +185,9 @@ def test_agrees_with_scipy_least_squares(ground_sigma):
         assert np.abs(res.point_xyz - xyz).max() < 1e-3  # metres
 
 
-@pytest.mark.parametrize(("tie_sigma", "pos_sigma", "tol"),
-                         [(30.0, 1.0, 1e-6), (np.inf, 100.0, 1e-3)])
+@pytest.mark.parametrize(
+    ("tie_sigma", "pos_sigma", "tol"), [(30.0, 1.0, 1e-6), (np.inf, 100.0, 1e-3)]
+)
 def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol):
     """One Gauss-Newton step through the Schur complement equals the dense solve.
 
@@ -184,21 +217,28 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol):
         obs_camera=["strip"] * (2 * n_tie + n_mcp),
         obs_point=[f"t{i}" for i in range(n_tie)] * 2 + [f"m{i}" for i in range(n_mcp)],
         obs_ccd=["ccd1"] * n_tie + ["ccd2"] * n_tie + [f"ccd{k + 1}" for k in ccd_m],
-        line=np.concatenate([line, ip.line, lm]), sample=np.concatenate([sample, ip.sample, sm]),
-        point_xyz=pts, point_sigma_m=sig, sigma_px=0.3)
+        line=np.concatenate([line, ip.line, lm]),
+        sample=np.concatenate([sample, ip.sample, sm]),
+        point_xyz=pts,
+        point_sigma_m=sig,
+        sigma_px=0.3,
+    )
     from planetref.adjust.config import validate_config
     from planetref.adjust.models import parameterize
 
-    cfg = validate_config({"solver": {"loss": "linear"},
-                           "linescan": {"position": {"mode": "weighted", "sigma_m": pos_sigma}}})
+    cfg = validate_config(
+        {
+            "solver": {"loss": "linear"},
+            "linescan": {"position": {"mode": "weighted", "sigma_m": pos_sigma}},
+        }
+    )
     models = [parameterize("strip", init, cfg)]
     solver = BundleSolver(net, models, cfg.solver)
     obs = np.arange(net.n_obs)
     st = solver._structure(obs)
     xyz = net.point_xyz.copy()
     lin = solver._linearize(solver.x0, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz)
-    s_mat, rhs, _, blocks = solver._reduced(lin, st.chunks, 0.0, solver.x0, xyz, xyz,
-                                            st.unknown)
+    s_mat, rhs, _, blocks = solver._reduced(lin, st.chunks, 0.0, solver.x0, xyz, xyz, st.unknown)
     dc, _ = solver._solve_reduced(s_mat, rhs)
     dx, _, _ = solver._back_substitute(lin, st.chunks, blocks, dc, len(st.unknown))
     # Dense: whitened Jacobian of every unknown (active cameras, then point XYZ).
@@ -216,9 +256,11 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol):
     act = solver.active
     ours = np.concatenate([dc[act], dx.ravel()])
     err = np.abs(ours - dense) / sigma
-    print(f"\nSchur vs dense: max {err.max():.2g} sigma (cameras "
-          f"{err[:act.size].max():.2g}, points {err[act.size:].max():.2g}), cond(J) "
-          f"{sv[0] / sv[-1]:.2g}")
+    print(
+        f"\nSchur vs dense: max {err.max():.2g} sigma (cameras "
+        f"{err[: act.size].max():.2g}, points {err[act.size :].max():.2g}), cond(J) "
+        f"{sv[0] / sv[-1]:.2g}"
+    )
     assert err.max() < tol
 
 
@@ -234,21 +276,25 @@ def test_tie_points_connect_ccds_and_free_points_are_triangulated():
     net0, _, _ = mcp_problem(400, seed=9, init=init, true=true)
     pts = {f"t{i}": np.full(3, np.nan) for i in range(n_tie)}  # unknown: triangulated
     pts.update({pid: net0.point_xyz[i] for i, pid in enumerate(net0.point_ids)})
-    sig = {**{f"t{i}": np.inf for i in range(n_tie)},
-           **{pid: 0.0 for pid in net0.point_ids}}
+    sig = {**{f"t{i}": np.inf for i in range(n_tie)}, **{pid: 0.0 for pid in net0.point_ids}}
     noise = rng.normal(0, 0.3, (2, 2 * n_tie))
     net = Network.from_records(
         {"strip": init},
         obs_camera=["strip"] * (2 * n_tie + net0.n_obs),
         obs_point=[f"t{i}" for i in range(n_tie)] * 2 + list(net0.point_ids[net0.obs_point]),
         obs_ccd=["ccd1"] * n_tie + ["ccd2"] * n_tie + [init.ccd_names[k] for k in net0.obs_ccd],
-        line=np.concatenate([line + noise[0, :n_tie], ip.line + noise[0, n_tie:],
-                             net0.obs_line]),
-        sample=np.concatenate([sample + noise[1, :n_tie], ip.sample + noise[1, n_tie:],
-                               net0.obs_sample]),
-        point_xyz=pts, point_sigma_m=sig, sigma_px=0.3,
-        point_kind={**{f"t{i}": "tie" for i in range(n_tie)},
-                    **{pid: "mcp" for pid in net0.point_ids}})
+        line=np.concatenate([line + noise[0, :n_tie], ip.line + noise[0, n_tie:], net0.obs_line]),
+        sample=np.concatenate(
+            [sample + noise[1, :n_tie], ip.sample + noise[1, n_tie:], net0.obs_sample]
+        ),
+        point_xyz=pts,
+        point_sigma_m=sig,
+        sigma_px=0.3,
+        point_kind={
+            **{f"t{i}": "tie" for i in range(n_tie)},
+            **{pid: "mcp" for pid in net0.point_ids},
+        },
+    )
     res = adjust(net, {"linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}}})
     assert np.all(np.isfinite(res.point_xyz_initial))
     assert res.summary()["rmse_px"] < 0.5
@@ -280,8 +326,9 @@ def test_fixed_camera_does_not_move():
 
 
 def test_weak_node_error_names_it_or_weights_it():
-    net, _true, _ = mcp_problem(600, seed=12, true=true_strip(n_nodes=8),
-                               init=perturb(true_strip(n_nodes=8)))
+    net, _true, _ = mcp_problem(
+        600, seed=12, true=true_strip(n_nodes=8), init=perturb(true_strip(n_nodes=8))
+    )
     keep = net.obs_line < 2000  # the last nodes see nothing
     sub = Network(**{**net._fields(), "obs_check": ~keep})
     with pytest.raises(AdjustmentError, match=r"strip 'strip'.*node 7"):
@@ -301,10 +348,14 @@ def test_datum_defect_is_reported():
     xyz = ground_points(true, np.zeros(n, int), line, sample, np.zeros(n))
     ip = true.ground_to_image(xyz, ccd="ccd2")
     net = Network.from_records(
-        {"strip": true}, obs_camera=["strip"] * 2 * n,
-        obs_point=[f"t{i}" for i in range(n)] * 2, obs_ccd=["ccd1"] * n + ["ccd2"] * n,
-        line=np.concatenate([line, ip.line]), sample=np.concatenate([sample, ip.sample]),
-        point_xyz={f"t{i}": xyz[i] for i in range(n)})
+        {"strip": true},
+        obs_camera=["strip"] * 2 * n,
+        obs_point=[f"t{i}" for i in range(n)] * 2,
+        obs_ccd=["ccd1"] * n + ["ccd2"] * n,
+        line=np.concatenate([line, ip.line]),
+        sample=np.concatenate([sample, ip.sample]),
+        point_xyz={f"t{i}": xyz[i] for i in range(n)},
+    )
     with pytest.raises(AdjustmentError, match=r"singular|not determine"):
         adjust(net, {"linescan": {"position": {"mode": "free"}}})
 
@@ -312,8 +363,7 @@ def test_datum_defect_is_reported():
 def test_no_redundancy_and_unadjustable_cameras():
     net, _, _ = mcp_problem(15, seed=14)  # 30 equations for 36 free node parameters
     with pytest.raises(AdjustmentError, match=r"singular|no redundancy"):
-        adjust(net, {"linescan": {"position": {"mode": "free"}, "min_obs_per_node": 0},
-                     **LINEAR})
+        adjust(net, {"linescan": {"position": {"mode": "free"}, "min_obs_per_node": 0}, **LINEAR})
     with pytest.raises(AdjustmentError, match="too few observations near"):
         adjust(net, {"linescan": {"position": {"mode": "free"}}})
 
@@ -349,8 +399,9 @@ def test_smooth_weak_nodes_extrapolate_the_observed_correction():
         res = adjust(sub, {"linescan": {"weak_nodes": mode}})
         assert any("weak node" in w for w in res.warnings)
         assert res.summary()["rmse_px"] < 0.5
-        errs[mode] = geolocation_error(res.cameras["strip"], true, ccd="ccd1", terrain=0.0,
-                                       grid=(lines, samples))["rms_m"]
+        errs[mode] = geolocation_error(
+            res.cameras["strip"], true, ccd="ccd1", terrain=0.0, grid=(lines, samples)
+        )["rms_m"]
     # Tying unobserved nodes to their (wrong) initial values bends the strip's end;
     # continuing the observed correction keeps it close to the truth.
     assert errs["smooth"] < 0.5 * errs["weight"], errs

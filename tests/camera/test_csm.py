@@ -35,8 +35,11 @@ from planetref.errors import GeometryError, InputError, MissingFileError, Unsupp
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 ISD_DIRS = ("data/csm", "data/ale", "data/ctx_syrtis")
-ALL_ISDS = sorted(str(p.relative_to(SHARED)) for d in ISD_DIRS
-                  for p in (SHARED / d).glob("*.json")) if SHARED.is_dir() else []
+ALL_ISDS = (
+    sorted(str(p.relative_to(SHARED)) for d in ISD_DIRS for p in (SHARED / d).glob("*.json"))
+    if SHARED.is_dir()
+    else []
+)
 REAL_ISDS = [p for p in ALL_ISDS if "LineScan" not in p or "ctxLineScan" in p]
 
 
@@ -57,6 +60,7 @@ def csm_dir(shared: Path) -> Path:
 # 1050 km, a nadir-looking 16 x 16 line scanner.
 # ---------------------------------------------------------------------------------------
 
+
 def make_isd(tilt_deg: float = 0.0) -> dict:
     times = 999.2 + 0.1 * np.arange(16)
     w = 1e-3  # rad/s
@@ -74,29 +78,46 @@ def make_isd(tilt_deg: float = 0.0) -> dict:
     ident = [[1.0, 0.0, 0.0, 0.0]] * 16
     return {
         "name_model": "USGS_ASTRO_LINE_SCANNER_SENSOR_MODEL",
-        "name_platform": "SYNTHETIC", "name_sensor": "SYNTH",
-        "center_ephemeris_time": 1000.0, "starting_ephemeris_time": 999.15,
+        "name_platform": "SYNTHETIC",
+        "name_sensor": "SYNTH",
+        "center_ephemeris_time": 1000.0,
+        "starting_ephemeris_time": 999.15,
         "line_scan_rate": [[0.5, -0.85, 0.1]],
-        "detector_sample_summing": 1, "detector_line_summing": 1,
-        "focal2pixel_lines": [0.0, -10.0, 0.0], "focal2pixel_samples": [0.0, 0.0, 10.0],
+        "detector_sample_summing": 1,
+        "detector_line_summing": 1,
+        "focal2pixel_lines": [0.0, -10.0, 0.0],
+        "focal2pixel_samples": [0.0, 0.0, 10.0],
         "focal_length_model": {"focal_length": 50.0},
-        "image_lines": 16, "image_samples": 16,
+        "image_lines": 16,
+        "image_samples": 16,
         "detector_center": {"line": 0.5, "sample": 8.0},
-        "starting_detector_line": 1, "starting_detector_sample": 0,
+        "starting_detector_line": 1,
+        "starting_detector_sample": 0,
         "optical_distortion": {"radial": {"coefficients": [0.0, 0.0, 0.0]}},
         "radii": {"semimajor": 1000.0, "semiminor": 1000.0, "unit": "km"},
         "reference_height": {"maxheight": 1000, "minheight": -1000, "unit": "m"},
-        "instrument_position": {"unit": "km", "positions": pos.tolist(),
-                                "velocities": vel.tolist(),
-                                "ephemeris_times": times.tolist(), "reference_frame": 1},
-        "instrument_pointing": {"quaternions": np.array(quats).tolist(),
-                                "ephemeris_times": times.tolist(),
-                                "angular_velocities": [[0.0, 0.0, 0.0]] * 16,
-                                "reference_frame": 1},
-        "body_rotation": {"quaternions": ident, "ephemeris_times": times.tolist(),
-                          "angular_velocities": [[0.0, 0.0, 0.0]] * 16,
-                          "reference_frame": 1, "time_dependent_frames": [10, 1]},
-        "t0_ephemeris": -0.8, "dt_ephemeris": 0.1,
+        "instrument_position": {
+            "unit": "km",
+            "positions": pos.tolist(),
+            "velocities": vel.tolist(),
+            "ephemeris_times": times.tolist(),
+            "reference_frame": 1,
+        },
+        "instrument_pointing": {
+            "quaternions": np.array(quats).tolist(),
+            "ephemeris_times": times.tolist(),
+            "angular_velocities": [[0.0, 0.0, 0.0]] * 16,
+            "reference_frame": 1,
+        },
+        "body_rotation": {
+            "quaternions": ident,
+            "ephemeris_times": times.tolist(),
+            "angular_velocities": [[0.0, 0.0, 0.0]] * 16,
+            "reference_frame": 1,
+            "time_dependent_frames": [10, 1],
+        },
+        "t0_ephemeris": -0.8,
+        "dt_ephemeris": 0.1,
     }
 
 
@@ -133,8 +154,7 @@ def test_points_behind_or_outside(tmp_path):
     centre = cam.image_to_ground(8.0, 8.0)[0]
     sensor = cam.sensor_position(8.0)[0]
     beyond = cam.image_to_ground(8.0, 8.0)[0] + np.array([0.0, 3000.0, 0.0])
-    ip = cam.ground_to_image(np.stack([centre, 2 * sensor - centre, beyond,
-                                       [np.nan, 0.0, 0.0]]))
+    ip = cam.ground_to_image(np.stack([centre, 2 * sensor - centre, beyond, [np.nan, 0.0, 0.0]]))
     # Behind the sensor (above it) and non-finite: not projectable.
     assert ip.valid.tolist() == [True, False, True, False]
     assert np.isnan(ip.line[[1, 3]]).all()
@@ -159,6 +179,7 @@ def test_rays_into_space_raise_geometry_error(tmp_path):
 # ---------------------------------------------------------------------------------------
 # Bad input: one-line errors naming the file and the field
 # ---------------------------------------------------------------------------------------
+
 
 def _error_of(tmp_path, data, exc_type=InputError):
     p = _write(tmp_path, data)
@@ -194,18 +215,31 @@ def test_bad_json(tmp_path):
         read_isd(tmp_path / "nope.json")
 
 
-@pytest.mark.parametrize("key", ["focal2pixel_lines", "line_scan_rate", "image_lines",
-                                 "instrument_position.positions", "radii.semiminor",
-                                 "focal_length_model.focal_length", "body_rotation",
-                                 "instrument_pointing.quaternions", "optical_distortion"])
+@pytest.mark.parametrize(
+    "key",
+    [
+        "focal2pixel_lines",
+        "line_scan_rate",
+        "image_lines",
+        "instrument_position.positions",
+        "radii.semiminor",
+        "focal_length_model.focal_length",
+        "body_rotation",
+        "instrument_pointing.quaternions",
+        "optical_distortion",
+    ],
+)
 def test_missing_key(tmp_path, key):
     msg = _error_of(tmp_path, _set(make_isd(), key, _DELETE))
     assert f"field '{key}'" in msg and "missing" in msg
 
 
 def test_wrong_model_name(tmp_path):
-    msg = _error_of(tmp_path, _set(make_isd(), "name_model", "USGS_ASTRO_FRAME_SENSOR_MODEL"),
-                    UnsupportedFormatError)
+    msg = _error_of(
+        tmp_path,
+        _set(make_isd(), "name_model", "USGS_ASTRO_FRAME_SENSOR_MODEL"),
+        UnsupportedFormatError,
+    )
     assert "field 'name_model'" in msg
 
 
@@ -213,8 +247,7 @@ def test_nan_values(tmp_path):
     d = make_isd()
     d["instrument_position"]["positions"][3][1] = float("nan")
     assert "field 'instrument_position.positions[3]'" in _error_of(tmp_path, d)
-    msg = _error_of(tmp_path, _set(make_isd(), "focal_length_model.focal_length",
-                                   float("inf")))
+    msg = _error_of(tmp_path, _set(make_isd(), "focal_length_model.focal_length", float("inf")))
     assert "field 'focal_length_model.focal_length'" in msg and "finite" in msg
 
 
@@ -246,12 +279,17 @@ def test_other_bad_fields(tmp_path):
     d = make_isd()
     d["instrument_position"]["positions"].pop()
     assert "rows for 16" in _error_of(tmp_path, d)
-    msg = _error_of(tmp_path, _set(make_isd(), "optical_distortion",
-                                   {"cahvor": {"coefficients": [0, 0, 0, 0, 0]}}),
-                    UnsupportedFormatError)
+    msg = _error_of(
+        tmp_path,
+        _set(make_isd(), "optical_distortion", {"cahvor": {"coefficients": [0, 0, 0, 0, 0]}}),
+        UnsupportedFormatError,
+    )
     assert "cahvor" in msg and "field 'optical_distortion'" in msg
-    msg = _error_of(tmp_path, _set(make_isd(), "instrument_position.reference_frame", 42),
-                    UnsupportedFormatError)
+    msg = _error_of(
+        tmp_path,
+        _set(make_isd(), "instrument_position.reference_frame", 42),
+        UnsupportedFormatError,
+    )
     assert "reference frame 42" in msg
 
 
@@ -259,12 +297,14 @@ def test_other_bad_fields(tmp_path):
 # Agreement with usgscsm's own tests
 # ---------------------------------------------------------------------------------------
 
+
 def test_orbital_center(csm_dir):
     # usgscsm OrbitalLineScanSensorModel.Center (EXPECT_NEAR 1e-9).
     cam = CsmLineScanCamera.from_file(csm_dir / "orbitalLineScan.json")
     xyz = cam.image_to_ground(8.5, 8.0, 0.0)[0]
-    np.testing.assert_allclose(xyz, [999999.67004351015, 0.0, -812.35021438796923],
-                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        xyz, [999999.67004351015, 0.0, -812.35021438796923], rtol=0, atol=1e-9
+    )
 
 
 def test_orbital_image_to_ground_height(csm_dir):
@@ -296,14 +336,19 @@ def test_flipped_orbital_opposite_flight_detector(csm_dir):
 def test_const_velocity_center_and_locus(csm_dir):
     cam = CsmLineScanCamera.from_file(csm_dir / "constVelocityLineScan.json")
     # usgscsm ConstVelocityLineScanSensorModel.Center (1e-10).
-    np.testing.assert_allclose(cam.image_to_ground(8.0, 8.0, 0.0)[0],
-                               [9.99999500000, 0.0, 0.00999999500], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(
+        cam.image_to_ground(8.0, 8.0, 0.0)[0],
+        [9.99999500000, 0.0, 0.00999999500],
+        rtol=0,
+        atol=1e-10,
+    )
     # usgscsm ConstVelocityLineScanSensorModel.RemoteImageLocus (1e-10).
     sensor = cam.sensor_position(8.5)[0]
     np.testing.assert_allclose(sensor, [1000.0, 0.0, 0.0], rtol=0, atol=1e-10)
     g = cam.image_to_ground(8.5, 8.0, 0.0)[0]
-    np.testing.assert_allclose(cam.look_direction(8.5, 8.0)[0],
-                               (g - sensor) / np.linalg.norm(g - sensor), atol=1e-10)
+    np.testing.assert_allclose(
+        cam.look_direction(8.5, 8.0)[0], (g - sensor) / np.linalg.norm(g - sensor), atol=1e-10
+    )
     # usgscsm ConstVelocityLineScanSensorModel.Inversion (1e-3 pixel).
     ip = cam.ground_to_image(g)
     np.testing.assert_allclose([ip.line[0], ip.sample[0]], [8.5, 8.0], atol=1e-6)
@@ -319,8 +364,9 @@ def test_const_velocity_off_body(csm_dir):
     assert np.isnan(cam.image_to_ground(0.0, 4.0, 0.0, on_miss="nan")).all()
     # ... but its ray is usgscsm's: same nearest point (1e-10).
     o, d = cam.sensor_position(0.0)[0], cam.look_direction(0.0, 4.0)[0]
-    np.testing.assert_allclose(o - np.dot(o, d) * d,
-                               [0.04799688020, -7.99961602495, 16.00004799688], atol=1e-10)
+    np.testing.assert_allclose(
+        o - np.dot(o, d) * d, [0.04799688020, -7.99961602495, 16.00004799688], atol=1e-10
+    )
 
 
 def test_focal_length_adjustment(csm_dir):
@@ -328,8 +374,9 @@ def test_focal_length_adjustment(csm_dir):
     cam = CsmLineScanCamera.from_file(csm_dir / "constVelocityLineScan.json")
     cam = cam.with_correction(CsmCorrection(focal_m=0.9 * cam.half_swath_m))
     scale = math.sqrt(5 * 5 + 0.4 * 0.4 + 0.05 * 0.05)
-    np.testing.assert_allclose(cam.look_direction(8.5, 4.0)[0],
-                               np.array([-5.0, -0.4, -0.05]) / scale, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(
+        cam.look_direction(8.5, 4.0)[0], np.array([-5.0, -0.4, -0.05]) / scale, rtol=0, atol=1e-14
+    )
 
 
 def test_attitude_correction_matrix(csm_dir):
@@ -364,12 +411,14 @@ def test_distortion_models():
 # Every ISD in ../shared
 # ---------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ALL_ISDS or ["<no ISDs>"])
 def test_round_trips(shared, name):
     cam = _camera(shared / name)
     nl, ns = cam.image_size()
-    lines, samples = np.meshgrid(np.linspace(0.5, nl - 0.5, 9), np.linspace(0.5, ns - 0.5, 9),
-                                 indexing="ij")
+    lines, samples = np.meshgrid(
+        np.linspace(0.5, nl - 0.5, 9), np.linspace(0.5, ns - 0.5, 9), indexing="ij"
+    )
     lines, samples = lines.ravel(), samples.ravel()
     for height in (0.0, 1500.0):
         g = cam.image_to_ground(lines, samples, height, on_miss="nan")
@@ -405,8 +454,7 @@ def test_hrsc_isd_timing_warning(shared):
     # image) instead of -13.04 s, so usgscsm times lines 6665..15088 after the ephemeris.
     with pytest.warns(UserWarning, match="usgscsm extrapolates"):
         cam = CsmLineScanCamera.from_file(shared / "data/ale/mexhrsc_isd.json")
-    np.testing.assert_allclose(cam.image_time([0.0, 15088.0]), [-98.35948, 209.76089],
-                               atol=1e-4)
+    np.testing.assert_allclose(cam.image_time([0.0, 15088.0]), [-98.35948, 209.76089], atol=1e-4)
 
 
 @pytest.mark.parametrize("name", REAL_ISDS or ["<no ISDs>"])
@@ -419,9 +467,11 @@ def test_look_direction_plausible(shared, name):
     slon, slat, alt = xyz_to_lonlat(sensor, cam.ellipsoid)
     look = cam.look_direction(nl / 2, ns / 2)[0]
     emission = np.degrees(np.arccos(np.dot(-look, centre / np.linalg.norm(centre))))
-    print(f"{name}: centre {float(lat):.3f}N {float(lon) % 360:.3f}E, sub-spacecraft "
-          f"{float(slat):.3f}N {float(slon) % 360:.3f}E, altitude {float(alt) / 1e3:.1f} km, "
-          f"emission {emission:.1f} deg")
+    print(
+        f"{name}: centre {float(lat):.3f}N {float(lon) % 360:.3f}E, sub-spacecraft "
+        f"{float(slat):.3f}N {float(slon) % 360:.3f}E, altitude {float(alt) / 1e3:.1f} km, "
+        f"emission {emission:.1f} deg"
+    )
     assert 150e3 < alt < 500e3  # Mars orbiters
     assert emission < 35.0
     assert abs(float(lat) - float(slat)) < 3.0 and abs(float(lon) - float(slon)) < 3.0
@@ -450,18 +500,21 @@ def test_isis_measures_half_pixel(shared):
         ip = cam.ground_to_image(xyz)
         assert ip.valid.all() and ip.in_image.all()
         dl, ds = ip.line - line, ip.sample - sample
-        print(f"{fname}: {len(mine)} measures, mean residual (CSM = ISIS - 0.5) line "
-              f"{dl.mean():+.3f} sample {ds.mean():+.3f} px (rms {dl.std():.3f}, "
-              f"{ds.std():.3f}); without the shift {dl.mean() - 0.5:+.3f}, "
-              f"{ds.mean() - 0.5:+.3f}")
+        print(
+            f"{fname}: {len(mine)} measures, mean residual (CSM = ISIS - 0.5) line "
+            f"{dl.mean():+.3f} sample {ds.mean():+.3f} px (rms {dl.std():.3f}, "
+            f"{ds.std():.3f}); without the shift {dl.mean() - 0.5:+.3f}, "
+            f"{ds.mean() - 0.5:+.3f}"
+        )
         # Unadjusted cameras and a priori points: a few pixels of bias, ~1 px scatter.
         assert np.max(np.hypot(dl, ds)) < 10.0
         assert dl.std() < 1.5 and ds.std() < 1.5
 
 
 def test_terrain_intersection_with_real_camera(shared):
-    cam = CsmLineScanCamera.from_file(shared / "data/ctx_syrtis/P15_006844_2009_XN_20N286W"
-                                      ".lev1.json")
+    cam = CsmLineScanCamera.from_file(
+        shared / "data/ctx_syrtis/P15_006844_2009_XN_20N286W.lev1.json"
+    )
 
     class Wavy:
         ellipsoid = cam.ellipsoid
@@ -469,7 +522,8 @@ def test_terrain_intersection_with_real_camera(shared):
 
         def height(self, lon, lat):
             return -2500.0 + 800.0 * np.sin(np.radians(lon) * 900.0) * np.cos(
-                np.radians(lat) * 700.0)
+                np.radians(lat) * 700.0
+            )
 
     t = Wavy()
     lines = np.linspace(100.0, 52000.0, 12)
@@ -481,13 +535,17 @@ def test_terrain_intersection_with_real_camera(shared):
     np.testing.assert_allclose(ip.line, lines, atol=1e-6)
     np.testing.assert_allclose(ip.sample, samples, atol=1e-6)
     # A constant terrain is the same as a height.
-    np.testing.assert_allclose(cam.image_to_ground(lines, samples, ConstantHeight(
-        cam.ellipsoid, -2500.0)), cam.image_to_ground(lines, samples, -2500.0), atol=1e-9)
+    np.testing.assert_allclose(
+        cam.image_to_ground(lines, samples, ConstantHeight(cam.ellipsoid, -2500.0)),
+        cam.image_to_ground(lines, samples, -2500.0),
+        atol=1e-9,
+    )
 
 
 # ---------------------------------------------------------------------------------------
 # The correction (usgscsm's 16 adjustable parameters)
 # ---------------------------------------------------------------------------------------
+
 
 def test_correction_parameters():
     c = CsmCorrection.from_array(np.arange(16.0))
@@ -501,8 +559,9 @@ def test_correction_parameters():
 
 
 def test_correction_moves_ground_as_expected(shared, tmp_path):
-    cam = CsmLineScanCamera.from_file(shared / "data/ctx_syrtis/P15_006844_2009_XN_20N286W"
-                                      ".lev1.json")
+    cam = CsmLineScanCamera.from_file(
+        shared / "data/ctx_syrtis/P15_006844_2009_XN_20N286W.lev1.json"
+    )
     lines = np.array([5000.0, 26000.0, 47000.0])
     samples = np.array([2500.0, 1000.0, 4000.0])
     g0 = cam.image_to_ground(lines, samples)
@@ -522,11 +581,26 @@ def test_correction_moves_ground_as_expected(shared, tmp_path):
     shift = np.linalg.norm(tilted.image_to_ground(lines, samples) - g0, axis=1)
     np.testing.assert_allclose(shift, 50.0, rtol=0.05)
     # A full correction still round-trips, and survives write_isd/read_isd exactly.
-    full = cam.with_correction(CsmCorrection(
-        in_track_m=30.0, cross_track_m=-20.0, radial_m=5.0, in_track_rate_m=3.0,
-        cross_track_rate_m=-2.0, radial_rate_m=1.0, omega_m=12.0, phi_m=-8.0, kappa_m=6.0,
-        omega_rate_m=2.0, phi_rate_m=-1.0, kappa_rate_m=0.5, omega_accel_m=0.3,
-        phi_accel_m=-0.2, kappa_accel_m=0.1, focal_m=0.05))
+    full = cam.with_correction(
+        CsmCorrection(
+            in_track_m=30.0,
+            cross_track_m=-20.0,
+            radial_m=5.0,
+            in_track_rate_m=3.0,
+            cross_track_rate_m=-2.0,
+            radial_rate_m=1.0,
+            omega_m=12.0,
+            phi_m=-8.0,
+            kappa_m=6.0,
+            omega_rate_m=2.0,
+            phi_rate_m=-1.0,
+            kappa_rate_m=0.5,
+            omega_accel_m=0.3,
+            phi_accel_m=-0.2,
+            kappa_accel_m=0.1,
+            focal_m=0.05,
+        )
+    )
     g = full.image_to_ground(lines, samples, 200.0)
     assert np.all(np.linalg.norm(g - cam.image_to_ground(lines, samples, 200.0), axis=1) > 10)
     ip = full.ground_to_image(g)
@@ -559,19 +633,23 @@ def test_body_fixed_isd_equals_j2000_isd(tmp_path):
     fixed = copy.deepcopy(d)
     rb = body_q.as_matrix()
     for key in ("positions", "velocities"):
-        fixed["instrument_position"][key] = (np.array(d["instrument_position"][key])
-                                             @ rb.T).tolist()
-    sensor = Rotation.from_quat(np.array(d["instrument_pointing"]["quaternions"]),
-                                scalar_first=True)
-    fixed["instrument_pointing"]["quaternions"] = (sensor * body_q.inv()).as_quat(
-        scalar_first=True).tolist()
+        fixed["instrument_position"][key] = (
+            np.array(d["instrument_position"][key]) @ rb.T
+        ).tolist()
+    sensor = Rotation.from_quat(
+        np.array(d["instrument_pointing"]["quaternions"]), scalar_first=True
+    )
+    fixed["instrument_pointing"]["quaternions"] = (
+        (sensor * body_q.inv()).as_quat(scalar_first=True).tolist()
+    )
     fixed["instrument_position"]["reference_frame"] = 10  # body_rotation's frame
     fixed["instrument_pointing"]["reference_frame"] = 10
     a = CsmLineScanCamera.from_file(_write(tmp_path, d, "j2000.json"))
     b = CsmLineScanCamera.from_file(_write(tmp_path, fixed, "fixed.json"))
     lines, samples = np.linspace(0.5, 15.5, 6), np.linspace(15.5, 0.5, 6)
-    np.testing.assert_allclose(a.image_to_ground(lines, samples),
-                               b.image_to_ground(lines, samples), atol=1e-6)
+    np.testing.assert_allclose(
+        a.image_to_ground(lines, samples), b.image_to_ground(lines, samples), atol=1e-6
+    )
 
 
 def test_platform_flag_selects_lagrange_order(tmp_path):
@@ -586,8 +664,9 @@ def test_platform_flag_selects_lagrange_order(tmp_path):
 def test_velocity_includes_body_rotation(shared):
     # Body-fixed velocity = derivative of the body-fixed position: right only with the
     # -omega x r term of the J2000 -> Mars rotation (without it the error is ~250 m/s).
-    cam = CsmLineScanCamera.from_file(shared / "data/ctx_syrtis/P15_006844_2009_XN_20N286W"
-                                      ".lev1.json")
+    cam = CsmLineScanCamera.from_file(
+        shared / "data/ctx_syrtis/P15_006844_2009_XN_20N286W.lev1.json"
+    )
     lines = np.array([15000.0, 26000.0, 37000.0])
     half = 0.5 / cam.isd.line_scan_rate[0, 2]  # half a second, in lines
     numeric = cam.sensor_position(lines + half) - cam.sensor_position(lines - half)

@@ -29,7 +29,9 @@ def test_geodetic_xyz_matches_proj(ell, points):
     lon, lat, h = points
     t = pyproj.Transformer.from_crs(
         pyproj.CRS.from_proj4(f"+proj=longlat +a={ell.semi_major_m} +b={ell.semi_minor_m}"),
-        pyproj.CRS.from_proj4(ell.to_proj4()), always_xy=True)
+        pyproj.CRS.from_proj4(ell.to_proj4()),
+        always_xy=True,
+    )
     ref = np.stack(t.transform(lon, lat, h), axis=-1)
     xyz = lonlat_to_xyz(lon, lat, h, ell, "planetographic")
     assert np.abs(xyz - ref).max() < 1e-6
@@ -41,7 +43,8 @@ def test_planetocentric_latitude_matches_proj_geoc(ell, points):
     t = pyproj.Transformer.from_pipeline(
         "+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad "
         f"+step +proj=geoc +a={ell.semi_major_m} +b={ell.semi_minor_m} "
-        "+step +proj=unitconvert +xy_in=rad +xy_out=deg")
+        "+step +proj=unitconvert +xy_in=rad +xy_out=deg"
+    )
     _, lat_c_ref = t.transform(lon, lat_g)
     xyz = lonlat_to_xyz(lon, lat_g, 0.0, ell, "planetographic")
     _, lat_c, h = xyz_to_lonlat(xyz, ell, "planetocentric")
@@ -78,8 +81,7 @@ def test_poles_on_ellipsoid():
 
 
 def test_longitude_range():
-    assert wrap_longitude([180.0, -180.0, 359.0, 540.0]).tolist() == [-180.0, -180.0, -1.0,
-                                                                      -180.0]
+    assert wrap_longitude([180.0, -180.0, 359.0, 540.0]).tolist() == [-180.0, -180.0, -1.0, -180.0]
 
 
 @pytest.mark.parametrize("ell", [MARS_IAU2015_SPHERE, MARS_IAU2015_ELLIPSOID])

@@ -19,8 +19,13 @@ from planetref.errors import InputError, MissingFileError, UnsupportedFormatErro
 
 def make_camera(perturbed=True, n_nodes=6, n_lines=1000, n_samples=512, order=4, seed=0):
     ccds = ccd_row(3, n_samples, n_lines, 0.010, overlap_px=16, stagger_mm=1.0)
-    cam, _ = orbit_camera(OrbitGeometry(20.0, 74.0, 30.0), focal_length_mm=4640.0, ccds=ccds,
-                          n_nodes=n_nodes, interpolation_order=order)
+    cam, _ = orbit_camera(
+        OrbitGeometry(20.0, 74.0, 30.0),
+        focal_length_mm=4640.0,
+        ccds=ccds,
+        n_nodes=n_nodes,
+        interpolation_order=order,
+    )
     if perturbed:
         rng = np.random.default_rng(seed)
         nodes = cam.nodes.copy()
@@ -79,8 +84,9 @@ def test_gsd_and_ccd_layout():
 def test_outside_image_and_behind_camera(cam):
     # A point beyond the last line but within the node span projects, flagged outside.
     n_lines, n_samples = cam.image_size("ccd2")
-    xyz = cam.image_to_ground([n_lines + 20.0, 10.0], [n_samples / 2, n_samples + 40.0], 0.0,
-                              ccd="ccd2")
+    xyz = cam.image_to_ground(
+        [n_lines + 20.0, 10.0], [n_samples / 2, n_samples + 40.0], 0.0, ccd="ccd2"
+    )
     ip = cam.ground_to_image(xyz, ccd="ccd2")
     assert ip.valid.all() and not ip.in_image.any()
     assert ip.line[0] == pytest.approx(n_lines + 20.0, abs=1e-6)
@@ -135,6 +141,7 @@ def _fd_image(cam, xyz, ccd, line_guess, make):
     def project(delta):
         ip = make(delta).ground_to_image(xyz, ccd=ccd, line_guess=line_guess)
         return np.stack([ip.line, ip.sample], axis=1)
+
     return project
 
 
@@ -187,8 +194,10 @@ def test_json_round_trip(tmp_path, cam):
     back = LineScanCamera.from_json(path)
     assert back.to_dict() == cam.to_dict()
     line, sample = random_pixels(cam, "ccd3", 100)
-    assert np.array_equal(back.image_to_ground(line, sample, 0.0, ccd="ccd3"),
-                          cam.image_to_ground(line, sample, 0.0, ccd="ccd3"))
+    assert np.array_equal(
+        back.image_to_ground(line, sample, 0.0, ccd="ccd3"),
+        cam.image_to_ground(line, sample, 0.0, ccd="ccd3"),
+    )
     doc = json.loads(path.read_text())
     assert doc["format"] == "planetref-linescan" and doc["version"] == 1
     assert not list(tmp_path.glob(".*tmp"))  # no temporary file left behind
@@ -200,16 +209,19 @@ def _write(tmp_path, doc, name="cam.json"):
     return p
 
 
-@pytest.mark.parametrize("mutate, field", [
-    (lambda d: d["interior"].pop("focal_length_mm"), "interior.focal_length_mm"),
-    (lambda d: d["interior"].__setitem__("focal_length_mm", -1.0), "interior.focal_length_mm"),
-    (lambda d: d["orientation"]["nodes"][2].__setitem__(3, "NaN"), "orientation.nodes.2.3"),
-    (lambda d: d["orientation"]["nodes"].pop(), "orientation.nodes"),
-    (lambda d: d["ccds"][0].__setitem__("pixel_pitch_um", 10), "ccds.0.pixel_pitch_um"),
-    (lambda d: d.__setitem__("version", 7), "version"),
-    (lambda d: d["frame_rotation"].__setitem__(0, [2.0, 0.0, 0.0]), "frame_rotation"),
-    (lambda d: d["line_rates"][0].__setitem__(2, 0.0), "line_rates"),
-])
+@pytest.mark.parametrize(
+    "mutate, field",
+    [
+        (lambda d: d["interior"].pop("focal_length_mm"), "interior.focal_length_mm"),
+        (lambda d: d["interior"].__setitem__("focal_length_mm", -1.0), "interior.focal_length_mm"),
+        (lambda d: d["orientation"]["nodes"][2].__setitem__(3, "NaN"), "orientation.nodes.2.3"),
+        (lambda d: d["orientation"]["nodes"].pop(), "orientation.nodes"),
+        (lambda d: d["ccds"][0].__setitem__("pixel_pitch_um", 10), "ccds.0.pixel_pitch_um"),
+        (lambda d: d.__setitem__("version", 7), "version"),
+        (lambda d: d["frame_rotation"].__setitem__(0, [2.0, 0.0, 0.0]), "frame_rotation"),
+        (lambda d: d["line_rates"][0].__setitem__(2, 0.0), "line_rates"),
+    ],
+)
 def test_bad_camera_files(tmp_path, cam, mutate, field):
     doc = cam.to_dict()
     mutate(doc)
@@ -234,8 +246,7 @@ def test_unreadable_camera_files(tmp_path, cam):
 
 def test_line_rate_table_piecewise():
     t = LineRateTable(((0.0, 10.0, 0.001), (100.0, 10.2, 0.002)))
-    assert t.time([0.0, 50.0, 100.0, 150.0]).tolist() == pytest.approx(
-        [10.0, 10.05, 10.2, 10.3])
+    assert t.time([0.0, 50.0, 100.0, 150.0]).tolist() == pytest.approx([10.0, 10.05, 10.2, 10.3])
     assert t.line(t.time([3.0, 120.0])) == pytest.approx([3.0, 120.0])
     with pytest.raises(InputError):
         LineRateTable(((0.0, 0.0, -1.0),))

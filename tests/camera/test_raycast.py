@@ -25,9 +25,16 @@ class WavyTerrain:
     equator and meridian. A box of NaN heights (a hole) can be added.
     """
 
-    def __init__(self, ellipsoid: Ellipsoid, h0: float = 500.0, slope: float = 0.05,
-                 amp: float = 300.0, wavelength: float = 2000.0, sampling: float = 20.0,
-                 hole_lon: tuple[float, float] | None = None) -> None:
+    def __init__(
+        self,
+        ellipsoid: Ellipsoid,
+        h0: float = 500.0,
+        slope: float = 0.05,
+        amp: float = 300.0,
+        wavelength: float = 2000.0,
+        sampling: float = 20.0,
+        hole_lon: tuple[float, float] | None = None,
+    ) -> None:
         self.ellipsoid = ellipsoid
         self.h0, self.slope, self.amp, self.wavelength = h0, slope, amp, wavelength
         self._sampling = sampling
@@ -43,8 +50,11 @@ class WavyTerrain:
         r = self.ellipsoid.semi_major_m
         x = np.radians(lon_deg) * r
         y = np.radians(lat_deg) * r
-        h = self.h0 + np.clip(self.slope * y, -2000, 2000) + self.amp * np.sin(
-            2 * np.pi * x / self.wavelength)
+        h = (
+            self.h0
+            + np.clip(self.slope * y, -2000, 2000)
+            + self.amp * np.sin(2 * np.pi * x / self.wavelength)
+        )
         if self.hole_lon is not None:
             h = np.where((lon_deg > self.hole_lon[0]) & (lon_deg < self.hole_lon[1]), np.nan, h)
         return h
@@ -60,8 +70,9 @@ def _rays(ell: Ellipsoid, angles_deg, altitude=250e3, lon=0.02, lat=0.01):
     return np.repeat(origin[None, :], len(a), axis=0), d
 
 
-@pytest.mark.parametrize("ell", [MARS_IAU2015_SPHERE, MARS_IAU2015_ELLIPSOID],
-                         ids=["sphere", "ellipsoid"])
+@pytest.mark.parametrize(
+    "ell", [MARS_IAU2015_SPHERE, MARS_IAU2015_ELLIPSOID], ids=["sphere", "ellipsoid"]
+)
 def test_intersection_lies_on_terrain_and_is_first_crossing(ell):
     terrain = WavyTerrain(ell)
     o, d = _rays(ell, [0.0, 10.0, 30.0, 55.0, -40.0])

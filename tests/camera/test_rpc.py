@@ -66,17 +66,26 @@ def _synthetic_rpc() -> Rpc:
     samp_den = (1.0, *rng.normal(0, 1e-3, 19))
     line_num = (0.01, -0.02, -1.0, 0.3, *rng.normal(0, 1e-3, 16))
     samp_num = (-0.03, 1.0, 0.01, -0.2, *rng.normal(0, 1e-3, 16))
-    return Rpc(line_off=512.5 + 1 / 3, samp_off=511.5 - 1 / 7, lat_off=18.123456789012345,
-               long_off=77.98765432109876, height_off=-2345.6789, line_scale=530.1 + 1 / 3,
-               samp_scale=515.9 - 1 / 9, lat_scale=0.0911805852907 / 3,
-               long_scale=0.0985353286675 / 7, height_scale=1315.0 + 1 / 11,
-               line_num_coeff=line_num, line_den_coeff=line_den, samp_num_coeff=samp_num,
-               samp_den_coeff=samp_den)
+    return Rpc(
+        line_off=512.5 + 1 / 3,
+        samp_off=511.5 - 1 / 7,
+        lat_off=18.123456789012345,
+        long_off=77.98765432109876,
+        height_off=-2345.6789,
+        line_scale=530.1 + 1 / 3,
+        samp_scale=515.9 - 1 / 9,
+        lat_scale=0.0911805852907 / 3,
+        long_scale=0.0985353286675 / 7,
+        height_scale=1315.0 + 1 / 11,
+        line_num_coeff=line_num,
+        line_den_coeff=line_den,
+        samp_num_coeff=samp_num,
+        samp_den_coeff=samp_den,
+    )
 
 
 def _tiny_tif(path: Path) -> Path:
-    with rasterio.open(path, "w", driver="GTiff", width=8, height=6, count=1,
-                       dtype="uint8") as dst:
+    with rasterio.open(path, "w", driver="GTiff", width=8, height=6, count=1, dtype="uint8") as dst:
         dst.write(np.zeros((1, 6, 8), np.uint8))
     return path
 
@@ -94,8 +103,9 @@ def test_pleiades_agrees_with_gdal_rpc_transformer(shared: Path, name: str) -> N
     cam = RpcCamera.from_file(path)
     assert cam.image_size() == size
     assert cam.ellipsoid == EARTH_WGS84 and cam.latitude_kind == "planetographic"
-    lines, samples = np.meshgrid(np.linspace(0, size[0], 13), np.linspace(0, size[1], 11),
-                                 indexing="ij")
+    lines, samples = np.meshgrid(
+        np.linspace(0, size[0], 13), np.linspace(0, size[1], 11), indexing="ij"
+    )
     lines, samples = lines.ravel(), samples.ravel()
     for h in (-50.0, 0.0, 1295.0, 2610.0):
         zs = np.full(lines.size, h)
@@ -158,9 +168,17 @@ def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: P
     rows = y0 - (np.arange(n) + 0.5) * res
     dem = 1000.0 + gx * (cols[None, :] - lon_c) + gy * (rows[:, None] - lat_c)
     dem_path = tmp_path / "plane_dem.tif"
-    with rasterio.open(dem_path, "w", driver="GTiff", width=n, height=n, count=1,
-                       dtype="float64", crs="EPSG:4326",
-                       transform=Affine(res, 0.0, x0, 0.0, -res, y0)) as dst:
+    with rasterio.open(
+        dem_path,
+        "w",
+        driver="GTiff",
+        width=n,
+        height=n,
+        count=1,
+        dtype="float64",
+        crs="EPSG:4326",
+        transform=Affine(res, 0.0, x0, 0.0, -res, y0),
+    ) as dst:
         dst.write(dem[None])
 
     class PlaneTerrain:
@@ -175,12 +193,12 @@ def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: P
             lon_g, lat_g, _ = xyz_to_lonlat(xyz, EARTH_WGS84, "planetographic")
             return 1000.0 + gx * (lon_g - lon_c) + gy * (lat_g - lat_c)
 
-    lines, samples = np.meshgrid(np.linspace(0, n_l, 7), np.linspace(0, n_s, 7),
-                                 indexing="ij")
+    lines, samples = np.meshgrid(np.linspace(0, n_l, 7), np.linspace(0, n_s, 7), indexing="ij")
     lines, samples = lines.ravel(), samples.ravel()
     with RPCTransformer(gdal_rpc, RPC_DEM=str(dem_path), **GDAL_OPTS) as tr:
-        glon, glat = (np.asarray(v) for v in tr.xy(lines, samples, zs=np.zeros(lines.size),
-                                                    offset="ul"))
+        glon, glat = (
+            np.asarray(v) for v in tr.xy(lines, samples, zs=np.zeros(lines.size), offset="ul")
+        )
     xyz = cam.image_to_ground(lines, samples, PlaneTerrain())
     lon, lat, h = xyz_to_lonlat(xyz, EARTH_WGS84, "planetographic")
     assert np.max(np.abs(lon - glon)) < 1e-9
@@ -194,8 +212,7 @@ def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: P
 
 @pytest.mark.shared
 @pytest.mark.parametrize("name", PLEIADES)
-def test_localize_project_round_trip_over_the_whole_rpc_domain(shared: Path, name: str
-                                                                ) -> None:
+def test_localize_project_round_trip_over_the_whole_rpc_domain(shared: Path, name: str) -> None:
     rpc = read_rpc(_pleiades(shared, name))
     rng = np.random.default_rng(1)
     n = 5000
@@ -228,12 +245,14 @@ def test_camera_protocol_and_ground_round_trip() -> None:
     assert pts.valid.all() and pts.in_image.all()
     assert np.max(np.hypot(pts.line - lines, pts.sample - samples)) < 1e-6
     # A ConstantHeight on the same body takes the same path as a float.
-    same = cam.image_to_ground(lines[:10], samples[:10], ConstantHeight(MARS_IAU2015_SPHERE,
-                                                                        -2000.0))
+    same = cam.image_to_ground(
+        lines[:10], samples[:10], ConstantHeight(MARS_IAU2015_SPHERE, -2000.0)
+    )
     np.testing.assert_array_equal(same, xyz[:10])
     # A surface given on another ellipsoid (~2 km below the sphere here) is found too.
-    oblate = cam.image_to_ground(lines[:50], samples[:50],
-                                 ConstantHeight(MARS_IAU2015_ELLIPSOID, 100.0))
+    oblate = cam.image_to_ground(
+        lines[:50], samples[:50], ConstantHeight(MARS_IAU2015_ELLIPSOID, 100.0)
+    )
     _, _, h_oblate = xyz_to_lonlat(oblate, MARS_IAU2015_ELLIPSOID)
     assert np.max(np.abs(h_oblate - 100.0)) < 1e-3
     assert np.max(np.abs(cam.ground_to_image(oblate).line - lines[:50])) < 1e-6
@@ -286,12 +305,10 @@ def test_terrain_march_finds_first_crossing_and_reports_misses() -> None:
 
 @pytest.mark.parametrize("writer", [write_rpc_rpb, write_rpc_txt], ids=["rpb", "txt"])
 @pytest.mark.parametrize("body", [None, MARS_BODY])
-def test_text_round_trip_is_exact(tmp_path: Path, writer: object, body: RpcBody | None
-                                  ) -> None:
+def test_text_round_trip_is_exact(tmp_path: Path, writer: object, body: RpcBody | None) -> None:
     rpc = _synthetic_rpc()
     for x in (rpc, replace(rpc, err_bias=-1.0, err_rand=0.25)):
-        out = writer(x, tmp_path / ("a.RPB" if writer is write_rpc_rpb else "a_RPC.TXT"),
-                     body=body)
+        out = writer(x, tmp_path / ("a.RPB" if writer is write_rpc_rpb else "a_RPC.TXT"), body=body)
         assert read_rpc(out) == x
         assert read_rpc_body(out) == body
         assert sorted(os.listdir(tmp_path)) == [out.name]  # no temporary files left
@@ -326,8 +343,9 @@ def test_gdal_reads_the_sidecars_planetref_writes(tmp_path: Path, fmt: str) -> N
 
 def test_geotiff_round_trip_exact_and_gdal_compatible(tmp_path: Path) -> None:
     rpc = _synthetic_rpc()
-    path = write_rpc_geotiff(rpc, tmp_path / "img.tif", data=np.ones((6, 8), np.uint16),
-                             body=MARS_BODY)
+    path = write_rpc_geotiff(
+        rpc, tmp_path / "img.tif", data=np.ones((6, 8), np.uint16), body=MARS_BODY
+    )
     assert sorted(os.listdir(tmp_path)) == ["img.tif"]
     assert read_rpc(path) == rpc
     assert read_rpc_body(path) == MARS_BODY
@@ -367,8 +385,9 @@ def test_pleiades_rpc_survives_all_three_formats(shared: Path, tmp_path: Path) -
     assert read_rpc(tif) == rpc
 
 
-def test_failed_write_leaves_the_previous_file(tmp_path: Path,
-                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_failed_write_leaves_the_previous_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     rpc = _synthetic_rpc()
     target = write_rpc_rpb(rpc, tmp_path / "a.RPB")
     before = target.read_bytes()
@@ -389,8 +408,7 @@ def test_failed_write_leaves_the_previous_file(tmp_path: Path,
 @pytest.fixture
 def good_files(tmp_path: Path) -> tuple[Path, Path]:
     rpc = _synthetic_rpc()
-    return write_rpc_rpb(rpc, tmp_path / "good.RPB"), write_rpc_txt(rpc, tmp_path /
-                                                                   "good_RPC.TXT")
+    return write_rpc_rpb(rpc, tmp_path / "good.RPB"), write_rpc_txt(rpc, tmp_path / "good_RPC.TXT")
 
 
 def _edit(src: Path, dst: Path, old: str, new: str, count: int = 1) -> Path:
@@ -405,24 +423,41 @@ def _edit(src: Path, dst: Path, old: str, new: str, count: int = 1) -> Path:
     [
         ("rpb", "truncate", "sampNumCoef", "unterminated coefficient list"),
         ("rpb", ("lineOffset = ", "lineOffset = 12x"), "lineOffset", "expected a number"),
-        ("rpb", ("latScale = ", "latScale = 0.0;\n\tjunk = "), "latScale",
-         "scale must be non-zero"),
+        (
+            "rpb",
+            ("latScale = ", "latScale = 0.0;\n\tjunk = "),
+            "latScale",
+            "scale must be non-zero",
+        ),
         ("rpb", "drop_coeff", "lineDenCoef", "expected 20 coefficients, got 19"),
         ("rpb", "nan_coeff", "sampDenCoef[4]", "must be finite"),
         ("rpb", ("heightOffset", "heightOfset"), "heightOffset", "missing"),
         ("txt", "truncate", "SAMP_NUM_COEFF_8", "missing"),
         ("txt", ("LONG_SCALE: ", "LONG_SCALE: x"), "LONG_SCALE", "expected a number"),
         ("txt", ("HEIGHT_SCALE: ", "HEIGHT_SCALE: -0.0 #"), "HEIGHT_SCALE", "expected a number"),
-        ("txt", ("LINE_DEN_COEFF_5: ", "LINE_DEN_COEFF_5: NaN\nCOMMENT: "),
-         "LINE_DEN_COEFF_5", "must be finite"),
-        ("txt", ("LAT_SCALE: ", "LAT_SCALE: 0.0\nCOMMENT: "), "LAT_SCALE",
-         "scale must be non-zero"),
+        (
+            "txt",
+            ("LINE_DEN_COEFF_5: ", "LINE_DEN_COEFF_5: NaN\nCOMMENT: "),
+            "LINE_DEN_COEFF_5",
+            "must be finite",
+        ),
+        (
+            "txt",
+            ("LAT_SCALE: ", "LAT_SCALE: 0.0\nCOMMENT: "),
+            "LAT_SCALE",
+            "scale must be non-zero",
+        ),
         ("txt", ("LINE_OFF: ", "garbage line\nLINE_OFF: "), None, "line 1: expected"),
     ],
 )
 def test_bad_files_give_one_line_errors_naming_file_and_field(
-        good_files: tuple[Path, Path], tmp_path: Path, kind: str, edit: object,
-        field: str | None, message: str) -> None:
+    good_files: tuple[Path, Path],
+    tmp_path: Path,
+    kind: str,
+    edit: object,
+    field: str | None,
+    message: str,
+) -> None:
     src = good_files[0] if kind == "rpb" else good_files[1]
     bad = tmp_path / ("bad.RPB" if kind == "rpb" else "bad_RPC.TXT")
     text = src.read_text()
@@ -480,8 +515,10 @@ def test_other_bad_inputs(tmp_path: Path) -> None:
         Rpc.from_gdal({**rpc.to_gdal(), "LINE_NUM_COEFF": "1 2 3"}, path="meta")
     # Without a raster beside it, the image size comes from the RPC's domain.
     alone = RpcCamera.from_file(write_rpc_rpb(rpc, tmp_path / "alone.RPB"))
-    assert alone.image_size() == (math.ceil(rpc.line_off + abs(rpc.line_scale) + 0.5),
-                                  math.ceil(rpc.samp_off + abs(rpc.samp_scale) + 0.5))
+    assert alone.image_size() == (
+        math.ceil(rpc.line_off + abs(rpc.line_scale) + 0.5),
+        math.ceil(rpc.samp_off + abs(rpc.samp_scale) + 0.5),
+    )
     with pytest.raises(InputError, match="unknown body"):
         RpcCamera.from_file(tmp_path / "alone.RPB", body="venus", image_size=(10, 10))
     with pytest.raises(UnsupportedFormatError, match="suffix"):
@@ -505,8 +542,7 @@ class LinearPushbroom:
     def __init__(self, n_lines: int = 3000, n_samples: int = 2500) -> None:
         self._size = (n_lines, n_samples)
         lon0, lat0 = np.radians(74.0), np.radians(20.0)
-        up = np.array([np.cos(lat0) * np.cos(lon0), np.cos(lat0) * np.sin(lon0),
-                       np.sin(lat0)])
+        up = np.array([np.cos(lat0) * np.cos(lon0), np.cos(lat0) * np.sin(lon0), np.sin(lat0)])
         east = np.array([-np.sin(lon0), np.cos(lon0), 0.0])
         north = np.cross(up, east)
         self.c0 = (MARS_IAU2015_SPHERE.semi_major_m + 300e3) * up
@@ -524,8 +560,15 @@ class LinearPushbroom:
     def image_size(self, ccd: str | None = None) -> tuple[int, int]:
         return self._size
 
-    def image_to_ground(self, line: np.ndarray, sample: np.ndarray, terrain: float = 0.0, *,
-                        ccd: str | None = None, on_miss: str = "raise") -> np.ndarray:
+    def image_to_ground(
+        self,
+        line: np.ndarray,
+        sample: np.ndarray,
+        terrain: float = 0.0,
+        *,
+        ccd: str | None = None,
+        on_miss: str = "raise",
+    ) -> np.ndarray:
         t = np.asarray(line, float) * self.line_time
         x = (np.asarray(sample, float) - self._size[1] / 2) / self.focal_px
         x = x * (1 + self.k1 * x * x)
@@ -563,8 +606,9 @@ def test_fit_rpc_to_an_analytic_pushbroom_camera(tmp_path: Path) -> None:
     rng = np.random.default_rng(5)
     lines, samples = rng.uniform(0, 3000, 500), rng.uniform(0, 2500, 500)
     for h in (-3500.0, 1500.0):
-        d = np.linalg.norm(rcam.image_to_ground(lines, samples, h)
-                           - cam.image_to_ground(lines, samples, h), axis=1)
+        d = np.linalg.norm(
+            rcam.image_to_ground(lines, samples, h) - cam.image_to_ground(lines, samples, h), axis=1
+        )
         assert np.max(d) < 0.3
 
 
@@ -573,9 +617,11 @@ def test_fit_rpc_to_an_analytic_pushbroom_camera(tmp_path: Path) -> None:
 def test_fit_rpc_recovers_a_pleiades_rpc(shared: Path, name: str) -> None:
     cam = RpcCamera.from_file(_pleiades(shared, name))
     r = cam.rpc
-    fitted, report = fit_rpc(cam, height_range_m=(r.height_off - r.height_scale,
-                                                  r.height_off + r.height_scale),
-                             grid=(15, 15, 5))
+    fitted, report = fit_rpc(
+        cam,
+        height_range_m=(r.height_off - r.height_scale, r.height_off + r.height_scale),
+        grid=(15, 15, 5),
+    )
     print(report.summary())
     assert report.check_max_px < 1e-3
     assert report.check_max_ground_m < 1e-3

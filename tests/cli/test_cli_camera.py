@@ -41,16 +41,38 @@ def test_info_json():
 
 def test_image_to_ground_and_back(camera_file):
     cam, path = camera_file
-    r = run("camera", "image-to-ground", path, "--line", 100.25, "--sample", 40.5,
-            "--height", -1500, "--ccd", "ccd2")
+    r = run(
+        "camera",
+        "image-to-ground",
+        path,
+        "--line",
+        100.25,
+        "--sample",
+        40.5,
+        "--height",
+        -1500,
+        "--ccd",
+        "ccd2",
+    )
     assert r.exit_code == 0, r.output
     out = json.loads(r.output)
     assert set(out) == {"x_m", "y_m", "z_m", "lat_deg", "lon_deg", "height_m"}
     xyz = cam.image_to_ground([100.25], [40.5], -1500.0, ccd="ccd2")[0]
     assert [out["x_m"], out["y_m"], out["z_m"]] == pytest.approx(xyz.tolist(), abs=1e-6)
     assert out["height_m"] == pytest.approx(-1500.0, abs=1e-4)
-    r = run("camera", "ground-to-image", path, "--lat", out["lat_deg"], "--lon",
-            out["lon_deg"], "--height", out["height_m"], "--ccd", "ccd2")
+    r = run(
+        "camera",
+        "ground-to-image",
+        path,
+        "--lat",
+        out["lat_deg"],
+        "--lon",
+        out["lon_deg"],
+        "--height",
+        out["height_m"],
+        "--ccd",
+        "ccd2",
+    )
     back = json.loads(r.output)
     assert back["line"] == pytest.approx(100.25, abs=1e-6)
     assert back["sample"] == pytest.approx(40.5, abs=1e-6)
@@ -58,19 +80,24 @@ def test_image_to_ground_and_back(camera_file):
     assert json.loads(r.output)["line"] == pytest.approx(100.25, abs=1e-6)
     lon, lat, _ = xyz_to_lonlat(xyz, cam.ellipsoid)
     assert out["lat_deg"] == pytest.approx(float(lat)) and out["lon_deg"] == pytest.approx(
-        float(lon))
+        float(lon)
+    )
 
 
-@pytest.mark.parametrize("content, needle", [
-    ('{"format": "planetref-linescan", "version": 1', "malformed JSON"),
-    ('{"a": 1}', "neither a planetref line-scan camera nor a CSM"),
-    ("hello", "unrecognised camera file"),
-])
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        ('{"format": "planetref-linescan", "version": 1', "malformed JSON"),
+        ('{"a": 1}', "neither a planetref line-scan camera nor a CSM"),
+        ("hello", "unrecognised camera file"),
+    ],
+)
 def test_bad_camera_file_is_one_line_error(tmp_path, content, needle):
     p = tmp_path / "bad.json"
     p.write_text(content)
-    r = CliRunner().invoke(main, ["camera", "image-to-ground", str(p), "--line", "1",
-                                  "--sample", "1"])
+    r = CliRunner().invoke(
+        main, ["camera", "image-to-ground", str(p), "--line", "1", "--sample", "1"]
+    )
     assert r.exit_code == 1
     assert needle in r.output and str(p) in r.output
     assert "Traceback" not in r.output and r.output.count("\n") == 1
@@ -78,11 +105,14 @@ def test_bad_camera_file_is_one_line_error(tmp_path, content, needle):
 
 def test_missing_file_and_bad_ccd(camera_file, tmp_path):
     _, path = camera_file
-    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(tmp_path / "x.json"),
-                                  "--xyz", "1", "2", "3"])
+    r = CliRunner().invoke(
+        main, ["camera", "ground-to-image", str(tmp_path / "x.json"), "--xyz", "1", "2", "3"]
+    )
     assert r.exit_code == 1 and "no such camera file" in r.output
-    r = CliRunner().invoke(main, ["camera", "image-to-ground", str(path), "--line", "1",
-                                  "--sample", "1", "--ccd", "ccd9"])
+    r = CliRunner().invoke(
+        main,
+        ["camera", "image-to-ground", str(path), "--line", "1", "--sample", "1", "--ccd", "ccd9"],
+    )
     assert r.exit_code == 1 and "unknown CCD 'ccd9'" in r.output
 
 
@@ -90,22 +120,29 @@ def test_usage_errors(camera_file):
     _, path = camera_file
     r = CliRunner().invoke(main, ["camera", "ground-to-image", str(path)])
     assert r.exit_code == 2 and "--xyz" in r.output
-    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(path), "--lat", "100",
-                                  "--lon", "0", "--height", "0"])
+    r = CliRunner().invoke(
+        main,
+        ["camera", "ground-to-image", str(path), "--lat", "100", "--lon", "0", "--height", "0"],
+    )
     assert r.exit_code == 1 and "--lat" in r.output
 
 
 def test_console_script_runs():
-    r = subprocess.run([sys.executable, "-m", "planetref", "--version"], capture_output=True,
-                       text=True, check=False)
+    r = subprocess.run(
+        [sys.executable, "-m", "planetref", "--version"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     assert r.returncode == 0 and "planetref" in r.stdout
 
 
 def test_behind_camera_point_is_reported(camera_file):
     cam, path = camera_file
     s, _ = cam.exterior([256.0])
-    r = CliRunner().invoke(main, ["camera", "ground-to-image", str(path), "--xyz",
-                                  *map(str, (1.2 * s[0]).tolist())])
+    r = CliRunner().invoke(
+        main, ["camera", "ground-to-image", str(path), "--xyz", *map(str, (1.2 * s[0]).tolist())]
+    )
     assert r.exit_code == 1 and "cannot be projected" in r.output
     assert np.isfinite(s).all()
 
@@ -113,8 +150,22 @@ def test_behind_camera_point_is_reported(camera_file):
 def test_fit_rpc_command_round_trip(camera_file, tmp_path):
     cam, path = camera_file
     out = tmp_path / "ccd2.RPB"
-    r = run("camera", "fit-rpc", path, "--ccd", "ccd2", "--out", out, "--height-range",
-            -3000, 3000, "--grid", 11, 11, 5)
+    r = run(
+        "camera",
+        "fit-rpc",
+        path,
+        "--ccd",
+        "ccd2",
+        "--out",
+        out,
+        "--height-range",
+        -3000,
+        3000,
+        "--grid",
+        11,
+        11,
+        5,
+    )
     assert r.exit_code == 0, r.output
     rep = json.loads(r.output)
     assert rep["check_max_px"] < 1e-3

@@ -62,8 +62,9 @@ def shifted_camera(cam: LineScanCamera, east_m: float, north_m: float) -> LineSc
     return cam.replace(nodes=nodes)
 
 
-def render(cam: LineScanCamera, ccd: str, dem: GridTerrain, tex: np.ndarray, tex_transform,
-           step: int = 16) -> np.ndarray:
+def render(
+    cam: LineScanCamera, ccd: str, dem: GridTerrain, tex: np.ndarray, tex_transform, step: int = 16
+) -> np.ndarray:
     """Sample the texture through a camera: exact rays on a lattice, bilinear between."""
     n_lines, n_samples = cam.image_size(ccd)
     ll = np.append(np.arange(0.0, n_lines, step), n_lines)
@@ -84,21 +85,29 @@ def render(cam: LineScanCamera, ccd: str, dem: GridTerrain, tex: np.ndarray, tex
     inv = ~tex_transform
     col = inv.a * x + inv.b * y + inv.c - 0.5
     row = inv.d * x + inv.e * y + inv.f - 0.5
-    img = ndimage.map_coordinates(tex, np.vstack([row.ravel(), col.ravel()]), order=1,
-                                  mode="nearest")
+    img = ndimage.map_coordinates(
+        tex, np.vstack([row.ravel(), col.ravel()]), order=1, mode="nearest"
+    )
     return img.reshape(n_lines, n_samples).astype(np.float32)
 
 
-def build_scene(root: Path, *, n_lines: int = 1920, n_samples: int = 960,
-                shift_m: tuple[float, float] = (60.0, -35.0), seed: int = 7) -> Scene:
+def build_scene(
+    root: Path,
+    *,
+    n_lines: int = 1920,
+    n_samples: int = 960,
+    shift_m: tuple[float, float] = (60.0, -35.0),
+    seed: int = 7,
+) -> Scene:
     import rasterio
     from affine import Affine
 
     _torch_one_thread()
     root.mkdir(parents=True, exist_ok=True)
     ccds = ccd_row(2, n_samples, n_lines, 0.010, overlap_px=48)
-    cam, _ = orbit_camera(OrbitGeometry(LAT, LON, HEADING), focal_length_mm=5300.0, ccds=ccds,
-                          n_nodes=6)
+    cam, _ = orbit_camera(
+        OrbitGeometry(LAT, LON, HEADING), focal_length_mm=5300.0, ccds=ccds, n_nodes=6
+    )
     cx, cy = R * np.radians(LON), R * np.radians(LAT)
     half = 2000.0  # metres of map around the centre
     x0, y1 = np.floor((cx - half) / DEM_RES) * DEM_RES, np.ceil((cy + half) / DEM_RES) * DEM_RES
@@ -113,13 +122,17 @@ def build_scene(root: Path, *, n_lines: int = 1920, n_samples: int = 960,
     for _ in range(int(n * n * TEX_RES**2 / 60000.0)):
         cy0, cx0 = rng.uniform(0, n, 2)
         r = rng.uniform(4.0, 40.0) / TEX_RES
-        sl = (slice(max(0, int(cy0 - 2 * r)), int(cy0 + 2 * r) + 1),
-              slice(max(0, int(cx0 - 2 * r)), int(cx0 + 2 * r) + 1))
+        sl = (
+            slice(max(0, int(cy0 - 2 * r)), int(cy0 + 2 * r) + 1),
+            slice(max(0, int(cx0 - 2 * r)), int(cx0 + 2 * r) + 1),
+        )
         dy, dx = yy[sl] - cy0, xx[sl] - cx0
         rho = np.hypot(dx, dy) / r
         shade = (dx + dy) / (np.hypot(dx, dy) + 1e-6)
-        tex[sl] += 2.5 * (np.exp(-((rho - 1.0) / 0.18) ** 2) * (0.6 + 0.4 * shade)
-                          - 0.8 * np.clip(1.0 - rho, 0.0, None) * (0.5 - 0.5 * shade))
+        tex[sl] += 2.5 * (
+            np.exp(-(((rho - 1.0) / 0.18) ** 2)) * (0.6 + 0.4 * shade)
+            - 0.8 * np.clip(1.0 - rho, 0.0, None) * (0.5 - 0.5 * shade)
+        )
     tex = (tex - tex.min()) / (tex.max() - tex.min()) * 2000.0 + 500.0
     tex_t = Affine(TEX_RES, 0, x0, 0, -TEX_RES, y1)
     ref = tex.reshape(n // 2, 2, n // 2, 2).mean(axis=(1, 3)).astype(np.float32)
@@ -135,9 +148,18 @@ def build_scene(root: Path, *, n_lines: int = 1920, n_samples: int = 960,
 
     crs = rasterio.crs.CRS.from_user_input(CRS)
     ortho_path = root / "ref_ortho.tif"
-    with rasterio.open(ortho_path, "w", driver="GTiff", width=ref.shape[1], height=ref.shape[0],
-                       count=1, dtype="float32", crs=crs, transform=ref_t,
-                       nodata=-9999.0) as ds:
+    with rasterio.open(
+        ortho_path,
+        "w",
+        driver="GTiff",
+        width=ref.shape[1],
+        height=ref.shape[0],
+        count=1,
+        dtype="float32",
+        crs=crs,
+        transform=ref_t,
+        nodata=-9999.0,
+    ) as ds:
         ds.write(ref, 1)
     dem_path = root / "ref_dem.tif"
     dem.to_geotiff(dem_path)
@@ -149,8 +171,15 @@ def build_scene(root: Path, *, n_lines: int = 1920, n_samples: int = 960,
         paths[c] = root / f"{c}.tif"
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(paths[c], "w", driver="GTiff", width=img.shape[1],
-                               height=img.shape[0], count=1, dtype="float32") as ds:
+            with rasterio.open(
+                paths[c],
+                "w",
+                driver="GTiff",
+                width=img.shape[1],
+                height=img.shape[0],
+                count=1,
+                dtype="float32",
+            ) as ds:
                 ds.write(img, 1)
     init = shifted_camera(cam, *shift_m)
     return Scene(root, ortho_path, dem_path, paths, cam, init, dem, images, shift_m)

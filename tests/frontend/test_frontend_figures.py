@@ -35,9 +35,16 @@ def test_strip_to_mcps_and_figures(scene, tmp_path):
 
     cfg = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2)
     with ReferenceOrtho(scene.ortho_path) as ref:
-        strip = match_strip(scene.init_cam, scene.image_paths, ref, scene.dem_path,
-                            get_matcher("sift"), cfg, progress=False,
-                            debug_tiles=["ccd1:r001c000"])
+        strip = match_strip(
+            scene.init_cam,
+            scene.image_paths,
+            ref,
+            scene.dem_path,
+            get_matcher("sift"),
+            cfg,
+            progress=False,
+            debug_tiles=["ccd1:r001c000"],
+        )
         table = mcps_from_tiles(strip, ref=ref, dem=scene.dem)
     assert len(table) > 100
     assert table.counts.kept == len(table) and table.counts.nan_dem == 0
@@ -65,12 +72,17 @@ def test_figure_inputs_are_checked(tmp_path):
     p = MatchPanel("bad", img, img, np.zeros((3, 2)), np.zeros((2, 2)))
     with pytest.raises(InputError):
         figure_tile_matches([p], tmp_path / "x.png")
-    ok = MatchPanel("ok", img, img, np.full((3, 2), 5.5), np.full((3, 2), 6.5),
-                    np.array([True, False, True]))
+    ok = MatchPanel(
+        "ok", img, img, np.full((3, 2), 5.5), np.full((3, 2), 6.5), np.array([True, False, True])
+    )
     _is_png(figure_tile_matches([ok], tmp_path / "ok.png"))
     with pytest.raises(InputError):
-        figure_mcp_distribution({"ccd": [], "line": [], "sample": []}, {"a": (10, 10)},
-                                tmp_path / "d.png", ccd_order=["b"])
+        figure_mcp_distribution(
+            {"ccd": [], "line": [], "sample": []},
+            {"a": (10, 10)},
+            tmp_path / "d.png",
+            ccd_order=["b"],
+        )
     from planetref.frontend.match_tile import TileResult
     from planetref.frontend.tiles import Tile
 

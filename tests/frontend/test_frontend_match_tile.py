@@ -29,8 +29,7 @@ def truth_offset(scene, ref, tile, init_cam=None):
     """Reference-pixel offset (dcol, drow) of the tile centre: true minus initial camera."""
     lc, sc = tile.centre
     tc, tr = image_to_ref_pixel(scene.true_cam, tile.ccd, [lc], [sc], ref, scene.dem)
-    ic, ir = image_to_ref_pixel(init_cam or scene.init_cam, tile.ccd, [lc], [sc], ref,
-                                scene.dem)
+    ic, ir = image_to_ref_pixel(init_cam or scene.init_cam, tile.ccd, [lc], [sc], ref, scene.dem)
     return np.array([tc[0] - ic[0], tr[0] - ir[0]])
 
 
@@ -38,8 +37,9 @@ def offset_errors(scene, ref, results, init_cam=None):
     errs = {}
     for r in results:
         if r.status == "ok":
-            errs[r.tile_id] = float(np.max(np.abs(np.asarray(r.offset_px)
-                                                  - truth_offset(scene, ref, r.tile, init_cam))))
+            errs[r.tile_id] = float(
+                np.max(np.abs(np.asarray(r.offset_px) - truth_offset(scene, ref, r.tile, init_cam)))
+            )
     return errs
 
 
@@ -51,12 +51,22 @@ def ref(scene):
 
 @pytest.mark.parametrize("name", ["sift", "ncc"])
 def test_offsets_recovered_classical(scene, ref, make_matcher, name):
-    strip = match_strip(scene.init_cam, scene.image_paths, ref, scene.dem, make_matcher(name), CFG,
-                        progress=False, raise_errors=True)
+    strip = match_strip(
+        scene.init_cam,
+        scene.image_paths,
+        ref,
+        scene.dem,
+        make_matcher(name),
+        CFG,
+        progress=False,
+        raise_errors=True,
+    )
     assert len(strip.tiles) == sum(len(p.tiles) for p in strip.plans.values()) == 12
     errs = offset_errors(scene, ref, strip.tiles)
-    print(f"{name}: max |offset - truth| per tile (ref px): "
-          f"{ {k: round(v, 3) for k, v in errs.items()} }")
+    print(
+        f"{name}: max |offset - truth| per tile (ref px): "
+        f"{ {k: round(v, 3) for k, v in errs.items()} }"
+    )
     assert len(errs) >= 10, strip.status_counts()
     assert max(errs.values()) < 0.5
     assert sum(strip.ncp_per_ccd().values()) == sum(strip.ncp_per_tile().values()) > 0
@@ -71,11 +81,23 @@ def test_offsets_recovered_learned(scene, ref, make_matcher, name):
     matcher = make_matcher(name)
     plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
     img = CcdImage(scene.image_paths["ccd1"])
-    results = [match_tile(t, image=img, camera=scene.init_cam, ref=ref, terrain=scene.dem,
-                          matcher=matcher, config=CFG) for t in plan.tiles[:3]]
+    results = [
+        match_tile(
+            t,
+            image=img,
+            camera=scene.init_cam,
+            ref=ref,
+            terrain=scene.dem,
+            matcher=matcher,
+            config=CFG,
+        )
+        for t in plan.tiles[:3]
+    ]
     errs = offset_errors(scene, ref, results)
-    print(f"{name}: {[r.status for r in results]}, max |offset - truth| (ref px): "
-          f"{ {k: round(v, 3) for k, v in errs.items()} }")
+    print(
+        f"{name}: {[r.status for r in results]}, max |offset - truth| (ref px): "
+        f"{ {k: round(v, 3) for k, v in errs.items()} }"
+    )
     assert errs, [r.message for r in results]
     assert max(errs.values()) < 0.5
 
@@ -89,8 +111,18 @@ def test_large_initial_error_needs_the_coarse_stage(scene, ref, shift_camera):
     plan = plan_tiles(far, "ccd2", ref, scene.dem, cfg)
     img = CcdImage(scene.image_paths["ccd2"])
     tiles = plan.tiles[:2]
-    results = [match_tile(t, image=img, camera=far, ref=ref, terrain=scene.dem,
-                          matcher=get_matcher("sift"), config=cfg) for t in tiles]
+    results = [
+        match_tile(
+            t,
+            image=img,
+            camera=far,
+            ref=ref,
+            terrain=scene.dem,
+            matcher=get_matcher("sift"),
+            config=cfg,
+        )
+        for t in tiles
+    ]
     truth = truth_offset(scene, ref, tiles[0], far)
     assert np.hypot(*truth) > 50
     errs = offset_errors(scene, ref, results, far)
@@ -107,9 +139,19 @@ def test_downsample_geometry(scene, ref):
     cfg = CFG.model_copy(update={"geometry": "downsample"})
     plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, cfg)
     img = CcdImage(scene.image_paths["ccd1"])
-    results = [match_tile(t, image=img, camera=scene.init_cam, ref=ref, terrain=scene.dem,
-                          matcher=get_matcher("sift"), config=cfg, ratio=plan.ratio)
-               for t in plan.tiles[:2]]
+    results = [
+        match_tile(
+            t,
+            image=img,
+            camera=scene.init_cam,
+            ref=ref,
+            terrain=scene.dem,
+            matcher=get_matcher("sift"),
+            config=cfg,
+            ratio=plan.ratio,
+        )
+        for t in plan.tiles[:2]
+    ]
     errs = offset_errors(scene, ref, results)
     print(f"downsample/sift: max |offset - truth| (ref px): {errs}")
     # The image keeps its 30 degree rotation and 3% scale difference here, and the
@@ -128,8 +170,15 @@ def test_nodata_is_masked_and_never_matched(scene, ref):
     img = CcdImage(data)
     plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
     tile = plan.tiles[0]
-    r = match_tile(tile, image=img, camera=scene.init_cam, ref=ref, terrain=scene.dem,
-                   matcher=get_matcher("sift"), config=CFG)
+    r = match_tile(
+        tile,
+        image=img,
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+        config=CFG,
+    )
     assert r.status == "ok"
     # No MCP within a reference pixel (~10 raw px) of the no-data stripes.
     assert not np.any((r.sample > 490) & (r.sample < 570))
@@ -137,8 +186,15 @@ def test_nodata_is_masked_and_never_matched(scene, ref):
     assert np.max(np.abs(np.asarray(r.offset_px) - truth_offset(scene, ref, tile))) < 0.5
     # A tile of no-data only is reported, not dropped.
     empty = CcdImage(np.full_like(data, np.nan))
-    r = match_tile(tile, image=empty, camera=scene.init_cam, ref=ref, terrain=scene.dem,
-                   matcher=get_matcher("sift"), config=CFG)
+    r = match_tile(
+        tile,
+        image=empty,
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+        config=CFG,
+    )
     assert r.status == "no_overlap" and "valid" in r.message
 
 
@@ -148,13 +204,27 @@ def test_statuses_are_reported(scene, ref):
     plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
     tile = plan.tiles[0]
     flat = CcdImage(np.full(scene.images["ccd1"].shape, 700.0, np.float32))
-    r = match_tile(tile, image=flat, camera=scene.init_cam, ref=ref, terrain=scene.dem,
-                   matcher=get_matcher("sift"), config=CFG)
+    r = match_tile(
+        tile,
+        image=flat,
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+        config=CFG,
+    )
     assert r.status == "no_texture"
     img = CcdImage(scene.images["ccd1"])
     strict = CFG.model_copy(update={"min_inliers": 5000})
-    r = match_tile(tile, image=img, camera=scene.init_cam, ref=ref, terrain=scene.dem,
-                   matcher=get_matcher("sift"), config=strict)
+    r = match_tile(
+        tile,
+        image=img,
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+        config=strict,
+    )
     assert r.status == "too_few_inliers" and r.n_inliers > 0 and "5000 needed" in r.message
     assert r.offset_px is not None  # the measurement is still reported
 
@@ -164,8 +234,9 @@ def test_statuses_are_reported(scene, ref):
         def match(self, *a, **k):
             raise RuntimeError("boom")
 
-    strip = match_strip(scene.init_cam, {"ccd1": img}, ref, scene.dem, Broken(), CFG,
-                        progress=False)
+    strip = match_strip(
+        scene.init_cam, {"ccd1": img}, ref, scene.dem, Broken(), CFG, progress=False
+    )
     assert {t.status for t in strip.tiles} == {"error"}
     assert "RuntimeError: boom" in strip.tiles[0].message
     assert strip.status_counts()["error"] == len(plan.tiles)
@@ -186,8 +257,16 @@ def test_journal_resume_and_serialisation(scene, ref, tmp_path):
 
     journal = tmp_path / "tiles.jsonl"
     m = Counting()
-    first = match_strip(scene.init_cam, {"ccd1": scene.image_paths["ccd1"]}, ref, scene.dem, m,
-                        CFG, journal=journal, progress=False)
+    first = match_strip(
+        scene.init_cam,
+        {"ccd1": scene.image_paths["ccd1"]},
+        ref,
+        scene.dem,
+        m,
+        CFG,
+        journal=journal,
+        progress=False,
+    )
     n_calls = m.calls
     assert n_calls > 0
     lines = journal.read_text().splitlines()
@@ -195,8 +274,16 @@ def test_journal_resume_and_serialisation(scene, ref, tmp_path):
     # Simulate an interrupted run: drop the last tile and cut a line short.
     journal.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][: len(lines[-1]) // 2])
     m.calls = 0
-    second = match_strip(scene.init_cam, {"ccd1": scene.image_paths["ccd1"]}, ref, scene.dem,
-                         m, CFG, journal=journal, progress=False)
+    second = match_strip(
+        scene.init_cam,
+        {"ccd1": scene.image_paths["ccd1"]},
+        ref,
+        scene.dem,
+        m,
+        CFG,
+        journal=journal,
+        progress=False,
+    )
     assert 0 < m.calls <= 2  # only the lost tile is matched again
     for a, b in zip(first.tiles, second.tiles, strict=True):
         assert a.tile_id == b.tile_id and a.status == b.status
@@ -209,8 +296,16 @@ def test_journal_resume_and_serialisation(scene, ref, tmp_path):
     from planetref.errors import InputError
 
     with pytest.raises(InputError, match="another matcher or config"):
-        match_strip(scene.init_cam, {"ccd1": scene.image_paths["ccd1"]}, ref, scene.dem, m,
-                    CFG.model_copy(update={"min_inliers": 9}), journal=journal, progress=False)
+        match_strip(
+            scene.init_cam,
+            {"ccd1": scene.image_paths["ccd1"]},
+            ref,
+            scene.dem,
+            m,
+            CFG.model_copy(update={"min_inliers": 9}),
+            journal=journal,
+            progress=False,
+        )
     assert os.path.getsize(journal) > 0
 
 

@@ -33,7 +33,7 @@ def test_tile_plan_covers_image(setup):
     for t in plan.tiles:
         assert t.line0 >= 0 and t.sample0 >= 0
         assert t.line0 + t.n_lines <= n_lines and t.sample0 + t.n_samples <= n_samples
-        cover[t.line0:t.line0 + t.n_lines, t.sample0:t.sample0 + t.n_samples] = True
+        cover[t.line0 : t.line0 + t.n_lines, t.sample0 : t.sample0 + t.n_samples] = True
     assert cover.all()
     assert len({t.tile_id for t in plan.tiles}) == len(plan.tiles)
 
@@ -70,11 +70,13 @@ def test_true_camera_ortho_matches_reference(setup):
     win = fp.window
     ortho = orthorectify(img, scene.true_cam, "ccd1", ref, scene.dem, win)
     assert ortho.valid.mean() > 0.6  # a CCD-edge tile: the image ends inside the window
+
     def ncc(dc, dr):
         r, rv = ref.read(win.shifted(dc, dr))
         m = ortho.valid & rv
         a, b = ortho.image[m] - ortho.image[m].mean(), r[m] - r[m].mean()
         return float(a @ b / np.sqrt((a @ a) * (b @ b)))
+
     centre = ncc(0, 0)
     assert centre > 0.95
     assert all(ncc(dc, dr) < centre for dc, dr in [(1, 0), (-1, 0), (0, 1), (0, -1)])
@@ -89,7 +91,7 @@ def test_validity_outside_image_and_nodata(scene, setup):
     fp = tile_footprint(scene.init_cam, tile, ref, scene.dem)
     win = fp.window.padded(60)
     ortho = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, win)
-    gy, gx = np.mgrid[0:win.height, 0:win.width] + 0.5
+    gy, gx = np.mgrid[0 : win.height, 0 : win.width] + 0.5
     line, sample = ortho.raw_coords(gx, gy)
     outside = (line < 0) | (sample < 0) | (sample >= data.shape[1])
     assert outside.any() and not ortho.valid[outside].any()

@@ -25,8 +25,16 @@ ISIS_HRS4 = float(np.array([0xFF7FFFFF], np.uint32).view(np.float32)[0])
 def _write(path, data, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0],
-                           count=1, dtype=data.dtype.name, **kw) as ds:
+        with rasterio.open(
+            path,
+            "w",
+            driver="GTiff",
+            width=data.shape[1],
+            height=data.shape[0],
+            count=1,
+            dtype=data.dtype.name,
+            **kw,
+        ) as ds:
             ds.write(data, 1)
 
 
@@ -126,8 +134,9 @@ def test_reference_windows_and_factor(tmp_path):
 
 
 def test_reference_needs_crs(tmp_path):
-    _write(tmp_path / "nocrs.tif", np.zeros((4, 4), np.float32),
-           transform=Affine(1, 0, 0, 0, -1, 0))
+    _write(
+        tmp_path / "nocrs.tif", np.zeros((4, 4), np.float32), transform=Affine(1, 0, 0, 0, -1, 0)
+    )
     with pytest.raises(CrsError):
         ReferenceOrtho(tmp_path / "nocrs.tif")
 

@@ -73,27 +73,45 @@ def _truth_offset(s, r):
     return np.array([np.mean(tc - ic), np.mean(tr - ir)])
 
 
-@pytest.mark.parametrize("name, options, ccds, min_ok, bound", [
-    # An area-based search must reach the initial error (21 px here).
-    ("sift", {}, None, 18, 0.5), ("ncc", {"search_radius": 40, "spacing": 8}, None, 18, 0.5),
-    pytest.param("disk-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
-    pytest.param("aliked-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
-    # XFeat's keypoints sit on whole pixels (see planetref.matching.xfeat): re-centred by
-    # local NCC they meet the same bound; raw, their worst tile is ~0.5 px off.
-    pytest.param("xfeat-lighterglue", {"polish": "ncc"}, LEARNED_CCDS, 2, 0.5,
-                 marks=pytest.mark.shared),
-    pytest.param("xfeat-lighterglue", {}, LEARNED_CCDS, 2, 1.0, marks=pytest.mark.shared),
-])
-def test_tiny_offsets_agree_with_truth(tiny, make_matcher, name, options, ccds, min_ok,
-                                       bound):
+@pytest.mark.parametrize(
+    "name, options, ccds, min_ok, bound",
+    [
+        # An area-based search must reach the initial error (21 px here).
+        ("sift", {}, None, 18, 0.5),
+        ("ncc", {"search_radius": 40, "spacing": 8}, None, 18, 0.5),
+        pytest.param("disk-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
+        pytest.param("aliked-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
+        # XFeat's keypoints sit on whole pixels (see planetref.matching.xfeat): re-centred by
+        # local NCC they meet the same bound; raw, their worst tile is ~0.5 px off.
+        pytest.param(
+            "xfeat-lighterglue", {"polish": "ncc"}, LEARNED_CCDS, 2, 0.5, marks=pytest.mark.shared
+        ),
+        pytest.param("xfeat-lighterglue", {}, LEARNED_CCDS, 2, 1.0, marks=pytest.mark.shared),
+    ],
+)
+def test_tiny_offsets_agree_with_truth(tiny, make_matcher, name, options, ccds, min_ok, bound):
     s = tiny
     matcher = make_matcher(name, **options)
-    strip = match_strip(s["init"], s["images"], s["ref"], s["dem"], matcher, CFG,
-                        ccds=ccds, progress=False, raise_errors=True)
-    errs = {r.tile_id: float(np.max(np.abs(np.asarray(r.offset_px) - _truth_offset(s, r))))
-            for r in strip.tiles if r.status == "ok"}
-    print(f"tiny/{name} {options}: {strip.status_counts()}, max |offset - truth| (ref px): "
-          f"{ {k: round(v, 3) for k, v in errs.items()} }")
+    strip = match_strip(
+        s["init"],
+        s["images"],
+        s["ref"],
+        s["dem"],
+        matcher,
+        CFG,
+        ccds=ccds,
+        progress=False,
+        raise_errors=True,
+    )
+    errs = {
+        r.tile_id: float(np.max(np.abs(np.asarray(r.offset_px) - _truth_offset(s, r))))
+        for r in strip.tiles
+        if r.status == "ok"
+    }
+    print(
+        f"tiny/{name} {options}: {strip.status_counts()}, max |offset - truth| (ref px): "
+        f"{ {k: round(v, 3) for k, v in errs.items()} }"
+    )
     assert len(errs) >= min_ok, [t.message for t in strip.tiles]
     assert max(errs.values()) < bound
 
@@ -102,8 +120,9 @@ def test_tiny_preset_runs_and_reports_every_tile(tiny):
     from planetref.matching import get_matcher
 
     s = tiny
-    strip = match_strip(s["init"], s["images"], s["ref"], s["dem"], get_matcher("sift"), CFG,
-                        progress=False)
+    strip = match_strip(
+        s["init"], s["images"], s["ref"], s["dem"], get_matcher("sift"), CFG, progress=False
+    )
     # At least 2 x 2 tiles of 128 reference px per CCD.
     assert {c: sum(t.tile.ccd == c for t in strip.tiles) for c in N_TILES} == N_TILES
     for t in strip.tiles:

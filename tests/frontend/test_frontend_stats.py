@@ -60,9 +60,12 @@ def test_sdu_rejects_bad_input():
 
 
 def test_ncp_counts():
-    table = {"ccd": np.array(["a", "a", "b"], dtype=object),
-             "tile_id": np.array(["a:r0", "a:r1", "b:r0"], dtype=object),
-             "line": np.array([0.5, 20.0, 0.5]), "sample": np.array([0.5, 0.5, 0.5])}
+    table = {
+        "ccd": np.array(["a", "a", "b"], dtype=object),
+        "tile_id": np.array(["a:r0", "a:r1", "b:r0"], dtype=object),
+        "line": np.array([0.5, 20.0, 0.5]),
+        "sample": np.array([0.5, 0.5, 0.5]),
+    }
     assert ncp_per_ccd(table, ["a", "b", "c"]) == {"a": 2, "b": 1, "c": 0}
     assert ncp_per_tile(table) == {"a:r0": 1, "a:r1": 1, "b:r0": 1}
     sdu = sdu_per_ccd(table, {"a": (640, 640), "b": (640, 640)})

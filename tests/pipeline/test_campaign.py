@@ -13,8 +13,12 @@ from planetref.simulate.config import load_config
 from planetref.simulate.scene import simulate_scene
 
 #: Two tiny strips 1.4 km apart across track: each is 2.3 km wide, so they share ~0.9 km.
-TWO_STRIPS = {"strips": [{"id": "strip1", "cross_offset_m": -700.0},
-                         {"id": "strip2", "cross_offset_m": 700.0}]}
+TWO_STRIPS = {
+    "strips": [
+        {"id": "strip1", "cross_offset_m": -700.0},
+        {"id": "strip2", "cross_offset_m": 700.0},
+    ]
+}
 
 
 @pytest.fixture(scope="module")
@@ -26,19 +30,21 @@ def two_strip_scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def separate(two_strip_scene, tmp_path_factory):
-    return run_georef(two_strip_scene, "sift", tmp_path_factory.mktemp("runs") / "separate",
-                      progress=False)
+    return run_georef(
+        two_strip_scene, "sift", tmp_path_factory.mktemp("runs") / "separate", progress=False
+    )
 
 
 def _strip_blocks(report):
-    return {sid: {k: s[k] for k in ("matching", "adjustment", "check")}
-            for sid, s in report["strips"].items()}
+    return {
+        sid: {k: s[k] for k in ("matching", "adjustment", "check")}
+        for sid, s in report["strips"].items()
+    }
 
 
 def test_adjust_together_ties_the_strips(two_strip_scene, separate, tmp_path):
     cfg = config_from_mapping({"campaign": {"adjust_together": True}})
-    out = run_georef(two_strip_scene, "sift", tmp_path / "together", config=cfg,
-                     progress=False)
+    out = run_georef(two_strip_scene, "sift", tmp_path / "together", config=cfg, progress=False)
     rep = out.report
     camp = rep["campaign"]
     assert camp["n_tie_points"] > 0
@@ -56,8 +62,10 @@ def test_adjust_together_ties_the_strips(two_strip_scene, separate, tmp_path):
     joint = json.loads((out.run_dir / "campaign" / "adjustment" / "report.json").read_text())
     assert joint
     assert set((out.run_dir / "campaign" / "adjustment" / "cameras").iterdir())
-    assert json.loads((out.run_dir / "report.json").read_text())["campaign"]["n_tie_points"] \
+    assert (
+        json.loads((out.run_dir / "report.json").read_text())["campaign"]["n_tie_points"]
         == camp["n_tie_points"]
+    )
 
 
 def test_adjust_separately_is_the_default(two_strip_scene, separate, tmp_path):

@@ -18,10 +18,29 @@ from planetref.pipeline.georef import run_georef
 
 torch.set_num_threads(1)
 
-REPORT_KEYS = {"matcher", "scene", "planetref_version", "matching", "adjustment", "check",
-               "timing_s"}
-ADJ_KEYS = {"rmse_px_before", "rmse_px", "mean_px", "max_x_px", "max_y_px", "min_x_px",
-            "min_y_px", "outlier_ratio_pct", "n_total", "n_inliers", "sigma0", "converged"}
+REPORT_KEYS = {
+    "matcher",
+    "scene",
+    "planetref_version",
+    "matching",
+    "adjustment",
+    "check",
+    "timing_s",
+}
+ADJ_KEYS = {
+    "rmse_px_before",
+    "rmse_px",
+    "mean_px",
+    "max_x_px",
+    "max_y_px",
+    "min_x_px",
+    "min_y_px",
+    "outlier_ratio_pct",
+    "n_total",
+    "n_inliers",
+    "sigma0",
+    "converged",
+}
 
 
 def _present(weights_dir):
@@ -33,12 +52,10 @@ MATCHERS = ["sift", "ncc", "disk-lightglue", "aliked-lightglue", "xfeat-star"]
 
 
 @pytest.mark.parametrize("matcher", MATCHERS)
-def test_georef_reduces_true_error_below_reference_gsd(tiny_scene, tmp_path, weights_dir,
-                                                       matcher):
+def test_georef_reduces_true_error_below_reference_gsd(tiny_scene, tmp_path, weights_dir, matcher):
     if matcher not in _present(weights_dir):
         pytest.skip(f"weights of {matcher} not present (set PLANETREF_WEIGHTS)")
-    out = run_georef(tiny_scene, matcher, tmp_path / "run", weights_dir=weights_dir,
-                     progress=False)
+    out = run_georef(tiny_scene, matcher, tmp_path / "run", weights_dir=weights_dir, progress=False)
     r = out.report
     assert REPORT_KEYS <= set(r)
     assert ADJ_KEYS <= set(r["adjustment"])
@@ -89,8 +106,9 @@ def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path):
 
 
 def test_georef_cli(tiny_scene, tmp_path):
-    r = CliRunner().invoke(main, ["-q", "georef", str(tiny_scene), "--matcher", "sift",
-                                  "--out", str(tmp_path / "cli")])
+    r = CliRunner().invoke(
+        main, ["-q", "georef", str(tiny_scene), "--matcher", "sift", "--out", str(tmp_path / "cli")]
+    )
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout.strip().splitlines()[-1])
     assert doc["matcher"] == "sift" and doc["geoloc_rmse_m"] < 5.0
@@ -107,8 +125,9 @@ def test_reference_without_overlap(tiny_scene, tmp_path):
     with rasterio.open(ortho, "r+") as ds:
         t = ds.transform
         ds.transform = rasterio.Affine(t.a, t.b, t.c + 200e3, t.d, t.e, t.f)
-    r = CliRunner().invoke(main, ["-q", "georef", str(scene), "--matcher", "sift", "--out",
-                                  str(tmp_path / "run")])
+    r = CliRunner().invoke(
+        main, ["-q", "georef", str(scene), "--matcher", "sift", "--out", str(tmp_path / "run")]
+    )
     assert r.exit_code == 1
     assert "do not overlap the reference" in r.output and "Traceback" not in r.output
 
@@ -117,8 +136,9 @@ def test_corrupt_raster(tiny_scene, tmp_path):
     scene = _copy_scene(tiny_scene, tmp_path / "corrupt")
     img = scene / "strips" / "strip1" / "ccd2.tif"
     img.write_bytes(img.read_bytes()[:300])
-    r = CliRunner().invoke(main, ["-q", "georef", str(scene), "--matcher", "sift", "--out",
-                                  str(tmp_path / "run")])
+    r = CliRunner().invoke(
+        main, ["-q", "georef", str(scene), "--matcher", "sift", "--out", str(tmp_path / "run")]
+    )
     assert r.exit_code == 1
     assert "ccd2.tif" in r.output and "Traceback" not in r.output
 
@@ -136,7 +156,7 @@ def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path):
     with rasterio.open(dem, "r+") as ds:
         h = ds.read(1)
         rows, cols = h.shape
-        h[rows // 2:, : cols // 2] = np.nan
+        h[rows // 2 :, : cols // 2] = np.nan
         ds.write(h, 1)
     out = run_georef(scene, "sift", tmp_path / "run", progress=False)
     lost = out.report["matching"]["tiles_lost"]

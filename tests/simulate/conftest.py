@@ -13,14 +13,21 @@ from planetref.simulate.config import SimulationConfig, load_config
 MINI: dict[str, Any] = {
     "name": "mini",
     "site": {"margin_m": 150.0},
-    "camera": {"n_samples": 64, "overlap_samples": 8, "n_lines": 96, "gsd_m": 1.0,
-               "ccd_stagger_mm": 0.1},
-    "terrain": {"dem_gsd_m": 2.0, "craters": {"density_per_km2": 200.0, "d_max_m": 120.0},
-                "ridges": {"count": 1, "width_m": 120.0}},
+    "camera": {
+        "n_samples": 64,
+        "overlap_samples": 8,
+        "n_lines": 96,
+        "gsd_m": 1.0,
+        "ccd_stagger_mm": 0.1,
+    },
+    "terrain": {
+        "dem_gsd_m": 2.0,
+        "craters": {"density_per_km2": 200.0, "d_max_m": 120.0},
+        "ridges": {"count": 1, "width_m": 120.0},
+    },
     "albedo": {"texture_gsd_m": 0.5},  # half an image pixel (tiny's 1.25 m is for 2.5 m)
     "reference": {"dem_pad_m": 500.0},
-    "render": {"write_rpc": False, "n_checkpoints": 5, "measure_grid": 4,
-               "chunk_pixels": 4096},
+    "render": {"write_rpc": False, "n_checkpoints": 5, "measure_grid": 4, "chunk_pixels": 4096},
 }
 
 

@@ -29,8 +29,20 @@ def test_simulate_command(tmp_path: Path) -> None:
     cfg.write_text(MINI_TOML)
     out = tmp_path / "scene"
     runner = CliRunner()
-    res = runner.invoke(main, ["simulate", str(out), "--preset", "tiny", "--config", str(cfg),
-                               "--seed", "3", "--preview"])
+    res = runner.invoke(
+        main,
+        [
+            "simulate",
+            str(out),
+            "--preset",
+            "tiny",
+            "--config",
+            str(cfg),
+            "--seed",
+            "3",
+            "--preview",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert (out / "scene.toml").is_file() and (out / "preview.png").stat().st_size > 1000
     assert "initial geolocation error" in res.output
@@ -38,8 +50,9 @@ def test_simulate_command(tmp_path: Path) -> None:
     res = runner.invoke(main, ["simulate", str(out), "--preset", "tiny", "--config", str(cfg)])
     assert res.exit_code == 1 and "--overwrite" in res.output
     # ... unless --overwrite.
-    res = runner.invoke(main, ["-q", "simulate", str(out), "--preset", "tiny", "--config",
-                               str(cfg), "--overwrite"])
+    res = runner.invoke(
+        main, ["-q", "simulate", str(out), "--preset", "tiny", "--config", str(cfg), "--overwrite"]
+    )
     assert res.exit_code == 0, res.output
 
 

@@ -50,8 +50,10 @@ def test_unknown_preset_lists_valid_names() -> None:
 
 def test_override_file_merges_tables_and_replaces_arrays(tmp_path: Path) -> None:
     f = tmp_path / "o.toml"
-    f.write_text('seed = 5\n[camera]\nn_lines = 64\n[[jitter]]\naxis = "yaw"\n'
-                 'amplitude_urad = 1.0\nfrequency_hz = 2.0\n')
+    f.write_text(
+        'seed = 5\n[camera]\nn_lines = 64\n[[jitter]]\naxis = "yaw"\n'
+        "amplitude_urad = 1.0\nfrequency_hz = 2.0\n"
+    )
     cfg = load_config("tiny", f)
     base = load_config("tiny")
     assert cfg.seed == 5 and cfg.camera.n_lines == 64

@@ -79,8 +79,18 @@ def test_geotiff_round_trip_with_nodata(tmp_path: Path) -> None:
     q = tmp_path / "int.tif"
     h = np.arange(100, dtype=np.int16).reshape(10, 10)
     h[3, 3] = -32768
-    with rasterio.open(q, "w", driver="GTiff", width=10, height=10, count=1, dtype="int16",
-                       crs="IAU_2015:49910", transform=dem.transform, nodata=-32768) as ds:
+    with rasterio.open(
+        q,
+        "w",
+        driver="GTiff",
+        width=10,
+        height=10,
+        count=1,
+        dtype="int16",
+        crs="IAU_2015:49910",
+        transform=dem.transform,
+        nodata=-32768,
+    ) as ds:
         ds.write(h, 1)
     back = GridTerrain.from_geotiff(q)
     assert np.isnan(back.heights[3, 3]) and back.heights[2, 2] == 22

@@ -20,10 +20,17 @@ def _manifest() -> SceneManifest:
     return SceneManifest(
         name="x",
         reference=ReferenceSpec(ortho="ref/o.tif", dem="/abs/d.tif"),
-        strips=(StripSpec(id="s1", ccds=(
-            CcdSpec(name="ccd1", image="s1/1.tif", camera="s1/cam.json", camera_ccd="ccd1"),
-            CcdSpec(name="ccd2", image="s1/2.tif", camera="s1/2.RPB"))),),
-        truth=TruthSpec(dem="t/dem.tif", cameras={"s1": "t/s1.json"}, ortho_offset_m=(1.5, 2)))
+        strips=(
+            StripSpec(
+                id="s1",
+                ccds=(
+                    CcdSpec(name="ccd1", image="s1/1.tif", camera="s1/cam.json", camera_ccd="ccd1"),
+                    CcdSpec(name="ccd2", image="s1/2.tif", camera="s1/2.RPB"),
+                ),
+            ),
+        ),
+        truth=TruthSpec(dem="t/dem.tif", cameras={"s1": "t/s1.json"}, ortho_offset_m=(1.5, 2)),
+    )
 
 
 def test_round_trip(tmp_path: Path) -> None:

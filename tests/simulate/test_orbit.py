@@ -18,15 +18,22 @@ from planetref.simulate.orbit import (
 )
 from planetref.simulate.render import corner_rays
 
-NO_ERRORS = {"position_bias_m": [0.0, 0.0, 0.0], "position_drift_m_per_s": [0.0, 0.0, 0.0],
-             "attitude_bias_urad": [0.0, 0.0, 0.0], "attitude_drift_urad_per_s": [0.0, 0.0, 0.0],
-             "focal_length_error_ppm": 0.0}
+NO_ERRORS = {
+    "position_bias_m": [0.0, 0.0, 0.0],
+    "position_drift_m_per_s": [0.0, 0.0, 0.0],
+    "attitude_bias_urad": [0.0, 0.0, 0.0],
+    "attitude_drift_urad_per_s": [0.0, 0.0, 0.0],
+    "focal_length_error_ppm": 0.0,
+}
 
 
 def _flat_dem(cfg: SimulationConfig) -> GridTerrain:
     grid = MapGrid(-3000.0, 3000.0, 10.0, 600, 600)
-    return GridTerrain(np.zeros(grid.shape, np.float32), grid.transform,
-                       local_crs_wkt(cfg.site.lat_deg, cfg.site.lon_deg))
+    return GridTerrain(
+        np.zeros(grid.shape, np.float32),
+        grid.transform,
+        local_crs_wkt(cfg.site.lat_deg, cfg.site.lon_deg),
+    )
 
 
 def test_angles_from_rotation_inverts_rotation_matrix() -> None:
@@ -44,8 +51,9 @@ def test_orbit_is_circular_and_tracks_the_heading() -> None:
     # Body-fixed velocity at t = 0 is horizontal, along the heading.
     frame = orb.frame(np.zeros(1))[0]
     lat, lon = math.radians(25.0), math.radians(110.0)
-    north = np.array([-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon),
-                      math.cos(lat)])
+    north = np.array(
+        [-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon), math.cos(lat)]
+    )
     assert math.degrees(math.acos(frame[:, 0] @ north)) == pytest.approx(8.0, abs=1e-6)
     # Numerical derivative of the position is the velocity.
     dt = 1e-3
@@ -56,8 +64,10 @@ def test_orbit_is_circular_and_tracks_the_heading() -> None:
 
 
 def test_truth_camera_geometry_and_jitter(mini_config) -> None:  # type: ignore[no-untyped-def]
-    cfg = mini_config(jitter=[{"axis": "roll", "amplitude_urad": 20.0, "frequency_hz": 40.0}],
-                      initial_errors=NO_ERRORS)
+    cfg = mini_config(
+        jitter=[{"axis": "roll", "amplitude_urad": 20.0, "frequency_hz": 40.0}],
+        initial_errors=NO_ERRORS,
+    )
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
     cam = sc.truth
     f = cfg.camera.pixel_pitch_mm * cfg.orbit.altitude_m / cfg.camera.gsd_m
@@ -93,18 +103,23 @@ def test_renderer_rays_equal_look_rays(mini_config) -> None:  # type: ignore[no-
     np.testing.assert_allclose(np.repeat(o, 3, axis=0), o2, atol=1e-6)
 
 
-@pytest.mark.parametrize(("errors", "check"), [
-    ({"position_bias_m": [40.0, 0.0, 0.0]}, {"along": 40.0, "cross": 0.0}),
-    ({"position_bias_m": [0.0, -25.0, 0.0]}, {"along": 0.0, "cross": -25.0}),
-    ({"attitude_bias_urad": [150.0, 0.0, 0.0]}, {"along": 0.0, "cross": 150e-6 * 265e3}),
-    ({"attitude_bias_urad": [0.0, -250.0, 0.0]}, {"along": 250e-6 * 265e3, "cross": 0.0}),
-])
+@pytest.mark.parametrize(
+    ("errors", "check"),
+    [
+        ({"position_bias_m": [40.0, 0.0, 0.0]}, {"along": 40.0, "cross": 0.0}),
+        ({"position_bias_m": [0.0, -25.0, 0.0]}, {"along": 0.0, "cross": -25.0}),
+        ({"attitude_bias_urad": [150.0, 0.0, 0.0]}, {"along": 0.0, "cross": 150e-6 * 265e3}),
+        ({"attitude_bias_urad": [0.0, -250.0, 0.0]}, {"along": 250e-6 * 265e3, "cross": 0.0}),
+    ],
+)
 def test_initial_camera_is_off_by_the_configured_amounts(  # type: ignore[no-untyped-def]
-        mini_config, errors, check) -> None:
+    mini_config, errors, check
+) -> None:
     cfg = mini_config(initial_errors={**NO_ERRORS, **errors}, jitter=[])
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
-    e = measure_initial_errors(sc.truth, sc.initial, _flat_dem(cfg),
-                               sc.orbit.frame(np.zeros(1))[0], 5)
+    e = measure_initial_errors(
+        sc.truth, sc.initial, _flat_dem(cfg), sc.orbit.frame(np.zeros(1))[0], 5
+    )
     g = e["ground_m"]
     assert g["along"]["mean"] == pytest.approx(check["along"], abs=0.5)
     assert g["cross"]["mean"] == pytest.approx(check["cross"], abs=0.5)
@@ -113,8 +128,9 @@ def test_initial_camera_is_off_by_the_configured_amounts(  # type: ignore[no-unt
 def test_focal_length_error_scales_the_swath(mini_config) -> None:  # type: ignore[no-untyped-def]
     cfg = mini_config(initial_errors={**NO_ERRORS, "focal_length_error_ppm": 1000.0}, jitter=[])
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
-    e = measure_initial_errors(sc.truth, sc.initial, _flat_dem(cfg),
-                               sc.orbit.frame(np.zeros(1))[0], 5)
+    e = measure_initial_errors(
+        sc.truth, sc.initial, _flat_dem(cfg), sc.orbit.frame(np.zeros(1))[0], 5
+    )
     # A longer focal length shrinks the ground swath by 1e-3: the outermost sample of
     # the outer CCDs (about 88 m from the centre) moves by about 0.09 m.
     half = 0.5 * (3 * 64 - 2 * 8) * cfg.camera.gsd_m

@@ -19,8 +19,9 @@ from planetref.simulate.photometry import (
 )
 
 
-def _flat_model(sun: SunConfig, model: str = "lambert", height: np.ndarray | None = None,
-                sky: float = 0.0) -> RadianceModel:
+def _flat_model(
+    sun: SunConfig, model: str = "lambert", height: np.ndarray | None = None, sky: float = 0.0
+) -> RadianceModel:
     grid = MapGrid(0.0, 200.0, 1.0, 200, 200)
     h = np.zeros(grid.shape, np.float32) if height is None else height
     shadow = cast_shadow(h, 1.0, sun)

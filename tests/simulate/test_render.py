@@ -46,19 +46,21 @@ def test_ortho_georeference_puts_features_at_their_true_place(mini_config) -> No
     from planetref.simulate.photometry import RadianceModel, ShadingFields
     from planetref.simulate.reference import render_ortho
 
-    cfg = mini_config(reference={"ortho_sensor": {"read_noise_e": 0.0, "bit_depth": 16,
-                                                  "full_well_e": 60000.0}})
+    cfg = mini_config(
+        reference={"ortho_sensor": {"read_noise_e": 0.0, "bit_depth": 16, "full_well_e": 60000.0}}
+    )
     sm = build_scene_model(cfg)
     grid = sm.grid
     flat = np.zeros(grid.shape, np.float32)
     albedo = np.full(grid.shape, 0.02, np.float32)
     r0, c0 = grid.rows // 2 + 7, grid.cols // 2 - 11
-    albedo[r0:r0 + 3, c0:c0 + 3] = 0.9  # 3 x 3 cells of 2 m
+    albedo[r0 : r0 + 3, c0 : c0 + 3] = 0.9  # 3 x 3 cells of 2 m
     fields = ShadingFields(grid, flat, albedo, np.zeros(grid.shape), flat)
     phot = cfg.photometry
     model = RadianceModel(fields, sm.tiles, phot.reference_sun, phot, cfg.albedo, 0.0)
-    ortho = render_ortho(sm.ortho_grid, sm.ref, sm.local, model, cfg.reference,
-                         np.random.default_rng(0)).astype(float)
+    ortho = render_ortho(
+        sm.ortho_grid, sm.ref, sm.local, model, cfg.reference, np.random.default_rng(0)
+    ).astype(float)
     # Expected position: the square's centre, through lon/lat, in the reference CRS.
     x = grid.x0 + (c0 + 1.5) * grid.res
     y = grid.y0 - (r0 + 1.5) * grid.res

@@ -74,12 +74,18 @@ def test_truth_is_consistent_with_the_camera(mini_scene: Path) -> None:
 
 
 def _all_files(root: Path) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(root).as_posix(): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
-def test_same_seed_gives_identical_files(mini_scene: Path, mini_config, tmp_path: Path  # type: ignore[no-untyped-def]
-                                         ) -> None:
+def test_same_seed_gives_identical_files(
+    mini_scene: Path,
+    mini_config,
+    tmp_path: Path,  # type: ignore[no-untyped-def]
+) -> None:
     again = tmp_path / "again"
     simulate_scene(mini_config(seed=7), again)
     a, b = _all_files(mini_scene), _all_files(again)
@@ -94,8 +100,11 @@ def test_same_seed_gives_identical_files(mini_scene: Path, mini_config, tmp_path
             assert a[name] != c[name], name
 
 
-def test_ortho_offset_shifts_the_geotransform_only(mini_scene: Path, mini_config,  # type: ignore[no-untyped-def]
-                                                   tmp_path: Path) -> None:
+def test_ortho_offset_shifts_the_geotransform_only(
+    mini_scene: Path,
+    mini_config,  # type: ignore[no-untyped-def]
+    tmp_path: Path,
+) -> None:
     out = tmp_path / "offset"
     simulate_scene(mini_config(seed=7, reference={"ortho_offset_m": [30.0, -20.0]}), out)
     m, root = load_manifest(out)
@@ -106,8 +115,11 @@ def test_ortho_offset_shifts_the_geotransform_only(mini_scene: Path, mini_config
     assert tb.c - ta.c == pytest.approx(30.0) and tb.f - ta.f == pytest.approx(-20.0)
 
 
-def test_refuses_non_empty_out_dir_and_cleans_up(mini_config, tmp_path: Path,  # type: ignore[no-untyped-def]
-                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+def test_refuses_non_empty_out_dir_and_cleans_up(
+    mini_config,
+    tmp_path: Path,  # type: ignore[no-untyped-def]
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     out = tmp_path / "busy"
     out.mkdir()
     (out / "keep.txt").write_text("x")
@@ -128,8 +140,12 @@ def test_refuses_non_empty_out_dir_and_cleans_up(mini_config, tmp_path: Path,  #
 
 
 def test_two_strips_share_one_truth(mini_config, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    cfg = mini_config(strips=[{"id": "a", "cross_offset_m": -40.0},
-                              {"id": "b", "cross_offset_m": 40.0, "pointing_deg": [0.02, 0, 0]}])
+    cfg = mini_config(
+        strips=[
+            {"id": "a", "cross_offset_m": -40.0},
+            {"id": "b", "cross_offset_m": 40.0, "pointing_deg": [0.02, 0, 0]},
+        ]
+    )
     out = tmp_path / "two"
     res = simulate_scene(cfg, out)
     m, root = load_manifest(out)

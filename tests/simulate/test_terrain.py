@@ -32,8 +32,19 @@ def test_fractal_field_is_unit_rms_and_red() -> None:
 
 
 def test_crater_sfd_follows_the_power_law() -> None:
-    cfg = load_config("tiny", {"terrain": {"craters": {
-        "density_per_km2": 3000.0, "d_min_m": 5.0, "d_max_m": 500.0, "sfd_slope": 2.0}}})
+    cfg = load_config(
+        "tiny",
+        {
+            "terrain": {
+                "craters": {
+                    "density_per_km2": 3000.0,
+                    "d_min_m": 5.0,
+                    "d_max_m": 500.0,
+                    "sfd_slope": 2.0,
+                }
+            }
+        },
+    )
     bounds = (0.0, 0.0, 3000.0, 3000.0)
     pop = sample_crater_population(cfg.terrain, bounds, np.random.default_rng(3))
     pad = 0.75 * 500.0
@@ -52,10 +63,8 @@ def test_crater_sfd_follows_the_power_law() -> None:
 
 def test_crater_profiles_fresh_and_degraded() -> None:
     rho = np.linspace(0.0, 3.5, 351)
-    fresh = crater_profile(rho, depth_ratio=0.2, rim_ratio=0.04, diameter_m=100.0,
-                           degradation=0.0)
-    old = crater_profile(rho, depth_ratio=0.2, rim_ratio=0.04, diameter_m=100.0,
-                         degradation=0.8)
+    fresh = crater_profile(rho, depth_ratio=0.2, rim_ratio=0.04, diameter_m=100.0, degradation=0.0)
+    old = crater_profile(rho, depth_ratio=0.2, rim_ratio=0.04, diameter_m=100.0, degradation=0.8)
     # Fresh: rim-to-floor depth 20 m, rim 4 m high at rho = 1, nothing beyond 3 R.
     assert fresh.max() - fresh.min() == pytest.approx(20.0, rel=1e-3)
     assert fresh[100] == pytest.approx(4.0, rel=1e-3)
@@ -67,8 +76,9 @@ def test_crater_profiles_fresh_and_degraded() -> None:
 
 
 def test_terrain_statistics_plains_are_smooth_and_reference_lacks_relief() -> None:
-    cfg = load_config("tiny", {"terrain": {"plains": {"fraction": 0.4},
-                                           "dunes": {"enabled": False}}})
+    cfg = load_config(
+        "tiny", {"terrain": {"plains": {"fraction": 0.4}, "dunes": {"enabled": False}}}
+    )
     grid = MapGrid.covering(-600, -600, 600, 600, 2.0, align=64.0)
     coarse = MapGrid.covering(-3000, -3000, 3000, 3000, 64.0, align=64.0)
     t = generate_terrain(cfg, grid, coarse, _streams())

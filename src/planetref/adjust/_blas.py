@@ -33,8 +33,13 @@ def _openblas() -> list[tuple[object, object]]:
     found = []
     try:
         with open("/proc/self/maps", encoding="utf-8") as fh:
-            paths = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower()
-                            and ln.split()[-1].startswith("/")})
+            paths = sorted(
+                {
+                    ln.split()[-1]
+                    for ln in fh
+                    if "openblas" in ln.lower() and ln.split()[-1].startswith("/")
+                }
+            )
     except OSError:
         paths = []
     for p in paths:

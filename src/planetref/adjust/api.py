@@ -130,8 +130,13 @@ class AdjustmentResult:
 
 
 # ------------------------------------------------------------------ geometry helpers
-def rays(camera: Any, line: F64, sample: F64, ccd: str | None,
-         heights: tuple[float, float] = (-10_000.0, 10_000.0)) -> tuple[F64, F64]:
+def rays(
+    camera: Any,
+    line: F64,
+    sample: F64,
+    ccd: str | None,
+    heights: tuple[float, float] = (-10_000.0, 10_000.0),
+) -> tuple[F64, F64]:
     """Body-fixed rays of image points of any camera, from two terrain intersections.
 
     Returns:
@@ -145,8 +150,9 @@ def rays(camera: Any, line: F64, sample: F64, ccd: str | None,
     return hi, d
 
 
-def triangulate(network: Network, cameras: list[Any], points: NDArray[np.intp],
-                obs_mask: NDArray[np.bool_]) -> F64:
+def triangulate(
+    network: Network, cameras: list[Any], points: NDArray[np.intp], obs_mask: NDArray[np.bool_]
+) -> F64:
     """Least-squares intersection of the rays of each point's observations.
 
     Args:
@@ -191,8 +197,7 @@ def triangulate(network: Network, cameras: list[Any], points: NDArray[np.intp],
     return out
 
 
-def _ground_error_m(network: Network, cameras: list[Any], obs: NDArray[np.intp],
-                    xyz: F64) -> F64:
+def _ground_error_m(network: Network, cameras: list[Any], obs: NDArray[np.intp], xyz: F64) -> F64:
     """Metres between each observation's ray at its point's height and the point."""
     out = np.full(len(obs), np.nan)
     for ci, cam in enumerate(cameras):
@@ -213,8 +218,12 @@ def _ground_error_m(network: Network, cameras: list[Any], obs: NDArray[np.intp],
 
 
 # ------------------------------------------------------------------------- adjust
-def adjust(network: Network, config: AdjustConfig | dict[str, Any] | None = None, *,
-           progress: Callable[[str], None] | None = None) -> AdjustmentResult:
+def adjust(
+    network: Network,
+    config: AdjustConfig | dict[str, Any] | None = None,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> AdjustmentResult:
     """Adjust the cameras (and unknown points) of a network.
 
     Args:
@@ -241,8 +250,11 @@ def adjust(network: Network, config: AdjustConfig | dict[str, Any] | None = None
         return _adjust(network, config, progress)
 
 
-def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
-            progress: Callable[[str], None] | None) -> AdjustmentResult:
+def _adjust(
+    network: Network,
+    config: AdjustConfig | dict[str, Any] | None,
+    progress: Callable[[str], None] | None,
+) -> AdjustmentResult:
     t0 = time.perf_counter()
     cfg = validate_config(config if config is not None else {})
     net = network
@@ -252,8 +264,9 @@ def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
         warnings.append(msg)
         log.warning(msg)
 
-    models = [parameterize(cid, cam, cfg) for cid, cam in zip(net.camera_ids, net.cameras,
-                                                               strict=True)]
+    models = [
+        parameterize(cid, cam, cfg) for cid, cam in zip(net.camera_ids, net.cameras, strict=True)
+    ]
     initial_cams = list(net.cameras)
     m_all = net.n_obs
     free_pt = np.all(np.isinf(net.point_sigma_m), axis=1)
@@ -264,8 +277,10 @@ def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
         xyz0[missing] = triangulate(net, initial_cams, missing, candidates)
         lost = missing[~np.all(np.isfinite(xyz0[missing]), axis=1)]
         if lost.size:
-            warn(f"{lost.size} free point(s) without coordinates could not be triangulated "
-                 f"(fewer than two rays); their observations are unusable")
+            warn(
+                f"{lost.size} free point(s) without coordinates could not be triangulated "
+                f"(fewer than two rays); their observations are unusable"
+            )
 
     solver = BundleSolver(net, models, cfg.solver, progress=progress)
     has_xyz = np.all(np.isfinite(xyz0[net.obs_point]), axis=1)
@@ -293,17 +308,22 @@ def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
     usable = candidates & valid0
     n_bad = int(np.count_nonzero(candidates & ~valid0))
     if n_bad:
-        warn(f"{n_bad} observation(s) cannot be projected with the initial cameras; "
-             f"they are unusable")
+        warn(
+            f"{n_bad} observation(s) cannot be projected with the initial cameras; "
+            f"they are unusable"
+        )
     before_support = usable.copy()
     usable = supported(usable, net.obs_point, free_pt, cfg.observations.min_tie_observations)
     n_weak = int(np.count_nonzero(before_support & ~usable))
     if n_weak:
-        warn(f"{n_weak} observation(s) of free points seen fewer than "
-             f"{cfg.observations.min_tie_observations} times are unusable")
+        warn(
+            f"{n_weak} observation(s) of free points seen fewer than "
+            f"{cfg.observations.min_tie_observations} times are unusable"
+        )
     if not np.any(usable):
-        raise AdjustmentError("no usable observations: none can be projected with the "
-                              "initial cameras")
+        raise AdjustmentError(
+            "no usable observations: none can be projected with the initial cameras"
+        )
 
     # Every parameter group must be observed (or be weighted, if so configured).
     for i, model in enumerate(models):
@@ -326,8 +346,9 @@ def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
         obs = np.flatnonzero(inlier)
         if progress is not None:
             progress(f"round {rnd + 1}: {obs.size} observations")
-        c, xyz, rep, lin, stats = solver.run(c, xyz, obs, xyz_start,
-                                             initial=lin0 if rnd == 0 else None)
+        c, xyz, rep, lin, stats = solver.run(
+            c, xyz, obs, xyz_start, initial=lin0 if rnd == 0 else None
+        )
         lin0 = None
         last_used = inlier.copy()
         # The final linearisation holds the residuals of the observations it used; only
@@ -352,15 +373,17 @@ def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
             stable = rep.converged
             break
         changed = int(np.count_nonzero(new != inlier))
-        log.info("round %d: RMSE %.4g px, %d observation(s) change status", rnd + 1, rmse,
-                 changed)
+        log.info("round %d: RMSE %.4g px, %d observation(s) change status", rnd + 1, rmse, changed)
         if not np.any(new):
-            raise AdjustmentError(f"the {cfg.outliers.k_rmse} x RMSE rule rejected every "
-                                  f"observation")
+            raise AdjustmentError(
+                f"the {cfg.outliers.k_rmse} x RMSE rule rejected every observation"
+            )
         inlier = new
     else:
-        warn(f"the inlier set did not stabilise in {cfg.outliers.max_rounds} rounds; the "
-             f"result is that of the last round")
+        warn(
+            f"the inlier set did not stabilise in {cfg.outliers.max_rounds} rounds; the "
+            f"result is that of the last round"
+        )
     inlier = last_used
     # Observations of free points that lost their support cannot be re-tested fairly.
     status = np.full(m_all, "outlier", dtype="<U8")
@@ -380,31 +403,47 @@ def _adjust(network: Network, config: AdjustConfig | dict[str, Any] | None,
     corr = np.abs(np.triu(np.asarray(stats["correlation"]), 1))
     if corr.size and corr.max() > NEAR_SINGULAR_CORRELATION:
         i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
-        warn(f"nearly singular: {solver.names[i]} and {solver.names[j]} correlate at "
-             f"{corr[i, j]:.7f}; the observations hardly separate them (a datum defect?): "
-             f"fix or weight one of them")
+        warn(
+            f"nearly singular: {solver.names[i]} and {solver.names[j]} correlate at "
+            f"{corr[i, j]:.7f}; the observations hardly separate them (a datum defect?): "
+            f"fix or weight one of them"
+        )
     metrics = _metrics(net, res0, residual, status, inlier, usable)
     if chk.size:
-        metrics["check"] = _check_metrics(net, initial_cams, cams_after, chk, res0, residual,
-                                          xyz0)
+        metrics["check"] = _check_metrics(net, initial_cams, cams_after, chk, res0, residual, xyz0)
     result = AdjustmentResult(
-        network=net, config=cfg, models=models,
+        network=net,
+        config=cfg,
+        models=models,
         cameras_initial=dict(zip(net.camera_ids, initial_cams, strict=True)),
         cameras=dict(zip(net.camera_ids, cams_after, strict=True)),
-        parameter_names=list(solver.names), parameter_units=list(solver.units),
-        parameter_mode=solver.mode.copy(), x0=solver.x0.copy(), x=c,
-        sigma=np.asarray(stats["sigma"]), covariance=np.asarray(stats["covariance"]),
+        parameter_names=list(solver.names),
+        parameter_units=list(solver.units),
+        parameter_mode=solver.mode.copy(),
+        x0=solver.x0.copy(),
+        x=c,
+        sigma=np.asarray(stats["sigma"]),
+        covariance=np.asarray(stats["covariance"]),
         correlation=np.asarray(stats["correlation"]),
-        point_xyz_initial=xyz0, point_xyz=np.where(np.isfinite(xyz0), xyz, np.nan),
-        residual_initial=res0, residual=residual, status=status,
-        sigma0=float(stats["sigma0"]), dof=int(stats["dof"]), metrics=metrics,
-        rounds=rounds, converged=stable, warnings=warnings,
-        seconds=time.perf_counter() - t0)
+        point_xyz_initial=xyz0,
+        point_xyz=np.where(np.isfinite(xyz0), xyz, np.nan),
+        residual_initial=res0,
+        residual=residual,
+        status=status,
+        sigma0=float(stats["sigma0"]),
+        dof=int(stats["dof"]),
+        metrics=metrics,
+        rounds=rounds,
+        converged=stable,
+        warnings=warnings,
+        seconds=time.perf_counter() - t0,
+    )
     return result
 
 
-def _set_threshold(solver: BundleSolver, cfg: AdjustConfig, residual: F64,
-                   inlier: NDArray[np.bool_], first: bool) -> None:
+def _set_threshold(
+    solver: BundleSolver, cfg: AdjustConfig, residual: F64, inlier: NDArray[np.bool_], first: bool
+) -> None:
     """Robust-loss threshold (normalised units) for the next LM run."""
     sc = cfg.solver
     if sc.loss == "linear" or (sc.loss_rounds == "first" and not first):
@@ -414,7 +453,7 @@ def _set_threshold(solver: BundleSolver, cfg: AdjustConfig, residual: F64,
     solver.loss = sc.loss
     net = solver.net
     if sc.loss_scale_px is not None:
-        sig = np.sqrt(np.mean(net.obs_sigma_px ** 2, axis=1))
+        sig = np.sqrt(np.mean(net.obs_sigma_px**2, axis=1))
         solver.threshold = sc.loss_threshold * sc.loss_scale_px / sig
         return
     s = np.sqrt(np.sum(residual[inlier] ** 2 * solver.obs_w0[inlier], axis=1))
@@ -422,16 +461,31 @@ def _set_threshold(solver: BundleSolver, cfg: AdjustConfig, residual: F64,
     solver.threshold = sc.loss_threshold * (scale if math.isfinite(scale) else 1.0)
 
 
-def _round_summary(rnd: int, inlier: NDArray[np.bool_], rmse: float, rep: LmReport
-                   ) -> dict[str, Any]:
-    return {"round": rnd + 1, "n_observations": int(np.count_nonzero(inlier)),
-            "rmse_px": rmse, "iterations": rep.iterations, "evaluations": rep.evaluations,
-            "cost_initial": rep.cost_initial, "cost_final": rep.cost_final,
-            "converged": rep.converged, "reason": rep.reason, "seconds": rep.seconds}
+def _round_summary(
+    rnd: int, inlier: NDArray[np.bool_], rmse: float, rep: LmReport
+) -> dict[str, Any]:
+    return {
+        "round": rnd + 1,
+        "n_observations": int(np.count_nonzero(inlier)),
+        "rmse_px": rmse,
+        "iterations": rep.iterations,
+        "evaluations": rep.evaluations,
+        "cost_initial": rep.cost_initial,
+        "cost_final": rep.cost_final,
+        "converged": rep.converged,
+        "reason": rep.reason,
+        "seconds": rep.seconds,
+    }
 
 
-def _metrics(net: Network, res0: F64, res: F64, status: NDArray[np.str_],
-             inlier: NDArray[np.bool_], usable: NDArray[np.bool_]) -> dict[str, Any]:
+def _metrics(
+    net: Network,
+    res0: F64,
+    res: F64,
+    status: NDArray[np.str_],
+    inlier: NDArray[np.bool_],
+    usable: NDArray[np.bool_],
+) -> dict[str, Any]:
     adjusted = ~net.obs_check
 
     def block(sel: NDArray[np.bool_]) -> dict[str, Any]:
@@ -456,8 +510,15 @@ def _metrics(net: Network, res0: F64, res: F64, status: NDArray[np.str_],
     return out
 
 
-def _check_metrics(net: Network, cams0: list[Any], cams1: list[Any], chk: NDArray[np.intp],
-                   res0: F64, res1: F64, xyz: F64) -> dict[str, Any]:
+def _check_metrics(
+    net: Network,
+    cams0: list[Any],
+    cams1: list[Any],
+    chk: NDArray[np.intp],
+    res0: F64,
+    res1: F64,
+    xyz: F64,
+) -> dict[str, Any]:
     def stats(res: F64, cams: list[Any]) -> dict[str, float | int]:
         r = res[chk]
         length = np.hypot(r[:, 0], r[:, 1])
@@ -465,10 +526,12 @@ def _check_metrics(net: Network, cams0: list[Any], cams1: list[Any], chk: NDArra
         metres = _ground_error_m(net, cams, chk, xyz)
         okm = np.isfinite(metres)
         nan = float("nan")
-        return {"rms_px": float(np.sqrt(np.mean(length[ok] ** 2))) if ok.any() else nan,
-                "max_px": float(np.max(length[ok])) if ok.any() else nan,
-                "rms_m": float(np.sqrt(np.mean(metres[okm] ** 2))) if okm.any() else nan,
-                "max_m": float(np.max(metres[okm])) if okm.any() else nan,
-                "n": int(np.count_nonzero(ok))}
+        return {
+            "rms_px": float(np.sqrt(np.mean(length[ok] ** 2))) if ok.any() else nan,
+            "max_px": float(np.max(length[ok])) if ok.any() else nan,
+            "rms_m": float(np.sqrt(np.mean(metres[okm] ** 2))) if okm.any() else nan,
+            "max_m": float(np.max(metres[okm])) if okm.any() else nan,
+            "n": int(np.count_nonzero(ok)),
+        }
 
     return {"before": stats(res0, cams0), "after": stats(res1, cams1)}

@@ -57,16 +57,24 @@ __all__ = [
 Mode = Literal["free", "fixed", "weighted"]
 
 _LENGTH = {"m": 1.0, "km": 1e3, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6}
-_ANGLE = {"rad": 1.0, "mrad": 1e-3, "urad": 1e-6, "µrad": 1e-6,
-          "arcsec": math.pi / 648000.0, "deg": math.pi / 180.0}
+_ANGLE = {
+    "rad": 1.0,
+    "mrad": 1e-3,
+    "urad": 1e-6,
+    "µrad": 1e-6,
+    "arcsec": math.pi / 648000.0,
+    "deg": math.pi / 180.0,
+}
 _KINDS: dict[str, dict[str, float]] = {
     "m": _LENGTH,
     "mm": {k: v * 1e3 for k, v in _LENGTH.items()},
     "rad": _ANGLE,
     "m/s": {f"{k}/s": v for k, v in _LENGTH.items()},
     "rad/s": {f"{k}/s": v for k, v in _ANGLE.items()},
-    "rad/s2": {**{f"{k}/s2": v for k, v in _ANGLE.items()},
-               **{f"{k}/s^2": v for k, v in _ANGLE.items()}},
+    "rad/s2": {
+        **{f"{k}/s2": v for k, v in _ANGLE.items()},
+        **{f"{k}/s^2": v for k, v in _ANGLE.items()},
+    },
 }
 _QUANTITY = re.compile(r"^\s*([-+0-9.eE]+)\s*([^\s]+)\s*$")
 
@@ -96,8 +104,9 @@ def parse_quantity(value: Any, unit: str) -> float | None:
         m = _QUANTITY.match(value)
         table = _KINDS[unit]
         if m is None or m.group(2) not in table:
-            raise ValueError(f"expected '<number> <unit>' with a unit among "
-                             f"{sorted(table)}, got {value!r}")
+            raise ValueError(
+                f"expected '<number> <unit>' with a unit among {sorted(table)}, got {value!r}"
+            )
         try:
             number = float(m.group(1))
         except ValueError:
@@ -418,6 +427,9 @@ def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"]) or None
-        raise InputError(f"{err['msg']} (input: {err.get('input')!r}); "
-                         f"{exc.error_count()} error(s) in the adjustment configuration",
-                         path=source, field=loc) from None
+        raise InputError(
+            f"{err['msg']} (input: {err.get('input')!r}); "
+            f"{exc.error_count()} error(s) in the adjustment configuration",
+            path=source,
+            field=loc,
+        ) from None

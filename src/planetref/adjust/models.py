@@ -131,8 +131,15 @@ class AdjustableCamera(Protocol):
     mode: NDArray[np.int8]
     pattern_columns: NDArray[np.intp]
 
-    def evaluate(self, x: F64, xyz: F64, ccd: int, line_guess: F64,
-                 rate_guess: F64 | None = None, partials: bool = True) -> Evaluation:
+    def evaluate(
+        self,
+        x: F64,
+        xyz: F64,
+        ccd: int,
+        line_guess: F64,
+        rate_guess: F64 | None = None,
+        partials: bool = True,
+    ) -> Evaluation:
         """Project points into CCD ``ccd`` with parameters ``x``, with partials.
 
         ``line_guess`` and ``rate_guess`` are the previous evaluation's ``line`` and
@@ -157,9 +164,9 @@ class AdjustableCamera(Protocol):
 _FACTORIES: list[tuple[type, Callable[..., AdjustableCamera]]] = []
 
 
-def register_parameterization(camera_type: type,
-                              factory: Callable[[str, Any, AdjustConfig, bool],
-                                                AdjustableCamera]) -> None:
+def register_parameterization(
+    camera_type: type, factory: Callable[[str, Any, AdjustConfig, bool], AdjustableCamera]
+) -> None:
     """Register how cameras of ``camera_type`` are adjusted.
 
     Args:
@@ -192,13 +199,14 @@ def parameterize(camera_id: str, camera: Any, config: AdjustConfig) -> Adjustabl
         CsmLineScanCamera = None  # type: ignore[assignment,misc]
     if CsmLineScanCamera is not None and isinstance(camera, CsmLineScanCamera):
         return CsmParameterization(camera_id, camera, config.csm, fixed=fixed)
-    raise InputError(f"camera {camera_id!r} ({type(camera).__name__}) cannot be adjusted "
-                     f"rigorously; use a native line-scan or CSM line-scan ISD camera "
-                     f"(RPCs are refitted from an adjusted rigorous model)")
+    raise InputError(
+        f"camera {camera_id!r} ({type(camera).__name__}) cannot be adjusted "
+        f"rigorously; use a native line-scan or CSM line-scan ISD camera "
+        f"(RPCs are refitted from an adjusted rigorous model)"
+    )
 
 
-def _block(mode: Mode, sigma: float | None, n: int, fixed: bool
-           ) -> tuple[NDArray[np.int8], F64]:
+def _block(mode: Mode, sigma: float | None, n: int, fixed: bool) -> tuple[NDArray[np.int8], F64]:
     code = MODE_CODE["fixed" if fixed else mode]
     sig = np.full(n, np.inf if sigma is None or code != 1 else float(sigma))
     return np.full(n, code, np.int8), sig
@@ -224,8 +232,9 @@ class _State:
     depth: F64  # W (< 0 in front of the camera)
 
 
-_EMPTY_STATE = _State(*(np.empty(0) for _ in range(5)), np.empty(0, np.intp),
-                      np.empty(0), np.empty(0))
+_EMPTY_STATE = _State(
+    *(np.empty(0) for _ in range(5)), np.empty(0, np.intp), np.empty(0), np.empty(0)
+)
 
 
 class LineScanParameterization:
@@ -242,8 +251,14 @@ class LineScanParameterization:
         fixed: Hold every parameter fixed.
     """
 
-    def __init__(self, camera_id: str, camera: LineScanCamera, config: LineScanParameters,
-                 *, fixed: bool = False) -> None:
+    def __init__(
+        self,
+        camera_id: str,
+        camera: LineScanCamera,
+        config: LineScanParameters,
+        *,
+        fixed: bool = False,
+    ) -> None:
         self.camera_id = camera_id
         self.camera = camera
         self.config = config
@@ -270,13 +285,14 @@ class LineScanParameterization:
         pos_m, pos_s = _block(config.position.mode, config.position.sigma_m, n, fixed)
         att_m, att_s = _block(config.attitude.mode, config.attitude.sigma_rad, n, fixed)
         for j in range(3):
-            mode[j:6 * n:6], sigma[j:6 * n:6] = pos_m, pos_s
-            mode[3 + j:6 * n:6], sigma[3 + j:6 * n:6] = att_m, att_s
+            mode[j : 6 * n : 6], sigma[j : 6 * n : 6] = pos_m, pos_s
+            mode[3 + j : 6 * n : 6], sigma[3 + j : 6 * n : 6] = att_m, att_s
         ib = config.interior
         for g in range(self._groups):
             base = 6 * n + 3 * g
-            for j, s in enumerate((ib.sigma_principal_point_mm, ib.sigma_principal_point_mm,
-                                   ib.sigma_focal_length_mm)):
+            for j, s in enumerate(
+                (ib.sigma_principal_point_mm, ib.sigma_principal_point_mm, ib.sigma_focal_length_mm)
+            ):
                 m_, s_ = _block(ib.mode, s, 1, fixed)
                 mode[base + j], sigma[base + j] = m_[0], s_[0]
         self.mode = mode
@@ -287,8 +303,8 @@ class LineScanParameterization:
         cols = np.full((n_win * self._groups, 6 * self._k + 3), -1, np.intp)
         for s in range(n_win):
             for g in range(self._groups):
-                cols[s * self._groups + g, :6 * self._k] = np.arange(6 * s, 6 * (s + self._k))
-                cols[s * self._groups + g, 6 * self._k:] = 6 * n + 3 * g + np.arange(3)
+                cols[s * self._groups + g, : 6 * self._k] = np.arange(6 * s, 6 * (s + self._k))
+                cols[s * self._groups + g, 6 * self._k :] = 6 * n + 3 * g + np.arange(3)
         self.pattern_columns = cols
         # Within one window the Lagrange basis polynomials are fixed: tabulate their
         # coefficients in tau = t - (window centre), lowest power first, so that weights
@@ -311,9 +327,9 @@ class LineScanParameterization:
 
     # ----------------------------------------------------------------- pieces
     def _split(self, x: F64, ccd: int) -> tuple[F64, F64]:
-        nodes = x[:6 * self._n_nodes].reshape(self._n_nodes, 6)
+        nodes = x[: 6 * self._n_nodes].reshape(self._n_nodes, 6)
         g = ccd if self._groups > 1 else 0
-        io = x[6 * self._n_nodes + 3 * g: 6 * self._n_nodes + 3 * g + 3]
+        io = x[6 * self._n_nodes + 3 * g : 6 * self._n_nodes + 3 * g + 3]
         return nodes, io
 
     def _window(self, t: F64) -> tuple[NDArray[np.intp], F64]:
@@ -342,8 +358,9 @@ class LineScanParameterization:
         """Detector offset (pixels) of points at given lines (no partials)."""
         return self._evaluate_at(poly, io, ccd, p, line, full=False)[0]
 
-    def _offset_sample(self, poly: F64, io: F64, ccd: int, p: F64, line: F64
-                       ) -> tuple[F64, F64, F64]:
+    def _offset_sample(
+        self, poly: F64, io: F64, ccd: int, p: F64, line: F64
+    ) -> tuple[F64, F64, F64]:
         """Detector offset, sample and depth ``W`` at given lines (no partials)."""
         _, st = self._evaluate_at(poly, io, ccd, p, line, full=False)
         return st.off, st.samp, st.depth
@@ -352,8 +369,9 @@ class LineScanParameterization:
         """Offset, sample and every partial at given lines."""
         return self._evaluate_at(poly, io, ccd, p, line, full=True)[1]
 
-    def _evaluate_at(self, poly: F64, io: F64, ccd: int, p: F64, line: F64, *, full: bool
-                     ) -> tuple[F64, _State]:
+    def _evaluate_at(
+        self, poly: F64, io: F64, ccd: int, p: F64, line: F64, *, full: bool
+    ) -> tuple[F64, _State]:
         """The collinearity at given lines; with ``full`` also every partial."""
         cam = self.camera
         c = cam.ccds[ccd]
@@ -445,8 +463,9 @@ class LineScanParameterization:
     def _g(self, ccd: int) -> int:
         return ccd if self._groups > 1 else 0
 
-    def _project(self, poly: F64, io: F64, ccd: int, p: F64, line: F64, rate: F64 | None
-                 ) -> tuple[F64, F64, NDArray[np.bool_], F64]:
+    def _project(
+        self, poly: F64, io: F64, ccd: int, p: F64, line: F64, rate: F64 | None
+    ) -> tuple[F64, F64, NDArray[np.bool_], F64]:
         """Lines, samples, validity and rates without partials (cheap evaluations)."""
         line, rate, off = self._converge(poly, io, ccd, p, line, rate)
         off, samp, depth = self._offset_sample(poly, io, ccd, p, line)
@@ -455,16 +474,25 @@ class LineScanParameterization:
         # The chord rate is exact to ~1e-4 and the step below 1e-6 px: the line is exact
         # to ~1e-10 px; the sample moves by (dsample/dline) * step, far below 1e-9 px.
         line_out = line + step
-        valid = (np.isfinite(line_out) & np.isfinite(samp) & (depth < 0)
-                 & (np.abs(step) < 1e-3) & (line_out >= self._line_lo)
-                 & (line_out <= self._line_hi))
+        valid = (
+            np.isfinite(line_out)
+            & np.isfinite(samp)
+            & (depth < 0)
+            & (np.abs(step) < 1e-3)
+            & (line_out >= self._line_lo)
+            & (line_out <= self._line_hi)
+        )
         return line_out, samp, valid, rate
 
-    def _converge(self, poly: F64, io: F64, ccd: int, p: F64, line: F64, rate: F64 | None
-                  ) -> tuple[F64, F64, F64]:
+    def _converge(
+        self, poly: F64, io: F64, ccd: int, p: F64, line: F64, rate: F64 | None
+    ) -> tuple[F64, F64, F64]:
         """Chord iterations on the detector offset; returns ``(line, rate, offset)``."""
-        line = np.clip(np.where(np.isfinite(line), line, 0.5 * (self._line_lo + self._line_hi)),
-                       self._line_lo, self._line_hi)
+        line = np.clip(
+            np.where(np.isfinite(line), line, 0.5 * (self._line_lo + self._line_hi)),
+            self._line_lo,
+            self._line_hi,
+        )
         off = self._offset(poly, io, ccd, p, line)
         rate = np.full(len(line), np.nan) if rate is None else np.array(rate, np.float64)
         need = ~(np.isfinite(rate) & (rate != 0))
@@ -486,8 +514,9 @@ class LineScanParameterization:
             active[ia] = np.isfinite(step[ia]) & (np.abs(step[ia]) > _CHORD_TOL)
         return line, rate, off
 
-    def _chunk(self, poly: F64, io: F64, ccd: int, p: F64, line: F64, rate: F64 | None
-               ) -> tuple[F64, F64, NDArray[np.bool_], NDArray[np.intp], F64, F64, F64]:
+    def _chunk(
+        self, poly: F64, io: F64, ccd: int, p: F64, line: F64, rate: F64 | None
+    ) -> tuple[F64, F64, NDArray[np.bool_], NDArray[np.intp], F64, F64, F64]:
         # Cheap evaluations (offset only) first: chord steps with the rate of the previous
         # evaluation, or a one-line secant (the offset is linear in the line to ~1e-10 px
         # over a pixel), then one full evaluation with partials at the converged line.
@@ -498,9 +527,14 @@ class LineScanParameterization:
         # The final Newton step is applied to first order (its square is ~1e-12 px).
         line_out = line + step
         samp_out = st.samp + st.srate * step
-        valid = (np.isfinite(line_out) & np.isfinite(samp_out) & (st.depth < 0)
-                 & (np.abs(step) < 1e-3) & (line_out >= self._line_lo)
-                 & (line_out <= self._line_hi))
+        valid = (
+            np.isfinite(line_out)
+            & np.isfinite(samp_out)
+            & (st.depth < 0)
+            & (np.abs(step) < 1e-3)
+            & (line_out >= self._line_lo)
+            & (line_out <= self._line_hi)
+        )
         k = self._k
         m = len(line)
         # Implicit function theorem: dline/dq = -(d offset/dq) / (d offset/dline) and
@@ -512,16 +546,26 @@ class LineScanParameterization:
         np.multiply(imp[:, 0], st.srate[:, None], out=imp[:, 1])
         imp[:, 1] += st.raw[:, 1]
         d_params = np.empty((m, 2, 6 * k + 3))
-        np.multiply(imp[:, :, None, :6], st.w[:, None, :, None],
-                    out=d_params[:, :, :6 * k].reshape(m, 2, k, 6))
-        d_params[:, :, 6 * k:] = imp[:, :, 6:9]
+        np.multiply(
+            imp[:, :, None, :6],
+            st.w[:, None, :, None],
+            out=d_params[:, :, : 6 * k].reshape(m, 2, k, 6),
+        )
+        d_params[:, :, 6 * k :] = imp[:, :, 6:9]
         d_ground = imp[:, :, 9:]
         pattern = st.start * self._groups + self._g(ccd)
         return line_out, samp_out, valid, pattern, d_params, d_ground, st.rate
 
     # ----------------------------------------------------------------- protocol
-    def evaluate(self, x: F64, xyz: F64, ccd: int, line_guess: F64,
-                 rate_guess: F64 | None = None, partials: bool = True) -> Evaluation:
+    def evaluate(
+        self,
+        x: F64,
+        xyz: F64,
+        ccd: int,
+        line_guess: F64,
+        rate_guess: F64 | None = None,
+        partials: bool = True,
+    ) -> Evaluation:
         """Project ground points into a CCD with the partials of ``(line, sample)``.
 
         Lines, samples and partials are exact to ~1e-9 (pixels, relative) whatever
@@ -542,16 +586,24 @@ class LineScanParameterization:
         nodes, io = self._split(np.asarray(x, np.float64), ccd)
         p = np.asarray(xyz, np.float64)
         if not partials:
-            line, samp, valid, rate = self._project(self._eo_poly(nodes), io, ccd, p,
-                                                    np.array(line_guess, np.float64),
-                                                    rate_guess)
+            line, samp, valid, rate = self._project(
+                self._eo_poly(nodes), io, ccd, p, np.array(line_guess, np.float64), rate_guess
+            )
             bad = ~valid
             line[bad] = samp[bad] = rate[bad] = np.nan
             m = len(line)
-            return Evaluation(line, samp, valid, np.zeros(m, np.intp), np.empty((m, 2, 0)),
-                              np.empty((m, 2, 0)), rate)
+            return Evaluation(
+                line,
+                samp,
+                valid,
+                np.zeros(m, np.intp),
+                np.empty((m, 2, 0)),
+                np.empty((m, 2, 0)),
+                rate,
+            )
         line, samp, valid, pattern, dp, dg, rate = self._chunk(
-            self._eo_poly(nodes), io, ccd, p, np.array(line_guess, np.float64), rate_guess)
+            self._eo_poly(nodes), io, ccd, p, np.array(line_guess, np.float64), rate_guess
+        )
         if not np.all(valid):
             bad = ~valid
             line[bad] = samp[bad] = rate[bad] = np.nan
@@ -563,8 +615,8 @@ class LineScanParameterization:
     def build(self, x: F64) -> LineScanCamera:
         """The strip with parameters ``x`` (native camera)."""
         x = np.asarray(x, np.float64)
-        nodes = x[:6 * self._n_nodes].reshape(self._n_nodes, 6)
-        io = x[6 * self._n_nodes:].reshape(self._groups, 3)
+        nodes = x[: 6 * self._n_nodes].reshape(self._n_nodes, 6)
+        io = x[6 * self._n_nodes :].reshape(self._groups, 3)
         cam = self.camera
         if self._groups == 1:
             return cam.replace(nodes=nodes, interior=InteriorOrientation.from_array(io[0]))
@@ -576,9 +628,14 @@ class LineScanParameterization:
         for g, c in enumerate(cam.ccds):
             x0c, y0c, fc = io[g]
             s = fc / base.focal_length_mm
-            ccds.append(replace(c, x_mm=base.x0_mm + (c.x_mm - x0c) / s,
-                                y_mm=base.y0_mm + (c.y_mm - y0c) / s,
-                                pixel_pitch_mm=c.pixel_pitch_mm / s))
+            ccds.append(
+                replace(
+                    c,
+                    x_mm=base.x0_mm + (c.x_mm - x0c) / s,
+                    y_mm=base.y0_mm + (c.y_mm - y0c) / s,
+                    pixel_pitch_mm=c.pixel_pitch_mm / s,
+                )
+            )
         return cam.replace(nodes=nodes, ccds=tuple(ccds))
 
     def coverage(self, ccd: NDArray[np.intp], line: F64) -> list[CoverageIssue]:
@@ -588,20 +645,24 @@ class LineScanParameterization:
         (the two intervals the node's Lagrange basis function peaks over).
         """
         need = self.config.min_obs_per_node
-        if need <= 0 or np.all(self.mode[:6 * self._n_nodes] == 2):
+        if need <= 0 or np.all(self.mode[: 6 * self._n_nodes] == 2):
             return []
         t = self.camera.line_rates.time(np.asarray(line, np.float64))
         interval = np.searchsorted(self._times, t, side="right") - 1  # -1 .. N-1
-        per_interval = np.bincount(np.clip(interval + 1, 0, self._n_nodes),
-                                   minlength=self._n_nodes + 1)
+        per_interval = np.bincount(
+            np.clip(interval + 1, 0, self._n_nodes), minlength=self._n_nodes + 1
+        )
         # Node i is near intervals i-1 and i (index shifted by one above).
         counts = per_interval[:-1] + per_interval[1:]
         issues = []
         for i in range(self._n_nodes):
             sl = tuple(range(6 * i, 6 * i + 6))
             if counts[i] < need and np.any(self.mode[list(sl)] != 2):
-                issues.append(CoverageIssue(f"node {i} (line {self.camera.node_lines[i]:.1f})",
-                                            sl, int(counts[i]), need))
+                issues.append(
+                    CoverageIssue(
+                        f"node {i} (line {self.camera.node_lines[i]:.1f})", sl, int(counts[i]), need
+                    )
+                )
         return issues
 
     def weaken(self, issues: list[CoverageIssue]) -> list[str]:
@@ -618,20 +679,28 @@ class LineScanParameterization:
             raise AdjustmentError(
                 f"strip {self.camera_id!r}: too few observations near orientation node(s) "
                 f"{listing}; add observations, use fewer nodes, fix them, or set "
-                f"linescan.weak_nodes = 'weight'")
+                f"linescan.weak_nodes = 'weight'"
+            )
         if cfg.weak_nodes == "smooth" and self._n_nodes >= 3:
             self._smooth(issues)
-            return [f"strip {self.camera_id!r}: weak node(s) follow the corrections of their "
-                    f"neighbours ({listing})"]
+            return [
+                f"strip {self.camera_id!r}: weak node(s) follow the corrections of their "
+                f"neighbours ({listing})"
+            ]
         for issue in issues:
             for j in issue.indices:
                 if self.mode[j] == 2:
                     continue
                 self.mode[j] = 1
-                self.sigma[j] = (cfg.weak_node_position_sigma_m if j % 6 < 3
-                                 else cfg.weak_node_attitude_sigma_rad)
-        return [f"strip {self.camera_id!r}: weighted weak node(s) towards their initial "
-                f"values ({listing})"]
+                self.sigma[j] = (
+                    cfg.weak_node_position_sigma_m
+                    if j % 6 < 3
+                    else cfg.weak_node_attitude_sigma_rad
+                )
+        return [
+            f"strip {self.camera_id!r}: weighted weak node(s) towards their initial "
+            f"values ({listing})"
+        ]
 
     def _smooth(self, issues: list[CoverageIssue]) -> None:
         """Zero-second-difference constraints on the corrections of weak nodes.
@@ -697,8 +766,9 @@ class CsmParameterization:
         fixed: Hold every parameter fixed.
     """
 
-    def __init__(self, camera_id: str, camera: Any, config: CsmParameters, *,
-                 fixed: bool = False) -> None:
+    def __init__(
+        self, camera_id: str, camera: Any, config: CsmParameters, *, fixed: bool = False
+    ) -> None:
         self.camera_id = camera_id
         self.camera = camera
         self.config = config
@@ -709,13 +779,17 @@ class CsmParameterization:
             "position_rate": (t_half,) * 3,
             "pointing_offset": (height, height, swath),
             "pointing_rate": (height * t_half, height * t_half, swath * t_half),
-            "pointing_acceleration": (height * t_half ** 2, height * t_half ** 2,
-                                      swath * t_half ** 2),
+            "pointing_acceleration": (height * t_half**2, height * t_half**2, swath * t_half**2),
             "focal_length": (swath / f_mm,),
         }
-        sigma_field = {"position_offset": "sigma_m", "position_rate": "sigma_m_s",
-                       "pointing_offset": "sigma_rad", "pointing_rate": "sigma_rad_s",
-                       "pointing_acceleration": "sigma_rad_s2", "focal_length": "sigma_mm"}
+        sigma_field = {
+            "position_offset": "sigma_m",
+            "position_rate": "sigma_m_s",
+            "pointing_offset": "sigma_rad",
+            "pointing_rate": "sigma_rad_s",
+            "pointing_acceleration": "sigma_rad_s2",
+            "focal_length": "sigma_mm",
+        }
         index, names, mode, sigma = [], [], [], []
         for block, idx, labels in _CSM_TERMS:
             cfg = getattr(config, block)
@@ -725,8 +799,7 @@ class CsmParameterization:
             for j, lab, sc in zip(idx, labels, scale[block], strict=True):
                 index.append(j)
                 names.append(f"{lab}_m")
-                m_, s_ = _block(cfg.mode, None if raw_sigma is None else raw_sigma * sc, 1,
-                                False)
+                m_, s_ = _block(cfg.mode, None if raw_sigma is None else raw_sigma * sc, 1, False)
                 mode.append(m_[0])
                 sigma.append(s_[0])
         self._index = np.array(index, np.intp)
@@ -738,7 +811,7 @@ class CsmParameterization:
         self.sigma = np.array(sigma, np.float64)
         q = max(len(index), 1)
         cols = np.full((1, q), -1, np.intp)
-        cols[0, :len(index)] = np.arange(len(index))
+        cols[0, : len(index)] = np.arange(len(index))
         self.pattern_columns = cols
         self._cache: tuple[bytes, Any] | None = None
 
@@ -758,8 +831,15 @@ class CsmParameterization:
         ip = cam.ground_to_image(xyz)
         return ip.line, ip.sample, ip.valid
 
-    def evaluate(self, x: F64, xyz: F64, ccd: int, line_guess: F64,
-                 rate_guess: F64 | None = None, partials: bool = True) -> Evaluation:
+    def evaluate(
+        self,
+        x: F64,
+        xyz: F64,
+        ccd: int,
+        line_guess: F64,
+        rate_guess: F64 | None = None,
+        partials: bool = True,
+    ) -> Evaluation:
         """Project into the image with central-difference partials.
 
         Args:
@@ -777,8 +857,9 @@ class CsmParameterization:
         if not partials:
             line = np.where(valid, line, np.nan)
             samp = np.where(valid, samp, np.nan)
-            return Evaluation(line, samp, valid, np.zeros(m, np.intp), np.empty((m, 2, 0)),
-                              np.empty((m, 2, 0)))
+            return Evaluation(
+                line, samp, valid, np.zeros(m, np.intp), np.empty((m, 2, 0)), np.empty((m, 2, 0))
+            )
         q = self.pattern_columns.shape[1]
         d_params = np.zeros((m, 2, q))
         h = self.config.fd_step_m
@@ -831,11 +912,12 @@ class CsmParameterization:
                 elif block == "focal_length":
                     out["focal_length_correction_mm"] = -v * f_mm / swath
                 else:
-                    power = {"pointing_offset": 0, "pointing_rate": 1,
-                             "pointing_acceleration": 2}[block]
+                    power = {"pointing_offset": 0, "pointing_rate": 1, "pointing_acceleration": 2}[
+                        block
+                    ]
                     lever = swath if lab.startswith("kappa") else height
                     unit = {0: "rad", 1: "rad_s", 2: "rad_s2"}[power]
-                    out[f"{lab}_{unit}"] = v / (lever * t_half ** power)
+                    out[f"{lab}_{unit}"] = v / (lever * t_half**power)
         return out
 
     def coverage(self, ccd: NDArray[np.intp], line: F64) -> list[CoverageIssue]:
@@ -843,8 +925,11 @@ class CsmParameterization:
         free = np.flatnonzero(self.mode != 2)
         need = math.ceil(len(free) / 2) + 1 if free.size else 0
         if len(line) < need:
-            return [CoverageIssue(f"image {self.camera_id!r}", tuple(int(i) for i in free),
-                                  len(line), need)]
+            return [
+                CoverageIssue(
+                    f"image {self.camera_id!r}", tuple(int(i) for i in free), len(line), need
+                )
+            ]
         return []
 
     def weaken(self, issues: list[CoverageIssue]) -> list[str]:
@@ -856,6 +941,8 @@ class CsmParameterization:
         if not issues:
             return []
         i = issues[0]
-        raise AdjustmentError(f"image {self.camera_id!r}: {i.count} observation(s) cannot "
-                              f"determine its {len(i.indices)} correction term(s) "
-                              f"{list(self.names)}; fix the image or add observations")
+        raise AdjustmentError(
+            f"image {self.camera_id!r}: {i.count} observation(s) cannot "
+            f"determine its {len(i.indices)} correction term(s) "
+            f"{list(self.names)}; fix the image or add observations"
+        )

@@ -47,10 +47,26 @@ from planetref.tomlfile import read_toml
 
 __all__ = ["NetworkFile", "read_network", "safe_name"]
 
-REQUIRED_COLUMNS = ("point_id", "point_type", "apriori_x_m", "apriori_y_m", "apriori_z_m",
-                    "image_id", "sample", "line")
-OPTIONAL_COLUMNS = ("measure_id", "sigma_px", "sigma_line_px", "sigma_sample_px",
-                    "sigma_x_m", "sigma_y_m", "sigma_z_m", "check")
+REQUIRED_COLUMNS = (
+    "point_id",
+    "point_type",
+    "apriori_x_m",
+    "apriori_y_m",
+    "apriori_z_m",
+    "image_id",
+    "sample",
+    "line",
+)
+OPTIONAL_COLUMNS = (
+    "measure_id",
+    "sigma_px",
+    "sigma_line_px",
+    "sigma_sample_px",
+    "sigma_x_m",
+    "sigma_y_m",
+    "sigma_z_m",
+    "check",
+)
 POINT_TYPES = ("free", "fixed", "constrained")
 _TOP_KEYS = {"measures", "convention", "images", "adjustment"}
 
@@ -85,16 +101,16 @@ def safe_name(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "camera"
 
 
-def _float(text: str, path: Path, row: int, column: str, *, allow_empty: bool = False
-           ) -> float:
+def _float(text: str, path: Path, row: int, column: str, *, allow_empty: bool = False) -> float:
     s = text.strip()
     if s == "" and allow_empty:
         return math.nan
     try:
         v = float(s)
     except ValueError:
-        raise InputError(f"row {row}: expected a number, got {text!r}", path=path,
-                         field=column) from None
+        raise InputError(
+            f"row {row}: expected a number, got {text!r}", path=path, field=column
+        ) from None
     if not math.isfinite(v):
         raise InputError(f"row {row}: must be finite, got {text!r}", path=path, field=column)
     return v
@@ -109,8 +125,9 @@ def _bool(text: str, path: Path, row: int) -> bool:
     raise InputError(f"row {row}: expected true/false, got {text!r}", path=path, field="check")
 
 
-def read_network(path: str | os.PathLike[str],
-                 config: AdjustConfig | dict[str, Any] | None = None) -> NetworkFile:
+def read_network(
+    path: str | os.PathLike[str], config: AdjustConfig | dict[str, Any] | None = None
+) -> NetworkFile:
     """Read ``NETWORK.toml``, its measures CSV and its cameras.
 
     Args:
@@ -131,21 +148,25 @@ def read_network(path: str | os.PathLike[str],
     if unknown:
         raise InputError(f"unknown key(s) {unknown}; expected {sorted(_TOP_KEYS)}", path=p)
     if "measures" not in doc or not isinstance(doc["measures"], str):
-        raise InputError("missing or non-string 'measures' (the measures CSV)", path=p,
-                         field="measures")
+        raise InputError(
+            "missing or non-string 'measures' (the measures CSV)", path=p, field="measures"
+        )
     convention = doc.get("convention", "csm")
     if convention not in ("isis", "csm"):
-        raise InputError(f"must be 'isis' or 'csm', got {convention!r}", path=p,
-                         field="convention")
+        raise InputError(f"must be 'isis' or 'csm', got {convention!r}", path=p, field="convention")
     images = doc.get("images")
     if not isinstance(images, dict) or not images:
-        raise InputError("missing or empty [images] table (image_id -> camera file)", path=p,
-                         field="images")
+        raise InputError(
+            "missing or empty [images] table (image_id -> camera file)", path=p, field="images"
+        )
     table = doc.get("adjustment", {})
     if not isinstance(table, dict):
         raise InputError("must be a table", path=p, field="adjustment")
-    cfg = validate_config(config, source=str(p)) if config is not None else \
-        validate_config(table, source=str(p))
+    cfg = (
+        validate_config(config, source=str(p))
+        if config is not None
+        else validate_config(table, source=str(p))
+    )
     base = p.parent
 
     # Cameras: image ids that share a file are CCDs of one strip.
@@ -157,15 +178,20 @@ def read_network(path: str | os.PathLike[str],
         elif isinstance(entry, dict):
             extra = sorted(set(entry) - {"camera", "ccd"})
             if extra or not isinstance(entry.get("camera"), str):
-                raise InputError(f"expected a file name or {{camera = FILE, ccd = NAME}}, got "
-                                 f"{entry!r}", path=p, field=f"images.{image_id}")
+                raise InputError(
+                    f"expected a file name or {{camera = FILE, ccd = NAME}}, got {entry!r}",
+                    path=p,
+                    field=f"images.{image_id}",
+                )
             cam_file, ccd = entry["camera"], entry.get("ccd")
             if ccd is not None and not isinstance(ccd, str):
-                raise InputError(f"ccd must be a string, got {ccd!r}", path=p,
-                                 field=f"images.{image_id}.ccd")
+                raise InputError(
+                    f"ccd must be a string, got {ccd!r}", path=p, field=f"images.{image_id}.ccd"
+                )
         else:
-            raise InputError(f"expected a file name, got {entry!r}", path=p,
-                             field=f"images.{image_id}")
+            raise InputError(
+                f"expected a file name, got {entry!r}", path=p, field=f"images.{image_id}"
+            )
         f = (base / cam_file).resolve()
         by_file.setdefault(f, []).append((image_id, ccd))
     cameras: dict[str, Any] = {}
@@ -181,20 +207,27 @@ def read_network(path: str | os.PathLike[str],
         camera_files[cam_id] = f
         for image_id, ccd in entries:
             if ccd is not None and ccd not in cam.ccd_names:
-                raise InputError(f"camera {f.name} has no CCD {ccd!r} (it has "
-                                 f"{list(cam.ccd_names)})", path=p, field=f"images.{image_id}")
+                raise InputError(
+                    f"camera {f.name} has no CCD {ccd!r} (it has {list(cam.ccd_names)})",
+                    path=p,
+                    field=f"images.{image_id}",
+                )
             image_map[image_id] = (cam_id, ccd)
 
     csv_path = (base / doc["measures"]).resolve()
     if not csv_path.is_file():
         raise MissingFileError("measures file not found", path=csv_path)
     network = _read_measures(csv_path, convention, cameras, image_map, cfg)
-    return NetworkFile(network, cfg, dict(table), p, csv_path, convention, camera_files,
-                       image_map)
+    return NetworkFile(network, cfg, dict(table), p, csv_path, convention, camera_files, image_map)
 
 
-def _read_measures(path: Path, convention: str, cameras: dict[str, Any],
-                   image_map: dict[str, tuple[str, str | None]], cfg: AdjustConfig) -> Network:
+def _read_measures(
+    path: Path,
+    convention: str,
+    cameras: dict[str, Any],
+    image_map: dict[str, tuple[str, str | None]],
+    cfg: AdjustConfig,
+) -> Network:
     try:
         fh = open(path, newline="", encoding="utf-8")
     except OSError as exc:
@@ -210,8 +243,10 @@ def _read_measures(path: Path, convention: str, cameras: dict[str, Any],
             raise InputError(f"missing column(s) {missing}; the header is {header}", path=path)
         extra = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
         if extra:
-            raise InputError(f"unknown column(s) {extra}; optional columns are "
-                             f"{list(OPTIONAL_COLUMNS)}", path=path)
+            raise InputError(
+                f"unknown column(s) {extra}; optional columns are {list(OPTIONAL_COLUMNS)}",
+                path=path,
+            )
         col = {c: i for i, c in enumerate(header)}
         rows = list(reader)
     if not rows:
@@ -223,8 +258,7 @@ def _read_measures(path: Path, convention: str, cameras: dict[str, Any],
         if len(row) == 0 or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
-            raise InputError(f"row {rn}: {len(row)} fields for {len(header)} columns",
-                             path=path)
+            raise InputError(f"row {rn}: {len(row)} fields for {len(header)} columns", path=path)
 
         def get(name: str, row: list[str] = row) -> str:
             return row[col[name]] if name in col else ""
@@ -234,29 +268,47 @@ def _read_measures(path: Path, convention: str, cameras: dict[str, Any],
             raise InputError(f"row {rn}: empty point id", path=path, field="point_id")
         ptype = get("point_type").strip().lower()
         if ptype not in POINT_TYPES:
-            raise InputError(f"row {rn}: unknown point type {get('point_type')!r}; expected "
-                             f"Free, Fixed or Constrained", path=path, field="point_type")
+            raise InputError(
+                f"row {rn}: unknown point type {get('point_type')!r}; expected "
+                f"Free, Fixed or Constrained",
+                path=path,
+                field="point_type",
+            )
         image_id = get("image_id").strip()
         if image_id not in image_map:
-            raise InputError(f"row {rn}: image {image_id!r} is not in the [images] table",
-                             path=path, field="image_id")
-        xyz = tuple(_float(get(c), path, rn, c, allow_empty=ptype == "free")
-                    for c in ("apriori_x_m", "apriori_y_m", "apriori_z_m"))
-        psig = tuple(_float(get(c), path, rn, c, allow_empty=True)
-                     for c in ("sigma_x_m", "sigma_y_m", "sigma_z_m"))
+            raise InputError(
+                f"row {rn}: image {image_id!r} is not in the [images] table",
+                path=path,
+                field="image_id",
+            )
+        xyz = tuple(
+            _float(get(c), path, rn, c, allow_empty=ptype == "free")
+            for c in ("apriori_x_m", "apriori_y_m", "apriori_z_m")
+        )
+        psig = tuple(
+            _float(get(c), path, rn, c, allow_empty=True)
+            for c in ("sigma_x_m", "sigma_y_m", "sigma_z_m")
+        )
         prev = points.get(pid)
         if prev is None:
             points[pid] = {"type": ptype, "xyz": xyz, "sigma": psig, "row": rn}
         else:
             if prev["type"] != ptype:
-                raise InputError(f"row {rn}: point {pid!r} is {ptype} here but "
-                                 f"{prev['type']} on row {prev['row']}", path=path,
-                                 field="point_type")
+                raise InputError(
+                    f"row {rn}: point {pid!r} is {ptype} here but "
+                    f"{prev['type']} on row {prev['row']}",
+                    path=path,
+                    field="point_type",
+                )
             a, b = np.array(prev["xyz"]), np.array(xyz)
             same = np.all((np.isnan(a) & np.isnan(b)) | (np.abs(a - b) <= 1e-6))
             if not same:
-                raise InputError(f"row {rn}: point {pid!r} has other a priori coordinates "
-                                 f"than on row {prev['row']}", path=path, field="apriori_x_m")
+                raise InputError(
+                    f"row {rn}: point {pid!r} has other a priori coordinates "
+                    f"than on row {prev['row']}",
+                    path=path,
+                    field="apriori_x_m",
+                )
         s_line = s_samp = cfg.observations.sigma_px
         if "sigma_px" in col and get("sigma_px").strip():
             s_line = s_samp = _float(get("sigma_px"), path, rn, "sigma_px")
@@ -265,8 +317,7 @@ def _read_measures(path: Path, convention: str, cameras: dict[str, Any],
         if "sigma_sample_px" in col and get("sigma_sample_px").strip():
             s_samp = _float(get("sigma_sample_px"), path, rn, "sigma_sample_px")
         if not (s_line > 0 and s_samp > 0):
-            raise InputError(f"row {rn}: measure sigmas must be > 0", path=path,
-                             field="sigma_px")
+            raise InputError(f"row {rn}: measure sigmas must be > 0", path=path, field="sigma_px")
         cam_id, ccd = image_map[image_id]
         obs_cam.append(cam_id)
         obs_ccd.append(ccd)
@@ -300,17 +351,32 @@ def _read_measures(path: Path, convention: str, cameras: dict[str, Any],
             elif obs_cfg.mcp_ground_sigma_m is not None:
                 sg = np.where(np.isfinite(given), given, obs_cfg.mcp_ground_sigma_m)
             else:
-                raise InputError(f"row {info['row']}: Constrained point {pid!r} needs "
-                                 f"sigma_x_m/sigma_y_m/sigma_z_m or the configuration's "
-                                 f"observations.mcp_ground_sigma_m", path=path,
-                                 field="sigma_x_m")
+                raise InputError(
+                    f"row {info['row']}: Constrained point {pid!r} needs "
+                    f"sigma_x_m/sigma_y_m/sigma_z_m or the configuration's "
+                    f"observations.mcp_ground_sigma_m",
+                    path=path,
+                    field="sigma_x_m",
+                )
             if np.any(sg <= 0):
-                raise InputError(f"row {info['row']}: sigmas of a Constrained point must be "
-                                 f"> 0", path=path, field="sigma_x_m")
+                raise InputError(
+                    f"row {info['row']}: sigmas of a Constrained point must be > 0",
+                    path=path,
+                    field="sigma_x_m",
+                )
             point_sigma[pid] = sg
             point_kind[pid] = "mcp"
-    return Network.from_records(cameras, obs_camera=obs_cam, obs_point=obs_pt, line=line_a,
-                                sample=sample_a, point_xyz=point_xyz,
-                                point_sigma_m=point_sigma, point_kind=point_kind,
-                                obs_ccd=obs_ccd, sigma_px=np.asarray(sig), check=check,
-                                obs_ids=ids)
+    return Network.from_records(
+        cameras,
+        obs_camera=obs_cam,
+        obs_point=obs_pt,
+        line=line_a,
+        sample=sample_a,
+        point_xyz=point_xyz,
+        point_sigma_m=point_sigma,
+        point_kind=point_kind,
+        obs_ccd=obs_ccd,
+        sigma_px=np.asarray(sig),
+        check=check,
+        obs_ids=ids,
+    )

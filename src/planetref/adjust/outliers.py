@@ -16,9 +16,12 @@ from numpy.typing import NDArray
 __all__ = ["classify_inliers", "robust_scale", "supported"]
 
 
-def classify_inliers(length_px: NDArray[np.float64], candidates: NDArray[np.bool_],
-                     inlier: NDArray[np.bool_], k_rmse: float
-                     ) -> tuple[NDArray[np.bool_], float]:
+def classify_inliers(
+    length_px: NDArray[np.float64],
+    candidates: NDArray[np.bool_],
+    inlier: NDArray[np.bool_],
+    k_rmse: float,
+) -> tuple[NDArray[np.bool_], float]:
     """Apply the ``k x RMSE`` rule.
 
     Args:
@@ -37,8 +40,12 @@ def classify_inliers(length_px: NDArray[np.float64], candidates: NDArray[np.bool
     return new, rmse
 
 
-def supported(inlier: NDArray[np.bool_], obs_point: NDArray[np.intp],
-              free_point: NDArray[np.bool_], min_obs: int) -> NDArray[np.bool_]:
+def supported(
+    inlier: NDArray[np.bool_],
+    obs_point: NDArray[np.intp],
+    free_point: NDArray[np.bool_],
+    min_obs: int,
+) -> NDArray[np.bool_]:
     """Drop the observations of free points seen fewer than ``min_obs`` times.
 
     A free tie point's coordinates are unknowns; with fewer than two rays they are not

@@ -38,8 +38,9 @@ def _as_float(a: ArrayLike, shape: tuple[int, ...], name: str) -> F64:
     try:
         arr = np.array(np.broadcast_to(np.asarray(a, dtype=np.float64), shape))
     except ValueError:
-        raise InputError(f"expected shape {shape} (or broadcastable), got {np.shape(a)}",
-                         field=name) from None
+        raise InputError(
+            f"expected shape {shape} (or broadcastable), got {np.shape(a)}", field=name
+        ) from None
     return arr
 
 
@@ -86,8 +87,7 @@ class Network:
         if not cams:
             raise InputError("a network needs at least one camera", field="cameras")
         if len(ids) != len(cams):
-            raise InputError(f"{len(ids)} camera ids for {len(cams)} cameras",
-                             field="camera_ids")
+            raise InputError(f"{len(ids)} camera ids for {len(cams)} cameras", field="camera_ids")
         if len(set(ids)) != len(ids):
             raise InputError(f"camera ids must be unique, got {list(ids)}", field="camera_ids")
         n_pts = len(np.atleast_1d(self.point_ids))
@@ -97,14 +97,15 @@ class Network:
         xyz = _as_float(self.point_xyz, (n_pts, 3), "point_xyz")
         sig = _as_float(self.point_sigma_m, (n_pts, 3), "point_sigma_m")
         if np.any(np.isnan(sig)) or np.any(sig < 0):
-            raise InputError("point sigmas must be >= 0 (0 fixed, inf free)",
-                             field="point_sigma_m")
+            raise InputError("point sigmas must be >= 0 (0 fixed, inf free)", field="point_sigma_m")
         kind = np.asarray(np.broadcast_to(np.asarray(self.point_kind, dtype=str), (n_pts,)))
         bad_xyz = ~np.all(np.isfinite(xyz), axis=1) & ~np.all(np.isinf(sig), axis=1)
         if np.any(bad_xyz):
             i = int(np.flatnonzero(bad_xyz)[0])
-            raise InputError(f"point {pids[i]!r} is fixed or weighted but has no finite "
-                             f"a priori XYZ", field="point_xyz")
+            raise InputError(
+                f"point {pids[i]!r} is fixed or weighted but has no finite a priori XYZ",
+                field="point_xyz",
+            )
         m = len(np.atleast_1d(self.obs_point))
         cam_i = np.asarray(self.obs_camera, dtype=np.intp).reshape(m)
         ccd_i = np.asarray(np.broadcast_to(np.asarray(self.obs_ccd, dtype=np.intp), (m,)))
@@ -121,20 +122,35 @@ class Network:
         if not (np.all(np.isfinite(line)) and np.all(np.isfinite(sample))):
             raise InputError("observed lines and samples must be finite", field="obs_line")
         sig_px = np.array(np.asarray(self.obs_sigma_px, dtype=np.float64))
-        sig_px = _as_float(sig_px[..., None] if sig_px.ndim == 1 else sig_px, (m, 2),
-                           "obs_sigma_px")
+        sig_px = _as_float(
+            sig_px[..., None] if sig_px.ndim == 1 else sig_px, (m, 2), "obs_sigma_px"
+        )
         if not np.all(np.isfinite(sig_px) & (sig_px > 0)):
-            raise InputError("observation sigmas must be finite and > 0 pixels",
-                             field="obs_sigma_px")
+            raise InputError(
+                "observation sigmas must be finite and > 0 pixels", field="obs_sigma_px"
+            )
         check = np.asarray(np.broadcast_to(np.asarray(self.obs_check, dtype=bool), (m,)))
-        oids = np.asarray(self.obs_ids, dtype=str).reshape(m) if np.size(self.obs_ids) \
+        oids = (
+            np.asarray(self.obs_ids, dtype=str).reshape(m)
+            if np.size(self.obs_ids)
             else np.array([str(i) for i in range(m)], dtype=str)
-        for name, value in (("cameras", cams), ("camera_ids", ids), ("point_ids", pids),
-                            ("point_xyz", xyz), ("point_sigma_m", sig), ("point_kind", kind),
-                            ("obs_camera", cam_i), ("obs_ccd", ccd_i), ("obs_point", pt_i),
-                            ("obs_line", line), ("obs_sample", sample),
-                            ("obs_sigma_px", sig_px), ("obs_check", check),
-                            ("obs_ids", oids)):
+        )
+        for name, value in (
+            ("cameras", cams),
+            ("camera_ids", ids),
+            ("point_ids", pids),
+            ("point_xyz", xyz),
+            ("point_sigma_m", sig),
+            ("point_kind", kind),
+            ("obs_camera", cam_i),
+            ("obs_ccd", ccd_i),
+            ("obs_point", pt_i),
+            ("obs_line", line),
+            ("obs_sample", sample),
+            ("obs_sigma_px", sig_px),
+            ("obs_check", check),
+            ("obs_ids", oids),
+        ):
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
             object.__setattr__(self, name, value)
@@ -159,10 +175,15 @@ class Network:
         labels = []
         for ci, cam in enumerate(self.cameras):
             names = cam.ccd_names
-            labels.append([self.camera_ids[ci] if len(names) == 1
-                           else f"{self.camera_ids[ci]}/{n}" for n in names])
-        return np.array([labels[c][k] for c, k in zip(self.obs_camera, self.obs_ccd,
-                                                        strict=True)], dtype=str)
+            labels.append(
+                [
+                    self.camera_ids[ci] if len(names) == 1 else f"{self.camera_ids[ci]}/{n}"
+                    for n in names
+                ]
+            )
+        return np.array(
+            [labels[c][k] for c, k in zip(self.obs_camera, self.obs_ccd, strict=True)], dtype=str
+        )
 
     def replace_points(self, point_xyz: F64) -> Network:
         """A copy with other a priori point coordinates."""
@@ -173,13 +194,22 @@ class Network:
 
     # ------------------------------------------------------------------ builders
     @classmethod
-    def from_records(cls, cameras: Mapping[str, Camera], *, obs_camera: Sequence[str],
-                     obs_point: Sequence[str], line: ArrayLike, sample: ArrayLike,
-                     point_xyz: Mapping[str, ArrayLike], point_sigma_m: ArrayLike |
-                     Mapping[str, ArrayLike] = np.inf, point_kind: str |
-                     Mapping[str, str] = "tie", obs_ccd: Sequence[str | None] | None = None,
-                     sigma_px: ArrayLike = 1.0, check: ArrayLike = False,
-                     obs_ids: Sequence[str] | None = None) -> Network:
+    def from_records(
+        cls,
+        cameras: Mapping[str, Camera],
+        *,
+        obs_camera: Sequence[str],
+        obs_point: Sequence[str],
+        line: ArrayLike,
+        sample: ArrayLike,
+        point_xyz: Mapping[str, ArrayLike],
+        point_sigma_m: ArrayLike | Mapping[str, ArrayLike] = np.inf,
+        point_kind: str | Mapping[str, str] = "tie",
+        obs_ccd: Sequence[str | None] | None = None,
+        sigma_px: ArrayLike = 1.0,
+        check: ArrayLike = False,
+        obs_ids: Sequence[str] | None = None,
+    ) -> Network:
         """Build a network from string ids (e.g. rows of a measures table).
 
         Args:
@@ -210,8 +240,9 @@ class Network:
         for k in range(m):
             c = obs_camera[k]
             if c not in cam_index:
-                raise InputError(f"observation {k}: unknown camera {c!r}; known: {cam_ids}",
-                                 field="obs_camera")
+                raise InputError(
+                    f"observation {k}: unknown camera {c!r}; known: {cam_ids}", field="obs_camera"
+                )
             ci[k] = cam_index[c]
             p = obs_point[k]
             if p not in p_index:
@@ -220,34 +251,56 @@ class Network:
             if obs_ccd is not None and obs_ccd[k] is not None:
                 names = cameras[c].ccd_names
                 if obs_ccd[k] not in names:
-                    raise InputError(f"observation {k}: camera {c!r} has no CCD "
-                                     f"{obs_ccd[k]!r} (it has {list(names)})", field="ccd")
+                    raise InputError(
+                        f"observation {k}: camera {c!r} has no CCD "
+                        f"{obs_ccd[k]!r} (it has {list(names)})",
+                        field="ccd",
+                    )
                 ki[k] = names.index(obs_ccd[k])
         xyz = np.array([np.asarray(point_xyz[p], dtype=np.float64) for p in pids]).reshape(-1, 3)
         if isinstance(point_sigma_m, Mapping):
-            sig = np.array([np.broadcast_to(np.asarray(point_sigma_m[p], np.float64), (3,))
-                            for p in pids]).reshape(-1, 3)
+            sig = np.array(
+                [np.broadcast_to(np.asarray(point_sigma_m[p], np.float64), (3,)) for p in pids]
+            ).reshape(-1, 3)
         else:
             sig = np.broadcast_to(np.asarray(point_sigma_m, np.float64), (len(pids), 3))
         if isinstance(point_kind, Mapping):
             kind = np.array([point_kind[p] for p in pids], dtype=str)
         else:
             kind = np.full(len(pids), point_kind, dtype=str)
-        return cls(cameras=tuple(cameras.values()), camera_ids=tuple(cam_ids),
-                   point_ids=np.array(pids, dtype=str), point_xyz=xyz, point_sigma_m=sig,
-                   point_kind=kind, obs_camera=ci, obs_ccd=ki, obs_point=pi,
-                   obs_line=np.asarray(line, np.float64),
-                   obs_sample=np.asarray(sample, np.float64),
-                   obs_sigma_px=np.asarray(sigma_px, np.float64),
-                   obs_check=np.asarray(check, bool),
-                   obs_ids=np.array(obs_ids if obs_ids is not None else
-                                    [str(i) for i in range(m)], dtype=str))
+        return cls(
+            cameras=tuple(cameras.values()),
+            camera_ids=tuple(cam_ids),
+            point_ids=np.array(pids, dtype=str),
+            point_xyz=xyz,
+            point_sigma_m=sig,
+            point_kind=kind,
+            obs_camera=ci,
+            obs_ccd=ki,
+            obs_point=pi,
+            obs_line=np.asarray(line, np.float64),
+            obs_sample=np.asarray(sample, np.float64),
+            obs_sigma_px=np.asarray(sigma_px, np.float64),
+            obs_check=np.asarray(check, bool),
+            obs_ids=np.array(
+                obs_ids if obs_ids is not None else [str(i) for i in range(m)], dtype=str
+            ),
+        )
 
     @classmethod
-    def mcps(cls, camera: Camera, *, line: ArrayLike, sample: ArrayLike, xyz: ArrayLike,
-             ccd: ArrayLike | str | None = None, camera_id: str = "strip",
-             ground_sigma_m: ArrayLike = 0.0, sigma_px: ArrayLike = 1.0,
-             check: ArrayLike = False) -> Network:
+    def mcps(
+        cls,
+        camera: Camera,
+        *,
+        line: ArrayLike,
+        sample: ArrayLike,
+        xyz: ArrayLike,
+        ccd: ArrayLike | str | None = None,
+        camera_id: str = "strip",
+        ground_sigma_m: ArrayLike = 0.0,
+        sigma_px: ArrayLike = 1.0,
+        check: ArrayLike = False,
+    ) -> Network:
         """A network of matched control points of one camera (one point per observation).
 
         Args:
@@ -273,19 +326,26 @@ class Network:
             lookup = {n: i for i, n in enumerate(names)}
             unknown = sorted(set(np.unique(arr)) - set(lookup))
             if unknown:
-                raise InputError(f"unknown CCD(s) {unknown}; the camera has {list(names)}",
-                                 field="ccd")
+                raise InputError(
+                    f"unknown CCD(s) {unknown}; the camera has {list(names)}", field="ccd"
+                )
             ki = np.array([lookup[n] for n in arr], dtype=np.intp)
         gs = np.asarray(ground_sigma_m, np.float64)
         if gs.ndim == 1:  # one sigma per point, the same on every axis
             gs = gs[:, None]
-        return cls(cameras=(camera,), camera_ids=(camera_id,),
-                   point_ids=np.array([f"mcp{i}" for i in range(m)], dtype=str),
-                   point_xyz=np.asarray(xyz, np.float64).reshape(m, 3),
-                   point_sigma_m=_as_float(gs, (m, 3), "ground_sigma_m"),
-                   point_kind=np.full(m, "mcp", dtype=str), obs_camera=np.zeros(m, np.intp),
-                   obs_ccd=ki, obs_point=np.arange(m), obs_line=line,
-                   obs_sample=np.asarray(sample, np.float64),
-                   obs_sigma_px=np.asarray(sigma_px, np.float64),
-                   obs_check=np.asarray(check, bool),
-                   obs_ids=np.array([str(i) for i in range(m)], dtype=str))
+        return cls(
+            cameras=(camera,),
+            camera_ids=(camera_id,),
+            point_ids=np.array([f"mcp{i}" for i in range(m)], dtype=str),
+            point_xyz=np.asarray(xyz, np.float64).reshape(m, 3),
+            point_sigma_m=_as_float(gs, (m, 3), "ground_sigma_m"),
+            point_kind=np.full(m, "mcp", dtype=str),
+            obs_camera=np.zeros(m, np.intp),
+            obs_ccd=ki,
+            obs_point=np.arange(m),
+            obs_line=line,
+            obs_sample=np.asarray(sample, np.float64),
+            obs_sigma_px=np.asarray(sigma_px, np.float64),
+            obs_check=np.asarray(check, bool),
+            obs_ids=np.array([str(i) for i in range(m)], dtype=str),
+        )

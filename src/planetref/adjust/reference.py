@@ -43,8 +43,12 @@ class ScipyProblem:
             strips (interior scope ``strip`` only).
     """
 
-    def __init__(self, network: Network, config: AdjustConfig | dict[str, Any] | None = None,
-                 kernel: str = "planetref") -> None:
+    def __init__(
+        self,
+        network: Network,
+        config: AdjustConfig | dict[str, Any] | None = None,
+        kernel: str = "planetref",
+    ) -> None:
         cfg = validate_config(config if config is not None else {})
         if kernel not in ("planetref", "camera"):
             raise InputError(f"kernel must be 'planetref' or 'camera', got {kernel!r}")
@@ -52,8 +56,10 @@ class ScipyProblem:
             raise InputError("kernel 'camera' supports the interior scope 'strip' only")
         self.kernel = kernel
         self.net = network
-        self.models = [parameterize(cid, cam, cfg) for cid, cam in
-                       zip(network.camera_ids, network.cameras, strict=True)]
+        self.models = [
+            parameterize(cid, cam, cfg)
+            for cid, cam in zip(network.camera_ids, network.cameras, strict=True)
+        ]
         self.solver = BundleSolver(network, self.models, cfg.solver)
         s = self.solver
         self.obs = np.flatnonzero(~network.obs_check)
@@ -72,15 +78,16 @@ class ScipyProblem:
 
     def x0(self) -> F64:
         """Initial vector ``[active camera parameters, unknown point XYZ]``."""
-        return np.concatenate([self.solver.x0[self.solver.active],
-                               self.xyz_fixed[self.unknown].ravel()])
+        return np.concatenate(
+            [self.solver.x0[self.solver.active], self.xyz_fixed[self.unknown].ravel()]
+        )
 
     def split(self, x: F64) -> tuple[F64, F64]:
         """Global camera vector and all point coordinates of ``x``."""
         c = self.solver.x0.copy()
-        c[self.solver.active] = x[:self.n_cam]
+        c[self.solver.active] = x[: self.n_cam]
         xyz = self.xyz_fixed.copy()
-        xyz[self.unknown] = x[self.n_cam:].reshape(-1, 3)
+        xyz[self.unknown] = x[self.n_cam :].reshape(-1, 3)
         return c, xyz
 
     def _evaluate(self, x: F64) -> tuple[F64, scipy.sparse.csr_matrix]:
@@ -96,13 +103,14 @@ class ScipyProblem:
         sig = net.obs_sigma_px[self.obs]
         for mi, ccd, pos in s._groups(self.obs):
             model = self.models[mi]
-            xc = c[s.offsets[mi]:s.offsets[mi + 1]]
+            xc = c[s.offsets[mi] : s.offsets[mi + 1]]
             o = self.obs[pos]
             if self.kernel == "camera" and isinstance(model, LineScanParameterization):
                 ev = _camera_evaluation(model, xc, xyz[net.obs_point[o]], ccd, s.line_guess[o])
             else:
-                ev = model.evaluate(xc, xyz[net.obs_point[o]], ccd, s.line_guess[o],
-                                    rate_guess=s.rate_guess[o])
+                ev = model.evaluate(
+                    xc, xyz[net.obs_point[o]], ccd, s.line_guess[o], rate_guess=s.rate_guess[o]
+                )
             s._remember(o, ev)
             r = np.stack([ev.line - net.obs_line[o], ev.sample - net.obs_sample[o]], 1)
             r /= sig[pos]
@@ -145,7 +153,8 @@ class ScipyProblem:
         full = np.concatenate([res, *extra])
         jac = scipy.sparse.csr_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-            shape=(n_rows, self.n_cam + 3 * len(self.unknown)))
+            shape=(n_rows, self.n_cam + 3 * len(self.unknown)),
+        )
         self._cache = (key, (full, jac))
         return full, jac
 
@@ -158,8 +167,9 @@ class ScipyProblem:
         return self._evaluate(x)[1]
 
 
-def _camera_evaluation(model: LineScanParameterization, x: F64, xyz: F64, ccd: int,
-                       line_guess: F64) -> Evaluation:
+def _camera_evaluation(
+    model: LineScanParameterization, x: F64, xyz: F64, ccd: int, line_guess: F64
+) -> Evaluation:
     """An :class:`Evaluation` from ``LineScanCamera.image_partials`` (the public API)."""
     cam = model.build(x)
     ip = cam.image_partials(xyz, ccd=cam.ccds[ccd].name, line_guess=line_guess)
@@ -173,8 +183,13 @@ def _camera_evaluation(model: LineScanParameterization, x: F64, xyz: F64, ccd: i
     return Evaluation(ip.line, ip.sample, valid, np.where(valid, start, 0), d_params, d_ground)
 
 
-def solve_with_scipy(network: Network, config: AdjustConfig | dict[str, Any] | None = None,
-                     *, kernel: str = "planetref", **options: Any) -> tuple[F64, F64, Any]:
+def solve_with_scipy(
+    network: Network,
+    config: AdjustConfig | dict[str, Any] | None = None,
+    *,
+    kernel: str = "planetref",
+    **options: Any,
+) -> tuple[F64, F64, Any]:
     """Solve a network with ``scipy.optimize.least_squares`` (no outlier rejection).
 
     Args:
@@ -188,8 +203,14 @@ def solve_with_scipy(network: Network, config: AdjustConfig | dict[str, Any] | N
         ``(global camera vector, point XYZ (P, 3), scipy result)``.
     """
     prob = ScipyProblem(network, config, kernel=kernel)
-    kw: dict[str, Any] = {"method": "trf", "x_scale": "jac", "tr_solver": "lsmr",
-                          "ftol": 1e-12, "xtol": 1e-12, "gtol": 1e-12}
+    kw: dict[str, Any] = {
+        "method": "trf",
+        "x_scale": "jac",
+        "tr_solver": "lsmr",
+        "ftol": 1e-12,
+        "xtol": 1e-12,
+        "gtol": 1e-12,
+    }
     kw.update(options)
     out = scipy.optimize.least_squares(prob.fun, prob.x0(), jac=prob.jac, **kw)
     c, xyz = prob.split(out.x)

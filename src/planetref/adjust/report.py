@@ -49,9 +49,13 @@ RPC_WARN_PX = 0.1
 
 
 # ------------------------------------------------------------------------ metrics
-def geolocation_metrics(result: AdjustmentResult, truth: Mapping[str, Any], *,
-                        terrain: Any = 0.0, grid: tuple[int, int] = (21, 21)
-                        ) -> dict[str, Any]:
+def geolocation_metrics(
+    result: AdjustmentResult,
+    truth: Mapping[str, Any],
+    *,
+    terrain: Any = 0.0,
+    grid: tuple[int, int] = (21, 21),
+) -> dict[str, Any]:
     """Geolocation error before and after, per camera and CCD, against true cameras.
 
     Args:
@@ -71,20 +75,28 @@ def geolocation_metrics(result: AdjustmentResult, truth: Mapping[str, Any], *,
         per = {}
         for ccd in true_cam.ccd_names:
             per[ccd] = {
-                "before": geolocation_error(result.cameras_initial[cid], true_cam, ccd=ccd,
-                                            terrain=terrain, grid=grid),
-                "after": geolocation_error(result.cameras[cid], true_cam, ccd=ccd,
-                                           terrain=terrain, grid=grid),
+                "before": geolocation_error(
+                    result.cameras_initial[cid], true_cam, ccd=ccd, terrain=terrain, grid=grid
+                ),
+                "after": geolocation_error(
+                    result.cameras[cid], true_cam, ccd=ccd, terrain=terrain, grid=grid
+                ),
             }
         out[cid] = per
     return out
 
 
 # ------------------------------------------------------------------------ writing
-def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
-                  truth: Mapping[str, Any] | None = None, terrain: Any = 0.0,
-                  rpc: bool = True, plots: bool = True, extra: Mapping[str, Any] | None = None
-                  ) -> dict[str, Any]:
+def write_outputs(
+    result: AdjustmentResult,
+    out_dir: str | os.PathLike[str],
+    *,
+    truth: Mapping[str, Any] | None = None,
+    terrain: Any = 0.0,
+    rpc: bool = True,
+    plots: bool = True,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """Write every output of an adjustment into a folder (see the module doc).
 
     Args:
@@ -108,11 +120,18 @@ def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
     written["residuals"] = str(_write_residuals(result, out / "residuals.csv"))
     written["parameters"] = str(_write_parameters(result, out / "parameters.csv"))
     buf = io.BytesIO()
-    np.savez_compressed(buf, names=np.array(result.parameter_names),
-                        covariance=result.covariance, correlation=result.correlation)
+    np.savez_compressed(
+        buf,
+        names=np.array(result.parameter_names),
+        covariance=result.covariance,
+        correlation=result.correlation,
+    )
     written["covariance"] = str(write_bytes_atomic(out / "covariance.npz", buf.getvalue()))
-    written["config"] = str(write_text_atomic(
-        out / "config.json", json.dumps(result.config.model_dump(mode="json"), indent=1) + "\n"))
+    written["config"] = str(
+        write_text_atomic(
+            out / "config.json", json.dumps(result.config.model_dump(mode="json"), indent=1) + "\n"
+        )
+    )
     rpc_reports: dict[str, Any] = {}
     notes: list[str] = []
     for cid, cam in result.cameras.items():
@@ -124,9 +143,11 @@ def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
                 if "error" in r:
                     notes.append(f"camera {cid} CCD {ccd}: no RPC ({r['error']})")
                 elif not r["check_rms_px"] < RPC_WARN_PX:
-                    notes.append(f"camera {cid} CCD {ccd}: the refitted RPC reproduces the "
-                                 f"adjusted camera to {r['check_rms_px']:.3g} px RMS only "
-                                 f"(max {r['check_max_px']:.3g} px); use the rigorous camera")
+                    notes.append(
+                        f"camera {cid} CCD {ccd}: the refitted RPC reproduces the "
+                        f"adjusted camera to {r['check_rms_px']:.3g} px RMS only "
+                        f"(max {r['check_max_px']:.3g} px); use the rigorous camera"
+                    )
     for n in notes:
         log.warning("%s", n)
     if notes:
@@ -134,22 +155,43 @@ def write_outputs(result: AdjustmentResult, out_dir: str | os.PathLike[str], *,
     if plots:
         written["plots"] = [str(p) for p in _write_plots(result, out / "plots")]
     report = _report_dict(result, geo, rpc_reports, written, extra)
-    written["report_json"] = str(write_text_atomic(
-        out / "report.json", json.dumps(json_safe(report), indent=1, allow_nan=False) + "\n"))
-    written["report_md"] = str(write_text_atomic(out / "report.md", _report_md(result, geo,
-                                                                        rpc_reports, notes)))
+    written["report_json"] = str(
+        write_text_atomic(
+            out / "report.json", json.dumps(json_safe(report), indent=1, allow_nan=False) + "\n"
+        )
+    )
+    written["report_md"] = str(
+        write_text_atomic(out / "report.md", _report_md(result, geo, rpc_reports, notes))
+    )
     return written
 
 
 def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
     net = result.network
-    labels = [result.network.cameras[c].ccd_names[k] for c, k in zip(net.obs_camera,
-                                                                     net.obs_ccd, strict=True)]
+    labels = [
+        result.network.cameras[c].ccd_names[k]
+        for c, k in zip(net.obs_camera, net.obs_ccd, strict=True)
+    ]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["obs_id", "point_id", "point_kind", "camera_id", "ccd", "line", "sample",
-                "dx_px", "dy_px", "residual_px", "dx_before_px", "dy_before_px", "status",
-                "inlier"])
+    w.writerow(
+        [
+            "obs_id",
+            "point_id",
+            "point_kind",
+            "camera_id",
+            "ccd",
+            "line",
+            "sample",
+            "dx_px",
+            "dy_px",
+            "residual_px",
+            "dx_before_px",
+            "dy_before_px",
+            "status",
+            "inlier",
+        ]
+    )
     r, r0 = result.residual, result.residual_initial
 
     def f(v: float) -> str:
@@ -157,11 +199,24 @@ def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
 
     for i in range(net.n_obs):
         pid = net.obs_point[i]
-        w.writerow([net.obs_ids[i], net.point_ids[pid], net.point_kind[pid],
-                    net.camera_ids[net.obs_camera[i]], labels[i], f"{net.obs_line[i]:.6f}",
-                    f"{net.obs_sample[i]:.6f}", f(r[i, 1]), f(r[i, 0]),
-                    f(math.hypot(r[i, 0], r[i, 1])), f(r0[i, 1]), f(r0[i, 0]),
-                    result.status[i], int(result.status[i] == "inlier")])
+        w.writerow(
+            [
+                net.obs_ids[i],
+                net.point_ids[pid],
+                net.point_kind[pid],
+                net.camera_ids[net.obs_camera[i]],
+                labels[i],
+                f"{net.obs_line[i]:.6f}",
+                f"{net.obs_sample[i]:.6f}",
+                f(r[i, 1]),
+                f(r[i, 0]),
+                f(math.hypot(r[i, 0], r[i, 1])),
+                f(r0[i, 1]),
+                f(r0[i, 0]),
+                result.status[i],
+                int(result.status[i] == "inlier"),
+            ]
+        )
     return write_text_atomic(path, buf.getvalue())
 
 
@@ -170,9 +225,17 @@ def _write_parameters(result: AdjustmentResult, path: Path) -> Path:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["name", "unit", "mode", "initial", "adjusted", "correction", "sigma"])
     for i, name in enumerate(result.parameter_names):
-        w.writerow([name, result.parameter_units[i], MODE_NAMES[int(result.parameter_mode[i])],
-                    repr(float(result.x0[i])), repr(float(result.x[i])),
-                    repr(float(result.x[i] - result.x0[i])), repr(float(result.sigma[i]))])
+        w.writerow(
+            [
+                name,
+                result.parameter_units[i],
+                MODE_NAMES[int(result.parameter_mode[i])],
+                repr(float(result.x0[i])),
+                repr(float(result.x[i])),
+                repr(float(result.x[i] - result.x0[i])),
+                repr(float(result.sigma[i])),
+            ]
+        )
     return write_text_atomic(path, buf.getvalue())
 
 
@@ -196,8 +259,9 @@ def _height_range(result: AdjustmentResult, cid: str, cam: Any) -> tuple[float, 
     return lo - pad, hi + pad
 
 
-def _write_camera(result: AdjustmentResult, cid: str, cam: Any, folder: Path, rpc: bool
-                  ) -> tuple[list[Path], dict[str, Any]]:
+def _write_camera(
+    result: AdjustmentResult, cid: str, cam: Any, folder: Path, rpc: bool
+) -> tuple[list[Path], dict[str, Any]]:
     folder.mkdir(parents=True, exist_ok=True)
     name = safe_name(cid)
     paths: list[Path] = []
@@ -224,12 +288,15 @@ def _write_camera(result: AdjustmentResult, cid: str, cam: Any, folder: Path, rp
                 log.warning("camera %s CCD %s: no RPC (%s)", cid, ccd, exc)
                 reports[ccd] = {"error": str(exc)}
                 continue
-            paths.append(write_rpc(model, folder / f"{name}{suffix}_RPC.TXT", fmt="txt",
-                                   body=body))
-            reports[ccd] = {"fit_rms_px": fit.fit_rms_px, "check_rms_px": fit.check_rms_px,
-                            "check_max_px": fit.check_max_px,
-                            "min_abs_denominator": fit.min_abs_denominator,
-                            "regularization": fit.regularization, "height_range_m": list(hr)}
+            paths.append(write_rpc(model, folder / f"{name}{suffix}_RPC.TXT", fmt="txt", body=body))
+            reports[ccd] = {
+                "fit_rms_px": fit.fit_rms_px,
+                "check_rms_px": fit.check_rms_px,
+                "check_max_px": fit.check_max_px,
+                "min_abs_denominator": fit.min_abs_denominator,
+                "regularization": fit.regularization,
+                "height_range_m": list(hr),
+            }
     return paths, reports
 
 
@@ -273,8 +340,11 @@ def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:
             sel, r = sel[ok], r[ok]
             status = result.status[sel]
             length = np.hypot(r[:, 0], r[:, 1])
-            ref = float(np.percentile(length[status == "inlier"], 95)) if np.any(
-                status == "inlier") else (float(length.max()) if length.size else 1.0)
+            ref = (
+                float(np.percentile(length[status == "inlier"], 95))
+                if np.any(status == "inlier")
+                else (float(length.max()) if length.size else 1.0)
+            )
             ref = ref if ref > 0 else 1.0
             # Arrows are exaggerated so that a 95th-percentile inlier residual is 4% of
             # the image width; gross errors are clipped to 15% of it.
@@ -288,21 +358,37 @@ def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:
             fig, ax = plt.subplots(figsize=(6.5, height))
             ax.set_xlim(0, n_samples)
             ax.set_ylim(n_lines, 0)
-            for st, colour in (("inlier", "tab:blue"), ("outlier", "tab:red"),
-                               ("check", "tab:green"), ("unusable", "0.5")):
+            for st, colour in (
+                ("inlier", "tab:blue"),
+                ("outlier", "tab:red"),
+                ("check", "tab:green"),
+                ("unusable", "0.5"),
+            ):
                 m = status == st
                 if not np.any(m):
                     continue
-                ax.quiver(net.obs_sample[sel][m], net.obs_line[sel][m], r[m, 1] * exag,
-                          r[m, 0] * exag, angles="xy", scale_units="xy", scale=1.0,
-                          color=colour, width=0.003, label=f"{st} ({int(m.sum())})")
+                ax.quiver(
+                    net.obs_sample[sel][m],
+                    net.obs_line[sel][m],
+                    r[m, 1] * exag,
+                    r[m, 0] * exag,
+                    angles="xy",
+                    scale_units="xy",
+                    scale=1.0,
+                    color=colour,
+                    width=0.003,
+                    label=f"{st} ({int(m.sum())})",
+                )
             label = cid if len(cam.ccd_names) == 1 else f"{cid} / {ccd}"
             met = result.metrics["cameras"][cid]
             if len(cam.ccd_names) > 1:
                 met = met["ccds"][ccd]
-            ax.set_title(f"{label}\nRMSE {met['after']['rmse_px']:.3g} px (before "
-                         f"{met['before']['rmse_px']:.3g}); arrows x{exag:.3g}"
-                         f"{', long ones clipped' if clipped else ''}", fontsize=9)
+            ax.set_title(
+                f"{label}\nRMSE {met['after']['rmse_px']:.3g} px (before "
+                f"{met['before']['rmse_px']:.3g}); arrows x{exag:.3g}"
+                f"{', long ones clipped' if clipped else ''}",
+                fontsize=9,
+            )
             ax.set_xlabel("sample (px)")
             ax.set_ylabel("line (px)")
             if len(sel):
@@ -312,8 +398,11 @@ def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:
             buf = io.BytesIO()
             fig.savefig(buf, format="png", dpi=110)
             plt.close(fig)
-            paths.append(write_bytes_atomic(folder / f"residuals_{safe_name(cid)}{suffix}.png",
-                                       buf.getvalue()))
+            paths.append(
+                write_bytes_atomic(
+                    folder / f"residuals_{safe_name(cid)}{suffix}.png", buf.getvalue()
+                )
+            )
     return paths
 
 
@@ -327,38 +416,52 @@ def _top_correlations(result: AdjustmentResult, n: int = 20) -> list[list[Any]]:
         i, j = np.unravel_index(f, c.shape)
         if c[i, j] <= 0:
             break
-        out.append([result.parameter_names[i], result.parameter_names[j],
-                    float(result.correlation[i, j])])
+        out.append(
+            [result.parameter_names[i], result.parameter_names[j], float(result.correlation[i, j])]
+        )
     return out
 
 
-def _report_dict(result: AdjustmentResult, geo: dict[str, Any] | None,
-                 rpc: dict[str, Any], written: dict[str, Any],
-                 extra: Mapping[str, Any] | None) -> dict[str, Any]:
+def _report_dict(
+    result: AdjustmentResult,
+    geo: dict[str, Any] | None,
+    rpc: dict[str, Any],
+    written: dict[str, Any],
+    extra: Mapping[str, Any] | None,
+) -> dict[str, Any]:
     from planetref import __version__
 
     params = []
     for i, name in enumerate(result.parameter_names):
-        params.append({"name": name, "unit": result.parameter_units[i],
-                       "mode": MODE_NAMES[int(result.parameter_mode[i])],
-                       "initial": float(result.x0[i]), "adjusted": float(result.x[i]),
-                       "correction": float(result.x[i] - result.x0[i]),
-                       "sigma": float(result.sigma[i])})
+        params.append(
+            {
+                "name": name,
+                "unit": result.parameter_units[i],
+                "mode": MODE_NAMES[int(result.parameter_mode[i])],
+                "initial": float(result.x0[i]),
+                "adjusted": float(result.x[i]),
+                "correction": float(result.x[i] - result.x0[i]),
+                "sigma": float(result.sigma[i]),
+            }
+        )
     physical = {}
     for model in result.models:
         if hasattr(model, "physical"):
             i = result.network.camera_ids.index(model.camera_id)
             lo = sum(len(m.x0) for m in result.models[:i])
-            physical[model.camera_id] = model.physical(result.x[lo:lo + len(model.x0)])
+            physical[model.camera_id] = model.physical(result.x[lo : lo + len(model.x0)])
     report: dict[str, Any] = {
         "planetref_version": __version__,
         "adjustment": result.summary(),
         "metrics": result.metrics,
         "parameters": params,
         "corrections_physical": physical,
-        "correlations": {"max_abs": float(np.max(np.abs(np.triu(result.correlation, 1))))
-                         if result.correlation.size > 1 else 0.0,
-                         "top": _top_correlations(result)},
+        "correlations": {
+            "max_abs": float(np.max(np.abs(np.triu(result.correlation, 1))))
+            if result.correlation.size > 1
+            else 0.0,
+            "top": _top_correlations(result),
+        },
         "rounds": result.rounds,
         "warnings": result.warnings,
         "rpc_fits": rpc,
@@ -384,30 +487,39 @@ def _table2_rows(label: str, m: dict[str, Any], sigma0: float | None) -> list[st
     rows = []
     for when in ("before", "after"):
         s = m[when]
-        rows.append(f"| {label} | {when} | {_fmt(s['rmse_px'])} | {_fmt(s['mean_px'])} | "
-                    f"{_fmt(s['max_dx_px'])} | {_fmt(s['min_dx_px'])} | "
-                    f"{_fmt(s['max_dy_px'])} | {_fmt(s['min_dy_px'])} | "
-                    f"{_fmt(s['outlier_ratio_pct'], 3)} | {s['n_inliers']}/{s['n_total']} | "
-                    f"{_fmt(sigma0) if when == 'after' and sigma0 is not None else '-'} |")
+        rows.append(
+            f"| {label} | {when} | {_fmt(s['rmse_px'])} | {_fmt(s['mean_px'])} | "
+            f"{_fmt(s['max_dx_px'])} | {_fmt(s['min_dx_px'])} | "
+            f"{_fmt(s['max_dy_px'])} | {_fmt(s['min_dy_px'])} | "
+            f"{_fmt(s['outlier_ratio_pct'], 3)} | {s['n_inliers']}/{s['n_total']} | "
+            f"{_fmt(sigma0) if when == 'after' and sigma0 is not None else '-'} |"
+        )
     return rows
 
 
-def _report_md(result: AdjustmentResult, geo: dict[str, Any] | None,
-               rpc: dict[str, Any], notes: list[str]) -> str:
+def _report_md(
+    result: AdjustmentResult, geo: dict[str, Any] | None, rpc: dict[str, Any], notes: list[str]
+) -> str:
     s = result.summary()
-    lines = ["# Bundle adjustment report", "",
-             f"RMSE {_fmt(s['rmse_px_before'])} px -> **{_fmt(s['rmse_px'])} px**; "
-             f"outlier ratio {_fmt(s['outlier_ratio_pct'], 3)} % "
-             f"({s['n_inliers']} of {s['n_total']} observations are inliers); "
-             f"sigma0 {_fmt(s['sigma0'])}, {s['dof']} degrees of freedom; "
-             f"{s['rounds']} round(s); converged: {s['converged']}.", "",
-             "Residuals are projected - observed; dx = sample, dy = line, pixels. "
-             "'before' uses the initial cameras on the same (final) inliers; the outlier "
-             "ratio is that of the final k x RMSE classification.", "",
-             "## Reprojection residuals (Table 2)", "",
-             "| camera / CCD | | RMSE | mean | max dx | min dx | max dy | min dy | OR % | "
-             "inliers | sigma0 |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Bundle adjustment report",
+        "",
+        f"RMSE {_fmt(s['rmse_px_before'])} px -> **{_fmt(s['rmse_px'])} px**; "
+        f"outlier ratio {_fmt(s['outlier_ratio_pct'], 3)} % "
+        f"({s['n_inliers']} of {s['n_total']} observations are inliers); "
+        f"sigma0 {_fmt(s['sigma0'])}, {s['dof']} degrees of freedom; "
+        f"{s['rounds']} round(s); converged: {s['converged']}.",
+        "",
+        "Residuals are projected - observed; dx = sample, dy = line, pixels. "
+        "'before' uses the initial cameras on the same (final) inliers; the outlier "
+        "ratio is that of the final k x RMSE classification.",
+        "",
+        "## Reprojection residuals (Table 2)",
+        "",
+        "| camera / CCD | | RMSE | mean | max dx | min dx | max dy | min dy | OR % | "
+        "inliers | sigma0 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     lines += _table2_rows("all", result.metrics["all"], result.sigma0)
     for cid, m in result.metrics["cameras"].items():
         lines += _table2_rows(cid, m, None)
@@ -415,50 +527,89 @@ def _report_md(result: AdjustmentResult, geo: dict[str, Any] | None,
             lines += _table2_rows(f"{cid} / {ccd}", mc, None)
     chk = result.metrics.get("check")
     if chk:
-        lines += ["", "## Check observations (held out)", "",
-                  "| | RMS px | max px | RMS m | max m | n |", "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Check observations (held out)",
+            "",
+            "| | RMS px | max px | RMS m | max m | n |",
+            "|---|---|---|---|---|---|",
+        ]
         for when in ("before", "after"):
             c = chk[when]
-            lines.append(f"| {when} | {_fmt(c['rms_px'])} | {_fmt(c['max_px'])} | "
-                         f"{_fmt(c['rms_m'])} | {_fmt(c['max_m'])} | {c['n']} |")
+            lines.append(
+                f"| {when} | {_fmt(c['rms_px'])} | {_fmt(c['max_px'])} | "
+                f"{_fmt(c['rms_m'])} | {_fmt(c['max_m'])} | {c['n']} |"
+            )
     if geo:
-        lines += ["", "## Geolocation error against the true cameras", "",
-                  "| camera / CCD | | RMS m | max m | RMS px | max px |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Geolocation error against the true cameras",
+            "",
+            "| camera / CCD | | RMS m | max m | RMS px | max px |",
+            "|---|---|---|---|---|---|",
+        ]
         for cid, per in geo.items():
             for ccd, g in per.items():
                 for when in ("before", "after"):
                     e = g[when]
-                    lines.append(f"| {cid} / {ccd} | {when} | {_fmt(e['rms_m'])} | "
-                                 f"{_fmt(e['max_m'])} | {_fmt(e['rms_px'])} | "
-                                 f"{_fmt(e['max_px'])} |")
-    lines += ["", "## Rounds", "", "| round | observations | RMSE px | iterations | "
-              "evaluations | converged |", "|---|---|---|---|---|---|"]
+                    lines.append(
+                        f"| {cid} / {ccd} | {when} | {_fmt(e['rms_m'])} | "
+                        f"{_fmt(e['max_m'])} | {_fmt(e['rms_px'])} | "
+                        f"{_fmt(e['max_px'])} |"
+                    )
+    lines += [
+        "",
+        "## Rounds",
+        "",
+        "| round | observations | RMSE px | iterations | evaluations | converged |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in result.rounds:
-        lines.append(f"| {r['round']} | {r['n_observations']} | {_fmt(r['rmse_px'])} | "
-                     f"{r['iterations']} | {r['evaluations']} | {r['converged']} |")
+        lines.append(
+            f"| {r['round']} | {r['n_observations']} | {_fmt(r['rmse_px'])} | "
+            f"{r['iterations']} | {r['evaluations']} | {r['converged']} |"
+        )
     act = np.flatnonzero(result.parameter_mode != 2)
-    lines += ["", f"## Parameters ({act.size} adjusted of {len(result.parameter_names)}; "
-              f"all in parameters.csv)", "", "| parameter | unit | mode | correction | sigma |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "",
+        f"## Parameters ({act.size} adjusted of {len(result.parameter_names)}; "
+        f"all in parameters.csv)",
+        "",
+        "| parameter | unit | mode | correction | sigma |",
+        "|---|---|---|---|---|",
+    ]
     for i in act[:60]:
-        lines.append(f"| {result.parameter_names[i]} | {result.parameter_units[i]} | "
-                     f"{MODE_NAMES[int(result.parameter_mode[i])]} | "
-                     f"{_fmt(result.x[i] - result.x0[i])} | {_fmt(result.sigma[i])} |")
+        lines.append(
+            f"| {result.parameter_names[i]} | {result.parameter_units[i]} | "
+            f"{MODE_NAMES[int(result.parameter_mode[i])]} | "
+            f"{_fmt(result.x[i] - result.x0[i])} | {_fmt(result.sigma[i])} |"
+        )
     if act.size > 60:
         lines.append(f"| ... {act.size - 60} more | | | | |")
     top = _top_correlations(result, 10)
     if top:
-        lines += ["", "## Strongest correlations", "", "| parameter | parameter | r |",
-                  "|---|---|---|"]
+        lines += [
+            "",
+            "## Strongest correlations",
+            "",
+            "| parameter | parameter | r |",
+            "|---|---|---|",
+        ]
         lines += [f"| {a} | {b} | {r:.4f} |" for a, b, r in top]
     if rpc:
-        lines += ["", "## Refitted RPCs", "", "| camera | CCD | fit RMS px | check RMS px |",
-                  "|---|---|---|---|"]
+        lines += [
+            "",
+            "## Refitted RPCs",
+            "",
+            "| camera | CCD | fit RMS px | check RMS px |",
+            "|---|---|---|---|",
+        ]
         for cid, per in rpc.items():
             for ccd, rep in per.items():
-                lines.append(f"| {cid} | {ccd} | {_fmt(rep.get('fit_rms_px'))} | "
-                             f"{_fmt(rep.get('check_rms_px'))} |")
+                lines.append(
+                    f"| {cid} | {ccd} | {_fmt(rep.get('fit_rms_px'))} | "
+                    f"{_fmt(rep.get('check_rms_px'))} |"
+                )
     if result.warnings or notes:
         lines += ["", "## Warnings", ""] + [f"* {w}" for w in [*result.warnings, *notes]]
     return "\n".join(lines) + "\n"

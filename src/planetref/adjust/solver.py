@@ -170,8 +170,13 @@ class BundleSolver:
         progress: Optional callback ``progress(message)`` called once per iteration.
     """
 
-    def __init__(self, network: Network, models: list[AdjustableCamera],
-                 config: SolverConfig, progress: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self,
+        network: Network,
+        models: list[AdjustableCamera],
+        config: SolverConfig,
+        progress: Callable[[str], None] | None = None,
+    ) -> None:
         self.net = network
         self.models = models
         self.cfg = config
@@ -187,7 +192,7 @@ class BundleSolver:
         for i, m in enumerate(models):
             pc = m.pattern_columns
             blk = np.where(pc >= 0, pc + self.offsets[i], p)
-            cols[self.pat_offsets[i]:self.pat_offsets[i + 1], :pc.shape[1]] = blk
+            cols[self.pat_offsets[i] : self.pat_offsets[i + 1], : pc.shape[1]] = blk
         self.cols = cols
         self.x0 = np.concatenate([m.x0 for m in models]) if p else np.zeros(0)
         self.names = [f"{m.camera_id}:{n}" for m in models for n in m.names]
@@ -198,31 +203,36 @@ class BundleSolver:
         partial = np.any(sig == 0, axis=1) & ~fixed_pt
         if np.any(partial):
             i = int(np.flatnonzero(partial)[0])
-            raise AdjustmentError(f"point {network.point_ids[i]!r}: a sigma of 0 (fixed) on "
-                                  f"some axes only is not supported")
+            raise AdjustmentError(
+                f"point {network.point_ids[i]!r}: a sigma of 0 (fixed) on "
+                f"some axes only is not supported"
+            )
         self.point_fixed = fixed_pt
         with np.errstate(divide="ignore"):
             self.point_prior_w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / sig**2, 0.0)
-        self.obs_w0 = 1.0 / network.obs_sigma_px ** 2  # (M, 2), line then sample
+        self.obs_w0 = 1.0 / network.obs_sigma_px**2  # (M, 2), line then sample
         self.line_guess = network.obs_line.copy()
         self.rate_guess = np.full(network.n_obs, np.nan)
         self.loss = config.loss
         self.threshold: F64 | float = np.inf
         self.last_lambda: float | None = None
-        self._group_cache: tuple[NDArray[np.intp], list[tuple[int, int, NDArray[np.intp]]]] \
-            | None = None
+        self._group_cache: (
+            tuple[NDArray[np.intp], list[tuple[int, int, NDArray[np.intp]]]] | None
+        ) = None
         self._structure_cache: tuple[NDArray[np.intp], _Structure] | None = None
 
     # ------------------------------------------------------------------ setup
     def refresh_modes(self) -> None:
         """Re-read modes and sigmas from the models (after weak groups were weighted)."""
-        self.mode = np.concatenate([m.mode for m in self.models]) if self.n_params else \
-            np.zeros(0, np.int8)
-        self.sigma = np.concatenate([m.sigma for m in self.models]) if self.n_params else \
-            np.zeros(0)
+        self.mode = (
+            np.concatenate([m.mode for m in self.models]) if self.n_params else np.zeros(0, np.int8)
+        )
+        self.sigma = (
+            np.concatenate([m.sigma for m in self.models]) if self.n_params else np.zeros(0)
+        )
         self.active = np.flatnonzero(self.mode != 2)
         with np.errstate(divide="ignore"):
-            self.prior_w = np.where(self.mode == 1, 1.0 / self.sigma ** 2, 0.0)
+            self.prior_w = np.where(self.mode == 1, 1.0 / self.sigma**2, 0.0)
         # Linear pseudo-observations A (c - x0) = 0 of the models (e.g. smooth weak
         # nodes), gathered into one global matrix; their normal contribution is A^T W A.
         rows, weights = [], []
@@ -232,7 +242,7 @@ class BundleSolver:
                 continue
             a_loc, w_loc = con
             a = np.zeros((len(a_loc), self.n_params))
-            a[:, self.offsets[i]:self.offsets[i + 1]] = a_loc
+            a[:, self.offsets[i] : self.offsets[i + 1]] = a_loc
             rows.append(a)
             weights.append(np.asarray(w_loc, np.float64))
         if rows:
@@ -254,8 +264,9 @@ class BundleSolver:
 
     def cameras(self, c: F64) -> list[object]:
         """The cameras built from a global parameter vector."""
-        return [m.build(c[self.offsets[i]:self.offsets[i + 1]])
-                for i, m in enumerate(self.models)]
+        return [
+            m.build(c[self.offsets[i] : self.offsets[i + 1]]) for i, m in enumerate(self.models)
+        ]
 
     def _groups(self, obs: NDArray[np.intp]) -> list[tuple[int, int, NDArray[np.intp]]]:
         """``(model, ccd, positions into obs)`` groups.
@@ -282,8 +293,9 @@ class BundleSolver:
         return out
 
     # ------------------------------------------------------------ projection
-    def project(self, c: F64, xyz: F64, obs: NDArray[np.intp]
-                ) -> tuple[F64, F64, NDArray[np.bool_]]:
+    def project(
+        self, c: F64, xyz: F64, obs: NDArray[np.intp]
+    ) -> tuple[F64, F64, NDArray[np.bool_]]:
         """Projected ``(line, sample, valid)`` of observations ``obs`` (no partials).
 
         Args:
@@ -298,12 +310,18 @@ class BundleSolver:
         cs = self.cfg.chunk_size
         for mi, ccd, pos in self._groups(obs):
             model = self.models[mi]
-            x = c[self.offsets[mi]:self.offsets[mi + 1]]
+            x = c[self.offsets[mi] : self.offsets[mi + 1]]
             for a in range(0, len(pos), cs):
-                sel = pos[a:a + cs]
+                sel = pos[a : a + cs]
                 o = obs[sel]
-                ev = model.evaluate(x, xyz[self.net.obs_point[o]], ccd, self.line_guess[o],
-                                    rate_guess=self.rate_guess[o], partials=False)
+                ev = model.evaluate(
+                    x,
+                    xyz[self.net.obs_point[o]],
+                    ccd,
+                    self.line_guess[o],
+                    rate_guess=self.rate_guess[o],
+                    partials=False,
+                )
                 line[sel], sample[sel], valid[sel] = ev.line, ev.sample, ev.valid
                 self._remember(o, ev)
         return line, sample, valid
@@ -327,12 +345,28 @@ class BundleSolver:
         net = self.net
         point = net.obs_point[obs]
         fixed = np.all(self.point_fixed[point])
-        return _Layout(obs, ranges, point, net.obs_line[obs], net.obs_sample[obs],
-                       self.obs_w0[obs], net.point_xyz[point] if fixed else None,
-                       self.line_guess[obs], self.rate_guess[obs])
+        return _Layout(
+            obs,
+            ranges,
+            point,
+            net.obs_line[obs],
+            net.obs_sample[obs],
+            self.obs_w0[obs],
+            net.point_xyz[point] if fixed else None,
+            self.line_guess[obs],
+            self.rate_guess[obs],
+        )
 
-    def _linearize(self, c: F64, xyz: F64, lay: _Layout, tie_pos: NDArray[np.intp],
-                   n_tie: int, unknown: NDArray[np.intp], xyz0: F64) -> _Linearization:
+    def _linearize(
+        self,
+        c: F64,
+        xyz: F64,
+        lay: _Layout,
+        tie_pos: NDArray[np.intp],
+        n_tie: int,
+        unknown: NDArray[np.intp],
+        xyz0: F64,
+    ) -> _Linearization:
         p = self.n_params
         m = len(lay.obs)
         q = self.q
@@ -355,11 +389,12 @@ class BundleSolver:
         robust = self.loss != "linear"
         for mi, ccd, a0, b0 in lay.ranges:
             model = self.models[mi]
-            x = c[self.offsets[mi]:self.offsets[mi + 1]]
+            x = c[self.offsets[mi] : self.offsets[mi + 1]]
             for a in range(a0, b0, cs):
                 b = min(a + cs, b0)
-                ev = model.evaluate(x, pxyz[a:b], ccd, lay.line_guess[a:b],
-                                    rate_guess=lay.rate_guess[a:b])
+                ev = model.evaluate(
+                    x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
+                )
                 if ev.line_rate is not None:
                     rate[a:b] = ev.line_rate
                 res = r[a:b]
@@ -370,8 +405,7 @@ class BundleSolver:
                 ok = ev.valid
                 we = weight[a:b]
                 if robust:
-                    _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else
-                                       thr_l[a:b])
+                    _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else thr_l[a:b])
                     np.multiply(w0, rw[:, None], out=we)
                 else:
                     we[:] = w0
@@ -404,12 +438,28 @@ class BundleSolver:
         inv = np.empty(n_tie, np.intp)
         sel = tie_pos >= 0
         inv[tie_pos[sel]] = np.flatnonzero(sel)
-        return _Linearization(cost, r, valid, line, sample, s_all, weight, n_cc, g_c, a_t, b_t,
-                              gpat_t, weight[inv], np.where(valid[inv, None], r[inv], 0.0),
-                              rate, lay.obs)
+        return _Linearization(
+            cost,
+            r,
+            valid,
+            line,
+            sample,
+            s_all,
+            weight,
+            n_cc,
+            g_c,
+            a_t,
+            b_t,
+            gpat_t,
+            weight[inv],
+            np.where(valid[inv, None], r[inv], 0.0),
+            rate,
+            lay.obs,
+        )
 
-    def _accumulate(self, n_cc: F64, g_c: F64, d: F64, we: F64, wr: F64,
-                    gp: NDArray[np.intp], qm: int) -> None:
+    def _accumulate(
+        self, n_cc: F64, g_c: F64, d: F64, we: F64, wr: F64, gp: NDArray[np.intp], qm: int
+    ) -> None:
         """``N += sum A^T W A`` and ``g += sum A^T W r``, per run of equal patterns.
 
         Runs are contiguous (observations sorted by line), so every product works on
@@ -428,8 +478,9 @@ class BundleSolver:
             g_c[cols] += np.tensordot(d[a:b], wr[a:b], axes=([0, 1], [0, 1]))
 
     # ------------------------------------------------------------------ Schur
-    def _tie_structure(self, obs: NDArray[np.intp], unknown_of_obs: NDArray[np.intp],
-                       n_unknown: int) -> tuple[NDArray[np.intp], list[_TieChunk], int]:
+    def _tie_structure(
+        self, obs: NDArray[np.intp], unknown_of_obs: NDArray[np.intp], n_unknown: int
+    ) -> tuple[NDArray[np.intp], list[_TieChunk], int]:
         """Tie positions of observations and chunks of complete points with pairs."""
         is_t = unknown_of_obs >= 0
         t_obs = np.flatnonzero(is_t)
@@ -454,15 +505,29 @@ class BundleSolver:
                     pa = np.repeat(np.arange(b - a), cnt)
                     within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
                     pb = np.repeat(first, cnt) + within
-                    chunks.append(_TieChunk(np.arange(a, b), loc,
-                                            np.arange(lo_pt, hi_pt), pa, pb,
-                                            (starts[lo_pt:hi_pt] - a).astype(np.intp)))
+                    chunks.append(
+                        _TieChunk(
+                            np.arange(a, b),
+                            loc,
+                            np.arange(lo_pt, hi_pt),
+                            pa,
+                            pb,
+                            (starts[lo_pt:hi_pt] - a).astype(np.intp),
+                        )
+                    )
                 lo_pt = hi_pt
         return tie_pos, chunks, len(order)
 
-    def _reduced(self, lin: _Linearization, chunks: list[_TieChunk], lam: float,
-                 c: F64, xyz: F64, xyz0: F64, unknown: NDArray[np.intp]
-                 ) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
+    def _reduced(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        lam: float,
+        c: F64,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+    ) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
         """Reduced camera system ``(S, rhs, D_c)`` and per-chunk point blocks."""
         p = self.n_params
         s_mat = lin.n_cc.copy()
@@ -486,10 +551,14 @@ class BundleSolver:
             r = lin.r_t[ch.obs]
             wb = b * we[:, :, None]
             # Observations are sorted by point: per-point sums are segment reductions.
-            v = np.add.reduceat(b[:, 0, :, None] * wb[:, 0, None, :]
-                                + b[:, 1, :, None] * wb[:, 1, None, :], ch.starts, axis=0)
-            gx = np.add.reduceat(wb[:, 0] * r[:, 0, None] + wb[:, 1] * r[:, 1, None],
-                                 ch.starts, axis=0)
+            v = np.add.reduceat(
+                b[:, 0, :, None] * wb[:, 0, None, :] + b[:, 1, :, None] * wb[:, 1, None, :],
+                ch.starts,
+                axis=0,
+            )
+            gx = np.add.reduceat(
+                wb[:, 0] * r[:, 0, None] + wb[:, 1] * r[:, 1, None], ch.starts, axis=0
+            )
             gpts = unknown[ch.pts]
             pw = self.point_prior_w[gpts]
             v[:, [0, 1, 2], [0, 1, 2]] += pw
@@ -505,7 +574,8 @@ class BundleSolver:
                 raise AdjustmentError(
                     f"point {self.net.point_ids[self._unknown_ids[gpts[bad]]]!r}: its "
                     f"coordinates are not determined by its observations (rays parallel or "
-                    f"too few); give it an a-priori sigma or remove it") from None
+                    f"too few); give it an a-priori sigma or remove it"
+                ) from None
             # y = A^T W B per observation, (m, q, 3); z = y L with L L^T = V^-1.
             y = a[:, 0, :, None] * wb[:, 0, None, :] + a[:, 1, :, None] * wb[:, 1, None, :]
             z = np.matmul(y, chol[ch.pt])
@@ -536,9 +606,14 @@ class BundleSolver:
             del y, z
         return s_mat[:p, :p], rhs[:p], d_c, blocks
 
-    def _back_substitute(self, lin: _Linearization, chunks: list[_TieChunk],
-                         blocks: list[tuple[F64, F64, F64]], delta_c: F64, n_unknown: int
-                         ) -> tuple[F64, F64, F64]:
+    def _back_substitute(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        blocks: list[tuple[F64, F64, F64]],
+        delta_c: F64,
+        n_unknown: int,
+    ) -> tuple[F64, F64, F64]:
         """Point steps ``dX = V^-1 (b_x - W^T dc)`` and their gradient/diagonal terms."""
         dx = np.zeros((n_unknown, 3))
         bx_all = np.zeros((n_unknown, 3))
@@ -551,8 +626,9 @@ class BundleSolver:
             gcols = self.cols[lin.gpat_t[ch.obs]]
             adc = np.matmul(a, dc_pad[gcols][:, :, None])[:, :, 0]  # A dc, (m, 2)
             wb = b * we[:, :, None]
-            wtdc = np.add.reduceat(wb[:, 0] * adc[:, 0, None] + wb[:, 1] * adc[:, 1, None],
-                                   ch.starts, axis=0)
+            wtdc = np.add.reduceat(
+                wb[:, 0] * adc[:, 0, None] + wb[:, 1] * adc[:, 1, None], ch.starts, axis=0
+            )
             dx[ch.pts] = np.matmul(vinv, (bx - wtdc)[:, :, None])[:, :, 0]
             bx_all[ch.pts] = bx
             dd_all[ch.pts] = d_x
@@ -572,8 +648,9 @@ class BundleSolver:
         factor = scipy.linalg.cho_factor(sh, lower=False, check_finite=False)
         delta[act] = scipy.linalg.cho_solve(factor, rhs[act] / d, check_finite=False) / d
         # diag(S^-1) from the triangular factor: S^-1 = U^-1 U^-T, row norms of U^-1.
-        u_inv = scipy.linalg.solve_triangular(factor[0], np.eye(len(act)), lower=False,
-                                              check_finite=False)
+        u_inv = scipy.linalg.solve_triangular(
+            factor[0], np.eye(len(act)), lower=False, check_finite=False
+        )
         scale[act] = np.sqrt(np.einsum("ij,ij->i", u_inv, u_inv)) / d
         return delta, scale
 
@@ -609,9 +686,15 @@ class BundleSolver:
         self.rate_guess[lin.obs] = lin.rate
         return lin
 
-    def run(self, c: F64, xyz: F64, obs: NDArray[np.intp], xyz0: F64, *,
-            initial: _Linearization | None = None
-            ) -> tuple[F64, F64, LmReport, _Linearization, dict[str, object]]:
+    def run(
+        self,
+        c: F64,
+        xyz: F64,
+        obs: NDArray[np.intp],
+        xyz0: F64,
+        *,
+        initial: _Linearization | None = None,
+    ) -> tuple[F64, F64, LmReport, _Linearization, dict[str, object]]:
         """Minimise the cost over the observations ``obs`` from ``(c, xyz)``.
 
         Args:
@@ -632,8 +715,7 @@ class BundleSolver:
         cfg = self.cfg
         net = self.net
         st = self._structure(obs)
-        lay, unknown, tie_pos, chunks, n_tie = st.lay, st.unknown, st.tie_pos, st.chunks, \
-            st.n_tie
+        lay, unknown, tie_pos, chunks, n_tie = st.lay, st.unknown, st.tie_pos, st.chunks, st.n_tie
         obs = lay.obs
         self._unknown_ids = unknown
         xyz = xyz.copy()
@@ -651,8 +733,10 @@ class BundleSolver:
             lin = linearize(c, xyz)
         if not np.all(lin.valid):
             bad = np.flatnonzero(~lin.valid)
-            raise AdjustmentError(f"{bad.size} observation(s) cannot be projected with the "
-                                  f"initial cameras (first: {net.obs_ids[obs[bad[0]]]!r})")
+            raise AdjustmentError(
+                f"{bad.size} observation(s) cannot be projected with the "
+                f"initial cameras (first: {net.obs_ids[obs[bad[0]]]!r})"
+            )
         lay.line_guess[:] = lin.line
         lay.rate_guess[:] = lin.rate
         rep.cost_initial = lin.cost
@@ -669,14 +753,20 @@ class BundleSolver:
                 lam = max(lam * nu, cfg.min_lambda * 10.0)
                 nu *= 2.0
                 if lam > cfg.max_lambda:
-                    raise AdjustmentError("the damped normal equations are not positive "
-                                          "definite at any damping; the problem is "
-                                          "degenerate") from None
+                    raise AdjustmentError(
+                        "the damped normal equations are not positive "
+                        "definite at any damping; the problem is "
+                        "degenerate"
+                    ) from None
                 continue
             dx, bx, dd = self._back_substitute(lin, chunks, blocks, delta_c, len(unknown))
             grad_c = _camera_gradient(lin, self, c)
-            pred = 0.5 * (lam * float(np.sum(d_c * delta_c**2)) - float(grad_c @ delta_c)
-                          + lam * float(np.sum(dd * dx**2)) + float(np.sum(bx * dx)))
+            pred = 0.5 * (
+                lam * float(np.sum(d_c * delta_c**2))
+                - float(grad_c @ delta_c)
+                + lam * float(np.sum(dd * dx**2))
+                + float(np.sum(bx * dx))
+            )
             # IRLS (a robust loss) converges only linearly: stop at a looser floor.
             ftol = cfg.ftol if self.loss == "linear" else max(cfg.ftol, _IRLS_FTOL)
             if it > 0 and lam <= 10.0 * cfg.min_lambda and pred <= ftol * max(lin.cost, 1e-300):
@@ -710,8 +800,10 @@ class BundleSolver:
                 lay.rate_guess[:] = np.where(new.valid, new.rate, np.nan)
                 rep.history.append((it, lin.cost, lam))
                 if self.progress is not None:
-                    self.progress(f"iteration {it}: cost {lin.cost:.6g}, lambda {lam:.2g}, "
-                                  f"step {step:.3g} sigma")
+                    self.progress(
+                        f"iteration {it}: cost {lin.cost:.6g}, lambda {lam:.2g}, "
+                        f"step {step:.3g} sigma"
+                    )
                 if actual <= ftol * max(lin.cost, 1e-300):
                     rep.converged, rep.reason = True, "relative cost change below ftol"
                     break
@@ -723,8 +815,9 @@ class BundleSolver:
                 lay.rate_guess[:] = saved_rate
                 # A rejected step that is tiny, or predicted to gain nothing, means the
                 # cost is at its floor of rounding (projections are exact to ~1e-9 px).
-                if np.isfinite(new.cost) and (step <= _STEP_FLOOR_SIGMA
-                                              or pred <= 1e-14 * lin.cost):
+                if np.isfinite(new.cost) and (
+                    step <= _STEP_FLOOR_SIGMA or pred <= 1e-14 * lin.cost
+                ):
                     rep.converged, rep.reason = True, "no further decrease possible"
                     break
                 lam = max(lam * nu, cfg.min_lambda * 10.0)
@@ -733,7 +826,8 @@ class BundleSolver:
                     raise AdjustmentError(
                         f"Levenberg-Marquardt diverged: the cost ({lin.cost:.6g}) did not "
                         f"decrease even with damping {lam:.2g}; check the observations and "
-                        f"the initial cameras")
+                        f"the initial cameras"
+                    )
         else:
             rep.reason = f"maximum of {cfg.max_iterations} iterations reached"
         self.line_guess[obs] = lay.line_guess
@@ -746,13 +840,21 @@ class BundleSolver:
         return c, xyz, rep, lin, stats
 
     # ------------------------------------------------------------ statistics
-    def _check_rank(self, lin: _Linearization, chunks: list[_TieChunk], c: F64, xyz: F64,
-                    xyz0: F64, unknown: NDArray[np.intp], when: str) -> None:
+    def _check_rank(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        c: F64,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+        when: str,
+    ) -> None:
         act = self.active
         if not act.size:
             return
         # Parameters that no observation (and no prior) touches at all.
-        full_diag = np.diag(lin.n_cc)[:self.n_params][act] + self.prior_w[act]
+        full_diag = np.diag(lin.n_cc)[: self.n_params][act] + self.prior_w[act]
         if self.con_n is not None:
             full_diag = full_diag + np.diag(self.con_n)[act]
         zero = np.flatnonzero(~(full_diag > 0))
@@ -761,7 +863,8 @@ class BundleSolver:
             raise AdjustmentError(
                 f"{zero.size} parameter(s) have no observations at all ({when} cameras): "
                 f"{', '.join(names)}{' ...' if zero.size > 8 else ''}; fix them or give them "
-                f"an a-priori sigma")
+                f"an a-priori sigma"
+            )
         s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
         sa = s_mat[np.ix_(act, act)]
         # Scaled by the diagonal before the point elimination: a parameter that the
@@ -773,16 +876,23 @@ class BundleSolver:
         if not rcond > self.cfg.min_rcond:
             weights = np.abs(vec[:, 0])
             top = np.argsort(weights)[::-1][:6]
-            names = [f"{self.names[act[i]]} ({weights[i]:.2f})" for i in top
-                     if weights[i] > 0.05]
+            names = [f"{self.names[act[i]]} ({weights[i]:.2f})" for i in top if weights[i] > 0.05]
             raise AdjustmentError(
                 f"the reduced normal matrix is singular (reciprocal condition "
                 f"{rcond:.2g} < {self.cfg.min_rcond:g}, {when} cameras): the observations do "
                 f"not determine a combination of {', '.join(names)}; fix or weight these "
-                f"parameters (e.g. a datum: a fixed camera or control points)")
+                f"parameters (e.g. a datum: a fixed camera or control points)"
+            )
 
-    def _statistics(self, lin: _Linearization, chunks: list[_TieChunk], c: F64, xyz: F64,
-                    xyz0: F64, unknown: NDArray[np.intp]) -> dict[str, object]:
+    def _statistics(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        c: F64,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+    ) -> dict[str, object]:
         p = self.n_params
         s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
         act = self.active
@@ -801,7 +911,8 @@ class BundleSolver:
             raise AdjustmentError(
                 f"no redundancy: {n_obs // 2} observations ({n_obs} equations) and {n_prior} "
                 f"a-priori constraints for {n_unk} unknowns; add observations or fix "
-                f"parameters")
+                f"parameters"
+            )
         sigma0 = math.sqrt(vtpv / dof)
         cov = np.zeros((p, p))
         if act.size:
@@ -814,16 +925,24 @@ class BundleSolver:
                 inv = scipy.linalg.cho_solve(factor, np.eye(len(act)), check_finite=False)
             except np.linalg.LinAlgError:
                 self._check_rank(lin, chunks, c, xyz, xyz0, unknown, "adjusted")
-                raise AdjustmentError("the reduced normal matrix is not positive definite "
-                                      "at the solution") from None
+                raise AdjustmentError(
+                    "the reduced normal matrix is not positive definite at the solution"
+                ) from None
             cov[np.ix_(act, act)] = sigma0**2 * inv / d[:, None] / d[None, :]
         sig = np.sqrt(np.diag(cov))
         with np.errstate(divide="ignore", invalid="ignore"):
             corr = cov / sig[:, None] / sig[None, :]
         corr[~np.isfinite(corr)] = 0.0
-        return {"sigma0": sigma0, "dof": dof, "vtpv": vtpv, "covariance": cov,
-                "sigma": sig, "correlation": corr, "n_unknowns": n_unk,
-                "n_equations": n_obs + n_prior}
+        return {
+            "sigma0": sigma0,
+            "dof": dof,
+            "vtpv": vtpv,
+            "covariance": cov,
+            "sigma": sig,
+            "correlation": corr,
+            "n_unknowns": n_unk,
+            "n_equations": n_obs + n_prior,
+        }
 
 
 def _camera_gradient(lin: _Linearization, solver: BundleSolver, c: F64) -> F64:

@@ -57,11 +57,13 @@ class CameraDoc(_Model):
     version: int
     name: str = ""
     body: BodyDoc
-    frame_rotation: Annotated[list[Annotated[list[FiniteFloat],
-                                             Field(min_length=3, max_length=3)]],
-                              Field(min_length=3, max_length=3)]
-    line_rates: list[Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]] = \
-        Field(min_length=1)
+    frame_rotation: Annotated[
+        list[Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]],
+        Field(min_length=3, max_length=3),
+    ]
+    line_rates: list[Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]] = Field(
+        min_length=1
+    )
     orientation: OrientationDoc
     interior: InteriorDoc
     ccds: list[CcdDoc] = Field(min_length=1)
@@ -86,8 +88,9 @@ def load_json(path: str | os.PathLike[str]) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
-                         path=p) from None
+        raise InputError(
+            f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}", path=p
+        ) from None
 
 
 def _first_error(exc: ValidationError) -> tuple[str, str]:
@@ -111,17 +114,19 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
 
     if not isinstance(doc, dict) or doc.get("format") != "planetref-linescan":
         raise UnsupportedFormatError(
-            "not a planetref line-scan camera (expected \"format\": \"planetref-linescan\")",
-            path=path)
+            'not a planetref line-scan camera (expected "format": "planetref-linescan")', path=path
+        )
     try:
         m = CameraDoc.model_validate(doc)
     except ValidationError as exc:
         loc, msg = _first_error(exc)
         raise InputError(msg, path=path, field=loc) from None
     if len(m.orientation.node_lines) != len(m.orientation.nodes):
-        raise InputError(f"{len(m.orientation.node_lines)} node lines but "
-                         f"{len(m.orientation.nodes)} nodes", path=path,
-                         field="orientation.nodes")
+        raise InputError(
+            f"{len(m.orientation.node_lines)} node lines but {len(m.orientation.nodes)} nodes",
+            path=path,
+            field="orientation.nodes",
+        )
     try:
         ell = Ellipsoid(m.body.semi_major_m, m.body.semi_minor_m, m.body.name)
         return factory(
@@ -130,10 +135,15 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
             line_rates=LineRateTable(tuple(tuple(r) for r in m.line_rates)),
             node_lines=np.asarray(m.orientation.node_lines, dtype=np.float64),
             nodes=np.asarray(m.orientation.nodes, dtype=np.float64),
-            interior=InteriorOrientation(m.interior.focal_length_mm, m.interior.x0_mm,
-                                         m.interior.y0_mm),
-            ccds=tuple(CcdGeometry(c.name, c.n_lines, c.n_samples, c.pixel_pitch_mm,
-                                   c.x_mm, c.y_mm, c.angle_rad) for c in m.ccds),
+            interior=InteriorOrientation(
+                m.interior.focal_length_mm, m.interior.x0_mm, m.interior.y0_mm
+            ),
+            ccds=tuple(
+                CcdGeometry(
+                    c.name, c.n_lines, c.n_samples, c.pixel_pitch_mm, c.x_mm, c.y_mm, c.angle_rad
+                )
+                for c in m.ccds
+            ),
             interpolation_order=m.orientation.interpolation_order,
             latitude_kind=m.body.latitude,
             name=m.name,

@@ -85,8 +85,9 @@ class Terrain(Protocol):
     min_height_m: float
     max_height_m: float
 
-    def height(self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
-               ) -> NDArray[np.float64]:
+    def height(
+        self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
         """Height (m) at planetocentric lon/lat (degrees); NaN outside or in holes."""
         ...
 
@@ -123,11 +124,11 @@ class ConstantHeight:
         """Infinite: a constant surface needs no marching."""
         return float("inf")
 
-    def height(self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
-               ) -> NDArray[np.float64]:
+    def height(
+        self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
         """``height_m`` everywhere."""
-        return np.full(np.broadcast(np.asarray(lon_deg), np.asarray(lat_deg)).shape,
-                       self.height_m)
+        return np.full(np.broadcast(np.asarray(lon_deg), np.asarray(lat_deg)).shape, self.height_m)
 
 
 @runtime_checkable
@@ -155,9 +156,15 @@ class Camera(Protocol):
         """``(n_lines, n_samples)`` of a CCD image."""
         ...
 
-    def image_to_ground(self, line: ArrayLike, sample: ArrayLike,
-                        terrain: Terrain | float = 0.0, *, ccd: str | None = None,
-                        on_miss: OnMiss = "raise") -> NDArray[np.float64]:
+    def image_to_ground(
+        self,
+        line: ArrayLike,
+        sample: ArrayLike,
+        terrain: Terrain | float = 0.0,
+        *,
+        ccd: str | None = None,
+        on_miss: OnMiss = "raise",
+    ) -> NDArray[np.float64]:
         """Intersect the rays of image points with the terrain.
 
         Args:

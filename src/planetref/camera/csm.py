@@ -94,11 +94,21 @@ MIN_EPHEMERIS_NODES = 25
 SUPPORTED_DISTORTION = ("radial", "transverse")
 
 CORRECTION_PARAMETER_NAMES = (
-    "in_track_m", "cross_track_m", "radial_m",
-    "in_track_rate_m", "cross_track_rate_m", "radial_rate_m",
-    "omega_m", "phi_m", "kappa_m",
-    "omega_rate_m", "phi_rate_m", "kappa_rate_m",
-    "omega_accel_m", "phi_accel_m", "kappa_accel_m",
+    "in_track_m",
+    "cross_track_m",
+    "radial_m",
+    "in_track_rate_m",
+    "cross_track_rate_m",
+    "radial_rate_m",
+    "omega_m",
+    "phi_m",
+    "kappa_m",
+    "omega_rate_m",
+    "phi_rate_m",
+    "kappa_rate_m",
+    "omega_accel_m",
+    "phi_accel_m",
+    "kappa_accel_m",
     "focal_m",
 )
 
@@ -110,6 +120,7 @@ _MISSING: Any = object()
 # ---------------------------------------------------------------------------------------
 # Typed ISD
 # ---------------------------------------------------------------------------------------
+
 
 def _frozen_array(a: ArrayLike) -> NDArray[np.float64]:
     arr = np.array(a, dtype=np.float64)
@@ -239,8 +250,9 @@ class CsmCorrection:
         for f in fields(self):
             v = getattr(self, f.name)
             if not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise InputError(f"correction parameter must be a finite number, got {v!r}",
-                                 field=f.name)
+                raise InputError(
+                    f"correction parameter must be a finite number, got {v!r}", field=f.name
+                )
             object.__setattr__(self, f.name, float(v))
 
     @classmethod
@@ -369,18 +381,27 @@ class CsmIsd:
             "focal_length_model": {"focal_length": self.focal_length_mm},
             "focal2pixel_lines": self.focal2pixel_lines.tolist(),
             "focal2pixel_samples": self.focal2pixel_samples.tolist(),
-            "detector_center": {"line": self.detector_center_line,
-                                "sample": self.detector_center_sample},
+            "detector_center": {
+                "line": self.detector_center_line,
+                "sample": self.detector_center_sample,
+            },
             "starting_detector_line": self.starting_detector_line,
             "starting_detector_sample": self.starting_detector_sample,
             "detector_line_summing": _int_if_whole(self.detector_line_summing),
             "detector_sample_summing": _int_if_whole(self.detector_sample_summing),
-            "optical_distortion": _distortion_to_dict(self.distortion_model,
-                                                      self.distortion_coefficients),
-            "radii": {"semimajor": self.semi_major_km, "semiminor": self.semi_minor_km,
-                      "unit": "km"},
-            "reference_height": {"minheight": self.min_height_m,
-                                 "maxheight": self.max_height_m, "unit": "m"},
+            "optical_distortion": _distortion_to_dict(
+                self.distortion_model, self.distortion_coefficients
+            ),
+            "radii": {
+                "semimajor": self.semi_major_km,
+                "semiminor": self.semi_minor_km,
+                "unit": "km",
+            },
+            "reference_height": {
+                "minheight": self.min_height_m,
+                "maxheight": self.max_height_m,
+                "unit": "m",
+            },
             "instrument_position": self.instrument_position.to_dict(),
             "instrument_pointing": self.instrument_pointing.to_dict(),
             "body_rotation": self.body_rotation.to_dict(),
@@ -388,11 +409,12 @@ class CsmIsd:
         if self.platform_flag != 1:
             out["platform_flag"] = self.platform_flag
         if self.correction is not None and not self.correction.is_zero:
-            c: dict[str, Any] = {"names": list(CORRECTION_PARAMETER_NAMES),
-                                 "parameters": self.correction.as_array().tolist()}
+            c: dict[str, Any] = {
+                "names": list(CORRECTION_PARAMETER_NAMES),
+                "parameters": self.correction.as_array().tolist(),
+            }
             if self.correction_scales is not None:
-                c["half_time_s"], c["flying_height_m"], c["half_swath_m"] = \
-                    self.correction_scales
+                c["half_time_s"], c["flying_height_m"], c["half_swath_m"] = self.correction_scales
             out[CORRECTION_KEY] = c
         for k, v in self.extra.items():
             out.setdefault(k, copy.deepcopy(v))
@@ -414,6 +436,7 @@ def _distortion_to_dict(model: str, coeffs: NDArray[np.float64]) -> dict[str, An
 # ---------------------------------------------------------------------------------------
 # Reading
 # ---------------------------------------------------------------------------------------
+
 
 class _Fields:
     """Typed access to an ISD dict; every failure is an InputError naming the field."""
@@ -438,8 +461,9 @@ class _Fields:
     def has(self, key: str) -> bool:
         return self.raw(key, None) is not None
 
-    def number(self, key: str, default: Any = _MISSING, *, positive: bool = False,
-               integer: bool = False) -> float:
+    def number(
+        self, key: str, default: Any = _MISSING, *, positive: bool = False, integer: bool = False
+    ) -> float:
         v = self.raw(key, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.error(key, f"expected a number, got {json.dumps(v)[:40]}")
@@ -457,8 +481,9 @@ class _Fields:
             raise self.error(key, f"expected a string, got {json.dumps(v)[:40]}")
         return v
 
-    def array(self, key: str, width: int | None = None, *, min_rows: int = 1,
-              default: Any = _MISSING) -> NDArray[np.float64]:
+    def array(
+        self, key: str, width: int | None = None, *, min_rows: int = 1, default: Any = _MISSING
+    ) -> NDArray[np.float64]:
         v = self.raw(key, default)
         if v is None:
             return None  # type: ignore[return-value]
@@ -467,8 +492,9 @@ class _Fields:
         except (TypeError, ValueError):
             raise self.error(key, "expected an array of numbers") from None
         expected = "(N,)" if width is None else f"(N, {width})"
-        if (width is None and arr.ndim != 1) or (width is not None and (
-                arr.ndim != 2 or arr.shape[1] != width)):
+        if (width is None and arr.ndim != 1) or (
+            width is not None and (arr.ndim != 2 or arr.shape[1] != width)
+        ):
             raise self.error(key, f"expected an array of shape {expected}, got {arr.shape}")
         if arr.shape[0] < min_rows:
             raise self.error(key, f"needs at least {min_rows} entries, got {arr.shape[0]}")
@@ -484,8 +510,9 @@ class _Fields:
         if u is None:
             return None
         if not isinstance(u, str) or u.strip().lower() not in allowed:
-            raise self.error(key, f"unit must be {' or '.join(repr(a) for a in allowed)}, "
-                                  f"got {u!r}")
+            raise self.error(
+                key, f"unit must be {' or '.join(repr(a) for a in allowed)}, got {u!r}"
+            )
         return u.strip().lower()
 
 
@@ -507,17 +534,20 @@ def _read_states(f: _Fields, key: str) -> CsmStates:
     _check_times(f, f"{key}.ephemeris_times", times)
     pos = f.array(f"{key}.positions", 3, min_rows=2)
     if len(pos) != len(times):
-        raise f.error(f"{key}.positions", f"has {len(pos)} rows for {len(times)} "
-                                          "ephemeris times")
+        raise f.error(f"{key}.positions", f"has {len(pos)} rows for {len(times)} ephemeris times")
     vel = f.array(f"{key}.velocities", 3, default=None)
     if vel is not None and len(vel) != len(times):
-        raise f.error(f"{key}.velocities", f"has {len(vel)} rows for {len(times)} "
-                                           "ephemeris times")
+        raise f.error(f"{key}.velocities", f"has {len(vel)} rows for {len(times)} ephemeris times")
     frame = int(f.number(f"{key}.reference_frame", J2000, integer=True))
     known = {"ephemeris_times", "positions", "velocities", "reference_frame"}
     extra = {k: v for k, v in f.raw(key).items() if k not in known}
-    return CsmStates(_frozen_array(times), _frozen_array(pos),
-                     None if vel is None else _frozen_array(vel), frame, extra)
+    return CsmStates(
+        _frozen_array(times),
+        _frozen_array(pos),
+        None if vel is None else _frozen_array(vel),
+        frame,
+        extra,
+    )
 
 
 def _read_orientations(f: _Fields, key: str) -> CsmOrientations:
@@ -526,19 +556,22 @@ def _read_orientations(f: _Fields, key: str) -> CsmOrientations:
     _check_times(f, f"{key}.ephemeris_times", times)
     q = f.array(f"{key}.quaternions", 4, min_rows=1)
     if len(q) != len(times):
-        raise f.error(f"{key}.quaternions", f"has {len(q)} rows for {len(times)} "
-                                            "ephemeris times")
+        raise f.error(f"{key}.quaternions", f"has {len(q)} rows for {len(times)} ephemeris times")
     norms = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-5)
     if bad.size:
         i = int(bad[0])
-        what = "has zero norm" if norms[i] < 1e-12 else f"is not a unit quaternion (norm " \
-                                                          f"{norms[i]:.6g})"
+        what = (
+            "has zero norm"
+            if norms[i] < 1e-12
+            else f"is not a unit quaternion (norm {norms[i]:.6g})"
+        )
         raise f.error(f"{key}.quaternions[{i}]", f"quaternion {q[i].tolist()} {what}")
     av = f.array(f"{key}.angular_velocities", 3, default=None)
     if av is not None and len(av) != len(times):
-        raise f.error(f"{key}.angular_velocities", f"has {len(av)} rows for {len(times)} "
-                                                   "ephemeris times")
+        raise f.error(
+            f"{key}.angular_velocities", f"has {len(av)} rows for {len(times)} ephemeris times"
+        )
     const = f.array(f"{key}.constant_rotation", default=None)
     if const is None:
         const = np.eye(3)
@@ -556,13 +589,26 @@ def _read_orientations(f: _Fields, key: str) -> CsmOrientations:
             raise f.error(f"{key}.{k}", "expected a list of NAIF frame codes")
         return tuple(int(x) for x in v)
 
-    known = {"ephemeris_times", "quaternions", "angular_velocities", "constant_rotation",
-             "reference_frame", "constant_frames", "time_dependent_frames"}
+    known = {
+        "ephemeris_times",
+        "quaternions",
+        "angular_velocities",
+        "constant_rotation",
+        "reference_frame",
+        "constant_frames",
+        "time_dependent_frames",
+    }
     extra = {k: v for k, v in f.raw(key).items() if k not in known}
-    return CsmOrientations(_frozen_array(times), _frozen_array(q),
-                           None if av is None else _frozen_array(av), _frozen_array(const),
-                           frame, frames("constant_frames"), frames("time_dependent_frames"),
-                           extra)
+    return CsmOrientations(
+        _frozen_array(times),
+        _frozen_array(q),
+        None if av is None else _frozen_array(av),
+        _frozen_array(const),
+        frame,
+        frames("constant_frames"),
+        frames("time_dependent_frames"),
+        extra,
+    )
 
 
 def _read_distortion(f: _Fields) -> tuple[str, NDArray[np.float64]]:
@@ -573,20 +619,23 @@ def _read_distortion(f: _Fields) -> tuple[str, NDArray[np.float64]]:
     if model not in SUPPORTED_DISTORTION:
         raise UnsupportedFormatError(
             f"distortion model {model!r} is not supported (supported: "
-            f"{', '.join(SUPPORTED_DISTORTION)})", path=f.path, field="optical_distortion")
+            f"{', '.join(SUPPORTED_DISTORTION)})",
+            path=f.path,
+            field="optical_distortion",
+        )
     if model == "radial":
         c = f.array("optical_distortion.radial.coefficients")
         if len(c) != 3:
-            raise f.error("optical_distortion.radial.coefficients",
-                          f"expected 3 coefficients, got {len(c)}")
+            raise f.error(
+                "optical_distortion.radial.coefficients", f"expected 3 coefficients, got {len(c)}"
+            )
         return model, c
     cx = f.array("optical_distortion.transverse.x")
     cy = f.array("optical_distortion.transverse.y")
     if len(cx) > 10 or len(cy) > 10:
         raise f.error("optical_distortion.transverse", "at most 10 coefficients per axis")
     # usgscsm pads each axis to the 10 terms of its cubic polynomial.
-    return model, np.concatenate([np.pad(cx, (0, 10 - len(cx))),
-                                  np.pad(cy, (0, 10 - len(cy)))])
+    return model, np.concatenate([np.pad(cx, (0, 10 - len(cx))), np.pad(cy, (0, 10 - len(cy)))])
 
 
 def _read_correction(f: _Fields) -> tuple[CsmCorrection | None, tuple[float, ...] | None]:
@@ -595,8 +644,10 @@ def _read_correction(f: _Fields) -> tuple[CsmCorrection | None, tuple[float, ...
     corr = CsmCorrection.from_array(f.array(f"{CORRECTION_KEY}.parameters"))
     scales = None
     if f.has(f"{CORRECTION_KEY}.half_time_s"):
-        scales = tuple(f.number(f"{CORRECTION_KEY}.{k}", positive=True)
-                       for k in ("half_time_s", "flying_height_m", "half_swath_m"))
+        scales = tuple(
+            f.number(f"{CORRECTION_KEY}.{k}", positive=True)
+            for k in ("half_time_s", "flying_height_m", "half_swath_m")
+        )
     return corr, scales
 
 
@@ -607,14 +658,18 @@ def _isd_from_dict(data: Any, path: str | None) -> CsmIsd:
     name = f.raw("name_model")
     if name != CSM_LINE_SCANNER_MODEL:
         raise UnsupportedFormatError(
-            f"only {CSM_LINE_SCANNER_MODEL} ISDs are supported, got {name!r}", path=path,
-            field="name_model")
+            f"only {CSM_LINE_SCANNER_MODEL} ISDs are supported, got {name!r}",
+            path=path,
+            field="name_model",
+        )
     radii_unit = f.unit("radii.unit", ("km",))
     a_km = f.number("radii.semimajor", positive=True)
     b_km = f.number("radii.semiminor", positive=True)
     if radii_unit is None and a_km > 1e5:
-        raise f.error("radii.semimajor", f"{a_km} km is larger than any planet: metres "
-                                         "given where km are expected?")
+        raise f.error(
+            "radii.semimajor",
+            f"{a_km} km is larger than any planet: metres given where km are expected?",
+        )
     if b_km > a_km:
         raise f.error("radii.semiminor", f"semiminor {b_km} km > semimajor {a_km} km")
     h_unit = f.unit("reference_height.unit", ("m", "km")) or "m"
@@ -641,20 +696,40 @@ def _isd_from_dict(data: Any, path: str | None) -> CsmIsd:
     pointing = _read_orientations(f, "instrument_pointing")
     body = _read_orientations(f, "body_rotation")
     if len(pointing.times) + len(body.times) < 2:
-        raise f.error("instrument_pointing.ephemeris_times",
-                      "at least two pointing epochs are needed")
+        raise f.error(
+            "instrument_pointing.ephemeris_times", "at least two pointing epochs are needed"
+        )
     platform_flag = int(f.number("platform_flag", 1, integer=True))
     if platform_flag not in (0, 1):
         raise f.error("platform_flag", f"must be 0 or 1, got {platform_flag}")
     correction, scales = _read_correction(f)
 
-    known = {"name_model", "name_platform", "name_sensor", "image_lines", "image_samples",
-             "center_ephemeris_time", "starting_ephemeris_time", "line_scan_rate",
-             "focal_length_model", "focal2pixel_lines", "focal2pixel_samples",
-             "detector_center", "starting_detector_line", "starting_detector_sample",
-             "detector_line_summing", "detector_sample_summing", "optical_distortion",
-             "radii", "reference_height", "instrument_position", "instrument_pointing",
-             "body_rotation", "platform_flag", CORRECTION_KEY}
+    known = {
+        "name_model",
+        "name_platform",
+        "name_sensor",
+        "image_lines",
+        "image_samples",
+        "center_ephemeris_time",
+        "starting_ephemeris_time",
+        "line_scan_rate",
+        "focal_length_model",
+        "focal2pixel_lines",
+        "focal2pixel_samples",
+        "detector_center",
+        "starting_detector_line",
+        "starting_detector_sample",
+        "detector_line_summing",
+        "detector_sample_summing",
+        "optical_distortion",
+        "radii",
+        "reference_height",
+        "instrument_position",
+        "instrument_pointing",
+        "body_rotation",
+        "platform_flag",
+        CORRECTION_KEY,
+    }
     isd = CsmIsd(
         path=path,
         name_platform=f.string("name_platform", ""),
@@ -694,19 +769,23 @@ def _isd_from_dict(data: Any, path: str | None) -> CsmIsd:
 def _check_frames(isd: CsmIsd, f: _Fields) -> None:
     body = isd.body_frame
     allowed = {J2000} | ({body} if body is not None else set())
-    for key, frame in (("instrument_position.reference_frame",
-                        isd.instrument_position.reference_frame),
-                       ("instrument_pointing.reference_frame",
-                        isd.instrument_pointing.reference_frame)):
+    for key, frame in (
+        ("instrument_position.reference_frame", isd.instrument_position.reference_frame),
+        ("instrument_pointing.reference_frame", isd.instrument_pointing.reference_frame),
+    ):
         if frame not in allowed:
             raise UnsupportedFormatError(
-                f"reference frame {frame} is neither J2000 (1) nor the body frame "
-                f"({body})", path=f.path, field=key)
+                f"reference frame {frame} is neither J2000 (1) nor the body frame ({body})",
+                path=f.path,
+                field=key,
+            )
     if isd.body_rotation.reference_frame != J2000:
         raise UnsupportedFormatError(
             f"body_rotation must rotate from J2000 (1), got frame "
-            f"{isd.body_rotation.reference_frame}", path=f.path,
-            field="body_rotation.reference_frame")
+            f"{isd.body_rotation.reference_frame}",
+            path=f.path,
+            field="body_rotation.reference_frame",
+        )
 
 
 def read_isd(path: str | os.PathLike[str]) -> CsmIsd:
@@ -741,8 +820,9 @@ def read_isd(path: str | os.PathLike[str]) -> CsmIsd:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON ({exc.msg} at line {exc.lineno} column "
-                         f"{exc.colno})", path=p) from None
+        raise InputError(
+            f"not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})", path=p
+        ) from None
     try:
         return _isd_from_dict(data, str(p))
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
@@ -751,8 +831,7 @@ def read_isd(path: str | os.PathLike[str]) -> CsmIsd:
         raise InputError(f"malformed ISD ({type(exc).__name__}: {exc})", path=p) from None
 
 
-def write_isd(camera_or_isd: CsmLineScanCamera | CsmIsd, path: str | os.PathLike[str]
-              ) -> Path:
+def write_isd(camera_or_isd: CsmLineScanCamera | CsmIsd, path: str | os.PathLike[str]) -> Path:
     """Write an ISD JSON file atomically (a temporary file, then a rename).
 
     A camera's correction (if not zero) is written under the ``planetref_correction`` key
@@ -771,14 +850,17 @@ def write_isd(camera_or_isd: CsmLineScanCamera | CsmIsd, path: str | os.PathLike
     """
     if isinstance(camera_or_isd, CsmLineScanCamera):
         cam = camera_or_isd
-        isd = replace(cam.isd, correction=None if cam.correction.is_zero else cam.correction,
-                      correction_scales=(cam.half_time_s, cam.flying_height_m,
-                                         cam.half_swath_m))
+        isd = replace(
+            cam.isd,
+            correction=None if cam.correction.is_zero else cam.correction,
+            correction_scales=(cam.half_time_s, cam.flying_height_m, cam.half_swath_m),
+        )
     elif isinstance(camera_or_isd, CsmIsd):
         isd = camera_or_isd
     else:
-        raise InputError(f"expected a CsmLineScanCamera or CsmIsd, got "
-                         f"{type(camera_or_isd).__name__}")
+        raise InputError(
+            f"expected a CsmLineScanCamera or CsmIsd, got {type(camera_or_isd).__name__}"
+        )
     p = Path(path)
     try:
         text = json.dumps(isd.to_dict(), indent=1, allow_nan=False)
@@ -796,13 +878,19 @@ def write_isd(camera_or_isd: CsmLineScanCamera | CsmIsd, path: str | os.PathLike
 # renormalised between operations, so that resampled attitudes match usgscsm's.
 # ---------------------------------------------------------------------------------------
 
+
 def _qmul(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by + ay * bw + az * bx - ax * bz,
-                     aw * bz + az * bw + ax * by - ay * bx], axis=-1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by + ay * bw + az * bx - ax * bz,
+            aw * bz + az * bw + ax * by - ay * bx,
+        ],
+        axis=-1,
+    )
 
 
 def _qinv(q: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -810,8 +898,9 @@ def _qinv(q: NDArray[np.float64]) -> NDArray[np.float64]:
     return q * np.array([1.0, -1.0, -1.0, -1.0]) / n2
 
 
-def _qslerp(a: NDArray[np.float64], b: NDArray[np.float64], t: NDArray[np.float64]
-            ) -> NDArray[np.float64]:
+def _qslerp(
+    a: NDArray[np.float64], b: NDArray[np.float64], t: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Eigen's ``QuaternionBase::slerp`` (also extrapolates for t outside [0, 1])."""
     d = np.sum(a * b, axis=-1)
     abs_d = np.abs(d)
@@ -832,9 +921,20 @@ def _qmatrix(q: NDArray[np.float64]) -> NDArray[np.float64]:
     twx, twy, twz = tx * w, ty * w, tz * w
     txx, txy, txz = tx * x, ty * x, tz * x
     tyy, tyz, tzz = ty * y, tz * y, tz * z
-    m = np.stack([1 - (tyy + tzz), txy - twz, txz + twy,
-                  txy + twz, 1 - (txx + tzz), tyz - twx,
-                  txz - twy, tyz + twx, 1 - (txx + tyy)], axis=-1)
+    m = np.stack(
+        [
+            1 - (tyy + tzz),
+            txy - twz,
+            txz + twy,
+            txy + twz,
+            1 - (txx + tzz),
+            tyz - twx,
+            txz - twy,
+            tyz + twx,
+            1 - (txx + tyy),
+        ],
+        axis=-1,
+    )
     return m.reshape((*q.shape[:-1], 3, 3))
 
 
@@ -865,8 +965,9 @@ def _quat_from_matrix(m: NDArray[np.float64]) -> NDArray[np.float64]:
     return q
 
 
-def _interp_index(times: NDArray[np.float64], t: NDArray[np.float64]
-                  ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+def _interp_index(
+    times: NDArray[np.float64], t: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     """ALE's ``interpolationIndex`` and the fraction within the interval."""
     idx = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
     frac = (t - times[idx]) / (times[idx + 1] - times[idx])
@@ -876,8 +977,13 @@ def _interp_index(times: NDArray[np.float64], t: NDArray[np.float64]
 class _AleOrientations:
     """The part of ALE's ``Orientations`` that usgscsm uses (SLERP interpolation)."""
 
-    def __init__(self, rotations: NDArray[np.float64], times: NDArray[np.float64],
-                 avs: NDArray[np.float64] | None, const: NDArray[np.float64]) -> None:
+    def __init__(
+        self,
+        rotations: NDArray[np.float64],
+        times: NDArray[np.float64],
+        avs: NDArray[np.float64] | None,
+        const: NDArray[np.float64],
+    ) -> None:
         self.rotations = rotations
         self.times = times
         self.avs = avs
@@ -885,9 +991,12 @@ class _AleOrientations:
 
     @classmethod
     def from_isd(cls, o: CsmOrientations) -> _AleOrientations:
-        return cls(np.array(o.quaternions), np.array(o.times),
-                   None if o.angular_velocities is None else np.array(o.angular_velocities),
-                   _quat_from_matrix(np.asarray(o.constant_rotation)))
+        return cls(
+            np.array(o.quaternions),
+            np.array(o.times),
+            None if o.angular_velocities is None else np.array(o.angular_velocities),
+            _quat_from_matrix(np.asarray(o.constant_rotation)),
+        )
 
     def interpolate(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         t = np.asarray(t, dtype=np.float64)
@@ -901,8 +1010,9 @@ class _AleOrientations:
             n = float(np.linalg.norm(av))
             axis = av / n if n > 0 else av
             half = 0.5 * (t - self.times[0]) * n
-            spin = np.concatenate([np.cos(half)[..., None],
-                                   np.sin(half)[..., None] * axis], axis=-1)
+            spin = np.concatenate(
+                [np.cos(half)[..., None], np.sin(half)[..., None] * axis], axis=-1
+            )
             q = _qmul(spin, self.rotations[0])
         return _qmul(np.broadcast_to(self.const, q.shape), q)
 
@@ -929,9 +1039,9 @@ class _AleOrientations:
         rots = _qmul(lhs_rot, rhs.interpolate(times))
         return _AleOrientations(rots, times, None, self.const)
 
-    def rotate_states(self, t: NDArray[np.float64], pos: NDArray[np.float64],
-                      vel: NDArray[np.float64]
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def rotate_states(
+        self, t: NDArray[np.float64], pos: NDArray[np.float64], vel: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """ALE's ``rotateStateAt``: ``p' = R p`` and ``v' = R v + R [av]^T p``."""
         rot = _qmatrix(self.interpolate(t))
         av = self.interpolate_av(t)
@@ -948,9 +1058,13 @@ class _AleOrientations:
 # Interpolation as usgscsm does it
 # ---------------------------------------------------------------------------------------
 
-def _hermite(times: NDArray[np.float64], pos: NDArray[np.float64],
-             vel: NDArray[np.float64], t: NDArray[np.float64]
-             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+
+def _hermite(
+    times: NDArray[np.float64],
+    pos: NDArray[np.float64],
+    vel: NDArray[np.float64],
+    t: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """ALE's cubic Hermite position and derivative (times centred on their midpoint)."""
     base = (times[0] + times[-1]) / 2.0
     x = times - base
@@ -960,15 +1074,24 @@ def _hermite(times: NDArray[np.float64], pos: NDArray[np.float64],
     h = (x1 - x0)[:, None]
     u = ((s - x0) / (x1 - x0))[:, None]
     y0, y1, m0, m1 = pos[idx], pos[idx + 1], vel[idx], vel[idx + 1]
-    p = ((2 * u**3 - 3 * u**2 + 1) * y0 + (u**3 - 2 * u**2 + u) * h * m0
-         + (-2 * u**3 + 3 * u**2) * y1 + (u**3 - u**2) * h * m1)
-    v = ((6 * u**2 - 6 * u) * y0 + (3 * u**2 - 4 * u + 1) * h * m0
-         + (-6 * u**2 + 6 * u) * y1 + (3 * u**2 - 2 * u) * h * m1) / h
+    p = (
+        (2 * u**3 - 3 * u**2 + 1) * y0
+        + (u**3 - 2 * u**2 + u) * h * m0
+        + (-2 * u**3 + 3 * u**2) * y1
+        + (u**3 - u**2) * h * m1
+    )
+    v = (
+        (6 * u**2 - 6 * u) * y0
+        + (3 * u**2 - 4 * u + 1) * h * m0
+        + (-6 * u**2 + 6 * u) * y1
+        + (3 * u**2 - 2 * u) * h * m1
+    ) / h
     return p, v
 
 
-def _natural_spline(times: NDArray[np.float64], values: NDArray[np.float64],
-                    t: NDArray[np.float64]) -> NDArray[np.float64]:
+def _natural_spline(
+    times: NDArray[np.float64], values: NDArray[np.float64], t: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """GSL's ``cspline`` (natural cubic spline), linear for two points."""
     if len(times) < 3:
         idx, frac = _interp_index(times, t)
@@ -978,8 +1101,9 @@ def _natural_spline(times: NDArray[np.float64], values: NDArray[np.float64],
     return CubicSpline(times, values, axis=0, bc_type="natural")(t)
 
 
-def _lagrange(values: NDArray[np.float64], t0: float, dt: float, t: NDArray[np.float64],
-              max_order: int) -> NDArray[np.float64]:
+def _lagrange(
+    values: NDArray[np.float64], t0: float, dt: float, t: NDArray[np.float64], max_order: int
+) -> NDArray[np.float64]:
     """Port of usgscsm's ``lagrangeInterp`` on evenly spaced nodes, vectorised.
 
     The order is 8 (or ``max_order``) in the middle and drops to 6, 4 and 2 (linear) in
@@ -1019,23 +1143,28 @@ def _lagrange(values: NDArray[np.float64], t0: float, dt: float, t: NDArray[np.f
 # Lens distortion (focal-plane millimetres), vectorised usgscsm models
 # ---------------------------------------------------------------------------------------
 
-def _transverse_poly(coeffs: NDArray[np.float64], x: NDArray[np.float64],
-                     y: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
-    terms = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, x**3, x * x * y,
-                      x * y * y, y**3], axis=-1)
+
+def _transverse_poly(
+    coeffs: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], ...]:
+    terms = np.stack(
+        [np.ones_like(x), x, y, x * x, x * y, y * y, x**3, x * x * y, x * y * y, y**3], axis=-1
+    )
     return terms @ coeffs[:10], terms @ coeffs[10:]
 
 
-def _transverse_jacobian(coeffs: NDArray[np.float64], x: NDArray[np.float64],
-                         y: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+def _transverse_jacobian(
+    coeffs: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], ...]:
     zero, one = np.zeros_like(x), np.ones_like(x)
     d_dx = np.stack([zero, one, zero, 2 * x, y, zero, 3 * x * x, 2 * x * y, y * y, zero], -1)
     d_dy = np.stack([zero, zero, one, zero, x, 2 * y, zero, x * x, 2 * x * y, 3 * y * y], -1)
     return (d_dx @ coeffs[:10], d_dy @ coeffs[:10], d_dx @ coeffs[10:], d_dy @ coeffs[10:])
 
 
-def _remove_distortion(model: str, coeffs: NDArray[np.float64], dx: NDArray[np.float64],
-                       dy: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+def _remove_distortion(
+    model: str, coeffs: NDArray[np.float64], dx: NDArray[np.float64], dy: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], ...]:
     """Distorted -> undistorted focal-plane coordinates (mm)."""
     if model == "radial":
         rr = dx * dx + dy * dy
@@ -1057,8 +1186,9 @@ def _remove_distortion(model: str, coeffs: NDArray[np.float64], dx: NDArray[np.f
     return ux, uy
 
 
-def _apply_distortion(model: str, coeffs: NDArray[np.float64], ux: NDArray[np.float64],
-                      uy: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+def _apply_distortion(
+    model: str, coeffs: NDArray[np.float64], ux: NDArray[np.float64], uy: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], ...]:
     """Undistorted -> distorted focal-plane coordinates (mm)."""
     if model == "transverse":
         return _transverse_poly(coeffs, ux, uy)
@@ -1086,13 +1216,26 @@ def _apply_distortion(model: str, coeffs: NDArray[np.float64], ux: NDArray[np.fl
 # The camera
 # ---------------------------------------------------------------------------------------
 
-def _euler_matrix(a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
-                  ) -> NDArray[np.float64]:
+
+def _euler_matrix(
+    a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Port of usgscsm's ``calculateRotationMatrixFromEuler`` (row-major), shape ``(M, 3, 3)``."""
     ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    m = np.stack([cb * cc, -ca * sc + sa * sb * cc, sa * sc + ca * sb * cc,
-                  cb * sc, ca * cc + sa * sb * sc, -sa * cc + ca * sb * sc,
-                  -sb, sa * cb, ca * cb], axis=-1)
+    m = np.stack(
+        [
+            cb * cc,
+            -ca * sc + sa * sb * cc,
+            sa * sc + ca * sb * cc,
+            cb * sc,
+            ca * cc + sa * sb * sc,
+            -sa * cc + ca * sb * sc,
+            -sb,
+            sa * cb,
+            ca * cb,
+        ],
+        axis=-1,
+    )
     return m.reshape((*a.shape, 3, 3))
 
 
@@ -1125,8 +1268,11 @@ class CsmLineScanCamera:
 
     def __init__(self, isd: CsmIsd, correction: CsmCorrection | None = None) -> None:
         self._isd = isd
-        self.ellipsoid = Ellipsoid(isd.semi_major_km * 1000.0, isd.semi_minor_km * 1000.0,
-                                   isd.extra.get("name_target", "") or "")
+        self.ellipsoid = Ellipsoid(
+            isd.semi_major_km * 1000.0,
+            isd.semi_minor_km * 1000.0,
+            isd.extra.get("name_target", "") or "",
+        )
         self._ccd = isd.name_sensor or "ccd"
         self._build_tables()
         self._correction = CsmCorrection()
@@ -1143,8 +1289,9 @@ class CsmLineScanCamera:
     # -- construction -------------------------------------------------------------------
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike[str],
-                  correction: CsmCorrection | None = None) -> CsmLineScanCamera:
+    def from_file(
+        cls, path: str | os.PathLike[str], correction: CsmCorrection | None = None
+    ) -> CsmLineScanCamera:
         """Read an ISD (see :func:`read_isd`) and build its camera.
 
         Args:
@@ -1155,8 +1302,7 @@ class CsmLineScanCamera:
         return cls(read_isd(path), correction)
 
     @classmethod
-    def from_isd(cls, isd: CsmIsd, correction: CsmCorrection | None = None
-                 ) -> CsmLineScanCamera:
+    def from_isd(cls, isd: CsmIsd, correction: CsmCorrection | None = None) -> CsmLineScanCamera:
         """Build the camera of a checked ISD (see :func:`read_isd`)."""
         return cls(isd, correction)
 
@@ -1184,8 +1330,11 @@ class CsmLineScanCamera:
             pos, vel = _hermite(times, np.asarray(ip.positions_km), np.asarray(vel_in), grid)
         else:
             pos = _natural_spline(times, np.asarray(ip.positions_km), grid)
-            vel = (np.zeros_like(pos) if vel_in is None
-                   else _natural_spline(times, np.asarray(vel_in), grid))
+            vel = (
+                np.zeros_like(pos)
+                if vel_in is None
+                else _natural_spline(times, np.asarray(vel_in), grid)
+            )
         if ip.reference_frame == J2000 or ip.reference_frame != body_frame:
             pos, vel = body.rotate_states(grid, pos, vel)
         self._t0_ephem = float(times[0] - center)
@@ -1194,8 +1343,10 @@ class CsmLineScanCamera:
         self._velocities = vel * 1000.0
         # Pointing: sensor -> body on the union of the time grids, resampled by SLERP.
         pointing = _AleOrientations.from_isd(isd.instrument_pointing)
-        if isd.instrument_pointing.reference_frame == J2000 or \
-                isd.instrument_pointing.reference_frame != body_frame:
+        if (
+            isd.instrument_pointing.reference_frame == J2000
+            or isd.instrument_pointing.reference_frame != body_frame
+        ):
             sensor_to_body = body.compose(pointing.inverse())
         else:
             sensor_to_body = pointing.inverse()
@@ -1232,20 +1383,27 @@ class CsmLineScanCamera:
         problems = []
         ends = rate[:-1, 1] + rate[:-1, 2] * (rate[1:, 0] - rate[:-1, 0])
         for k in np.flatnonzero(np.abs(rate[1:, 1] - ends) > 2.0 * rate[1:, 2]):
-            problems.append(f"line_scan_rate row {k + 1} starts at {rate[k + 1, 1]:+.3f} s "
-                            f"but row {k} ends at {ends[k]:+.3f} s")
+            problems.append(
+                f"line_scan_rate row {k + 1} starts at {rate[k + 1, 1]:+.3f} s "
+                f"but row {k} ends at {ends[k]:+.3f} s"
+            )
         t0, t1 = self.image_time([0.0, float(isd.image_lines)])
         lo = max(self._t0_ephem, self._t0_quat)
-        hi = min(self._t0_ephem + self._dt_ephem * (len(self._positions) - 1),
-                 self._t0_quat + self._dt_quat * (len(self._quats) - 1))
+        hi = min(
+            self._t0_ephem + self._dt_ephem * (len(self._positions) - 1),
+            self._t0_quat + self._dt_quat * (len(self._quats) - 1),
+        )
         slack = 2.0 * float(np.max(rate[:, 2]))
         if t0 < lo - slack or t1 > hi + slack:
-            problems.append(f"the image spans {t0:+.3f}..{t1:+.3f} s but the ephemeris "
-                            f"covers only {lo:+.3f}..{hi:+.3f} s (relative to "
-                            "center_ephemeris_time): usgscsm extrapolates")
+            problems.append(
+                f"the image spans {t0:+.3f}..{t1:+.3f} s but the ephemeris "
+                f"covers only {lo:+.3f}..{hi:+.3f} s (relative to "
+                "center_ephemeris_time): usgscsm extrapolates"
+            )
         if problems:
-            warnings.warn(f"{isd.path or 'CSM ISD'}: " + "; ".join(problems), UserWarning,
-                          stacklevel=4)
+            warnings.warn(
+                f"{isd.path or 'CSM ISD'}: " + "; ".join(problems), UserWarning, stacklevel=4
+            )
 
     def _boresight_sign(self) -> float:
         """+1 if the sensor looks along its +Z axis at the body, -1 if along -Z.
@@ -1255,8 +1413,7 @@ class CsmLineScanCamera:
         look along +Z; usgscsm's synthetic orbital test ISDs look along -Z.
         """
         nl = self._isd.image_lines
-        origin, look = self._rays(np.array([nl / 2.0]), np.array([self._isd.image_samples
-                                                                   / 2.0]))
+        origin, look = self._rays(np.array([nl / 2.0]), np.array([self._isd.image_samples / 2.0]))
         return -1.0 if float(np.dot(look[0], origin[0])) > 0 else 1.0
 
     def _compute_scales(self) -> None:
@@ -1271,12 +1428,16 @@ class CsmLineScanCamera:
         self.gsd_m = float(np.linalg.norm(pts[1] - pts[0]) / math.sqrt(2.0))
         self.flying_height_m = float(np.linalg.norm(origin[0] - pts[0]))
         self.half_swath_m = self.gsd_m * ns / 2.0
-        full = (self._rate_times[-1] - self._rate_times[0]
-                + self._rate_rates[-1] * (nl - self._rate_lines[-1]))
+        full = (
+            self._rate_times[-1]
+            - self._rate_times[0]
+            + self._rate_rates[-1] * (nl - self._rate_lines[-1])
+        )
         self.half_time_s = float(full / 2.0)
 
-    def _usgscsm_intersect(self, origin: NDArray[np.float64], look: NDArray[np.float64]
-                           ) -> NDArray[np.float64]:
+    def _usgscsm_intersect(
+        self, origin: NDArray[np.float64], look: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
         """Port of usgscsm's ``losEllipsoidIntersect`` at height 0 (closest point when missing)."""
         a, b = self.ellipsoid.semi_major_m, self.ellipsoid.semi_minor_m
         k = a * a / (b * b)
@@ -1334,9 +1495,9 @@ class CsmLineScanCamera:
 
     # -- exterior orientation: the one place where a correction acts -----------------
 
-    def _exterior(self, t: NDArray[np.float64], need_velocity: bool = False
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None,
-                             NDArray[np.float64]]:
+    def _exterior(
+        self, t: NDArray[np.float64], need_velocity: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64]]:
         """Sensor position (m), velocity (m/s) and sensor->body rotation at times ``t``.
 
         The rotation includes the correction's attitude term (``R = R_q @ A``), so the
@@ -1353,8 +1514,10 @@ class CsmLineScanCamera:
             cross /= np.linalg.norm(cross, axis=1, keepdims=True)
             in_track = np.cross(cross, radial)
             a_time = (t - self._t0_ephem)[:, None]
-            rates = np.array([corr.in_track_rate_m, corr.cross_track_rate_m,
-                              corr.radial_rate_m]) / self.half_time_s
+            rates = (
+                np.array([corr.in_track_rate_m, corr.cross_track_rate_m, corr.radial_rate_m])
+                / self.half_time_s
+            )
             biases = np.array([corr.in_track_m, corr.cross_track_m, corr.radial_m])
             d = biases[None, :] + rates[None, :] * a_time
             vel = vel + in_track * rates[0] + cross * rates[1] + radial * rates[2]
@@ -1379,8 +1542,11 @@ class CsmLineScanCamera:
     @property
     def _focal_length(self) -> float:
         f = self._isd.focal_length_mm
-        return f * (1.0 - self._correction.focal_m / self.half_swath_m) if \
-            self._correction.focal_m else f
+        return (
+            f * (1.0 - self._correction.focal_m / self.half_swath_m)
+            if self._correction.focal_m
+            else f
+        )
 
     # -- image -> ground ----------------------------------------------------------------
 
@@ -1394,24 +1560,26 @@ class CsmLineScanCamera:
         (p11, p12), (p21, p22) = self._p
         return p11 * t1 + p12 * t2, p21 * t1 + p22 * t2
 
-    def _rays(self, line: NDArray[np.float64], sample: NDArray[np.float64]
-              ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _rays(
+        self, line: NDArray[np.float64], sample: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         t = self.image_time(line)
         pos, _, rot = self._exterior(t)
         dx, dy = self._focal_plane(sample)
-        ux, uy = _remove_distortion(self._isd.distortion_model,
-                                    np.asarray(self._isd.distortion_coefficients), dx, dy)
+        ux, uy = _remove_distortion(
+            self._isd.distortion_model, np.asarray(self._isd.distortion_coefficients), dx, dy
+        )
         look = np.stack([ux, uy, np.full_like(ux, self._focal_length)], axis=-1)
         look *= self._zdir / np.linalg.norm(look, axis=1, keepdims=True)
         return pos, np.einsum("mij,mj->mi", rot, look)
 
-    def _line_sample(self, line: ArrayLike, sample: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _line_sample(
+        self, line: ArrayLike, sample: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         li, sa = np.broadcast_arrays(_as_1d(line, "line"), _as_1d(sample, "sample"))
         return li.astype(np.float64), sa.astype(np.float64)
 
-    def sensor_state(self, line: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def sensor_state(self, line: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Sensor position and velocity when image lines were acquired.
 
         Args:
@@ -1441,9 +1609,15 @@ class CsmLineScanCamera:
         """
         return self._rays(*self._line_sample(line, sample))[1]
 
-    def image_to_ground(self, line: ArrayLike, sample: ArrayLike,
-                        terrain: Terrain | float = 0.0, *, ccd: str | None = None,
-                        on_miss: OnMiss = "raise") -> NDArray[np.float64]:
+    def image_to_ground(
+        self,
+        line: ArrayLike,
+        sample: ArrayLike,
+        terrain: Terrain | float = 0.0,
+        *,
+        ccd: str | None = None,
+        on_miss: OnMiss = "raise",
+    ) -> NDArray[np.float64]:
         """Intersect the rays of image points with a height surface or a terrain.
 
         Args:
@@ -1472,8 +1646,9 @@ class CsmLineScanCamera:
         if isinstance(terrain, (int, float, np.floating, np.integer)):
             terrain = ConstantHeight(self.ellipsoid, float(terrain))
         if not isinstance(terrain, Terrain):
-            raise InputError(f"terrain must be a height in metres or a Terrain, got "
-                             f"{type(terrain).__name__}")
+            raise InputError(
+                f"terrain must be a height in metres or a Terrain, got {type(terrain).__name__}"
+            )
         xyz = intersect_terrain(origin, look, terrain, "nan")
         miss = np.flatnonzero(~np.all(np.isfinite(xyz), axis=1))
         if miss.size and on_miss == "raise":
@@ -1481,14 +1656,15 @@ class CsmLineScanCamera:
             raise GeometryError(
                 f"{self._isd.path or 'CSM camera'}: {miss.size} of {len(li)} image points "
                 f"see no ground (first: line {li[i]:.3f}, sample {sa[i]:.3f}): the ray "
-                f"misses the surface or meets it only behind the sensor")
+                f"misses the surface or meets it only behind the sensor"
+            )
         return xyz
 
     # -- ground -> image ----------------------------------------------------------------
 
-    def _detector_offset(self, line: NDArray[np.float64], xyz: NDArray[np.float64]
-                         ) -> tuple[NDArray[np.float64], NDArray[np.float64],
-                                    NDArray[np.float64]]:
+    def _detector_offset(
+        self, line: NDArray[np.float64], xyz: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Port of usgscsm's ``calcDetectorLineErr``: where the detector sees ``xyz`` at ``line``.
 
         Returns:
@@ -1502,15 +1678,18 @@ class CsmLineScanCamera:
         with np.errstate(invalid="ignore", divide="ignore"):
             scale = self._focal_length / cam[:, 2]
             fx, fy = cam[:, 0] * scale, cam[:, 1] * scale
-            dx, dy = _apply_distortion(isd.distortion_model,
-                                       np.asarray(isd.distortion_coefficients), fx, fy)
+            dx, dy = _apply_distortion(
+                isd.distortion_model, np.asarray(isd.distortion_coefficients), fx, fy
+            )
         il, is_ = self._itrans_l, self._itrans_s
         det_line = il[0] + il[1] * dx + il[2] * dy
         det_sample = is_[0] + is_[1] * dx + is_[2] * dy
-        offset = ((det_line + isd.detector_center_line - isd.starting_detector_line)
-                  / isd.detector_line_summing)
-        sample = ((det_sample + isd.detector_center_sample - isd.starting_detector_sample)
-                  / isd.detector_sample_summing)
+        offset = (
+            det_line + isd.detector_center_line - isd.starting_detector_line
+        ) / isd.detector_line_summing
+        sample = (
+            det_sample + isd.detector_center_sample - isd.starting_detector_sample
+        ) / isd.detector_sample_summing
         return offset, sample, self._zdir * cam[:, 2]
 
     @cached_property
@@ -1523,8 +1702,7 @@ class CsmLineScanCamera:
         s = ray_ellipsoid_intersection(origin, look, self.ellipsoid, 0.0)
         # Rays that miss the body still give points at the closest approach to it.
         s = np.where(np.isfinite(s), s, -np.sum(origin * look, axis=1))
-        pts = np.concatenate([origin + s[:, None] * look,
-                              origin + (0.99 * s)[:, None] * look])
+        pts = np.concatenate([origin + s[:, None] * look, origin + (0.99 * s)[:, None] * look])
         lines, samples = np.tile(u, 2), np.tile(v, 2)
         center = pts.mean(axis=0)
         scale = float(np.max(np.std(pts, axis=0))) or 1.0
@@ -1550,8 +1728,9 @@ class CsmLineScanCamera:
             guess = np.where(np.isfinite(g), np.clip(g, -nl, 2.0 * nl), guess)
         return guess
 
-    def _solve_lines(self, xyz: NDArray[np.float64], line0: NDArray[np.float64]
-                     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    def _solve_lines(
+        self, xyz: NDArray[np.float64], line0: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Secant iterations on the detector line offset (usgscsm's groundToImage)."""
         nl = float(self._isd.image_lines)
         l0 = line0.copy()
@@ -1577,8 +1756,9 @@ class CsmLineScanCamera:
             l1[bad], done[bad] = self._bracket_lines(xyz[bad])
         return l1, done
 
-    def _bracket_lines(self, xyz: NDArray[np.float64]
-                       ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    def _bracket_lines(
+        self, xyz: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Fallback: scan lines for a sign change of the offset, then Illinois steps."""
         nl = float(self._isd.image_lines)
         grid = np.linspace(-0.5 * nl, 1.5 * nl, 65)
@@ -1638,8 +1818,14 @@ class CsmLineScanCamera:
         line = np.where(ok, line, self._isd.image_lines / 2.0)
         offset, sample, depth = self._detector_offset(line, xs)
         line = line + offset
-        valid = (ok & finite & (depth > 0) & np.isfinite(line) & np.isfinite(sample)
-                 & (np.abs(offset) < _G2I_VALID_PX))
+        valid = (
+            ok
+            & finite
+            & (depth > 0)
+            & np.isfinite(line)
+            & np.isfinite(sample)
+            & (np.abs(offset) < _G2I_VALID_PX)
+        )
         line = np.where(valid, line, np.nan)
         sample = np.where(valid, sample, np.nan)
         nl, ns = self.image_size()

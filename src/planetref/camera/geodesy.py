@@ -125,9 +125,13 @@ def _ographic_to_ocentric(lat_g: NDArray[np.float64], ell: Ellipsoid) -> NDArray
     return np.arctan2(ratio * np.sin(lat_g), np.cos(lat_g))
 
 
-def lonlat_to_xyz(lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike,
-                  ellipsoid: Ellipsoid, latitude: LatitudeKind = "planetocentric"
-                  ) -> NDArray[np.float64]:
+def lonlat_to_xyz(
+    lon_deg: ArrayLike,
+    lat_deg: ArrayLike,
+    height_m: ArrayLike,
+    ellipsoid: Ellipsoid,
+    latitude: LatitudeKind = "planetocentric",
+) -> NDArray[np.float64]:
     """Longitude, latitude and height to body-fixed XYZ.
 
     Args:
@@ -159,9 +163,9 @@ def lonlat_to_xyz(lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike,
     return np.stack([x, y, z], axis=-1)
 
 
-def xyz_to_lonlat(xyz: ArrayLike, ellipsoid: Ellipsoid,
-                  latitude: LatitudeKind = "planetocentric"
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def xyz_to_lonlat(
+    xyz: ArrayLike, ellipsoid: Ellipsoid, latitude: LatitudeKind = "planetocentric"
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Body-fixed XYZ to longitude, latitude and height.
 
     Uses Vermeille's closed form (J. Geodesy 2002), exact to machine precision for points
@@ -217,8 +221,9 @@ def xyz_to_lonlat(xyz: ArrayLike, ellipsoid: Ellipsoid,
     return wrap_longitude(lon), np.degrees(lat), h
 
 
-def ray_ellipsoid_intersection(origin: ArrayLike, direction: ArrayLike, ellipsoid: Ellipsoid,
-                               height_m: ArrayLike = 0.0) -> NDArray[np.float64]:
+def ray_ellipsoid_intersection(
+    origin: ArrayLike, direction: ArrayLike, ellipsoid: Ellipsoid, height_m: ArrayLike = 0.0
+) -> NDArray[np.float64]:
     """Distance along rays to their first intersection with an ellipsoid of constant height.
 
     The surface of constant height above an oblate ellipsoid is not itself an
@@ -315,20 +320,25 @@ class CrsGround:
             if lon_axis is None or lat_axis is None or lon_axis.unit_name != "degree":
                 raise CrsError(f"unsupported geographic CRS axes in {self.crs.name}")
             sign = -1.0 if lon_axis.direction.lower() == "west" else 1.0
-            kind: LatitudeKind = ("planetocentric" if "planetocentric" in lat_axis.name.lower()
-                                  or self.ellipsoid.is_sphere else "planetographic")
+            kind: LatitudeKind = (
+                "planetocentric"
+                if "planetocentric" in lat_axis.name.lower() or self.ellipsoid.is_sphere
+                else "planetographic"
+            )
             self._geographic = (sign, kind)
         else:
             # A geographic CRS with the ellipsoid of ``crs`` whose latitude is geodetic, in
             # lon/lat order, is the common ground between pyproj and this module.
             lonlat = CRS.from_proj4(
                 f"+proj=longlat +a={self.ellipsoid.semi_major_m!r} "
-                f"+b={self.ellipsoid.semi_minor_m!r} +no_defs")
+                f"+b={self.ellipsoid.semi_minor_m!r} +no_defs"
+            )
             self._to_lonlat = Transformer.from_crs(self.crs, lonlat, always_xy=True)
             self._from_lonlat = Transformer.from_crs(lonlat, self.crs, always_xy=True)
 
-    def _map_to_geodetic(self, x: ArrayLike, y: ArrayLike
-                         ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _map_to_geodetic(
+        self, x: ArrayLike, y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         x, y = np.asarray(x, float), np.asarray(y, float)
         if self._geographic is None:
             lon, lat = self._to_lonlat.transform(x, y)
@@ -339,8 +349,9 @@ class CrsGround:
             lat = _ocentric_to_ographic(lat, self.ellipsoid)
         return sign * x, np.degrees(lat)
 
-    def _geodetic_to_map(self, lon: ArrayLike, lat: ArrayLike
-                         ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _geodetic_to_map(
+        self, lon: ArrayLike, lat: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         lon, lat = np.asarray(lon, float), np.asarray(lat, float)
         if self._geographic is None:
             x, y = self._from_lonlat.transform(lon, lat)
@@ -356,25 +367,26 @@ class CrsGround:
         lon, lat = self._map_to_geodetic(x, y)
         return lonlat_to_xyz(lon, lat, height_m, self.ellipsoid, "planetographic")
 
-    def xyz_to_map(self, xyz: ArrayLike
-                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    def xyz_to_map(
+        self, xyz: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """XYZ (m) to map coordinates (CRS units) and ellipsoidal height (m)."""
         lon, lat, h = xyz_to_lonlat(xyz, self.ellipsoid, "planetographic")
         x, y = self._geodetic_to_map(lon, lat)
         return x, y, h
 
-    def lonlat_to_map(self, lon_deg: ArrayLike, lat_deg: ArrayLike,
-                      latitude: LatitudeKind = "planetocentric"
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def lonlat_to_map(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, latitude: LatitudeKind = "planetocentric"
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Longitude/latitude (degrees, east-positive) to map coordinates."""
         lat = np.radians(np.asarray(lat_deg, float))
         if latitude == "planetocentric":
             lat = _ocentric_to_ographic(lat, self.ellipsoid)
         return self._geodetic_to_map(np.asarray(lon_deg, float), np.degrees(lat))
 
-    def map_to_lonlat(self, x: ArrayLike, y: ArrayLike,
-                      latitude: LatitudeKind = "planetocentric"
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def map_to_lonlat(
+        self, x: ArrayLike, y: ArrayLike, latitude: LatitudeKind = "planetocentric"
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Map coordinates to longitude/latitude in degrees (east-positive, [-180, 180))."""
         lon, lat = self._map_to_geodetic(x, y)
         lat = np.radians(lat)

@@ -44,25 +44,30 @@ def detect_camera_format(path: str | os.PathLike[str]) -> str:
                 return "csm"
             if "name_model" in doc:
                 raise UnsupportedFormatError(
-                    f"CSM model {doc['name_model']!r} is not supported (only "
-                    f"{CSM_LINESCAN_MODEL})", path=p, field="name_model")
+                    f"CSM model {doc['name_model']!r} is not supported (only {CSM_LINESCAN_MODEL})",
+                    path=p,
+                    field="name_model",
+                )
         raise UnsupportedFormatError(
-            "JSON file is neither a planetref line-scan camera nor a CSM line-scan ISD",
-            path=p)
+            "JSON file is neither a planetref line-scan camera nor a CSM line-scan ISD", path=p
+        )
     upper = text.upper()
     if "LINENUMCOEF" in upper or "LINE_NUM_COEFF" in upper or "LINE_OFF" in upper:
         return "rpc"
     raise UnsupportedFormatError(
         "unrecognised camera file (expected native JSON, CSM ISD JSON, a GeoTIFF with RPCs, "
-        ".RPB or _RPC.TXT)", path=p)
+        ".RPB or _RPC.TXT)",
+        path=p,
+    )
 
 
 def _load_json(p: Path) -> Any:
     try:
         return json.loads(p.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
-        raise InputError(f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
-                         path=p) from None
+        raise InputError(
+            f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}", path=p
+        ) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read the file ({exc})", path=p) from None
 

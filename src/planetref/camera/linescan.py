@@ -87,8 +87,7 @@ class LineRateTable:
             if len(r) != 3 or not all(math.isfinite(v) for v in r):
                 raise InputError(f"row {i} must be 3 finite numbers, got {r}", field="line_rates")
             if r[2] <= 0:
-                raise InputError(f"row {i}: period must be > 0 s, got {r[2]}",
-                                 field="line_rates")
+                raise InputError(f"row {i}: period must be > 0 s, got {r[2]}", field="line_rates")
         starts = [r[0] for r in rows]
         if any(b <= a for a, b in itertools.pairwise(starts)):
             raise InputError("start lines must increase", field="line_rates")
@@ -141,11 +140,13 @@ class InteriorOrientation:
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "x0_mm", "y0_mm"):
             if not math.isfinite(getattr(self, name)):
-                raise InputError(f"must be finite, got {getattr(self, name)}",
-                                 field=f"interior.{name}")
+                raise InputError(
+                    f"must be finite, got {getattr(self, name)}", field=f"interior.{name}"
+                )
         if self.focal_length_mm <= 0:
-            raise InputError(f"must be > 0, got {self.focal_length_mm}",
-                             field="interior.focal_length_mm")
+            raise InputError(
+                f"must be > 0, got {self.focal_length_mm}", field="interior.focal_length_mm"
+            )
 
     def as_array(self) -> F64:
         """``[x0_mm, y0_mm, f_mm]``, the order used by :class:`ImagePartials`."""
@@ -185,20 +186,20 @@ class CcdGeometry:
         if not self.name:
             raise InputError("CCD name must not be empty", field="ccds.name")
         if int(self.n_lines) <= 0 or int(self.n_samples) <= 0:
-            raise InputError(f"n_lines and n_samples must be > 0, got {self.n_lines}, "
-                             f"{self.n_samples}", field=where)
+            raise InputError(
+                f"n_lines and n_samples must be > 0, got {self.n_lines}, {self.n_samples}",
+                field=where,
+            )
         for name in ("pixel_pitch_mm", "x_mm", "y_mm", "angle_rad"):
             if not math.isfinite(getattr(self, name)):
                 raise InputError(f"{name} must be finite", field=where)
         if self.pixel_pitch_mm <= 0:
-            raise InputError(f"pixel_pitch_mm must be > 0, got {self.pixel_pitch_mm}",
-                             field=where)
+            raise InputError(f"pixel_pitch_mm must be > 0, got {self.pixel_pitch_mm}", field=where)
 
     def focal_plane(self, sample: ArrayLike) -> tuple[F64, F64]:
         """Focal-plane ``(x, y)`` in mm of sample coordinates on the array."""
         s = np.asarray(sample, dtype=np.float64) * self.pixel_pitch_mm
-        return (self.x_mm + s * math.sin(self.angle_rad),
-                self.y_mm + s * math.cos(self.angle_rad))
+        return (self.x_mm + s * math.sin(self.angle_rad), self.y_mm + s * math.cos(self.angle_rad))
 
     def detector(self, x_mm: ArrayLike, y_mm: ArrayLike) -> tuple[F64, F64]:
         """Focal-plane point -> ``(sample, offset)``.
@@ -238,13 +239,13 @@ def rotation_matrix(phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike) -> F64:
     ``R_omega = [[1, 0, 0], [0, cos, -sin], [0, sin, cos]]``,
     ``R_kappa = [[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]``.
     """
-    rp, ro, rk = _axis_rotations(*(np.asarray(a, dtype=np.float64)
-                                   for a in (phi, omega, kappa)))
+    rp, ro, rk = _axis_rotations(*(np.asarray(a, dtype=np.float64) for a in (phi, omega, kappa)))
     return rp @ ro @ rk
 
 
-def rotation_matrix_derivatives(phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike
-                                ) -> tuple[F64, F64, F64, F64]:
+def rotation_matrix_derivatives(
+    phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike
+) -> tuple[F64, F64, F64, F64]:
     """The rotation and its derivatives w.r.t. phi, omega and kappa (per radian)."""
     phi, omega, kappa = (np.asarray(a, dtype=np.float64) for a in (phi, omega, kappa))
     rp, ro, rk = _axis_rotations(phi, omega, kappa)
@@ -379,15 +380,15 @@ class LineScanCamera:
         if r0.shape != (3, 3) or not np.all(np.isfinite(r0)):
             raise InputError("must be a finite 3x3 matrix", field="frame_rotation")
         if np.abs(r0 @ r0.T - np.eye(3)).max() > 1e-9 or np.linalg.det(r0) < 0:
-            raise InputError("must be a proper rotation (orthonormal, det +1)",
-                             field="frame_rotation")
+            raise InputError(
+                "must be a proper rotation (orthonormal, det +1)", field="frame_rotation"
+            )
         lines = np.array(self.node_lines, dtype=np.float64).ravel()
         nodes = np.array(self.nodes, dtype=np.float64)
         if nodes.ndim != 2 or nodes.shape[1] != 6:
             raise InputError(f"must have shape (N, 6), got {nodes.shape}", field="nodes")
         if len(lines) != len(nodes):
-            raise InputError(f"{len(lines)} node lines for {len(nodes)} nodes",
-                             field="node_lines")
+            raise InputError(f"{len(lines)} node lines for {len(nodes)} nodes", field="node_lines")
         if len(lines) < 2:
             raise InputError("at least 2 orientation nodes are needed", field="nodes")
         if not (np.all(np.isfinite(lines)) and np.all(np.isfinite(nodes))):
@@ -396,8 +397,9 @@ class LineScanCamera:
         if np.any(np.diff(times) <= 0):
             raise InputError("node times must strictly increase", field="node_lines")
         if int(self.interpolation_order) < 2:
-            raise InputError(f"must be >= 2, got {self.interpolation_order}",
-                             field="interpolation_order")
+            raise InputError(
+                f"must be >= 2, got {self.interpolation_order}", field="interpolation_order"
+            )
         if not self.ccds:
             raise InputError("a camera needs at least one CCD", field="ccds")
         names = [c.name for c in self.ccds]
@@ -461,29 +463,39 @@ class LineScanCamera:
         _, _, _, eo, _ = self._eo(line)
         return eo[:, :3], self.frame_rotation @ rotation_matrix(eo[:, 3], eo[:, 4], eo[:, 5])
 
-    def look_rays(self, line: ArrayLike, sample: ArrayLike, *, ccd: str | None = None
-                  ) -> tuple[F64, F64]:
+    def look_rays(
+        self, line: ArrayLike, sample: ArrayLike, *, ccd: str | None = None
+    ) -> tuple[F64, F64]:
         """Body-fixed rays of image points.
 
         Returns:
             ``(origin, direction)``: perspective centres (m) and unit look directions,
             each ``(M, 3)``.
         """
-        line, sample = np.broadcast_arrays(np.atleast_1d(np.asarray(line, np.float64)),
-                                           np.atleast_1d(np.asarray(sample, np.float64)))
+        line, sample = np.broadcast_arrays(
+            np.atleast_1d(np.asarray(line, np.float64)),
+            np.atleast_1d(np.asarray(sample, np.float64)),
+        )
         c = self.ccd(ccd)
         x, y = c.focal_plane(sample)
         io = self.interior
-        v_cam = np.stack([x - io.x0_mm, y - io.y0_mm,
-                          np.full_like(x, -io.focal_length_mm)], axis=-1)
+        v_cam = np.stack(
+            [x - io.x0_mm, y - io.y0_mm, np.full_like(x, -io.focal_length_mm)], axis=-1
+        )
         origin, rot = self.exterior(line)
         d = np.einsum("mij,mj->mi", rot, v_cam)
         return origin, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     # ------------------------------------------------------------ image -> ground
-    def image_to_ground(self, line: ArrayLike, sample: ArrayLike,
-                        terrain: Terrain | float = 0.0, *, ccd: str | None = None,
-                        on_miss: OnMiss = "raise") -> F64:
+    def image_to_ground(
+        self,
+        line: ArrayLike,
+        sample: ArrayLike,
+        terrain: Terrain | float = 0.0,
+        *,
+        ccd: str | None = None,
+        on_miss: OnMiss = "raise",
+    ) -> F64:
         """Intersect the rays of image points with a height, ellipsoid or DEM.
 
         Args:
@@ -501,8 +513,7 @@ class LineScanCamera:
         if isinstance(terrain, int | float | np.floating | np.integer):
             terrain = ConstantHeight(self.ellipsoid, float(terrain))
         if isinstance(terrain, ConstantHeight):
-            s = ray_ellipsoid_intersection(origin, direction, terrain.ellipsoid,
-                                           terrain.height_m)
+            s = ray_ellipsoid_intersection(origin, direction, terrain.ellipsoid, terrain.height_m)
             xyz = origin + s[:, None] * direction
             miss = ~np.isfinite(s)
             if np.any(miss) and on_miss == "raise":
@@ -510,7 +521,8 @@ class LineScanCamera:
                 raise GeometryError(
                     f"the ray of image point (line {np.atleast_1d(line)[i % np.size(line)]}, "
                     f"sample {np.atleast_1d(sample)[i % np.size(sample)]}) misses the surface "
-                    f"at height {terrain.height_m} m")
+                    f"at height {terrain.height_m} m"
+                )
             return xyz
         from planetref.camera.raycast import intersect_terrain
 
@@ -557,8 +569,9 @@ class LineScanCamera:
         j[:, 1, 2] = f * v / w**2
         return j
 
-    def ground_to_image(self, xyz: ArrayLike, *, ccd: str | None = None,
-                        line_guess: ArrayLike | None = None) -> ImagePoints:
+    def ground_to_image(
+        self, xyz: ArrayLike, *, ccd: str | None = None, line_guess: ArrayLike | None = None
+    ) -> ImagePoints:
         """Project body-fixed points into a CCD image.
 
         The line is found by solving ``offset(line) = 0`` (the point lies in the plane
@@ -587,8 +600,11 @@ class LineScanCamera:
         chunk = 65536
         for a in range(0, m, chunk):
             b = min(a + chunk, m)
-            guess = None if line_guess is None else np.broadcast_to(
-                np.asarray(line_guess, np.float64), (m,))[a:b]
+            guess = (
+                None
+                if line_guess is None
+                else np.broadcast_to(np.asarray(line_guess, np.float64), (m,))[a:b]
+            )
             line[a:b] = self._solve_line(p[a:b], c, guess)
         ok = np.isfinite(line)
         sample = np.full(m, np.nan)
@@ -613,8 +629,9 @@ class LineScanCamera:
             cand = np.linspace(lo_line, hi_line, 33)
             off = np.stack([self._collinearity(p, np.full(m, lc), c).offset for lc in cand], 1)
             sgn = np.sign(off)
-            change = (sgn[:, :-1] * sgn[:, 1:] <= 0) & np.isfinite(off[:, :-1]) \
-                & np.isfinite(off[:, 1:])
+            change = (
+                (sgn[:, :-1] * sgn[:, 1:] <= 0) & np.isfinite(off[:, :-1]) & np.isfinite(off[:, 1:])
+            )
             has = change.any(axis=1)
             j = np.argmax(change, axis=1)
             rows = np.arange(m)
@@ -662,8 +679,9 @@ class LineScanCamera:
         return line
 
     # ------------------------------------------------------------ partials
-    def image_partials(self, xyz: ArrayLike, *, ccd: str | None = None,
-                       line_guess: ArrayLike | None = None) -> ImagePartials:
+    def image_partials(
+        self, xyz: ArrayLike, *, ccd: str | None = None, line_guess: ArrayLike | None = None
+    ) -> ImagePartials:
         """Exact partial derivatives of the projected ``(line, sample)`` of ground points.
 
         The projection is the implicit solution ``offset(line; theta, P) = 0`` of
@@ -691,8 +709,9 @@ class LineScanCamera:
         period = self.line_rates.period(line)
         d_dline = np.einsum("mrp,mp->mr", d_eo, deo_dt) * period[:, None]  # (M, 2)
         # Ground point: d(uvw)/dP = R^T.
-        d_ground_raw = jac_det @ (self._d_xy_d_uvw(col.uvw)
-                                  @ np.transpose(col.rot, (0, 2, 1)))  # (M, 2, 3)
+        d_ground_raw = jac_det @ (
+            self._d_xy_d_uvw(col.uvw) @ np.transpose(col.rot, (0, 2, 1))
+        )  # (M, 2, 3)
         # Interior orientation: x = x0 - f U/W, y = y0 - f V/W.
         dxy_dio = np.zeros((len(p), 2, 3))
         dxy_dio[:, 0, 0] = 1.0
@@ -715,8 +734,14 @@ class LineScanCamera:
         bad = ~ip.valid
         for arr in (out_nodes, out_io, out_ground):
             arr[bad] = np.nan
-        return ImagePartials(line=ip.line, sample=ip.sample, node_index=idx,
-                             d_nodes=out_nodes, d_interior=out_io, d_ground=out_ground)
+        return ImagePartials(
+            line=ip.line,
+            sample=ip.sample,
+            node_index=idx,
+            d_nodes=out_nodes,
+            d_interior=out_io,
+            d_ground=out_ground,
+        )
 
     # ------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:
@@ -725,10 +750,12 @@ class LineScanCamera:
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
             "name": self.name,
-            "body": {"name": self.ellipsoid.name,
-                     "semi_major_m": self.ellipsoid.semi_major_m,
-                     "semi_minor_m": self.ellipsoid.semi_minor_m,
-                     "latitude": self.latitude_kind},
+            "body": {
+                "name": self.ellipsoid.name,
+                "semi_major_m": self.ellipsoid.semi_major_m,
+                "semi_minor_m": self.ellipsoid.semi_minor_m,
+                "latitude": self.latitude_kind,
+            },
             "frame_rotation": self.frame_rotation.tolist(),
             "line_rates": [list(r) for r in self.line_rates.rows],
             "orientation": {
@@ -736,16 +763,27 @@ class LineScanCamera:
                 "node_lines": self.node_lines.tolist(),
                 "nodes": self.nodes.tolist(),
             },
-            "interior": {"focal_length_mm": self.interior.focal_length_mm,
-                         "x0_mm": self.interior.x0_mm, "y0_mm": self.interior.y0_mm},
-            "ccds": [{"name": c.name, "n_lines": int(c.n_lines), "n_samples": int(c.n_samples),
-                      "pixel_pitch_mm": c.pixel_pitch_mm, "x_mm": c.x_mm, "y_mm": c.y_mm,
-                      "angle_rad": c.angle_rad} for c in self.ccds],
+            "interior": {
+                "focal_length_mm": self.interior.focal_length_mm,
+                "x0_mm": self.interior.x0_mm,
+                "y0_mm": self.interior.y0_mm,
+            },
+            "ccds": [
+                {
+                    "name": c.name,
+                    "n_lines": int(c.n_lines),
+                    "n_samples": int(c.n_samples),
+                    "pixel_pitch_mm": c.pixel_pitch_mm,
+                    "x_mm": c.x_mm,
+                    "y_mm": c.y_mm,
+                    "angle_rad": c.angle_rad,
+                }
+                for c in self.ccds
+            ],
         }
 
     @classmethod
-    def from_dict(cls, doc: Any, *, path: str | os.PathLike[str] | None = None
-                  ) -> LineScanCamera:
+    def from_dict(cls, doc: Any, *, path: str | os.PathLike[str] | None = None) -> LineScanCamera:
         """Build a camera from a native JSON document (validated; see docs/camera-format.md).
 
         Raises:
@@ -767,7 +805,6 @@ class LineScanCamera:
         return write_json_atomic(path, self.to_dict())
 
 
-
 def _detector_jac(c: CcdGeometry, m: int) -> F64:
     """d(sample, offset)/d(x, y) of a CCD (constant), broadcast to ``(m, 2, 2)``."""
     sa, ca, p = math.sin(c.angle_rad), math.cos(c.angle_rad), c.pixel_pitch_mm
@@ -778,10 +815,8 @@ def _bcast(a: F64, like: F64) -> F64:
     return a.reshape(a.shape + (1,) * (like.ndim - 1))
 
 
-def evenly_spaced_nodes(n_lines: int, n_nodes: int, margin_lines: float = 0.0
-                        ) -> F64:
+def evenly_spaced_nodes(n_lines: int, n_nodes: int, margin_lines: float = 0.0) -> F64:
     """Node lines spread evenly over ``[-margin, n_lines + margin]``."""
     if n_nodes < 2:
         raise InputError(f"at least 2 nodes are needed, got {n_nodes}")
     return np.linspace(-margin_lines, n_lines + margin_lines, n_nodes)
-

@@ -47,9 +47,15 @@ class OrbitGeometry:
     gm_m3_s2: float = MARS_GM_M3_S2
 
 
-def ccd_row(n_ccds: int, n_samples: int, n_lines: int, pixel_pitch_mm: float,
-            overlap_px: int = 0, stagger_mm: float = 0.0, names: list[str] | None = None
-            ) -> tuple[CcdGeometry, ...]:
+def ccd_row(
+    n_ccds: int,
+    n_samples: int,
+    n_lines: int,
+    pixel_pitch_mm: float,
+    overlap_px: int = 0,
+    stagger_mm: float = 0.0,
+    names: list[str] | None = None,
+) -> tuple[CcdGeometry, ...]:
     """CCDs side by side across track, centred on the optical axis.
 
     Args:
@@ -62,8 +68,9 @@ def ccd_row(n_ccds: int, n_samples: int, n_lines: int, pixel_pitch_mm: float,
         names: CCD names (default ``ccd1``, ``ccd2``...).
     """
     if n_ccds < 1 or n_samples < 1 or overlap_px < 0 or overlap_px >= n_samples:
-        raise InputError(f"bad CCD layout: n_ccds={n_ccds}, n_samples={n_samples}, "
-                         f"overlap_px={overlap_px}")
+        raise InputError(
+            f"bad CCD layout: n_ccds={n_ccds}, n_samples={n_samples}, overlap_px={overlap_px}"
+        )
     names = names or [f"ccd{i + 1}" for i in range(n_ccds)]
     width = (n_ccds * n_samples - (n_ccds - 1) * overlap_px) * pixel_pitch_mm
     out = []
@@ -74,11 +81,19 @@ def ccd_row(n_ccds: int, n_samples: int, n_lines: int, pixel_pitch_mm: float,
     return tuple(out)
 
 
-def orbit_camera(orbit: OrbitGeometry, *, focal_length_mm: float,
-                 ccds: tuple[CcdGeometry, ...], n_nodes: int = 8,
-                 ellipsoid: Ellipsoid = MARS_IAU2015_SPHERE, interpolation_order: int = 4,
-                 line_period_s: float | None = None, node_margin_lines: float = 64.0,
-                 name: str = "", **extra: Any) -> tuple[LineScanCamera, dict[str, float]]:
+def orbit_camera(
+    orbit: OrbitGeometry,
+    *,
+    focal_length_mm: float,
+    ccds: tuple[CcdGeometry, ...],
+    n_nodes: int = 8,
+    ellipsoid: Ellipsoid = MARS_IAU2015_SPHERE,
+    interpolation_order: int = 4,
+    line_period_s: float | None = None,
+    node_margin_lines: float = 64.0,
+    name: str = "",
+    **extra: Any,
+) -> tuple[LineScanCamera, dict[str, float]]:
     """A nadir-looking line-scan camera on a circular orbit.
 
     The orbit frame ``R0`` at the centre time has x along track, y = z x x, z radial up;
@@ -132,12 +147,21 @@ def orbit_camera(orbit: OrbitGeometry, *, focal_length_mm: float,
     nodes = np.zeros((n_nodes, 6))
     nodes[:, :3] = pos
     nodes[:, 3] = -w * t
-    cam = LineScanCamera(ellipsoid=ellipsoid, frame_rotation=r0, line_rates=rates,
-                         node_lines=node_lines, nodes=nodes,
-                         interior=InteriorOrientation(focal_length_mm),
-                         ccds=ccds, interpolation_order=interpolation_order, name=name)
-    facts = {"gsd_m": gsd, "ground_speed_m_s": ground_speed, "line_period_s": period,
-             "orbital_rate_rad_s": w}
+    cam = LineScanCamera(
+        ellipsoid=ellipsoid,
+        frame_rotation=r0,
+        line_rates=rates,
+        node_lines=node_lines,
+        nodes=nodes,
+        interior=InteriorOrientation(focal_length_mm),
+        ccds=ccds,
+        interpolation_order=interpolation_order,
+        name=name,
+    )
+    facts = {
+        "gsd_m": gsd,
+        "ground_speed_m_s": ground_speed,
+        "line_period_s": period,
+        "orbital_rate_rad_s": w,
+    }
     return cam, facts
-
-

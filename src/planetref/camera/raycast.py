@@ -40,15 +40,15 @@ _BISECTION_TOLERANCE_M = 1e-4
 _MAX_STEPS = 20000
 
 
-def _height_above_terrain(points: NDArray[np.float64], terrain: Terrain
-                          ) -> NDArray[np.float64]:
+def _height_above_terrain(points: NDArray[np.float64], terrain: Terrain) -> NDArray[np.float64]:
     """Ellipsoidal height of ``points`` minus the terrain height below them (NaN in holes)."""
     lon, lat, h = xyz_to_lonlat(points, terrain.ellipsoid)
     return h - np.asarray(terrain.height(lon, lat), dtype=np.float64)
 
 
-def _far_root(origin: NDArray[np.float64], direction: NDArray[np.float64],
-              a: float, b: float) -> NDArray[np.float64]:
+def _far_root(
+    origin: NDArray[np.float64], direction: NDArray[np.float64], a: float, b: float
+) -> NDArray[np.float64]:
     """Ray parameter where rays leave the ellipsoid of radii (a, a, b) (NaN: they miss it)."""
     scale = np.array([1.0 / a, 1.0 / a, 1.0 / b])
     os_, ds = origin * scale, direction * scale
@@ -60,9 +60,9 @@ def _far_root(origin: NDArray[np.float64], direction: NDArray[np.float64],
         return np.where(disc >= 0, (-qb + np.sqrt(disc)) / (2.0 * qa), np.nan)
 
 
-def _shell_interval(origin: NDArray[np.float64], direction: NDArray[np.float64],
-                    terrain: Terrain, step: float
-                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _shell_interval(
+    origin: NDArray[np.float64], direction: NDArray[np.float64], terrain: Terrain, step: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Ray parameters where the search for a crossing starts and ends (NaN: no search)."""
     ell = terrain.ellipsoid
     top, bottom = float(terrain.max_height_m), float(terrain.min_height_m)
@@ -75,15 +75,15 @@ def _shell_interval(origin: NDArray[np.float64], direction: NDArray[np.float64],
     # search until it leaves the upper surface again. The far root of the ellipsoid
     # (a + top, b + top) is within metres of the exact one, hence the margin.
     margin = 2.0 * abs(top) * ell.e2 + step
-    s_exit = _far_root(origin, direction, ell.semi_major_m + top,
-                       ell.semi_minor_m + top) + margin
+    s_exit = _far_root(origin, direction, ell.semi_major_m + top, ell.semi_minor_m + top) + margin
     s_end = np.where(np.isfinite(s_bottom), s_bottom, s_exit)
     ok = np.isfinite(s_start) & np.isfinite(s_end) & (s_end >= s_start) & (h0 >= bottom)
     return np.where(ok, s_start, np.nan), np.where(ok, s_end, np.nan)
 
 
-def intersect_terrain(origin: ArrayLike, direction: ArrayLike, terrain: Terrain,
-                      on_miss: OnMiss = "raise") -> NDArray[np.float64]:
+def intersect_terrain(
+    origin: ArrayLike, direction: ArrayLike, terrain: Terrain, on_miss: OnMiss = "raise"
+) -> NDArray[np.float64]:
     """First intersection of rays with a terrain, seen from the ray origins.
 
     Args:
@@ -113,16 +113,16 @@ def intersect_terrain(origin: ArrayLike, direction: ArrayLike, terrain: Terrain,
     o = np.atleast_2d(np.asarray(origin, dtype=np.float64))
     d = np.atleast_2d(np.asarray(direction, dtype=np.float64))
     if o.shape[-1] != 3 or d.shape[-1] != 3 or o.ndim != 2 or d.ndim != 2:
-        raise InputError(f"origin and direction must have shape (M, 3), got {o.shape} "
-                         f"and {d.shape}")
+        raise InputError(
+            f"origin and direction must have shape (M, 3), got {o.shape} and {d.shape}"
+        )
     o, d = np.broadcast_arrays(o, d)
     n = np.linalg.norm(d, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = d / n[:, None]
     lo, hi = float(terrain.min_height_m), float(terrain.max_height_m)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-        raise InputError(f"terrain height bounds must be finite with min <= max, got "
-                         f"[{lo}, {hi}]")
+        raise InputError(f"terrain height bounds must be finite with min <= max, got [{lo}, {hi}]")
     if lo == hi:
         s = ray_ellipsoid_intersection(o, d, terrain.ellipsoid, hi)
     else:
@@ -134,13 +134,13 @@ def intersect_terrain(origin: ArrayLike, direction: ArrayLike, terrain: Terrain,
             first = int(np.flatnonzero(miss)[0])
             raise GeometryError(
                 f"{int(miss.sum())} of {len(miss)} rays miss the terrain (first: ray {first} "
-                f"from {o[first].round(3).tolist()} along {d[first].round(6).tolist()})")
+                f"from {o[first].round(3).tolist()} along {d[first].round(6).tolist()})"
+            )
         out[miss] = np.nan
     return out
 
 
-def _march(o: NDArray[np.float64], d: NDArray[np.float64], terrain: Terrain
-           ) -> NDArray[np.float64]:
+def _march(o: NDArray[np.float64], d: NDArray[np.float64], terrain: Terrain) -> NDArray[np.float64]:
     """Ray parameter of the first terrain crossing by marching + bisection (NaN: none)."""
     m = len(o)
     result = np.full(m, np.nan)

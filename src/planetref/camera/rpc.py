@@ -182,8 +182,10 @@ class Rpc:
     def _coeff_array(self) -> NDArray[np.float64]:
         # (20, 4): line num, line den, samp num, samp den, so one matrix product
         # evaluates the four polynomials.
-        return np.array([self.line_num_coeff, self.line_den_coeff,
-                         self.samp_num_coeff, self.samp_den_coeff], dtype=np.float64).T
+        return np.array(
+            [self.line_num_coeff, self.line_den_coeff, self.samp_num_coeff, self.samp_den_coeff],
+            dtype=np.float64,
+        ).T
 
     # -- conversions ----------------------------------------------------------------
 
@@ -206,8 +208,9 @@ class Rpc:
         return out
 
     @classmethod
-    def from_gdal(cls, metadata: Mapping[str, str], *, path: str | os.PathLike[str] | None = None
-                  ) -> Rpc:
+    def from_gdal(
+        cls, metadata: Mapping[str, str], *, path: str | os.PathLike[str] | None = None
+    ) -> Rpc:
         """Parse GDAL ``RPC`` domain metadata (e.g. ``src.tags(ns="RPC")``).
 
         Unlike ``rasterio.rpc.RPC.from_gdal`` this rejects coefficient lists that do not
@@ -241,14 +244,23 @@ class Rpc:
         from rasterio.rpc import RPC
 
         return RPC(
-            height_off=self.height_off, height_scale=self.height_scale,
-            lat_off=self.lat_off, lat_scale=self.lat_scale,
-            line_den_coeff=list(self.line_den_coeff), line_num_coeff=list(self.line_num_coeff),
-            line_off=self.line_off, line_scale=self.line_scale,
-            long_off=self.long_off, long_scale=self.long_scale,
-            samp_den_coeff=list(self.samp_den_coeff), samp_num_coeff=list(self.samp_num_coeff),
-            samp_off=self.samp_off, samp_scale=self.samp_scale,
-            err_bias=self.err_bias, err_rand=self.err_rand)
+            height_off=self.height_off,
+            height_scale=self.height_scale,
+            lat_off=self.lat_off,
+            lat_scale=self.lat_scale,
+            line_den_coeff=list(self.line_den_coeff),
+            line_num_coeff=list(self.line_num_coeff),
+            line_off=self.line_off,
+            line_scale=self.line_scale,
+            long_off=self.long_off,
+            long_scale=self.long_scale,
+            samp_den_coeff=list(self.samp_den_coeff),
+            samp_num_coeff=list(self.samp_num_coeff),
+            samp_off=self.samp_off,
+            samp_scale=self.samp_scale,
+            err_bias=self.err_bias,
+            err_rand=self.err_rand,
+        )
 
     @classmethod
     def from_rasterio(cls, rpc: object) -> Rpc:
@@ -262,8 +274,9 @@ class Rpc:
 
     # -- evaluation -----------------------------------------------------------------
 
-    def normalize_ground(self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
-                         ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    def normalize_ground(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Normalised ``(L, P, H)`` of ground coordinates.
 
         The longitude difference to LONG_OFF is wrapped to ``[-180, 180)`` so scenes
@@ -278,29 +291,38 @@ class Rpc:
         Returns:
             ``(L, P, H)`` broadcast to a common shape.
         """
-        lon, lat, h = np.broadcast_arrays(np.asarray(lon_deg, np.float64),
-                                          np.asarray(lat_deg, np.float64),
-                                          np.asarray(height_m, np.float64))
+        lon, lat, h = np.broadcast_arrays(
+            np.asarray(lon_deg, np.float64),
+            np.asarray(lat_deg, np.float64),
+            np.asarray(height_m, np.float64),
+        )
         dlon = wrap_longitude(lon - self.long_off)
-        return (dlon / self.long_scale, (lat - self.lat_off) / self.lat_scale,
-                (h - self.height_off) / self.height_scale)
+        return (
+            dlon / self.long_scale,
+            (lat - self.lat_off) / self.lat_scale,
+            (h - self.height_off) / self.height_scale,
+        )
 
-    def evaluate_normalized(self, L: ArrayLike, P: ArrayLike, H: ArrayLike
-                            ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def evaluate_normalized(
+        self, L: ArrayLike, P: ArrayLike, H: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Normalised image coordinates ``(rn, cn)`` of normalised ground coordinates.
 
         Returns:
             ``(line_n, sample_n)``; NaN where a denominator is exactly zero.
         """
-        v = _terms(np.asarray(L, np.float64), np.asarray(P, np.float64),
-                   np.asarray(H, np.float64)) @ self._coeff_array
+        v = (
+            _terms(np.asarray(L, np.float64), np.asarray(P, np.float64), np.asarray(H, np.float64))
+            @ self._coeff_array
+        )
         with np.errstate(divide="ignore", invalid="ignore"):
             rn = v[..., 0] / v[..., 1]
             cn = v[..., 2] / v[..., 3]
         return np.where(v[..., 1] != 0, rn, np.nan), np.where(v[..., 3] != 0, cn, np.nan)
 
-    def project(self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
-                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def project(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Ground to image, in planetref's pixel convention (first pixel centre at 0.5).
 
         Args:
@@ -312,11 +334,14 @@ class Rpc:
             ``(line, sample)`` in pixels, broadcast shape of the inputs.
         """
         rn, cn = self.evaluate_normalized(*self.normalize_ground(lon_deg, lat_deg, height_m))
-        return (rn * self.line_scale + self.line_off + 0.5,
-                cn * self.samp_scale + self.samp_off + 0.5)
+        return (
+            rn * self.line_scale + self.line_off + 0.5,
+            cn * self.samp_scale + self.samp_off + 0.5,
+        )
 
-    def _project_with_jacobian(self, L: NDArray[np.float64], P: NDArray[np.float64],
-                               H: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+    def _project_with_jacobian(
+        self, L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], ...]:
         # Image coordinates (pixels) and their derivatives with respect to normalised
         # L and P, by the quotient rule on the analytic term derivatives.
         c = self._coeff_array
@@ -333,9 +358,15 @@ class Rpc:
             ds_dP = (vp[..., 2] * v[..., 3] - v[..., 2] * vp[..., 3]) / d2s * self.samp_scale
         return line, samp, dl_dL, dl_dP, ds_dL, ds_dP
 
-    def localize(self, line: ArrayLike, sample: ArrayLike, height_m: ArrayLike, *,
-                 tol_px: float = 1e-8, max_iter: int = 60
-                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def localize(
+        self,
+        line: ArrayLike,
+        sample: ArrayLike,
+        height_m: ArrayLike,
+        *,
+        tol_px: float = 1e-8,
+        max_iter: int = 60,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Image to ground at given heights: invert the RPC by damped Newton iterations.
 
         Starts at (LONG_OFF, LAT_OFF) and takes Newton steps with the analytic Jacobian
@@ -356,9 +387,11 @@ class Rpc:
             kind, broadcast shape of the inputs; NaN where the error did not get below
             ``tol_px``.
         """
-        ln, sm, h = np.broadcast_arrays(np.asarray(line, np.float64),
-                                        np.asarray(sample, np.float64),
-                                        np.asarray(height_m, np.float64))
+        ln, sm, h = np.broadcast_arrays(
+            np.asarray(line, np.float64),
+            np.asarray(sample, np.float64),
+            np.asarray(height_m, np.float64),
+        )
         shape = ln.shape
         ln, sm, h = ln.ravel(), sm.ravel(), h.ravel()
         H = (h - self.height_off) / self.height_scale
@@ -385,8 +418,13 @@ class Rpc:
             te = np.hypot(trl, trs)
             better = te < err[i]
             a = i[better]
-            L[a], P[a], rl[a], rs[a], err[a] = tL[better], tP[better], trl[better], \
-                trs[better], te[better]
+            L[a], P[a], rl[a], rs[a], err[a] = (
+                tL[better],
+                tP[better],
+                trl[better],
+                trs[better],
+                te[better],
+            )
             ja[a], jb[a], jc[a], jd[a] = ta[better], tb[better], tc[better], td[better]
             alpha[a] = 1.0
             r = i[~better]
@@ -395,43 +433,116 @@ class Rpc:
             # step no longer helps (the error is then at round-off or a local minimum).
             stop = (te < tol_px) & better
             stop |= ~(np.isfinite(dL) & np.isfinite(dP))
-            stop |= alpha[i] < 2.0 ** -20
+            stop |= alpha[i] < 2.0**-20
             active[i[stop]] = False
         good = err < tol_px
         lon = np.where(good, wrap_longitude(L * self.long_scale + self.long_off), np.nan)
         lat = np.where(good, P * self.lat_scale + self.lat_off, np.nan)
         return lon.reshape(shape), lat.reshape(shape)
 
-    def _project_without_jacobian(self, L: NDArray[np.float64], P: NDArray[np.float64],
-                                  H: NDArray[np.float64]
-                                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _project_without_jacobian(
+        self, L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         rn, cn = self.evaluate_normalized(L, P, H)
-        return (rn * self.line_scale + self.line_off + 0.5,
-                cn * self.samp_scale + self.samp_off + 0.5)
+        return (
+            rn * self.line_scale + self.line_off + 0.5,
+            cn * self.samp_scale + self.samp_off + 0.5,
+        )
 
 
-def _terms(L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-           ) -> NDArray[np.float64]:
+def _terms(
+    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+) -> NDArray[np.float64]:
     L, P, H = np.broadcast_arrays(L, P, H)
-    return np.stack([np.ones_like(L), L, P, H, L * P, L * H, P * H, L * L, P * P, H * H,
-                     P * L * H, L ** 3, L * P * P, L * H * H, L * L * P, P ** 3, P * H * H,
-                     L * L * H, P * P * H, H ** 3], axis=-1)
+    return np.stack(
+        [
+            np.ones_like(L),
+            L,
+            P,
+            H,
+            L * P,
+            L * H,
+            P * H,
+            L * L,
+            P * P,
+            H * H,
+            P * L * H,
+            L**3,
+            L * P * P,
+            L * H * H,
+            L * L * P,
+            P**3,
+            P * H * H,
+            L * L * H,
+            P * P * H,
+            H**3,
+        ],
+        axis=-1,
+    )
 
 
-def _terms_dl(L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-              ) -> NDArray[np.float64]:
+def _terms_dl(
+    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+) -> NDArray[np.float64]:
     L, P, H = np.broadcast_arrays(L, P, H)
     z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack([z, o, z, z, P, H, z, 2 * L, z, z, P * H, 3 * L * L, P * P, H * H,
-                     2 * L * P, z, z, 2 * L * H, z, z], axis=-1)
+    return np.stack(
+        [
+            z,
+            o,
+            z,
+            z,
+            P,
+            H,
+            z,
+            2 * L,
+            z,
+            z,
+            P * H,
+            3 * L * L,
+            P * P,
+            H * H,
+            2 * L * P,
+            z,
+            z,
+            2 * L * H,
+            z,
+            z,
+        ],
+        axis=-1,
+    )
 
 
-def _terms_dp(L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-              ) -> NDArray[np.float64]:
+def _terms_dp(
+    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+) -> NDArray[np.float64]:
     L, P, H = np.broadcast_arrays(L, P, H)
     z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack([z, z, o, z, L, z, H, z, 2 * P, z, L * H, z, 2 * L * P, z, L * L,
-                     3 * P * P, H * H, z, 2 * P * H, z], axis=-1)
+    return np.stack(
+        [
+            z,
+            z,
+            o,
+            z,
+            L,
+            z,
+            H,
+            z,
+            2 * P,
+            z,
+            L * H,
+            z,
+            2 * L * P,
+            z,
+            L * L,
+            3 * P * P,
+            H * H,
+            z,
+            2 * P * H,
+            z,
+        ],
+        axis=-1,
+    )
 
 
 def _fmt(value: float) -> str:
@@ -449,15 +560,16 @@ def _validate(rpc: Rpc, path: str | os.PathLike[str] | None, names: Mapping[str,
             try:
                 seq = tuple(float(v) for v in value)
             except (TypeError, ValueError):
-                raise InputError(f"expected 20 numbers, got {value!r}", path=path,
-                                 field=name) from None
+                raise InputError(
+                    f"expected 20 numbers, got {value!r}", path=path, field=name
+                ) from None
             if len(seq) != _N_TERMS:
-                raise InputError(f"expected 20 coefficients, got {len(seq)}", path=path,
-                                 field=name)
+                raise InputError(f"expected 20 coefficients, got {len(seq)}", path=path, field=name)
             bad = [i for i, v in enumerate(seq) if not math.isfinite(v)]
             if bad:
-                raise InputError(f"coefficient {bad[0] + 1} is not finite ({seq[bad[0]]})",
-                                 path=path, field=name)
+                raise InputError(
+                    f"coefficient {bad[0] + 1} is not finite ({seq[bad[0]]})", path=path, field=name
+                )
             if f.name.endswith("_den_coeff") and not any(seq):
                 raise InputError("all denominator coefficients are zero", path=path, field=name)
             object.__setattr__(rpc, f.name, seq)
@@ -467,8 +579,9 @@ def _validate(rpc: Rpc, path: str | os.PathLike[str] | None, names: Mapping[str,
             try:
                 num = float(value)
             except (TypeError, ValueError):
-                raise InputError(f"expected a number, got {value!r}", path=path,
-                                 field=name) from None
+                raise InputError(
+                    f"expected a number, got {value!r}", path=path, field=name
+                ) from None
             if not math.isfinite(num):
                 raise InputError(f"must be finite, got {num}", path=path, field=name)
             if f.name in _SCALES and num == 0.0:
@@ -476,8 +589,9 @@ def _validate(rpc: Rpc, path: str | os.PathLike[str] | None, names: Mapping[str,
             object.__setattr__(rpc, f.name, num)
 
 
-def _build(values: Mapping[str, object], path: str | os.PathLike[str] | None,
-           names: Mapping[str, str]) -> Rpc:
+def _build(
+    values: Mapping[str, object], path: str | os.PathLike[str] | None, names: Mapping[str, str]
+) -> Rpc:
     # Validate with the file's own field names before the dataclass validates again
     # with attribute names (which cannot name the file).
     rpc = object.__new__(Rpc)
@@ -490,8 +604,7 @@ def _build(values: Mapping[str, object], path: str | os.PathLike[str] | None,
 # What C's strtod (GDAL's CPLAtof) reads in full; anything else (Fortran "1.0D-05",
 # "12x") GDAL would read silently as a different number, so it is an error here.
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
-_UNITS = {"pixel", "pixels", "degree", "degrees", "deg", "meter", "meters", "metre", "metres",
-          "m"}
+_UNITS = {"pixel", "pixels", "degree", "degrees", "deg", "meter", "meters", "metre", "metres", "m"}
 
 
 def _parse_number(raw: str, path: str | os.PathLike[str] | None, name: str) -> float:
@@ -535,12 +648,12 @@ class RpcBody:
 
     def __post_init__(self) -> None:
         if self.latitude_kind not in ("planetocentric", "planetographic"):
-            raise InputError(f"unknown latitude kind {self.latitude_kind!r}",
-                             field="latitude_kind")
+            raise InputError(f"unknown latitude kind {self.latitude_kind!r}", field="latitude_kind")
 
     @classmethod
-    def resolve(cls, body: str | Ellipsoid | RpcBody,
-                latitude_kind: LatitudeKind | None = None) -> RpcBody:
+    def resolve(
+        cls, body: str | Ellipsoid | RpcBody, latitude_kind: LatitudeKind | None = None
+    ) -> RpcBody:
         """Normalise the ways planetref accepts a body.
 
         Args:
@@ -561,21 +674,26 @@ class RpcBody:
         elif isinstance(body, str) and body.lower() in _NAMED_BODIES:
             base = _NAMED_BODIES[body.lower()]
         else:
-            raise InputError(f"unknown body {body!r}; expected 'earth', 'mars', an Ellipsoid "
-                             "or an RpcBody", field="body")
+            raise InputError(
+                f"unknown body {body!r}; expected 'earth', 'mars', an Ellipsoid or an RpcBody",
+                field="body",
+            )
         if latitude_kind is not None and latitude_kind != base.latitude_kind:
             return cls(base.ellipsoid, latitude_kind)
         return base
 
     def _items(self) -> dict[str, str]:
-        return {"BODY_NAME": self.ellipsoid.name,
-                "SEMI_MAJOR_M": _fmt(self.ellipsoid.semi_major_m),
-                "SEMI_MINOR_M": _fmt(self.ellipsoid.semi_minor_m),
-                "LATITUDE": self.latitude_kind}
+        return {
+            "BODY_NAME": self.ellipsoid.name,
+            "SEMI_MAJOR_M": _fmt(self.ellipsoid.semi_major_m),
+            "SEMI_MINOR_M": _fmt(self.ellipsoid.semi_minor_m),
+            "LATITUDE": self.latitude_kind,
+        }
 
     @classmethod
-    def _from_items(cls, items: Mapping[str, str], path: str | os.PathLike[str] | None,
-                    prefix: str) -> RpcBody | None:
+    def _from_items(
+        cls, items: Mapping[str, str], path: str | os.PathLike[str] | None, prefix: str
+    ) -> RpcBody | None:
         upper = {k.upper(): v for k, v in items.items()}
         if "SEMI_MAJOR_M" not in upper:
             return None
@@ -583,8 +701,11 @@ class RpcBody:
         b = _parse_number(upper.get("SEMI_MINOR_M", ""), path, prefix + "SEMI_MINOR_M")
         kind = upper.get("LATITUDE", "").strip().strip('"').lower()
         if kind not in ("planetocentric", "planetographic"):
-            raise InputError(f"expected 'planetocentric' or 'planetographic', got {kind!r}",
-                             path=path, field=prefix + "LATITUDE")
+            raise InputError(
+                f"expected 'planetocentric' or 'planetographic', got {kind!r}",
+                path=path,
+                field=prefix + "LATITUDE",
+            )
         name = upper.get("BODY_NAME", "").strip().strip('"')
         try:
             ell = Ellipsoid(a, b, name)
@@ -656,7 +777,9 @@ def _read(path: str | os.PathLike[str]) -> tuple[Rpc, RpcBody | None]:
     except UnsupportedFormatError:
         raise UnsupportedFormatError(
             "not an RPC file: expected a GeoTIFF with RPC metadata, a .RPB file or an "
-            "_RPC.TXT file", path=p) from None
+            "_RPC.TXT file",
+            path=p,
+        ) from None
 
 
 def _read_raster(p: Path) -> tuple[Rpc, RpcBody | None]:
@@ -672,8 +795,9 @@ def _read_raster(p: Path) -> tuple[Rpc, RpcBody | None]:
     if not gdal_md:
         raise InputError("the raster has no RPC metadata", path=p, field="RPC")
     rpc = Rpc.from_gdal(gdal_md, path=p)
-    body = RpcBody._from_items({k: v for k, v in extra.items() if not k.startswith("RPC_")},
-                               p, "PLANETREF:")
+    body = RpcBody._from_items(
+        {k: v for k, v in extra.items() if not k.startswith("RPC_")}, p, "PLANETREF:"
+    )
     exact = {k[4:]: v for k, v in extra.items() if k.startswith("RPC_")}
     if exact:
         try:
@@ -722,8 +846,9 @@ def _read_rpb(p: Path) -> tuple[Rpc, RpcBody | None]:
         for _, _, rpb_name in _COEFFS:
             m = re.search(rf"\b{rpb_name}\s*=\s*\(([^()]*)(\(|$)", text, re.I)
             if m:
-                raise InputError("unterminated coefficient list (truncated file?)", path=p,
-                                 field=rpb_name)
+                raise InputError(
+                    "unterminated coefficient list (truncated file?)", path=p, field=rpb_name
+                )
     values: dict[str, object] = {}
     for _, attr, rpb_name in _SCALARS:
         raw = items.get(rpb_name.lower())
@@ -738,19 +863,23 @@ def _read_rpb(p: Path) -> tuple[Rpc, RpcBody | None]:
             raise InputError("missing", path=p, field=rpb_name)
         raw = raw.strip()
         if not (raw.startswith("(") and raw.endswith(")")):
-            raise InputError(f"expected '(c1, ..., c20)', got {raw[:40]!r}", path=p,
-                             field=rpb_name)
+            raise InputError(f"expected '(c1, ..., c20)', got {raw[:40]!r}", path=p, field=rpb_name)
         values[attr] = _parse_list(raw[1:-1], p, rpb_name)
     rpc = _build(values, p, {a: r for _, a, r in _SCALARS + _COEFFS})
-    body_items = {k[len("planetref"):].upper(): v for k, v in items.items()
-                  if k.startswith("planetref")}
+    body_items = {
+        k[len("planetref") :].upper(): v for k, v in items.items() if k.startswith("planetref")
+    }
     body_items = {_RPB_BODY_KEYS.get(k, k): v for k, v in body_items.items()}
     return rpc, RpcBody._from_items(body_items, p, "planetref")
 
 
 # .RPB keyword suffix (after "planetref") -> RpcBody item name.
-_RPB_BODY_KEYS = {"BODYNAME": "BODY_NAME", "SEMIMAJORAXIS": "SEMI_MAJOR_M",
-                  "SEMIMINORAXIS": "SEMI_MINOR_M", "LATITUDE": "LATITUDE"}
+_RPB_BODY_KEYS = {
+    "BODYNAME": "BODY_NAME",
+    "SEMIMAJORAXIS": "SEMI_MAJOR_M",
+    "SEMIMINORAXIS": "SEMI_MINOR_M",
+    "LATITUDE": "LATITUDE",
+}
 
 
 def _read_txt(p: Path) -> tuple[Rpc, RpcBody | None]:
@@ -761,8 +890,7 @@ def _read_txt(p: Path) -> tuple[Rpc, RpcBody | None]:
             continue
         m = re.match(r"^([A-Za-z_]\w*)\s*[:=]\s*(.*)$", line)
         if m is None:
-            raise InputError(f"line {lineno}: expected 'KEY: value', got {line[:40]!r}",
-                             path=p)
+            raise InputError(f"line {lineno}: expected 'KEY: value', got {line[:40]!r}", path=p)
         items.setdefault(m.group(1).upper(), (m.group(2), lineno))
     values: dict[str, object] = {}
     for gdal_name, attr, _ in _SCALARS:
@@ -779,20 +907,23 @@ def _read_txt(p: Path) -> tuple[Rpc, RpcBody | None]:
                 raise InputError("missing", path=p, field=key)
             coeffs.append(_parse_number(items[key][0], p, key))
         if f"{gdal_name}_{_N_TERMS + 1}" in items:
-            raise InputError("more than 20 coefficients", path=p,
-                             field=f"{gdal_name}_{_N_TERMS + 1}")
+            raise InputError(
+                "more than 20 coefficients", path=p, field=f"{gdal_name}_{_N_TERMS + 1}"
+            )
         values[attr] = tuple(coeffs)
     rpc = _build(values, p, {a: g for g, a, _ in _SCALARS + _COEFFS})
-    body_items = {k[len("PLANETREF_"):]: v for k, (v, _) in items.items()
-                  if k.startswith("PLANETREF_")}
+    body_items = {
+        k[len("PLANETREF_") :]: v for k, (v, _) in items.items() if k.startswith("PLANETREF_")
+    }
     return rpc, RpcBody._from_items(body_items, p, "PLANETREF_")
 
 
 # --------------------------------------------------------------------------- writers
 
 
-def rpc_sidecar_path(image_path: str | os.PathLike[str], fmt: Literal["rpb", "txt"] = "rpb"
-                     ) -> Path:
+def rpc_sidecar_path(
+    image_path: str | os.PathLike[str], fmt: Literal["rpb", "txt"] = "rpb"
+) -> Path:
     """Where GDAL looks for an RPC sidecar of an image.
 
     Args:
@@ -810,8 +941,7 @@ def rpc_sidecar_path(image_path: str | os.PathLike[str], fmt: Literal["rpb", "tx
     raise InputError(f"unknown sidecar format {fmt!r}; expected 'rpb' or 'txt'", field="fmt")
 
 
-def write_rpc_rpb(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | None = None
-                  ) -> Path:
+def write_rpc_rpb(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | None = None) -> Path:
     """Write a DigitalGlobe ``.RPB`` file in the layout GDAL's ``GDALWriteRPBFile`` uses.
 
     The body, if given, goes into ``planetref*`` keywords after ``END_GROUP = IMAGE``,
@@ -852,8 +982,7 @@ def _quote_safe(text: str) -> str:
     return re.sub(r'["\n\r;]', " ", text)
 
 
-def write_rpc_txt(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | None = None
-                  ) -> Path:
+def write_rpc_txt(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | None = None) -> Path:
     """Write a ``_RPC.TXT`` file in the layout of GDAL's ``GDALWriteRPCTXTFile``.
 
     The body, if given, goes into trailing ``PLANETREF_*`` lines that GDAL ignores.
@@ -882,8 +1011,13 @@ def write_rpc_txt(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | Non
     return p
 
 
-def write_rpc_geotiff(rpc: Rpc, path: str | os.PathLike[str], *,
-                      data: ArrayLike | None = None, body: RpcBody | None = None) -> Path:
+def write_rpc_geotiff(
+    rpc: Rpc,
+    path: str | os.PathLike[str],
+    *,
+    data: ArrayLike | None = None,
+    body: RpcBody | None = None,
+) -> Path:
     """Embed an RPC into a GeoTIFF (GDAL's RPC TIFF tag), atomically.
 
     With ``data`` a new GeoTIFF holding that image is written; without it the RPC of
@@ -916,8 +1050,7 @@ def write_rpc_geotiff(rpc: Rpc, path: str | os.PathLike[str], *,
         extra.update(body._items())
     if data is None:
         if not p.exists():
-            raise MissingFileError("GeoTIFF to update not found (pass data= to create one)",
-                                   path=p)
+            raise MissingFileError("GeoTIFF to update not found (pass data= to create one)", path=p)
         with atomic_path(p) as tmp:
             shutil.copyfile(p, tmp)
             with rasterio.open(tmp, "r+") as dst:
@@ -933,15 +1066,28 @@ def write_rpc_geotiff(rpc: Rpc, path: str | os.PathLike[str], *,
     if arr.ndim != 3:
         raise InputError(f"expected a 2-D or 3-D image, got shape {arr.shape}", field="data")
     with atomic_path(p) as tmp:
-        with rasterio.open(tmp, "w", driver="GTiff", width=arr.shape[2], height=arr.shape[1],
-                           count=arr.shape[0], dtype=arr.dtype, rpcs=rpc.to_gdal()) as dst:
+        with rasterio.open(
+            tmp,
+            "w",
+            driver="GTiff",
+            width=arr.shape[2],
+            height=arr.shape[1],
+            count=arr.shape[0],
+            dtype=arr.dtype,
+            rpcs=rpc.to_gdal(),
+        ) as dst:
             dst.write(arr)
             dst.update_tags(ns="PLANETREF", **extra)
     return p
 
 
-def write_rpc(rpc: Rpc, path: str | os.PathLike[str], *, fmt: RpcFormat | None = None,
-              body: RpcBody | None = None) -> Path:
+def write_rpc(
+    rpc: Rpc,
+    path: str | os.PathLike[str],
+    *,
+    fmt: RpcFormat | None = None,
+    body: RpcBody | None = None,
+) -> Path:
     """Write an RPC in the format given by ``fmt`` or by the file name.
 
     ``*.RPB`` -> :func:`write_rpc_rpb`; ``*.TXT`` (e.g. ``scene_RPC.TXT``) ->
@@ -963,12 +1109,13 @@ def write_rpc(rpc: Rpc, path: str | os.PathLike[str], *, fmt: RpcFormat | None =
     p = Path(path)
     if fmt is None:
         suffix = p.suffix.lower()
-        fmt = {".rpb": "rpb", ".txt": "txt", ".tif": "geotiff", ".tiff": "geotiff"}.get(
-            suffix)  # type: ignore[assignment]
+        fmt = {".rpb": "rpb", ".txt": "txt", ".tif": "geotiff", ".tiff": "geotiff"}.get(suffix)  # type: ignore[assignment]
         if fmt is None:
             raise UnsupportedFormatError(
                 "cannot tell the RPC format from the suffix; use .RPB, _RPC.TXT or .tif "
-                "or pass fmt=", path=p)
+                "or pass fmt=",
+                path=p,
+            )
     if fmt == "rpb":
         return write_rpc_rpb(rpc, p, body=body)
     if fmt == "txt":
@@ -1001,18 +1148,24 @@ class RpcCamera:
         InputError: If the latitude kind or image size is invalid.
     """
 
-    def __init__(self, rpc: Rpc, ellipsoid: Ellipsoid, latitude_kind: LatitudeKind,
-                 image_size: tuple[int, int], name: str = "rpc") -> None:
+    def __init__(
+        self,
+        rpc: Rpc,
+        ellipsoid: Ellipsoid,
+        latitude_kind: LatitudeKind,
+        image_size: tuple[int, int],
+        name: str = "rpc",
+    ) -> None:
         if latitude_kind not in ("planetocentric", "planetographic"):
             raise InputError(f"unknown latitude kind {latitude_kind!r}", field="latitude_kind")
         try:
             n_lines, n_samples = (int(v) for v in image_size)
         except (TypeError, ValueError):
-            raise InputError(f"expected (n_lines, n_samples), got {image_size!r}",
-                             field="image_size") from None
+            raise InputError(
+                f"expected (n_lines, n_samples), got {image_size!r}", field="image_size"
+            ) from None
         if n_lines <= 0 or n_samples <= 0:
-            raise InputError(f"image size must be positive, got {image_size!r}",
-                             field="image_size")
+            raise InputError(f"image size must be positive, got {image_size!r}", field="image_size")
         self.rpc = rpc
         self.ellipsoid = ellipsoid
         self.latitude_kind: LatitudeKind = latitude_kind
@@ -1020,15 +1173,21 @@ class RpcCamera:
         self.name = name
 
     def __repr__(self) -> str:
-        return (f"RpcCamera(name={self.name!r}, size={self._size}, "
-                f"body={self.ellipsoid.name!r}, latitude={self.latitude_kind!r})")
+        return (
+            f"RpcCamera(name={self.name!r}, size={self._size}, "
+            f"body={self.ellipsoid.name!r}, latitude={self.latitude_kind!r})"
+        )
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike[str],
-                  body: str | Ellipsoid | RpcBody | None = None, *,
-                  latitude_kind: LatitudeKind | None = None,
-                  image_size: tuple[int, int] | None = None,
-                  name: str | None = None) -> RpcCamera:
+    def from_file(
+        cls,
+        path: str | os.PathLike[str],
+        body: str | Ellipsoid | RpcBody | None = None,
+        *,
+        latitude_kind: LatitudeKind | None = None,
+        image_size: tuple[int, int] | None = None,
+        name: str | None = None,
+    ) -> RpcCamera:
         """Read an RPC file (any format :func:`read_rpc` reads) into a camera.
 
         Args:
@@ -1058,13 +1217,17 @@ class RpcCamera:
             except InputError:
                 # No raster beside the sidecar: the RPC's normalisation domain is the
                 # best estimate of the image extent (only ``in_image`` depends on it).
-                image_size = (max(1, math.ceil(rpc.line_off + abs(rpc.line_scale) + 0.5)),
-                              max(1, math.ceil(rpc.samp_off + abs(rpc.samp_scale) + 0.5)))
+                image_size = (
+                    max(1, math.ceil(rpc.line_off + abs(rpc.line_scale) + 0.5)),
+                    max(1, math.ceil(rpc.samp_off + abs(rpc.samp_scale) + 0.5)),
+                )
                 logging.getLogger(__name__).warning(
                     "%s: no raster beside the RPC file; image size taken from the RPC "
-                    "domain as %s lines x %s samples", p, *image_size)
-        return cls(rpc, resolved.ellipsoid, resolved.latitude_kind, image_size,
-                   name or p.stem)
+                    "domain as %s lines x %s samples",
+                    p,
+                    *image_size,
+                )
+        return cls(rpc, resolved.ellipsoid, resolved.latitude_kind, image_size, name or p.stem)
 
     # -- Camera protocol ------------------------------------------------------------
 
@@ -1075,16 +1238,18 @@ class RpcCamera:
 
     def _check_ccd(self, ccd: str | None) -> None:
         if ccd is not None and ccd != self.name:
-            raise InputError(f"unknown CCD {ccd!r}; this RPC camera has only {self.name!r}",
-                             field="ccd")
+            raise InputError(
+                f"unknown CCD {ccd!r}; this RPC camera has only {self.name!r}", field="ccd"
+            )
 
     def image_size(self, ccd: str | None = None) -> tuple[int, int]:
         """``(n_lines, n_samples)``."""
         self._check_ccd(ccd)
         return self._size
 
-    def project(self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
-                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def project(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Ground (lon, lat in this camera's latitude kind, degrees; h, metres) to image.
 
         Returns:
@@ -1092,8 +1257,9 @@ class RpcCamera:
         """
         return self.rpc.project(lon_deg, lat_deg, height_m)
 
-    def localize(self, line: ArrayLike, sample: ArrayLike, height_m: ArrayLike, *,
-                 tol_px: float = 1e-8) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def localize(
+        self, line: ArrayLike, sample: ArrayLike, height_m: ArrayLike, *, tol_px: float = 1e-8
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Image to lon/lat (degrees, this camera's latitude kind) at given heights (m).
 
         Newton iterations on the rational polynomials with their analytic Jacobian,
@@ -1116,14 +1282,20 @@ class RpcCamera:
         valid = np.isfinite(line) & np.isfinite(sample)
         n_lines, n_samples = self._size
         with np.errstate(invalid="ignore"):
-            in_image = (valid & (line >= 0) & (line < n_lines) & (sample >= 0)
-                        & (sample < n_samples))
-        return ImagePoints(np.where(valid, line, np.nan), np.where(valid, sample, np.nan),
-                           valid, in_image)
+            in_image = valid & (line >= 0) & (line < n_lines) & (sample >= 0) & (sample < n_samples)
+        return ImagePoints(
+            np.where(valid, line, np.nan), np.where(valid, sample, np.nan), valid, in_image
+        )
 
-    def image_to_ground(self, line: ArrayLike, sample: ArrayLike,
-                        terrain: Terrain | float = 0.0, *, ccd: str | None = None,
-                        on_miss: OnMiss = "raise") -> NDArray[np.float64]:
+    def image_to_ground(
+        self,
+        line: ArrayLike,
+        sample: ArrayLike,
+        terrain: Terrain | float = 0.0,
+        *,
+        ccd: str | None = None,
+        on_miss: OnMiss = "raise",
+    ) -> NDArray[np.float64]:
         """Intersect the RPC's lines of sight with a height or a terrain.
 
         For a height, the RPC is inverted at that height. For a :class:`Terrain`, the
@@ -1146,8 +1318,7 @@ class RpcCamera:
             Body-fixed XYZ, metres, shape ``(M, 3)``.
         """
         self._check_ccd(ccd)
-        ln, sm = np.broadcast_arrays(np.asarray(line, np.float64),
-                                     np.asarray(sample, np.float64))
+        ln, sm = np.broadcast_arrays(np.asarray(line, np.float64), np.asarray(sample, np.float64))
         ln, sm = ln.ravel(), sm.ravel()
         if isinstance(terrain, ConstantHeight) and terrain.ellipsoid == self.ellipsoid:
             terrain = float(terrain.height_m)
@@ -1157,8 +1328,10 @@ class RpcCamera:
             try:
                 h = float(terrain)  # type: ignore[arg-type]
             except (TypeError, ValueError):
-                raise InputError(f"terrain must be a Terrain or a height in metres, got "
-                                 f"{terrain!r}", field="terrain") from None
+                raise InputError(
+                    f"terrain must be a Terrain or a height in metres, got {terrain!r}",
+                    field="terrain",
+                ) from None
             lon, lat = self.rpc.localize(ln, sm, h)
             xyz = lonlat_to_xyz(lon, lat, h, self.ellipsoid, self.latitude_kind)
         bad = ~np.all(np.isfinite(xyz), axis=1)
@@ -1167,12 +1340,17 @@ class RpcCamera:
             raise GeometryError(
                 f"{int(bad.sum())} of {bad.size} image points have no ground intersection "
                 f"(first: line {ln[i]:.3f}, sample {sm[i]:.3f}): the RPC inversion did not "
-                "converge or the line of sight misses the terrain")
+                "converge or the line of sight misses the terrain"
+            )
         return xyz
 
-    def _terrain_residual(self, ln: NDArray[np.float64], sm: NDArray[np.float64],
-                          h: NDArray[np.float64], terrain: Terrain
-                          ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _terrain_residual(
+        self,
+        ln: NDArray[np.float64],
+        sm: NDArray[np.float64],
+        h: NDArray[np.float64],
+        terrain: Terrain,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         # Height of the line-of-sight point above the terrain surface, and the point.
         lon, lat = self.rpc.localize(ln, sm, h)
         xyz = lonlat_to_xyz(lon, lat, h, self.ellipsoid, self.latitude_kind)
@@ -1180,25 +1358,31 @@ class RpcCamera:
         surface = np.asarray(terrain.height(tlon, tlat), dtype=np.float64)
         return th - surface, xyz
 
-    def _intersect_terrain(self, ln: NDArray[np.float64], sm: NDArray[np.float64],
-                           terrain: Terrain) -> NDArray[np.float64]:
+    def _intersect_terrain(
+        self, ln: NDArray[np.float64], sm: NDArray[np.float64], terrain: Terrain
+    ) -> NDArray[np.float64]:
         m = ln.size
         lo, hi = float(terrain.min_height_m), float(terrain.max_height_m)
         if not (math.isfinite(lo) and math.isfinite(hi)) or hi < lo:
-            raise InputError(f"terrain height bounds must be finite with min <= max, got "
-                             f"[{lo}, {hi}]", field="terrain")
+            raise InputError(
+                f"terrain height bounds must be finite with min <= max, got [{lo}, {hi}]",
+                field="terrain",
+            )
         # The bounds are heights above the terrain's ellipsoid and the march is in
         # heights above the camera's: widen by the largest separation of the two
         # ellipsoids, plus a margin so that a surface touching its bounds is bracketed.
         other = terrain.ellipsoid
-        margin = (1.0 + 1e-3 * (hi - lo)
-                  + abs(other.semi_major_m - self.ellipsoid.semi_major_m)
-                  + abs(other.semi_minor_m - self.ellipsoid.semi_minor_m))
+        margin = (
+            1.0
+            + 1e-3 * (hi - lo)
+            + abs(other.semi_major_m - self.ellipsoid.semi_major_m)
+            + abs(other.semi_minor_m - self.ellipsoid.semi_minor_m)
+        )
         top, bottom = hi + margin, lo - margin
         _, xyz_top = self._terrain_residual(ln, sm, np.full(m, top), terrain)
         _, xyz_bot = self._terrain_residual(ln, sm, np.full(m, bottom), terrain)
         chord = np.linalg.norm(xyz_top - xyz_bot, axis=1)
-        horizontal = np.sqrt(np.maximum(chord ** 2 - (top - bottom) ** 2, 0.0))
+        horizontal = np.sqrt(np.maximum(chord**2 - (top - bottom) ** 2, 0.0))
         sampling = float(terrain.sampling_m)
         reach = float(np.nanmax(horizontal)) if np.any(np.isfinite(horizontal)) else 0.0
         n_steps = 1
@@ -1274,17 +1458,23 @@ def _find_image_size(p: Path) -> tuple[int, int]:
     else:
         stem = None
     if stem is not None:
-        candidates = sorted(q for q in p.parent.glob(stem + ".*")
-                            if q.suffix.lower() in {".tif", ".tiff", ".ntf", ".jp2", ".img",
-                                                    ".cub", ".vrt"})
+        candidates = sorted(
+            q
+            for q in p.parent.glob(stem + ".*")
+            if q.suffix.lower() in {".tif", ".tiff", ".ntf", ".jp2", ".img", ".cub", ".vrt"}
+        )
     for q in candidates:
         try:
             with rasterio.open(q) as src:
                 return (src.height, src.width)
         except RasterioIOError:
             continue
-    raise InputError("cannot tell the image size: no raster found next to this RPC file; "
-                     "pass image_size=(n_lines, n_samples)", path=p, field="image_size")
+    raise InputError(
+        "cannot tell the image size: no raster found next to this RPC file; "
+        "pass image_size=(n_lines, n_samples)",
+        path=p,
+        field="image_size",
+    )
 
 
 # --------------------------------------------------------------------------- fitting
@@ -1345,10 +1535,12 @@ class FitReport:
 
     def summary(self) -> str:
         """A one-line human-readable summary."""
-        return (f"RPC fit: fit RMS {self.fit_rms_px:.3g} px (max {self.fit_max_px:.3g}), "
-                f"check RMS {self.check_rms_px:.3g} px (max {self.check_max_px:.3g}, "
-                f"{self.check_max_ground_m:.3g} m), {self.n_fit} fit / {self.n_check} check "
-                f"points, {self.iterations} iterations")
+        return (
+            f"RPC fit: fit RMS {self.fit_rms_px:.3g} px (max {self.fit_max_px:.3g}), "
+            f"check RMS {self.check_rms_px:.3g} px (max {self.check_max_px:.3g}, "
+            f"{self.check_max_ground_m:.3g} m), {self.n_fit} fit / {self.n_check} check "
+            f"points, {self.iterations} iterations"
+        )
 
 
 @dataclass
@@ -1362,28 +1554,52 @@ class _Samples:
     dropped: int = 0
 
 
-def _sample_camera(camera: object, ccd: str | None, lines: NDArray[np.float64],
-                   samples: NDArray[np.float64], heights: NDArray[np.float64]) -> _Samples:
+def _sample_camera(
+    camera: object,
+    ccd: str | None,
+    lines: NDArray[np.float64],
+    samples: NDArray[np.float64],
+    heights: NDArray[np.float64],
+) -> _Samples:
     ll, ss = np.meshgrid(lines, samples, indexing="ij")
     ll, ss = ll.ravel(), ss.ravel()
     out_l, out_s, out_xyz, out_h = [], [], [], []
     for h in heights:
-        xyz = np.asarray(camera.image_to_ground(ll, ss, terrain=float(h), ccd=ccd,  # type: ignore[attr-defined]
-                                                on_miss="nan"), dtype=np.float64)
+        xyz = np.asarray(
+            camera.image_to_ground(
+                ll,
+                ss,
+                terrain=float(h),
+                ccd=ccd,  # type: ignore[attr-defined]
+                on_miss="nan",
+            ),
+            dtype=np.float64,
+        )
         out_l.append(ll)
         out_s.append(ss)
         out_xyz.append(xyz.reshape(-1, 3))
         out_h.append(np.full(ll.size, h))
     xyz = np.concatenate(out_xyz)
     ok = np.all(np.isfinite(xyz), axis=1)
-    lon, lat, hh = xyz_to_lonlat(xyz[ok], camera.ellipsoid,  # type: ignore[attr-defined]
-                                 camera.latitude_kind)  # type: ignore[attr-defined]
-    return _Samples(np.concatenate(out_l)[ok], np.concatenate(out_s)[ok], lon, lat, hh,
-                    xyz[ok], int((~ok).sum()))
+    lon, lat, hh = xyz_to_lonlat(
+        xyz[ok],
+        camera.ellipsoid,  # type: ignore[attr-defined]
+        camera.latitude_kind,
+    )  # type: ignore[attr-defined]
+    return _Samples(
+        np.concatenate(out_l)[ok],
+        np.concatenate(out_s)[ok],
+        lon,
+        lat,
+        hh,
+        xyz[ok],
+        int((~ok).sum()),
+    )
 
 
-def _solve_rational(T: NDArray[np.float64], y: NDArray[np.float64], reg: float,
-                    max_iter: int) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
+def _solve_rational(
+    T: NDArray[np.float64], y: NDArray[np.float64], reg: float, max_iter: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     # Tao & Hu (2001): linearise y = N/D as N - y*D = 0 with D's constant term fixed to
     # 1, weight each equation by 1/D of the previous solution so that the residual
     # tends to the true y - N/D, and regularise with a ridge term. The augmented least
@@ -1417,9 +1633,15 @@ def _solve_rational(T: NDArray[np.float64], y: NDArray[np.float64], reg: float,
     return best[1], best[2], used
 
 
-def fit_rpc(camera: object, *, height_range_m: tuple[float, float], ccd: str | None = None,
-            grid: tuple[int, int, int] = (21, 21, 7), regularization: float = 1e-12,
-            max_iter: int = 10) -> tuple[Rpc, FitReport]:
+def fit_rpc(
+    camera: object,
+    *,
+    height_range_m: tuple[float, float],
+    ccd: str | None = None,
+    grid: tuple[int, int, int] = (21, 21, 7),
+    regularization: float = 1e-12,
+    max_iter: int = 10,
+) -> tuple[Rpc, FitReport]:
     """Fit a terrain-independent RPC00B to any planetref camera.
 
     The camera is sampled on a 3-D grid: ``n_lines x n_samples`` image points spanning
@@ -1455,21 +1677,23 @@ def fit_rpc(camera: object, *, height_range_m: tuple[float, float], ccd: str | N
     try:
         h_min, h_max = (float(v) for v in height_range_m)
     except (TypeError, ValueError):
-        raise InputError(f"expected (h_min, h_max), got {height_range_m!r}",
-                         field="height_range_m") from None
+        raise InputError(
+            f"expected (h_min, h_max), got {height_range_m!r}", field="height_range_m"
+        ) from None
     if not (math.isfinite(h_min) and math.isfinite(h_max) and h_max > h_min):
-        raise InputError(f"need finite h_max > h_min, got {height_range_m!r}",
-                         field="height_range_m")
+        raise InputError(
+            f"need finite h_max > h_min, got {height_range_m!r}", field="height_range_m"
+        )
     try:
         n_l, n_s, n_h = (int(v) for v in grid)
     except (TypeError, ValueError):
-        raise InputError(f"expected (n_lines, n_samples, n_heights), got {grid!r}",
-                         field="grid") from None
+        raise InputError(
+            f"expected (n_lines, n_samples, n_heights), got {grid!r}", field="grid"
+        ) from None
     if n_l < 4 or n_s < 4 or n_h < 3:
         raise InputError(f"grid must be at least (4, 4, 3), got {grid!r}", field="grid")
     if not (math.isfinite(regularization) and regularization >= 0):
-        raise InputError(f"must be finite and >= 0, got {regularization}",
-                         field="regularization")
+        raise InputError(f"must be finite and >= 0, got {regularization}", field="regularization")
 
     n_lines, n_samples = camera.image_size(ccd)  # type: ignore[attr-defined]
     lines = np.linspace(0.0, n_lines, n_l)
@@ -1477,8 +1701,10 @@ def fit_rpc(camera: object, *, height_range_m: tuple[float, float], ccd: str | N
     heights = np.linspace(h_min, h_max, n_h)
     fit = _sample_camera(camera, ccd, lines, samples, heights)
     if fit.line.size < 2 * 39:
-        raise GeometryError(f"the camera localised only {fit.line.size} of "
-                            f"{n_l * n_s * n_h} grid points; at least 78 are needed")
+        raise GeometryError(
+            f"the camera localised only {fit.line.size} of "
+            f"{n_l * n_s * n_h} grid points; at least 78 are needed"
+        )
 
     lon_ref = float(np.median(fit.lon))
     dlon = wrap_longitude(fit.lon - lon_ref)
@@ -1496,19 +1722,33 @@ def fit_rpc(camera: object, *, height_range_m: tuple[float, float], ccd: str | N
     samp_off, samp_scale = 0.5 * n_samples - 0.5, 0.5 * n_samples
 
     def normalised(s: _Samples) -> NDArray[np.float64]:
-        return _terms(wrap_longitude(s.lon - long_off) / long_scale,
-                      (s.lat - lat_off) / lat_scale, (s.h - height_off) / height_scale)
+        return _terms(
+            wrap_longitude(s.lon - long_off) / long_scale,
+            (s.lat - lat_off) / lat_scale,
+            (s.h - height_off) / height_scale,
+        )
 
     T = normalised(fit)
     rn = (fit.line - 0.5 - line_off) / line_scale
     cn = (fit.sample - 0.5 - samp_off) / samp_scale
     line_num, line_den, it_l = _solve_rational(T, rn, regularization, max_iter)
     samp_num, samp_den, it_s = _solve_rational(T, cn, regularization, max_iter)
-    rpc = Rpc(line_off=line_off, samp_off=samp_off, lat_off=lat_off, long_off=long_off,
-              height_off=height_off, line_scale=line_scale, samp_scale=samp_scale,
-              lat_scale=lat_scale, long_scale=long_scale, height_scale=height_scale,
-              line_num_coeff=tuple(line_num), line_den_coeff=tuple(line_den),
-              samp_num_coeff=tuple(samp_num), samp_den_coeff=tuple(samp_den))
+    rpc = Rpc(
+        line_off=line_off,
+        samp_off=samp_off,
+        lat_off=lat_off,
+        long_off=long_off,
+        height_off=height_off,
+        line_scale=line_scale,
+        samp_scale=samp_scale,
+        lat_scale=lat_scale,
+        long_scale=long_scale,
+        height_scale=height_scale,
+        line_num_coeff=tuple(line_num),
+        line_den_coeff=tuple(line_den),
+        samp_num_coeff=tuple(samp_num),
+        samp_den_coeff=tuple(samp_den),
+    )
 
     check_lines = 0.5 * (lines[:-1] + lines[1:])
     check_samples = 0.5 * (samples[:-1] + samples[1:])
@@ -1522,25 +1762,37 @@ def fit_rpc(camera: object, *, height_range_m: tuple[float, float], ccd: str | N
     fl, fs = errors(fit)
     cl, cs = errors(chk)
     back_lon, back_lat = rpc.localize(chk.line, chk.sample, chk.h)
-    back = lonlat_to_xyz(back_lon, back_lat, chk.h, camera.ellipsoid,  # type: ignore[attr-defined]
-                         camera.latitude_kind)  # type: ignore[attr-defined]
+    back = lonlat_to_xyz(
+        back_lon,
+        back_lat,
+        chk.h,
+        camera.ellipsoid,  # type: ignore[attr-defined]
+        camera.latitude_kind,
+    )  # type: ignore[attr-defined]
     ground_err = np.linalg.norm(back - chk.xyz, axis=1)
     dens = np.concatenate([normalised(fit), normalised(chk)]) @ np.stack(
-        [rpc._coeff_array[:, 1], rpc._coeff_array[:, 3]], axis=1)
+        [rpc._coeff_array[:, 1], rpc._coeff_array[:, 3]], axis=1
+    )
 
     def rms(v: NDArray[np.float64]) -> float:
-        return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
+        return float(np.sqrt(np.mean(v**2))) if v.size else float("nan")
 
     def vmax(v: NDArray[np.float64]) -> float:
         return float(np.max(v)) if v.size else float("nan")
 
     report = FitReport(
-        fit_rms_line_px=rms(fl), fit_rms_sample_px=rms(fs), fit_max_px=vmax(np.hypot(fl, fs)),
-        check_rms_line_px=rms(cl), check_rms_sample_px=rms(cs),
+        fit_rms_line_px=rms(fl),
+        fit_rms_sample_px=rms(fs),
+        fit_max_px=vmax(np.hypot(fl, fs)),
+        check_rms_line_px=rms(cl),
+        check_rms_sample_px=rms(cs),
         check_max_px=vmax(np.hypot(cl, cs)),
         check_max_ground_m=float(np.max(ground_err)) if ground_err.size else float("nan"),
         min_abs_denominator=float(np.min(np.abs(dens))),
-        n_fit=int(fit.line.size), n_check=int(chk.line.size),
-        n_dropped=fit.dropped + chk.dropped, iterations=max(it_l, it_s),
-        regularization=float(regularization))
+        n_fit=int(fit.line.size),
+        n_check=int(chk.line.size),
+        n_dropped=fit.dropped + chk.dropped,
+        iterations=max(it_l, it_s),
+        regularization=float(regularization),
+    )
     return rpc, report

@@ -61,8 +61,12 @@ class _LazyGroup(click.Group):
             if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
                 raise
             raise click.ClickException(str(exc)) from None
-        except (click.ClickException, click.exceptions.Exit, click.exceptions.Abort,
-                KeyboardInterrupt):
+        except (
+            click.ClickException,
+            click.exceptions.Exit,
+            click.exceptions.Abort,
+            KeyboardInterrupt,
+        ):
             raise
         except (OSError, MemoryError) as exc:
             if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
@@ -74,12 +78,14 @@ class _LazyGroup(click.Group):
                 raise
             raise click.ClickException(
                 f"internal error ({type(exc).__name__}: {exc}); rerun with -vv for the "
-                "traceback and please report it") from None
+                "traceback and please report it"
+            ) from None
 
 
 def _configure_logging(verbosity: int) -> None:
     level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(
-        max(-1, min(verbosity, 2)), logging.DEBUG)
+        max(-1, min(verbosity, 2)), logging.DEBUG
+    )
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger("planetref")

@@ -83,8 +83,9 @@ def _apply_solve(cfg: dict[str, Any], names: str) -> None:
     chosen = [n.strip() for n in names.split(",") if n.strip()]
     unknown = sorted(set(chosen) - set(SOLVE_BLOCKS))
     if unknown or not chosen:
-        raise InputError(f"--solve: unknown or no term(s) {unknown}; choose from "
-                         f"{sorted(SOLVE_BLOCKS)}")
+        raise InputError(
+            f"--solve: unknown or no term(s) {unknown}; choose from {sorted(SOLVE_BLOCKS)}"
+        )
     from planetref.adjust.config import AdjustConfig
 
     current = _merge(AdjustConfig().model_dump(), cfg)
@@ -97,8 +98,9 @@ def _apply_solve(cfg: dict[str, Any], names: str) -> None:
         cfg.setdefault(section, {})
         if name in chosen:
             # Weighted when the block has an a-priori sigma, free otherwise.
-            has_sigma = any(k.startswith("sigma") and v is not None
-                            for k, v in current[section][block].items())
+            has_sigma = any(
+                k.startswith("sigma") and v is not None for k, v in current[section][block].items()
+            )
             blk["mode"] = "weighted" if has_sigma else "free"
         else:
             blk["mode"] = "fixed"
@@ -115,30 +117,65 @@ def _toml_safe(obj: Any) -> Any:
 
 @click.command("adjust")
 @click.argument("network", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
-              required=True, help="Output folder (must be empty unless --overwrite).")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Output folder (must be empty unless --overwrite).",
+)
 @click.option("--overwrite", is_flag=True, help="Write into a non-empty --out.")
-@click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path),
-              default=None, help="Configuration file (TOML or JSON), over the network's.")
-@click.option("--solve", default=None, metavar="TERMS",
-              help="Comma-separated terms to solve, others fixed: CSM images: position, "
-                   "position-rate, pointing, pointing-rate, pointing-acceleration, "
-                   "focal-length; native strips: node-position, node-attitude, interior.")
-@click.option("--loss", type=click.Choice(["linear", "huber", "cauchy"]), default=None,
-              help="Robust loss of the first round.")
-@click.option("--sigma-px", type=float, default=None,
-              help="Sigma of measures without their own (pixels).")
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Configuration file (TOML or JSON), over the network's.",
+)
+@click.option(
+    "--solve",
+    default=None,
+    metavar="TERMS",
+    help="Comma-separated terms to solve, others fixed: CSM images: position, "
+    "position-rate, pointing, pointing-rate, pointing-acceleration, "
+    "focal-length; native strips: node-position, node-attitude, interior.",
+)
+@click.option(
+    "--loss",
+    type=click.Choice(["linear", "huber", "cauchy"]),
+    default=None,
+    help="Robust loss of the first round.",
+)
+@click.option(
+    "--sigma-px", type=float, default=None, help="Sigma of measures without their own (pixels)."
+)
 @click.option("--no-outliers", is_flag=True, help="Do not apply the 3 x RMSE rule.")
 @click.option("--max-iterations", type=int, default=None, help="LM iterations per round.")
-@click.option("--set", "assignments", multiple=True, metavar="KEY=VALUE",
-              help="Override a configuration entry (dotted key, TOML value); repeatable.")
+@click.option(
+    "--set",
+    "assignments",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a configuration entry (dotted key, TOML value); repeatable.",
+)
 @click.option("--no-rpc", is_flag=True, help="Do not refit RPCs to the adjusted cameras.")
 @click.option("--no-plots", is_flag=True, help="Do not draw residual plots.")
 @click.pass_context
-def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: bool,
-                   config_file: Path | None, solve: str | None, loss: str | None,
-                   sigma_px: float | None, no_outliers: bool, max_iterations: int | None,
-                   assignments: tuple[str, ...], no_rpc: bool, no_plots: bool) -> None:
+def adjust_command(
+    ctx: click.Context,
+    network: Path,
+    out_dir: Path,
+    overwrite: bool,
+    config_file: Path | None,
+    solve: str | None,
+    loss: str | None,
+    sigma_px: float | None,
+    no_outliers: bool,
+    max_iterations: int | None,
+    assignments: tuple[str, ...],
+    no_rpc: bool,
+    no_plots: bool,
+) -> None:
     """Bundle-adjust the control network NETWORK.toml and write the results to --out.
 
     Prints the headline numbers as JSON (the 'adjustment' block of report.json).
@@ -157,8 +194,9 @@ def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: 
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
         raise InputError("--out is not empty; pass --overwrite to write into it", path=out_dir)
     doc = read_toml(network, "network file")
-    cfg: dict[str, Any] = dict(doc.get("adjustment", {})) if isinstance(
-        doc.get("adjustment"), dict) else {}
+    cfg: dict[str, Any] = (
+        dict(doc.get("adjustment", {})) if isinstance(doc.get("adjustment"), dict) else {}
+    )
     if config_file is not None:
         cfg = _merge(cfg, _load_config_file(config_file))
     if solve is not None:
@@ -183,10 +221,18 @@ def adjust_command(ctx: click.Context, network: Path, out_dir: Path, overwrite: 
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = nf.config.model_dump(mode="json")
     write_text_atomic(out_dir / "config.toml", tomli_w.dumps({"adjustment": _toml_safe(resolved)}))
-    write_outputs(result, out_dir, rpc=not no_rpc, plots=not no_plots,
-                  extra={"inputs": {"network": str(network.resolve()),
-                                    "measures": str(nf.measures_path),
-                                    "convention": nf.convention,
-                                    "cameras": {k: str(v) for k, v in
-                                                nf.camera_files.items()}}})
+    write_outputs(
+        result,
+        out_dir,
+        rpc=not no_rpc,
+        plots=not no_plots,
+        extra={
+            "inputs": {
+                "network": str(network.resolve()),
+                "measures": str(nf.measures_path),
+                "convention": nf.convention,
+                "cameras": {k: str(v) for k, v in nf.camera_files.items()},
+            }
+        },
+    )
     click.echo(json.dumps({k: v for k, v in result.summary().items()}, indent=1))

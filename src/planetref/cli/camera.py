@@ -35,11 +35,17 @@ def camera_group() -> None:
 @click.argument("camera_file", metavar="CAMERA", type=click.Path(dir_okay=False))
 @click.option("--line", "line", type=float, required=True, help="Line coordinate (px).")
 @click.option("--sample", "sample", type=float, required=True, help="Sample coordinate (px).")
-@click.option("--height", type=float, default=0.0, show_default=True,
-              help="Height above the camera's reference body (m).")
+@click.option(
+    "--height",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="Height above the camera's reference body (m).",
+)
 @click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
-def image_to_ground(camera_file: str, line: float, sample: float, height: float,
-                    ccd: str | None) -> None:
+def image_to_ground(
+    camera_file: str, line: float, sample: float, height: float, ccd: str | None
+) -> None:
     """Intersect the ray of an image point with a height; prints JSON.
 
     Output: {"x_m", "y_m", "z_m", "lat_deg", "lon_deg", "height_m"}.
@@ -47,12 +53,22 @@ def image_to_ground(camera_file: str, line: float, sample: float, height: float,
     for name, value in (("line", line), ("sample", sample), ("height", height)):
         _finite(name, value)
     cam = load_camera(camera_file)
-    xyz = cam.image_to_ground(np.array([line]), np.array([sample]), height, ccd=ccd,
-                              on_miss="raise")[0]
+    xyz = cam.image_to_ground(
+        np.array([line]), np.array([sample]), height, ccd=ccd, on_miss="raise"
+    )[0]
     lon, lat, h = xyz_to_lonlat(xyz, cam.ellipsoid, cam.latitude_kind)
-    click.echo(json.dumps({"x_m": float(xyz[0]), "y_m": float(xyz[1]), "z_m": float(xyz[2]),
-                           "lat_deg": float(lat), "lon_deg": float(lon),
-                           "height_m": float(h)}))
+    click.echo(
+        json.dumps(
+            {
+                "x_m": float(xyz[0]),
+                "y_m": float(xyz[1]),
+                "z_m": float(xyz[2]),
+                "lat_deg": float(lat),
+                "lon_deg": float(lon),
+                "height_m": float(h),
+            }
+        )
+    )
 
 
 @camera_group.command("ground-to-image")
@@ -62,9 +78,14 @@ def image_to_ground(camera_file: str, line: float, sample: float, height: float,
 @click.option("--lon", type=float, default=None, help="East longitude (deg).")
 @click.option("--height", type=float, default=None, help="Height (m), with --lat/--lon.")
 @click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
-def ground_to_image(camera_file: str, xyz: tuple[float, float, float] | None,
-                    lat: float | None, lon: float | None, height: float | None,
-                    ccd: str | None) -> None:
+def ground_to_image(
+    camera_file: str,
+    xyz: tuple[float, float, float] | None,
+    lat: float | None,
+    lon: float | None,
+    height: float | None,
+    ccd: str | None,
+) -> None:
     """Project a ground point into the image; prints JSON {"line", "sample"}."""
     by_xyz = xyz is not None
     by_geo = lat is not None or lon is not None or height is not None
@@ -85,8 +106,10 @@ def ground_to_image(camera_file: str, xyz: tuple[float, float, float] | None,
         point = lonlat_to_xyz(lon, lat, height, cam.ellipsoid, cam.latitude_kind)
     ip = cam.ground_to_image(point[None, :], ccd=ccd)
     if not bool(ip.valid[0]):
-        raise GeometryError("the point cannot be projected into the image (behind the camera "
-                            "or outside the camera's time span)")
+        raise GeometryError(
+            "the point cannot be projected into the image (behind the camera "
+            "or outside the camera's time span)"
+        )
     out = {"line": float(ip.line[0]), "sample": float(ip.sample[0])}
     if not bool(ip.in_image[0]):
         click.echo("warning: the point projects outside the image", err=True)
@@ -95,15 +118,37 @@ def ground_to_image(camera_file: str, xyz: tuple[float, float, float] | None,
 
 @camera_group.command("fit-rpc")
 @click.argument("camera_file", metavar="CAMERA", type=click.Path(dir_okay=False))
-@click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
-              help="Output: NAME.RPB, NAME_RPC.TXT, or an existing GeoTIFF to embed them in.")
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Output: NAME.RPB, NAME_RPC.TXT, or an existing GeoTIFF to embed them in.",
+)
 @click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
-@click.option("--height-range", nargs=2, type=float, default=(-8000.0, 8000.0),
-              show_default=True, help="Lowest and highest terrain height of the fit (m).")
-@click.option("--grid", nargs=3, type=int, default=(21, 21, 7), show_default=True,
-              help="Fitting grid: lines, samples, heights.")
-def fit_rpc_command(camera_file: str, out: str, ccd: str | None,
-                    height_range: tuple[float, float], grid: tuple[int, int, int]) -> None:
+@click.option(
+    "--height-range",
+    nargs=2,
+    type=float,
+    default=(-8000.0, 8000.0),
+    show_default=True,
+    help="Lowest and highest terrain height of the fit (m).",
+)
+@click.option(
+    "--grid",
+    nargs=3,
+    type=int,
+    default=(21, 21, 7),
+    show_default=True,
+    help="Fitting grid: lines, samples, heights.",
+)
+def fit_rpc_command(
+    camera_file: str,
+    out: str,
+    ccd: str | None,
+    height_range: tuple[float, float],
+    grid: tuple[int, int, int],
+) -> None:
     """Fit RPCs to a rigorous camera (terrain-independent) and write them; prints JSON.
 
     Output: the fit report (RMS/max error in pixels on the fitting and check grids).
@@ -116,7 +161,12 @@ def fit_rpc_command(camera_file: str, out: str, ccd: str | None,
     cam = load_camera(camera_file)
     rpc, report = fit_rpc(cam, ccd=ccd, height_range_m=(lo, hi), grid=grid)
     path = write_rpc(rpc, out, body=RpcBody(cam.ellipsoid, cam.latitude_kind))
-    doc = {"out": str(path), "fit_rms_px": report.fit_rms_px, "fit_max_px": report.fit_max_px,
-           "check_rms_px": report.check_rms_px, "check_max_px": report.check_max_px,
-           "check_max_ground_m": report.check_max_ground_m}
+    doc = {
+        "out": str(path),
+        "fit_rms_px": report.fit_rms_px,
+        "fit_max_px": report.fit_max_px,
+        "check_rms_px": report.check_rms_px,
+        "check_max_px": report.check_max_px,
+        "check_max_ground_m": report.check_max_ground_m,
+    }
     click.echo(json.dumps(doc))

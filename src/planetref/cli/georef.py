@@ -12,8 +12,7 @@ import click
 __all__ = ["compare_command", "demo_command", "georef_command"]
 
 
-def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None
-                     ) -> str | None:
+def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
     from planetref.errors import InputError
     from planetref.execute import make_executor
 
@@ -25,16 +24,32 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
 
 
 def _common(f: Any) -> Any:
-    f = click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
-                     help="TOML with [frontend], [adjust], [mcp], [ortho], [matchers.NAME].")(f)
-    f = click.option("--weights-dir", type=click.Path(file_okay=False), default=None,
-                     help="Pretrained weights (default: $PLANETREF_WEIGHTS, $TORCH_HOME, "
-                          "the torch hub cache).")(f)
-    f = click.option("--overwrite", is_flag=True,
-                     help="Replace a different earlier run in --out (never other files).")(f)
-    f = click.option("--scheduler", default=None, metavar="SPEC", callback=_check_scheduler,
-                     help="Where tiles are matched: inprocess (default), pool:N, "
-                          "dask-local:N, or tcp://HOST:PORT.")(f)
+    f = click.option(
+        "--config",
+        "config_path",
+        type=click.Path(dir_okay=False),
+        default=None,
+        help="TOML with [frontend], [adjust], [mcp], [ortho], [matchers.NAME].",
+    )(f)
+    f = click.option(
+        "--weights-dir",
+        type=click.Path(file_okay=False),
+        default=None,
+        help="Pretrained weights (default: $PLANETREF_WEIGHTS, $TORCH_HOME, the torch hub cache).",
+    )(f)
+    f = click.option(
+        "--overwrite",
+        is_flag=True,
+        help="Replace a different earlier run in --out (never other files).",
+    )(f)
+    f = click.option(
+        "--scheduler",
+        default=None,
+        metavar="SPEC",
+        callback=_check_scheduler,
+        help="Where tiles are matched: inprocess (default), pool:N, "
+        "dask-local:N, or tcp://HOST:PORT.",
+    )(f)
     return f
 
 
@@ -45,13 +60,25 @@ def _quiet(ctx: click.Context) -> bool:
 @click.command("georef")
 @click.argument("scene", type=click.Path())
 @click.option("--matcher", required=True, help="Matcher name (see planetref matchers).")
-@click.option("--out", "out", required=True, type=click.Path(file_okay=False),
-              help="Run directory (re-running resumes finished tiles).")
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Run directory (re-running resumes finished tiles).",
+)
 @_common
 @click.pass_context
-def georef_command(ctx: click.Context, scene: str, matcher: str, out: str,
-                   config_path: str | None, weights_dir: str | None, overwrite: bool,
-                   scheduler: str | None) -> None:
+def georef_command(
+    ctx: click.Context,
+    scene: str,
+    matcher: str,
+    out: str,
+    config_path: str | None,
+    weights_dir: str | None,
+    overwrite: bool,
+    scheduler: str | None,
+) -> None:
     """Georeference SCENE (scene.toml or its folder) with one matcher.
 
     Tiling, matching, MCPs, bundle adjustment, metrics, report, adjusted cameras and
@@ -61,33 +88,64 @@ def georef_command(ctx: click.Context, scene: str, matcher: str, out: str,
     from planetref.pipeline.georef import run_georef
 
     cfg = load_config(config_path)
-    outcome = run_georef(scene, matcher, out, config=cfg, weights_dir=weights_dir,
-                         overwrite=overwrite, progress=not _quiet(ctx), executor=scheduler)
+    outcome = run_georef(
+        scene,
+        matcher,
+        out,
+        config=cfg,
+        weights_dir=weights_dir,
+        overwrite=overwrite,
+        progress=not _quiet(ctx),
+        executor=scheduler,
+    )
     r = outcome.report
-    click.echo(json.dumps({"matcher": r["matcher"], "ncp": r["matching"]["ncp"],
-                           "sdu_pct": r["matching"]["sdu_pct"],
-                           "rmse_px": r["adjustment"]["rmse_px"],
-                           "geoloc_rmse_m": (r["check"] or {}).get("geoloc_rmse_m"),
-                           "report": str(outcome.run_dir / "report.json")}))
+    click.echo(
+        json.dumps(
+            {
+                "matcher": r["matcher"],
+                "ncp": r["matching"]["ncp"],
+                "sdu_pct": r["matching"]["sdu_pct"],
+                "rmse_px": r["adjustment"]["rmse_px"],
+                "geoloc_rmse_m": (r["check"] or {}).get("geoloc_rmse_m"),
+                "report": str(outcome.run_dir / "report.json"),
+            }
+        )
+    )
 
 
 @click.command("compare")
 @click.argument("scene", type=click.Path())
-@click.option("--matchers", default="all", show_default=True,
-              help="Comma-separated matcher names, or 'all'.")
+@click.option(
+    "--matchers", default="all", show_default=True, help="Comma-separated matcher names, or 'all'."
+)
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False))
 @_common
 @click.pass_context
-def compare_command(ctx: click.Context, scene: str, matchers: str, out: str,
-                    config_path: str | None, weights_dir: str | None, overwrite: bool,
-                   scheduler: str | None) -> None:
+def compare_command(
+    ctx: click.Context,
+    scene: str,
+    matchers: str,
+    out: str,
+    config_path: str | None,
+    weights_dir: str | None,
+    overwrite: bool,
+    scheduler: str | None,
+) -> None:
     """Run georef on SCENE once per matcher and tabulate the results side by side."""
     from planetref.pipeline.compare import run_compare
     from planetref.pipeline.config import load_config
 
     cfg = load_config(config_path)
-    outcome = run_compare(scene, matchers, out, config=cfg, weights_dir=weights_dir,
-                          overwrite=overwrite, progress=not _quiet(ctx), executor=scheduler)
+    outcome = run_compare(
+        scene,
+        matchers,
+        out,
+        config=cfg,
+        weights_dir=weights_dir,
+        overwrite=overwrite,
+        progress=not _quiet(ctx),
+        executor=scheduler,
+    )
     click.echo(outcome.tables_markdown)
     click.echo(f"report: {outcome.run_dir / 'report.json'}")
 
@@ -97,18 +155,36 @@ def _default_demo_dir() -> Path:
 
 
 @click.command("demo")
-@click.option("--out", "out", type=click.Path(file_okay=False), default=None,
-              help="Folder for the scene (cached) and the results [default: ./planetref-demo].")
-@click.option("--preset", default="hiric-strip", show_default=True,
-              help="Simulator preset of the scene.")
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Folder for the scene (cached) and the results [default: ./planetref-demo].",
+)
+@click.option(
+    "--preset", default="hiric-strip", show_default=True, help="Simulator preset of the scene."
+)
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
-@click.option("--matchers", default="all", show_default=True,
-              help="Comma-separated matcher names, or 'all' (those with weights).")
+@click.option(
+    "--matchers",
+    default="all",
+    show_default=True,
+    help="Comma-separated matcher names, or 'all' (those with weights).",
+)
 @_common
 @click.pass_context
-def demo_command(ctx: click.Context, out: str | None, preset: str, seed: int, matchers: str,
-                 config_path: str | None, weights_dir: str | None, overwrite: bool,
-                   scheduler: str | None) -> None:
+def demo_command(
+    ctx: click.Context,
+    out: str | None,
+    preset: str,
+    seed: int,
+    matchers: str,
+    config_path: str | None,
+    weights_dir: str | None,
+    overwrite: bool,
+    scheduler: str | None,
+) -> None:
     """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
     from planetref.pipeline.compare import run_compare
     from planetref.pipeline.config import load_config
@@ -120,16 +196,25 @@ def demo_command(ctx: click.Context, out: str | None, preset: str, seed: int, ma
     scene_dir = base / f"scene-{preset}-seed{seed}"
     if not (scene_dir / "scene.toml").is_file():
         if not quiet:
-            click.echo(f"simulating the {preset} scene (seed {seed}) into {scene_dir} ...",
-                       err=True)
-        simulate_scene(load_sim_config(preset, seed=seed), scene_dir, preview=True,
-                       progress=not quiet)
+            click.echo(
+                f"simulating the {preset} scene (seed {seed}) into {scene_dir} ...", err=True
+            )
+        simulate_scene(
+            load_sim_config(preset, seed=seed), scene_dir, preview=True, progress=not quiet
+        )
     elif not quiet:
         click.echo(f"using the cached scene {scene_dir}", err=True)
     cfg = load_config(config_path)
-    outcome = run_compare(scene_dir, matchers, base / f"compare-{preset}-seed{seed}",
-                          config=cfg, weights_dir=weights_dir, overwrite=overwrite,
-                          progress=not quiet, executor=scheduler)
+    outcome = run_compare(
+        scene_dir,
+        matchers,
+        base / f"compare-{preset}-seed{seed}",
+        config=cfg,
+        weights_dir=weights_dir,
+        overwrite=overwrite,
+        progress=not quiet,
+        executor=scheduler,
+    )
     click.echo(outcome.tables_markdown)
     click.echo(f"report:  {outcome.run_dir / 'report.md'} (and report.json)")
     click.echo(f"figures: {outcome.run_dir / 'figures'}")

@@ -17,17 +17,34 @@ def _preset_names() -> str:
 
 @click.command("simulate")
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--preset", default="hiric-strip", show_default=True,
-              help="Scene preset (tiny, hiric-strip).")
-@click.option("--seed", type=click.IntRange(min=0), default=None,
-              help="Seed of every random draw (default: the preset's).")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
-              default=None, help="TOML file whose tables override the preset's.")
+@click.option(
+    "--preset", default="hiric-strip", show_default=True, help="Scene preset (tiny, hiric-strip)."
+)
+@click.option(
+    "--seed",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Seed of every random draw (default: the preset's).",
+)
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="TOML file whose tables override the preset's.",
+)
 @click.option("--preview", is_flag=True, help="Also write OUT_DIR/preview.png.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT_DIR if it exists and is not empty.")
 @click.pass_context
-def simulate_command(ctx: click.Context, out_dir: Path, preset: str, seed: int | None,
-                     config_path: Path | None, preview: bool, overwrite: bool) -> None:
+def simulate_command(
+    ctx: click.Context,
+    out_dir: Path,
+    preset: str,
+    seed: int | None,
+    config_path: Path | None,
+    preview: bool,
+    overwrite: bool,
+) -> None:
     """Simulate a synthetic Mars scene with exact ground truth into OUT_DIR.
 
     The scene (reference ortho and DEM, HiRIC-like CCD images, their cameras and the
@@ -44,8 +61,9 @@ def simulate_command(ctx: click.Context, out_dir: Path, preset: str, seed: int |
         if not quiet:
             click.echo(msg, err=True)
 
-    result = simulate_scene(cfg, out_dir, overwrite=overwrite, preview=preview,
-                            progress=not quiet, log=log)
+    result = simulate_scene(
+        cfg, out_dir, overwrite=overwrite, preview=preview, progress=not quiet, log=log
+    )
     if quiet:
         return
     click.echo(f"scene '{cfg.name}' (seed {cfg.seed}) written to {result.root}")
@@ -54,11 +72,14 @@ def simulate_command(ctx: click.Context, out_dir: Path, preset: str, seed: int |
             continue
         g = rep["initial_errors"]["ground_m"]
         p = rep["initial_errors"]["image_px"]
-        click.echo(f"  {strip_id}: initial geolocation error {g['horizontal']['rms']:.1f} m RMS "
-                   f"(max {g['horizontal']['max']:.1f} m; along {g['along']['mean']:+.1f} m, "
-                   f"cross {g['cross']['mean']:+.1f} m), {p['distance']['rms']:.1f} px RMS")
+        click.echo(
+            f"  {strip_id}: initial geolocation error {g['horizontal']['rms']:.1f} m RMS "
+            f"(max {g['horizontal']['max']:.1f} m; along {g['along']['mean']:+.1f} m, "
+            f"cross {g['cross']['mean']:+.1f} m), {p['distance']['rms']:.1f} px RMS"
+        )
     total = sum(result.timings_s.values())
-    click.echo(f"  {total:.1f} s ("
-               + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_s.items()) + ")")
+    click.echo(
+        f"  {total:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_s.items()) + ")"
+    )
     if preview:
         click.echo(f"  preview: {result.root / 'preview.png'}")

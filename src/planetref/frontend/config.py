@@ -87,13 +87,16 @@ class FrontendConfig(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> FrontendConfig:
         if self.tile_overlap_ref_px >= self.tile_size_ref_px:
-            raise ValueError(f"tile_overlap_ref_px ({self.tile_overlap_ref_px}) must be "
-                             f"smaller than tile_size_ref_px ({self.tile_size_ref_px})")
+            raise ValueError(
+                f"tile_overlap_ref_px ({self.tile_overlap_ref_px}) must be "
+                f"smaller than tile_size_ref_px ({self.tile_size_ref_px})"
+            )
         return self
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], *, source: str | None = None
-                     ) -> FrontendConfig:
+    def from_mapping(
+        cls, values: Mapping[str, Any], *, source: str | None = None
+    ) -> FrontendConfig:
         """Validate a mapping of settings (e.g. a TOML table).
 
         Raises:
@@ -104,13 +107,16 @@ class FrontendConfig(BaseModel):
         except ValidationError as exc:
             problems = "; ".join(
                 f"{'.'.join(str(p) for p in e['loc']) or 'config'}: {e['msg']}"
-                for e in exc.errors())
-            raise InputError(f"invalid front-end settings ({problems}); valid keys: "
-                             f"{', '.join(cls.model_fields)}", path=source) from None
+                for e in exc.errors()
+            )
+            raise InputError(
+                f"invalid front-end settings ({problems}); valid keys: "
+                f"{', '.join(cls.model_fields)}",
+                path=source,
+            ) from None
 
     @classmethod
-    def from_toml(cls, path: str | PathLike[str], table: str | None = "frontend"
-                  ) -> FrontendConfig:
+    def from_toml(cls, path: str | PathLike[str], table: str | None = "frontend") -> FrontendConfig:
         """Read settings from a TOML file (its ``[frontend]`` table, or the whole file).
 
         Raises:

@@ -35,8 +35,9 @@ __all__ = [
 F64 = NDArray[np.float64]
 
 
-def rays_to_ground(camera: Camera, ccd: str, line: ArrayLike, sample: ArrayLike,
-                   terrain: Terrain) -> F64:
+def rays_to_ground(
+    camera: Camera, ccd: str, line: ArrayLike, sample: ArrayLike, terrain: Terrain
+) -> F64:
     """Intersect image rays with the terrain.
 
     Args:
@@ -54,8 +55,9 @@ def rays_to_ground(camera: Camera, ccd: str, line: ArrayLike, sample: ArrayLike,
     if hasattr(camera, "look_rays") and hasattr(terrain, "intersect_rays"):
         origin, direction = camera.look_rays(line, sample, ccd=ccd)
         return np.asarray(terrain.intersect_rays(origin, direction).xyz, np.float64)
-    return np.asarray(camera.image_to_ground(line, sample, terrain, ccd=ccd, on_miss="nan"),
-                      np.float64)
+    return np.asarray(
+        camera.image_to_ground(line, sample, terrain, ccd=ccd, on_miss="nan"), np.float64
+    )
 
 
 def _same_crs(a: Any, b: Any) -> bool:
@@ -65,8 +67,9 @@ def _same_crs(a: Any, b: Any) -> bool:
         return False
 
 
-def map_to_ground(ref: ReferenceOrtho, terrain: Terrain, x: ArrayLike, y: ArrayLike
-                  ) -> tuple[F64, F64, F64, F64]:
+def map_to_ground(
+    ref: ReferenceOrtho, terrain: Terrain, x: ArrayLike, y: ArrayLike
+) -> tuple[F64, F64, F64, F64]:
     """Ground points of reference map coordinates, with heights from the terrain.
 
     Args:
@@ -100,8 +103,9 @@ def _accepts_line_guess(func: Any) -> bool:
         return False
 
 
-def project_to_image(camera: Camera, ccd: str, xyz: ArrayLike,
-                     line_guess: ArrayLike | None = None) -> tuple[F64, F64]:
+def project_to_image(
+    camera: Camera, ccd: str, xyz: ArrayLike, line_guess: ArrayLike | None = None
+) -> tuple[F64, F64]:
     """Project ground points into a CCD image, with a starting line when the camera takes one.
 
     Args:
@@ -133,8 +137,14 @@ def project_to_image(camera: Camera, ccd: str, xyz: ArrayLike,
     return line, sample
 
 
-def image_to_ref_pixel(camera: Camera, ccd: str, line: ArrayLike, sample: ArrayLike,
-                       ref: ReferenceOrtho, terrain: Terrain) -> tuple[F64, F64]:
+def image_to_ref_pixel(
+    camera: Camera,
+    ccd: str,
+    line: ArrayLike,
+    sample: ArrayLike,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+) -> tuple[F64, F64]:
     """Where the camera and the DEM put image points on the reference grid.
 
     Returns:
@@ -150,8 +160,13 @@ def image_to_ref_pixel(camera: Camera, ccd: str, line: ArrayLike, sample: ArrayL
     return col, row
 
 
-def image_gsd_m(camera: Camera, ccd: str, terrain: Terrain,
-                line: float | None = None, sample: float | None = None) -> float:
+def image_gsd_m(
+    camera: Camera,
+    ccd: str,
+    terrain: Terrain,
+    line: float | None = None,
+    sample: float | None = None,
+) -> float:
     """Ground sampling distance (m) of a CCD image at a pixel (default: its centre).
 
     The geometric mean of the along-line and along-sample ground steps of one pixel.
@@ -165,12 +180,17 @@ def image_gsd_m(camera: Camera, ccd: str, terrain: Terrain,
 
     n_lines, n_samples = camera.image_size(ccd)
     if line is not None or sample is not None:
-        tries = [(n_lines / 2.0 if line is None else float(line),
-                  n_samples / 2.0 if sample is None else float(sample))]
+        tries = [
+            (
+                n_lines / 2.0 if line is None else float(line),
+                n_samples / 2.0 if sample is None else float(sample),
+            )
+        ]
     else:
         f = np.linspace(0.1, 0.9, 5)
-        tries = [(n_lines / 2.0, n_samples / 2.0)] + [(a * n_lines, b * n_samples)
-                                                      for a in f for b in f]
+        tries = [(n_lines / 2.0, n_samples / 2.0)] + [
+            (a * n_lines, b * n_samples) for a in f for b in f
+        ]
     for lc, sc in tries:
         xyz = rays_to_ground(camera, ccd, [lc, lc + 1.0, lc], [sc, sc, sc + 1.0], terrain)
         if np.all(np.isfinite(xyz)):
@@ -178,6 +198,8 @@ def image_gsd_m(camera: Camera, ccd: str, terrain: Terrain,
             d_sample = float(np.linalg.norm(xyz[2] - xyz[0]))
             return float(np.sqrt(d_line * d_sample))
     lc, sc = tries[0]
-    raise GeometryError(f"the rays of CCD {ccd!r} at (line {lc}, sample {sc})"
-                        f"{' and elsewhere' if len(tries) > 1 else ''} miss the terrain; "
-                        "cannot measure its ground sampling distance")
+    raise GeometryError(
+        f"the rays of CCD {ccd!r} at (line {lc}, sample {sc})"
+        f"{' and elsewhere' if len(tries) > 1 else ''} miss the terrain; "
+        "cannot measure its ground sampling distance"
+    )

@@ -167,15 +167,19 @@ class TileResult:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict (arrays as lists; ``debug`` left out)."""
         doc: dict[str, Any] = {
-            "tile": self.tile.to_dict(), "matcher": self.matcher, "status": self.status,
-            "message": self.message, "geometry": self.geometry,
+            "tile": self.tile.to_dict(),
+            "matcher": self.matcher,
+            "status": self.status,
+            "message": self.message,
+            "geometry": self.geometry,
             "search_window": None if self.search_window is None else list(self.search_window),
             "coarse_offset_px": _opt_pair(self.coarse_offset_px),
             "offset_px": _opt_pair(self.offset_px),
             "offset_mad_px": _opt_pair(self.offset_mad_px),
             "n_coarse_matches": self.n_coarse_matches,
             "n_coarse_inliers": self.n_coarse_inliers,
-            "n_matches": self.n_matches, "n_inliers": self.n_inliers,
+            "n_matches": self.n_matches,
+            "n_inliers": self.n_inliers,
             "timings": {k: float(v) for k, v in self.timings.items()},
         }
         for name in _ARRAYS:
@@ -195,7 +199,8 @@ class TileResult:
                 raise InputError(f"unknown tile status {status!r}", field="status")
             win = doc.get("search_window")
             out = cls(
-                tile=Tile.from_dict(doc["tile"]), matcher=str(doc["matcher"]),
+                tile=Tile.from_dict(doc["tile"]),
+                matcher=str(doc["matcher"]),
                 status=status,  # type: ignore[arg-type]
                 message=str(doc.get("message", "")),
                 geometry=str(doc.get("geometry", "orthorectify")),
@@ -205,7 +210,8 @@ class TileResult:
                 offset_mad_px=_opt_pair(doc.get("offset_mad_px")),
                 n_coarse_matches=int(doc.get("n_coarse_matches", 0)),
                 n_coarse_inliers=int(doc.get("n_coarse_inliers", 0)),
-                n_matches=int(doc.get("n_matches", 0)), n_inliers=int(doc.get("n_inliers", 0)),
+                n_matches=int(doc.get("n_matches", 0)),
+                n_inliers=int(doc.get("n_inliers", 0)),
                 timings={str(k): float(v) for k, v in doc.get("timings", {}).items()},
             )
             for name in _ARRAYS:
@@ -229,8 +235,9 @@ def _opt_pair(v: Any) -> tuple[float, float] | None:
 # --------------------------------------------------------------------------- robust fits
 
 
-def robust_translation(displacement: F64, radius: float, weights: F64 | None = None
-                       ) -> tuple[F64 | None, NDArray[np.bool_]]:
+def robust_translation(
+    displacement: F64, radius: float, weights: F64 | None = None
+) -> tuple[F64 | None, NDArray[np.bool_]]:
     """The dominant translation among displacement vectors (a translation consensus).
 
     Each displacement is a candidate; the one with the most displacements within
@@ -257,7 +264,7 @@ def robust_translation(displacement: F64, radius: float, weights: F64 | None = N
     best, best_score = -1, (-1, -np.inf)
     r2 = radius * radius
     for a in range(0, len(cand), 256):
-        c = cand[a:a + 256]
+        c = cand[a : a + 256]
         dist2 = np.sum((d[c][:, None, :] - d[None, :, :]) ** 2, axis=-1)
         close = dist2 <= r2
         counts = close.sum(axis=1)
@@ -274,9 +281,14 @@ def robust_translation(displacement: F64, radius: float, weights: F64 | None = N
     return offset, inl
 
 
-def verify_points(points0: F64, points1: F64, model: str = "homography",
-                  threshold: float = 1.0, confidence: float = 0.999,
-                  max_iters: int = 10000) -> NDArray[np.bool_]:
+def verify_points(
+    points0: F64,
+    points1: F64,
+    model: str = "homography",
+    threshold: float = 1.0,
+    confidence: float = 0.999,
+    max_iters: int = 10000,
+) -> NDArray[np.bool_]:
     """Geometric verification of point pairs with OpenCV's USAC_MAGSAC.
 
     A thin layer over :func:`planetref.matching.ransac.verify_matches` that centres the
@@ -303,9 +315,13 @@ def verify_points(points0: F64, points1: F64, model: str = "homography",
     if n == 0:
         return np.zeros(0, bool)
     c0, c1 = p0.mean(axis=0), p1.mean(axis=0)
-    ver = verify_matches(Matches(p0 - c0, p1 - c1, np.ones(n)), model,  # type: ignore[arg-type]
-                         threshold=float(threshold), confidence=float(confidence),
-                         max_iters=int(max_iters))
+    ver = verify_matches(
+        Matches(p0 - c0, p1 - c1, np.ones(n)),
+        model,  # type: ignore[arg-type]
+        threshold=float(threshold),
+        confidence=float(confidence),
+        max_iters=int(max_iters),
+    )
     if ver.matrix is None:
         return np.zeros(n, bool)
     m = np.asarray(ver.matrix, np.float64)
@@ -324,9 +340,11 @@ def _spread_select(line: F64, sample: F64, conf: F64, n_max: int) -> NDArray[np.
     if n_max <= 0 or n <= n_max:
         return np.arange(n)
     g = max(1, int(np.ceil(np.sqrt(n_max))))
+
     def cell(v: F64) -> NDArray[np.intp]:
         lo, hi = float(v.min()), float(v.max())
         return np.minimum(((v - lo) / max(hi - lo, 1e-9) * g).astype(np.intp), g - 1)
+
     cid = cell(line) * g + cell(sample)
     order = np.lexsort((-conf, cid))
     rank = np.empty(n, np.intp)
@@ -368,16 +386,25 @@ def _inference() -> contextlib.AbstractContextManager[Any]:
     return contextlib.nullcontext()
 
 
-def _image_side(stage_factor: int, window: RefWindow, *, image: CcdImage, camera: Camera,
-                tile: Tile, ref: ReferenceOrtho, terrain: Terrain, config: FrontendConfig,
-                ratio: float) -> ImageSide:
+def _image_side(
+    stage_factor: int,
+    window: RefWindow,
+    *,
+    image: CcdImage,
+    camera: Camera,
+    tile: Tile,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    config: FrontendConfig,
+    ratio: float,
+) -> ImageSide:
     if config.geometry == "orthorectify":
         # The whole image may fill the window: matches outside the tile are dropped when
         # mapped back, and the real neighbourhood beats a no-data border for matching.
-        return orthorectify(image, camera, tile.ccd, ref, terrain, window,
-                            lattice_step=config.lattice_step_ref_px)
-    return downsample_tile(image, tile, max(1, round(ratio * stage_factor)), camera, ref,
-                           terrain)
+        return orthorectify(
+            image, camera, tile.ccd, ref, terrain, window, lattice_step=config.lattice_step_ref_px
+        )
+    return downsample_tile(image, tile, max(1, round(ratio * stage_factor)), camera, ref, terrain)
 
 
 @dataclass
@@ -389,9 +416,15 @@ class _Stage:
     actual: F64
 
 
-def _match_stage(side: ImageSide, ref_img: NDArray[np.float32], ref_valid: NDArray[np.bool_],
-                 ref_window: RefWindow, matcher: Any, timings: dict[str, float],
-                 key: str) -> _Stage:
+def _match_stage(
+    side: ImageSide,
+    ref_img: NDArray[np.float32],
+    ref_valid: NDArray[np.bool_],
+    ref_window: RefWindow,
+    matcher: Any,
+    timings: dict[str, float],
+    key: str,
+) -> _Stage:
     t0 = time.perf_counter()
     with _inference():
         m = matcher.match(side.image, ref_img, side.valid, ref_valid)
@@ -411,13 +444,21 @@ def _valid_fraction(valid: NDArray[np.bool_]) -> float:
     return float(valid.mean()) if valid.size else 0.0
 
 
-def _unmatchable(side: ImageSide, ref_img: NDArray[np.float32], ref_valid: NDArray[np.bool_],
-                 share: float, cfg: FrontendConfig) -> tuple[TileStatus, str] | None:
+def _unmatchable(
+    side: ImageSide,
+    ref_img: NDArray[np.float32],
+    ref_valid: NDArray[np.bool_],
+    share: float,
+    cfg: FrontendConfig,
+) -> tuple[TileStatus, str] | None:
     """Why a stage's pair cannot be matched (status and message), or None."""
     f_img, f_ref = _valid_fraction(side.valid), _valid_fraction(ref_valid)
     if f_img < cfg.min_valid_fraction * share:
-        return ("no_overlap", f"only {100 * f_img:.1f}% of the window has valid tile pixels "
-                "in the reference geometry")
+        return (
+            "no_overlap",
+            f"only {100 * f_img:.1f}% of the window has valid tile pixels "
+            "in the reference geometry",
+        )
     if f_ref < cfg.min_valid_fraction:
         return ("no_overlap", f"only {100 * f_ref:.1f}% of the reference window has data")
     if _flat(side.image, side.valid) or _flat(ref_img, ref_valid):
@@ -434,10 +475,19 @@ def _area_share(inner: RefWindow, outer: RefWindow, cfg: FrontendConfig) -> floa
     return min(1.0, a / b) if b else 1.0
 
 
-def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrtho,
-               terrain: Terrain, matcher: Any, config: FrontendConfig | None = None,
-               ratio: float | None = None, debug: bool = False,
-               coarse_matcher: Any = None) -> TileResult:
+def match_tile(
+    tile: Tile,
+    *,
+    image: CcdImage,
+    camera: Camera,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    matcher: Any,
+    config: FrontendConfig | None = None,
+    ratio: float | None = None,
+    debug: bool = False,
+    coarse_matcher: Any = None,
+) -> TileResult:
     """Match one CCD tile against the reference, coarse to fine.
 
     Args:
@@ -480,15 +530,17 @@ def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrt
 
         lc, sc = tile.centre
         ratio = float(np.sqrt(fp.gsd_m[0] * fp.gsd_m[1])) / image_gsd_m(
-            camera, tile.ccd, terrain, lc, sc)
+            camera, tile.ccd, terrain, lc, sc
+        )
     ratio = float(ratio or 1.0)
     pad_unc = fp.pad_px(cfg.uncertainty_m)
     rows, cols = ref.shape
     c0, r0, c1, r1 = base.padded(pad_unc).bounds_px
     if c1 <= 0 or r1 <= 0 or c0 >= cols or r0 >= rows:
         return finish("no_overlap", "the tile's search window lies outside the reference")
-    side_kw = dict(image=image, camera=camera, tile=tile, ref=ref, terrain=terrain,
-                   config=cfg, ratio=ratio)
+    side_kw = dict(
+        image=image, camera=camera, tile=tile, ref=ref, terrain=terrain, config=cfg, ratio=ratio
+    )
 
     # ---- coarse stage
     # Orthorectified tiles are resampled onto the very window of the reference they are
@@ -498,15 +550,15 @@ def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrt
     if cfg.coarse:
         f = cfg.coarse_factor
         with _timed(timings, "coarse_prepare"):
-            cwin = RefWindow.around(*base.bounds_px, pad_px=pad_unc + cfg.fine_pad_ref_px,
-                                    factor=f)
+            cwin = RefWindow.around(*base.bounds_px, pad_px=pad_unc + cfg.fine_pad_ref_px, factor=f)
             side = _image_side(f, cwin, **side_kw)
             cref, cvalid = ref.read(cwin)
         problem = _unmatchable(side, cref, cvalid, _area_share(base, cwin, cfg), cfg)
         if problem is not None:
             return finish(*problem)
-        st = _match_stage(side, cref, cvalid, cwin, coarse_matcher or matcher, timings,
-                          "coarse_match")
+        st = _match_stage(
+            side, cref, cvalid, cwin, coarse_matcher or matcher, timings, "coarse_match"
+        )
         res.n_coarse_matches = len(st.kp0)
         disp = st.actual - st.predicted
         ok = np.all(np.isfinite(disp), axis=1)
@@ -518,15 +570,15 @@ def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrt
             coarse_offset = offset
             res.coarse_offset_px = (float(offset[0]), float(offset[1]))
         if debug:
-            res.debug.append(StageDebug("coarse", side.image, side.valid, cref, cvalid,
-                                        st.kp0, st.kp1, full_inl))
+            res.debug.append(
+                StageDebug("coarse", side.image, side.valid, cref, cvalid, st.kp0, st.kp1, full_inl)
+            )
 
     # ---- fine stage
     with _timed(timings, "fine_prepare"):
         pad = cfg.fine_pad_ref_px if coarse_offset is not None else pad_unc + cfg.fine_pad_ref_px
         iwin = base.padded(pad)
-        fwin = iwin if coarse_offset is None else iwin.shifted(coarse_offset[0],
-                                                                coarse_offset[1])
+        fwin = iwin if coarse_offset is None else iwin.shifted(coarse_offset[0], coarse_offset[1])
         side = _image_side(1, iwin, **side_kw)
         fref, fvalid = ref.read(fwin)
     res.search_window = fwin.to_tuple()
@@ -539,20 +591,27 @@ def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrt
         ok = np.all(np.isfinite(st.predicted), axis=1)
         src = st.predicted if cfg.geometry == "orthorectify" else st.kp0
         inl = np.zeros(len(st.kp0), bool)
-        inl[ok] = verify_points(src[ok], st.actual[ok], cfg.ransac_model,
-                                 cfg.ransac_threshold_ref_px, cfg.ransac_confidence,
-                                 cfg.ransac_max_iters)
+        inl[ok] = verify_points(
+            src[ok],
+            st.actual[ok],
+            cfg.ransac_model,
+            cfg.ransac_threshold_ref_px,
+            cfg.ransac_confidence,
+            cfg.ransac_max_iters,
+        )
         if inl.any():
             # True matches of one tile share (nearly) one displacement; a homography
             # fitted to wrong matches does not, whatever its residuals.
             idx = np.flatnonzero(inl)
-            _, cons = robust_translation((st.actual - st.predicted)[idx],
-                                         cfg.fine_radius_ref_px, st.conf[idx])
+            _, cons = robust_translation(
+                (st.actual - st.predicted)[idx], cfg.fine_radius_ref_px, st.conf[idx]
+            )
             inl[idx[~cons]] = False
     res.n_inliers = int(inl.sum())
     if debug:
-        res.debug.append(StageDebug("fine", side.image, side.valid, fref, fvalid, st.kp0,
-                                    st.kp1, inl))
+        res.debug.append(
+            StageDebug("fine", side.image, side.valid, fref, fvalid, st.kp0, st.kp1, inl)
+        )
     if res.n_inliers:
         disp = (st.actual - st.predicted)[inl]
         # The mean, not the median: the inliers are verified already, and detectors that
@@ -562,10 +621,16 @@ def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrt
         res.offset_px = (float(off[0]), float(off[1]))
         res.offset_mad_px = (float(mad[0]), float(mad[1]))
     if res.n_inliers < cfg.min_inliers:
-        coarse_note = "" if not cfg.coarse or coarse_offset is not None else \
-            f" (no coarse consensus: {res.n_coarse_inliers} of {res.n_coarse_matches})"
-        return finish("too_few_inliers", f"{res.n_inliers} inliers of {res.n_matches} "
-                      f"matches, {cfg.min_inliers} needed{coarse_note}")
+        coarse_note = (
+            ""
+            if not cfg.coarse or coarse_offset is not None
+            else f" (no coarse consensus: {res.n_coarse_inliers} of {res.n_coarse_matches})"
+        )
+        return finish(
+            "too_few_inliers",
+            f"{res.n_inliers} inliers of {res.n_matches} "
+            f"matches, {cfg.min_inliers} needed{coarse_note}",
+        )
 
     with _timed(timings, "backmap"):
         idx = np.flatnonzero(inl)
@@ -581,8 +646,10 @@ def match_tile(tile: Tile, *, image: CcdImage, camera: Camera, ref: ReferenceOrt
     res.ref_col, res.ref_row = ref_col, ref_row
     res.ref_x, res.ref_y = np.asarray(ref_x, np.float64), np.asarray(ref_y, np.float64)
     if len(line) < cfg.min_inliers:
-        return finish("too_few_inliers", f"{len(line)} inliers map back into the tile, "
-                      f"{cfg.min_inliers} needed")
+        return finish(
+            "too_few_inliers",
+            f"{len(line)} inliers map back into the tile, {cfg.min_inliers} needed",
+        )
     return finish("ok")
 
 
@@ -646,21 +713,34 @@ def _read_journal(path: Path, digest: str) -> dict[str, TileResult]:
                 break  # a line cut short by an interrupted run
             raise InputError(f"line {i + 1} is not JSON", path=path) from None
         if doc.get("digest") != digest:
-            raise InputError("the journal was written with another matcher or config "
-                             f"(digest {doc.get('digest')}, expected {digest}); use a new "
-                             "journal file", path=path)
+            raise InputError(
+                "the journal was written with another matcher or config "
+                f"(digest {doc.get('digest')}, expected {digest}); use a new "
+                "journal file",
+                path=path,
+            )
         res = TileResult.from_dict(doc["result"])
         done[res.tile_id] = res
     return done
 
 
-def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[str]],
-                ref: ReferenceOrtho | str | PathLike[str], terrain: Terrain | str | PathLike[str],
-                matcher: Any, config: FrontendConfig | None = None, *,
-                ccds: Sequence[str] | None = None, journal: str | PathLike[str] | None = None,
-                progress: bool = True, raise_errors: bool = False,
-                debug_tiles: Sequence[str] = (), coarse_matcher: Any = None,
-                executor: Any = None, sources: Any = None) -> StripMatches:
+def match_strip(
+    camera: Camera,
+    images: Mapping[str, CcdImage | str | PathLike[str]],
+    ref: ReferenceOrtho | str | PathLike[str],
+    terrain: Terrain | str | PathLike[str],
+    matcher: Any,
+    config: FrontendConfig | None = None,
+    *,
+    ccds: Sequence[str] | None = None,
+    journal: str | PathLike[str] | None = None,
+    progress: bool = True,
+    raise_errors: bool = False,
+    debug_tiles: Sequence[str] = (),
+    coarse_matcher: Any = None,
+    executor: Any = None,
+    sources: Any = None,
+) -> StripMatches:
     """Match every tile of every CCD image of a strip against the reference.
 
     Rasters are only read through windows (one tile at a time), so memory stays bounded
@@ -703,8 +783,7 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
     known = tuple(camera.ccd_names)
     unknown = sorted(set(images) - set(known))
     if unknown:
-        raise InputError(f"images given for unknown CCDs {unknown}; the camera has "
-                         f"{list(known)}")
+        raise InputError(f"images given for unknown CCDs {unknown}; the camera has {list(known)}")
     todo_ccds = [c for c in known if c in images] if ccds is None else list(ccds)
     missing = [c for c in todo_ccds if c not in images]
     if missing:
@@ -728,16 +807,19 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
                 readers[c] = CcdImage(src)
                 opened.append(readers[c])
             if readers[c].shape != tuple(camera.image_size(c)):
-                raise InputError(f"CCD {c!r}: image is {readers[c].shape} (lines, samples) "
-                                 f"but the camera says {tuple(camera.image_size(c))}")
+                raise InputError(
+                    f"CCD {c!r}: image is {readers[c].shape} (lines, samples) "
+                    f"but the camera says {tuple(camera.image_size(c))}"
+                )
 
         plans = {c: plan_tiles(camera, c, ref, terrain, cfg) for c in todo_ccds}
         digest = _config_digest(name, cfg)
         jpath = None if journal is None else Path(journal)
         done = _read_journal(jpath, digest) if jpath is not None else {}
         all_tiles = [t for c in todo_ccds for t in plans[c].tiles]
-        results: dict[str, TileResult] = {t.tile_id: done[t.tile_id] for t in all_tiles
-                                          if t.tile_id in done}
+        results: dict[str, TileResult] = {
+            t.tile_id: done[t.tile_id] for t in all_tiles if t.tile_id in done
+        }
         pending = [t for t in all_tiles if t.tile_id not in results]
         fh = None
         if jpath is not None:
@@ -746,10 +828,18 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
 
         def match_here(t: Tile) -> TileResult:
             try:
-                return match_tile(t, image=readers[t.ccd], camera=camera, ref=ref,
-                                  terrain=terrain, matcher=matcher, config=cfg,
-                                  ratio=plans[t.ccd].ratio, debug=t.tile_id in debug_tiles,
-                                  coarse_matcher=coarse_matcher)
+                return match_tile(
+                    t,
+                    image=readers[t.ccd],
+                    camera=camera,
+                    ref=ref,
+                    terrain=terrain,
+                    matcher=matcher,
+                    config=cfg,
+                    ratio=plans[t.ccd].ratio,
+                    debug=t.tile_id in debug_tiles,
+                    coarse_matcher=coarse_matcher,
+                )
             except Exception as exc:
                 if raise_errors:
                     raise
@@ -764,11 +854,22 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
 
         try:
             if executor is not None and getattr(executor, "parallel", False):
-                _match_parallel(executor, sources, pending, plans, cfg, name, match_here,
-                                record, raise_errors, progress, debug_tiles, results)
+                _match_parallel(
+                    executor,
+                    sources,
+                    pending,
+                    plans,
+                    cfg,
+                    name,
+                    match_here,
+                    record,
+                    raise_errors,
+                    progress,
+                    debug_tiles,
+                    results,
+                )
             else:
-                bar = tqdm(pending, desc=f"matching ({name})", unit="tile",
-                           disable=not progress)
+                bar = tqdm(pending, desc=f"matching ({name})", unit="tile", disable=not progress)
                 for t in bar:
                     record(match_here(t))
                     bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
@@ -781,16 +882,30 @@ def match_strip(camera: Camera, images: Mapping[str, CcdImage | str | PathLike[s
             obj.close()
 
 
-
 def _error_result(t: Tile, name: str, cfg: FrontendConfig, exc: BaseException) -> TileResult:
-    return TileResult(tile=t, matcher=name, status="error",
-                      message=f"{type(exc).__name__}: {exc}", geometry=cfg.geometry)
+    return TileResult(
+        tile=t,
+        matcher=name,
+        status="error",
+        message=f"{type(exc).__name__}: {exc}",
+        geometry=cfg.geometry,
+    )
 
 
-def _match_parallel(executor: Any, sources: Any, pending: list[Tile],
-                    plans: Mapping[str, TilePlan], cfg: FrontendConfig, name: str,
-                    match_here: Any, record: Any, raise_errors: bool, progress: bool,
-                    debug_tiles: Sequence[str], results: Mapping[str, TileResult]) -> None:
+def _match_parallel(
+    executor: Any,
+    sources: Any,
+    pending: list[Tile],
+    plans: Mapping[str, TilePlan],
+    cfg: FrontendConfig,
+    name: str,
+    match_here: Any,
+    record: Any,
+    raise_errors: bool,
+    progress: bool,
+    debug_tiles: Sequence[str],
+    results: Mapping[str, TileResult],
+) -> None:
     """The pending tiles of :func:`match_strip` on a parallel executor.
 
     Each result is recorded (and journalled) as it arrives; ``debug_tiles`` are matched
@@ -801,22 +916,35 @@ def _match_parallel(executor: Any, sources: Any, pending: list[Tile],
     from planetref.execute import TileSources, run_tile_task
 
     if not isinstance(sources, TileSources):
-        raise InputError(f"the {executor.name} executor needs sources= (a TileSources with "
-                         "the camera, image, reference and DEM paths and the matcher spec)")
+        raise InputError(
+            f"the {executor.name} executor needs sources= (a TileSources with "
+            "the camera, image, reference and DEM paths and the matcher spec)"
+        )
     lacking = sorted({t.ccd for t in pending} - {c for c, _ in sources.images})
     if lacking:
         raise InputError(f"sources= has no image path for CCDs {lacking}")
     if sources.matcher != name:
-        raise InputError(f"sources= names matcher {sources.matcher!r} but the matcher is "
-                         f"{name!r}")
+        raise InputError(f"sources= names matcher {sources.matcher!r} but the matcher is {name!r}")
     debug = set(debug_tiles)
     remote = [t for t in pending if t.tile_id not in debug]
     key = sources.key()
     config = cfg.model_dump()
-    tasks = [{"sources": key, "tile": t.to_dict(), "config": config,
-              "ratio": plans[t.ccd].ratio, "raise_errors": raise_errors} for t in remote]
-    bar = tqdm(total=len(pending), desc=f"matching ({name}, {executor.name})", unit="tile",
-               disable=not progress)
+    tasks = [
+        {
+            "sources": key,
+            "tile": t.to_dict(),
+            "config": config,
+            "ratio": plans[t.ccd].ratio,
+            "raise_errors": raise_errors,
+        }
+        for t in remote
+    ]
+    bar = tqdm(
+        total=len(pending),
+        desc=f"matching ({name}, {executor.name})",
+        unit="tile",
+        disable=not progress,
+    )
     try:
         for t in pending:
             if t.tile_id in debug:

@@ -116,10 +116,12 @@ class OrthoTile:
         fx = _fractional_index(self.lattice_x, x.ravel())
         fy = _fractional_index(self.lattice_y, y.ravel())
         coords = np.vstack([fy, fx])
-        line = ndimage.map_coordinates(self.lattice_line, coords, order=1, mode="nearest",
-                                       prefilter=False)
-        sample = ndimage.map_coordinates(self.lattice_sample, coords, order=1,
-                                         mode="nearest", prefilter=False)
+        line = ndimage.map_coordinates(
+            self.lattice_line, coords, order=1, mode="nearest", prefilter=False
+        )
+        sample = ndimage.map_coordinates(
+            self.lattice_sample, coords, order=1, mode="nearest", prefilter=False
+        )
         return line.reshape(x.shape), sample.reshape(x.shape)
 
     def predicted_ref_pixel(self, x: ArrayLike, y: ArrayLike) -> tuple[F64, F64]:
@@ -142,17 +144,21 @@ class OrthoTile:
         mx, my = self._ref.pixel_to_map(col, row)
         xyz, *_ = map_to_ground(self._ref, self._terrain, mx, my)
         guess, _ = self.raw_coords(x, y)
-        line, sample = project_to_image(self._camera, self._ccd, xyz,
-                                        line_guess=np.where(np.isfinite(guess), guess,
-                                                            np.nanmedian(guess)
-                                                            if np.isfinite(guess).any()
-                                                            else 0.0))
+        line, sample = project_to_image(
+            self._camera,
+            self._ccd,
+            xyz,
+            line_guess=np.where(
+                np.isfinite(guess), guess, np.nanmedian(guess) if np.isfinite(guess).any() else 0.0
+            ),
+        )
         ok = np.isfinite(line) & np.isfinite(sample)
         return line, sample, ok
 
 
-def _lattice(camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain,
-             window: RefWindow, step: int) -> tuple[F64, F64, F64, F64]:
+def _lattice(
+    camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, window: RefWindow, step: int
+) -> tuple[F64, F64, F64, F64]:
     lx = _lattice_nodes(window.width, step)
     ly = _lattice_nodes(window.height, step)
     gx, gy = np.meshgrid(lx, ly)
@@ -162,26 +168,39 @@ def _lattice(camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain,
     # Project a few spread nodes without a guess, fit an affine line(x, y), and use it as
     # the starting line of every node: the guided projection is several times cheaper.
     ny, nx = len(ly), len(lx)
-    probe = np.unique(np.ravel_multi_index(
-        (np.array([0, 0, ny - 1, ny - 1, ny // 2, 0, ny - 1, ny // 2, ny // 2]),
-         np.array([0, nx - 1, 0, nx - 1, nx // 2, nx // 2, nx // 2, 0, nx - 1])), (ny, nx)))
+    probe = np.unique(
+        np.ravel_multi_index(
+            (
+                np.array([0, 0, ny - 1, ny - 1, ny // 2, 0, ny - 1, ny // 2, ny // 2]),
+                np.array([0, nx - 1, 0, nx - 1, nx // 2, nx // 2, nx // 2, 0, nx - 1]),
+            ),
+            (ny, nx),
+        )
+    )
     pl, _ = project_to_image(camera, ccd, xyz[probe])
     good = np.isfinite(pl)
     guess = None
     if good.sum() >= 3:
-        a = np.column_stack([gx.ravel()[probe][good], gy.ravel()[probe][good],
-                             np.ones(good.sum())])
+        a = np.column_stack([gx.ravel()[probe][good], gy.ravel()[probe][good], np.ones(good.sum())])
         coef, *_ = np.linalg.lstsq(a, pl[good], rcond=None)
         guess = coef[0] * gx.ravel() + coef[1] * gy.ravel() + coef[2]
     line, sample = project_to_image(camera, ccd, xyz, line_guess=guess)
     return lx, ly, line.reshape(ny, nx), sample.reshape(ny, nx)
 
 
-def orthorectify(image: CcdImage, camera: Camera, ccd: str, ref: ReferenceOrtho,
-                 terrain: Terrain, window: RefWindow, *,
-                 bounds: tuple[int, int, int, int] | None = None,
-                 lattice_step: int = 8, prefilter: float = 0.5,
-                 min_valid_fraction: float = 0.5) -> OrthoTile:
+def orthorectify(
+    image: CcdImage,
+    camera: Camera,
+    ccd: str,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    window: RefWindow,
+    *,
+    bounds: tuple[int, int, int, int] | None = None,
+    lattice_step: int = 8,
+    prefilter: float = 0.5,
+    min_valid_fraction: float = 0.5,
+) -> OrthoTile:
     """Resample a CCD tile onto a reference-grid window through the camera and the DEM.
 
     Only the raw pixels the window needs are read (the CCD image around the projected
@@ -207,8 +226,9 @@ def orthorectify(image: CcdImage, camera: Camera, ccd: str, ref: ReferenceOrtho,
     Returns:
         The orthorectified tile.
     """
-    lx, ly, lat_line, lat_sample = _lattice(camera, ccd, ref, terrain, window,
-                                            max(1, int(lattice_step)))
+    lx, ly, lat_line, lat_sample = _lattice(
+        camera, ccd, ref, terrain, window, max(1, int(lattice_step))
+    )
     h, w = window.shape
     # Raw pixels per output pixel from the lattice's Jacobian sets the pre-filter.
     with np.errstate(invalid="ignore"):
@@ -226,8 +246,20 @@ def orthorectify(image: CcdImage, camera: Camera, ccd: str, ref: ReferenceOrtho,
     # and matchers then see two different images.
     k = max(1, int(np.floor(prefilter * scale + 1e-6)))
 
-    blank = OrthoTile(window, np.zeros((h, w), np.float32), np.zeros((h, w), bool), lx, ly,
-                      lat_line, lat_sample, k, camera, ccd, ref, terrain)
+    blank = OrthoTile(
+        window,
+        np.zeros((h, w), np.float32),
+        np.zeros((h, w), bool),
+        lx,
+        ly,
+        lat_line,
+        lat_sample,
+        k,
+        camera,
+        ccd,
+        ref,
+        terrain,
+    )
     n_lines, n_samples = image.shape
     l_lo, s_lo, l_hi, s_hi = 0, 0, n_lines, n_samples
     if bounds is not None:
@@ -244,8 +276,7 @@ def orthorectify(image: CcdImage, camera: Camera, ccd: str, ref: ReferenceOrtho,
     c1 = min(s_hi, int(np.ceil(np.max(lat_sample[fin]))) + 2 * k)
     if r1 <= r0 or c1 <= c0:
         return blank
-    block, block_valid = image.read_block_mean(r0, c0, r1 - r0, c1 - c0, k,
-                                               min_valid_fraction)
+    block, block_valid = image.read_block_mean(r0, c0, r1 - r0, c1 - c0, k, min_valid_fraction)
 
     xs = np.arange(w, dtype=np.float64) + 0.5
     ys = np.arange(h, dtype=np.float64) + 0.5
@@ -257,10 +288,12 @@ def orthorectify(image: CcdImage, camera: Camera, ccd: str, ref: ReferenceOrtho,
     v = (sample - c0) / k - 0.5
     finite = np.isfinite(u) & np.isfinite(v)
     coords = np.vstack([np.where(finite, u, -10.0).ravel(), np.where(finite, v, -10.0).ravel()])
-    out = ndimage.map_coordinates(block, coords, order=1, mode="constant", cval=0.0,
-                                  prefilter=False).reshape(h, w)
-    vfrac = ndimage.map_coordinates(block_valid.astype(np.float32), coords, order=1,
-                                    mode="constant", cval=0.0, prefilter=False).reshape(h, w)
+    out = ndimage.map_coordinates(
+        block, coords, order=1, mode="constant", cval=0.0, prefilter=False
+    ).reshape(h, w)
+    vfrac = ndimage.map_coordinates(
+        block_valid.astype(np.float32), coords, order=1, mode="constant", cval=0.0, prefilter=False
+    ).reshape(h, w)
     inside = finite & (line >= l_lo) & (line < l_hi) & (sample >= s_lo) & (sample < s_hi)
     valid = inside & (vfrac > 1.0 - 1e-4)
     blank.image = np.where(valid, out, 0.0).astype(np.float32)
@@ -298,13 +331,20 @@ class DownsampledTile:
     def predicted_ref_pixel(self, x: ArrayLike, y: ArrayLike) -> tuple[F64, F64]:
         """Reference ``(col, row)`` where the initial camera and the DEM put the points."""
         line, sample, _ = self.to_raw(x, y)
-        return image_to_ref_pixel(self._camera, self.tile.ccd, line, sample, self._ref,
-                                  self._terrain)
+        return image_to_ref_pixel(
+            self._camera, self.tile.ccd, line, sample, self._ref, self._terrain
+        )
 
 
-def downsample_tile(image: CcdImage, tile: Tile, factor: int, camera: Camera,
-                    ref: ReferenceOrtho, terrain: Terrain,
-                    min_valid_fraction: float = 0.5) -> DownsampledTile:
+def downsample_tile(
+    image: CcdImage,
+    tile: Tile,
+    factor: int,
+    camera: Camera,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    min_valid_fraction: float = 0.5,
+) -> DownsampledTile:
     """Average a raw tile down by an integer factor (no geometric correction).
 
     Args:
@@ -317,6 +357,7 @@ def downsample_tile(image: CcdImage, tile: Tile, factor: int, camera: Camera,
         min_valid_fraction: A block needs this fraction of valid raw pixels.
     """
     k = max(1, int(factor))
-    block, block_valid = image.read_block_mean(tile.line0, tile.sample0, tile.n_lines,
-                                               tile.n_samples, k, min_valid_fraction)
+    block, block_valid = image.read_block_mean(
+        tile.line0, tile.sample0, tile.n_lines, tile.n_samples, k, min_valid_fraction
+    )
     return DownsampledTile(tile, k, block, block_valid, camera, ref, terrain)

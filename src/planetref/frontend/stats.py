@@ -31,8 +31,13 @@ SDU_GRIDS: tuple[int, ...] = (32, 64, 128)
 """Grid sizes ``s`` of the SDU (cells per side)."""
 
 
-def sdu_percent(lines: ArrayLike, samples: ArrayLike, n_lines: int, n_samples: int,
-                grids: Sequence[int] = SDU_GRIDS) -> float:
+def sdu_percent(
+    lines: ArrayLike,
+    samples: ArrayLike,
+    n_lines: int,
+    n_samples: int,
+    grids: Sequence[int] = SDU_GRIDS,
+) -> float:
     """Spatial distribution uniformity of points over an image, in percent.
 
     Args:
@@ -59,8 +64,14 @@ def sdu_percent(lines: ArrayLike, samples: ArrayLike, n_lines: int, n_samples: i
     if not gs or min(gs) <= 0:
         raise InputError(f"grid sizes must be positive and at least one, got {list(grids)}")
     with np.errstate(invalid="ignore"):
-        inside = (np.isfinite(ln) & np.isfinite(sm) & (ln >= 0) & (ln < n_lines)
-                  & (sm >= 0) & (sm < n_samples))
+        inside = (
+            np.isfinite(ln)
+            & np.isfinite(sm)
+            & (ln >= 0)
+            & (ln < n_lines)
+            & (sm >= 0)
+            & (sm < n_samples)
+        )
     ln, sm = ln[inside], sm[inside]
     fractions = []
     for s in gs:
@@ -103,8 +114,9 @@ def ncp_per_tile(table: Any, tile_ids: Sequence[str] | None = None) -> dict[str,
     return out
 
 
-def sdu_per_ccd(table: Any, image_sizes: dict[str, tuple[int, int]],
-                grids: Sequence[int] = SDU_GRIDS) -> dict[str, float]:
+def sdu_per_ccd(
+    table: Any, image_sizes: dict[str, tuple[int, int]], grids: Sequence[int] = SDU_GRIDS
+) -> dict[str, float]:
     """SDU (percent) of the points of each CCD image.
 
     Args:
@@ -115,5 +127,7 @@ def sdu_per_ccd(table: Any, image_sizes: dict[str, tuple[int, int]],
     ccd = _column(table, "ccd").astype(str)
     line = _column(table, "line").astype(np.float64)
     sample = _column(table, "sample").astype(np.float64)
-    return {c: sdu_percent(line[ccd == c], sample[ccd == c], nl, ns, grids)
-            for c, (nl, ns) in image_sizes.items()}
+    return {
+        c: sdu_percent(line[ccd == c], sample[ccd == c], nl, ns, grids)
+        for c, (nl, ns) in image_sizes.items()
+    }

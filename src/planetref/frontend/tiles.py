@@ -56,11 +56,9 @@ class Tile:
     @property
     def bounds(self) -> tuple[int, int, int, int]:
         """``(line0, sample0, line1, sample1)``, end exclusive."""
-        return (self.line0, self.sample0, self.line0 + self.n_lines,
-                self.sample0 + self.n_samples)
+        return (self.line0, self.sample0, self.line0 + self.n_lines, self.sample0 + self.n_samples)
 
-    def contains(self, line: NDArray[np.float64], sample: NDArray[np.float64]
-                 ) -> NDArray[np.bool_]:
+    def contains(self, line: NDArray[np.float64], sample: NDArray[np.float64]) -> NDArray[np.bool_]:
         """True where continuous ``(line, sample)`` lies inside the tile."""
         l0, s0, l1, s1 = self.bounds
         with np.errstate(invalid="ignore"):
@@ -68,14 +66,26 @@ class Tile:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form."""
-        return {"tile_id": self.tile_id, "ccd": self.ccd, "line0": self.line0,
-                "sample0": self.sample0, "n_lines": self.n_lines, "n_samples": self.n_samples}
+        return {
+            "tile_id": self.tile_id,
+            "ccd": self.ccd,
+            "line0": self.line0,
+            "sample0": self.sample0,
+            "n_lines": self.n_lines,
+            "n_samples": self.n_samples,
+        }
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> Tile:
         """Inverse of :meth:`to_dict`."""
-        return cls(str(doc["tile_id"]), str(doc["ccd"]), int(doc["line0"]),
-                   int(doc["sample0"]), int(doc["n_lines"]), int(doc["n_samples"]))
+        return cls(
+            str(doc["tile_id"]),
+            str(doc["ccd"]),
+            int(doc["line0"]),
+            int(doc["sample0"]),
+            int(doc["n_lines"]),
+            int(doc["n_samples"]),
+        )
 
 
 @dataclass(frozen=True)
@@ -136,8 +146,9 @@ def _starts(n: int, size: int, step: int) -> list[int]:
     return out
 
 
-def plan_tiles(camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain,
-               config: FrontendConfig) -> TilePlan:
+def plan_tiles(
+    camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, config: FrontendConfig
+) -> TilePlan:
     """Partition a CCD image into tiles sized in reference pixels.
 
     Args:
@@ -156,8 +167,7 @@ def plan_tiles(camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain,
     """
     n_lines, n_samples = camera.image_size(ccd)
     gsd_img = image_gsd_m(camera, ccd, terrain)
-    col, row = image_to_ref_pixel(camera, ccd, [n_lines / 2.0], [n_samples / 2.0], ref,
-                                  terrain)
+    col, row = image_to_ref_pixel(camera, ccd, [n_lines / 2.0], [n_samples / 2.0], ref, terrain)
     if np.isfinite(col[0]) and np.isfinite(row[0]):
         gx, gy = ref.ground_sampling_m(float(col[0]), float(row[0]))
     else:  # the centre's ray falls in a DEM hole: the ortho's own centre will do
@@ -170,13 +180,17 @@ def plan_tiles(camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain,
     tiles = []
     for i, l0 in enumerate(_starts(n_lines, size, step)):
         for j, s0 in enumerate(_starts(n_samples, size, step)):
-            tiles.append(Tile(f"{ccd}:r{i:03d}c{j:03d}", ccd, l0, s0, min(size, n_lines),
-                              min(size, n_samples)))
+            tiles.append(
+                Tile(
+                    f"{ccd}:r{i:03d}c{j:03d}", ccd, l0, s0, min(size, n_lines), min(size, n_samples)
+                )
+            )
     return TilePlan(ccd, (n_lines, n_samples), gsd_img, gsd_ref, tuple(tiles))
 
 
-def tile_footprint(camera: Camera, tile: Tile, ref: ReferenceOrtho, terrain: Terrain,
-                   points_per_edge: int = 5) -> Footprint:
+def tile_footprint(
+    camera: Camera, tile: Tile, ref: ReferenceOrtho, terrain: Terrain, points_per_edge: int = 5
+) -> Footprint:
     """Project a tile's border onto the reference grid.
 
     Args:
@@ -193,10 +207,12 @@ def tile_footprint(camera: Camera, tile: Tile, ref: ReferenceOrtho, terrain: Ter
         raise InputError(f"points_per_edge must be >= 2, got {points_per_edge}")
     l0, s0, l1, s1 = tile.bounds
     t = np.linspace(0.0, 1.0, points_per_edge)
-    lines = np.concatenate([np.full_like(t, l0), l0 + t * (l1 - l0), np.full_like(t, l1),
-                            l1 - t * (l1 - l0)])
-    samples = np.concatenate([s0 + t * (s1 - s0), np.full_like(t, s1), s1 - t * (s1 - s0),
-                              np.full_like(t, s0)])
+    lines = np.concatenate(
+        [np.full_like(t, l0), l0 + t * (l1 - l0), np.full_like(t, l1), l1 - t * (l1 - l0)]
+    )
+    samples = np.concatenate(
+        [s0 + t * (s1 - s0), np.full_like(t, s1), s1 - t * (s1 - s0), np.full_like(t, s0)]
+    )
     col, row = image_to_ref_pixel(camera, tile.ccd, lines, samples, ref, terrain)
     border = np.column_stack([col, row])
     ok = np.all(np.isfinite(border), axis=1)

@@ -66,13 +66,15 @@ def _ccd_window(camera: Any, ccd: str, ref: Any, dem: Any, points_per_edge: int)
     from planetref.frontend.tiles import Tile, tile_footprint
 
     n_lines, n_samples = camera.image_size(ccd)
-    fp = tile_footprint(camera, Tile(f"{ccd}:all", ccd, 0, 0, n_lines, n_samples), ref, dem,
-                        points_per_edge)
+    fp = tile_footprint(
+        camera, Tile(f"{ccd}:all", ccd, 0, 0, n_lines, n_samples), ref, dem, points_per_edge
+    )
     return fp.window
 
 
-def _overlap_windows(wa: Any, wb: Any, ref_shape: tuple[int, int], side: int,
-                     min_side: int) -> list[Any]:
+def _overlap_windows(
+    wa: Any, wb: Any, ref_shape: tuple[int, int], side: int, min_side: int
+) -> list[Any]:
     """The overlap of two full-resolution windows, clipped to the ortho, cut in windows."""
     from planetref.raster.ortho import RefWindow
 
@@ -85,13 +87,21 @@ def _overlap_windows(wa: Any, wb: Any, ref_shape: tuple[int, int], side: int,
     nr = max(1, int(np.ceil((r1 - r0) / side)))
     ce = np.linspace(c0, c1, nc + 1).round().astype(int)
     re = np.linspace(r0, r1, nr + 1).round().astype(int)
-    return [RefWindow.around(ce[i], re[j], ce[i + 1], re[j + 1])
-            for j in range(nr) for i in range(nc)]
+    return [
+        RefWindow.around(ce[i], re[j], ce[i + 1], re[j + 1]) for j in range(nr) for i in range(nc)
+    ]
 
 
-def _match_window(window: Any, a: tuple[Any, Any, str], b: tuple[Any, Any, str], ref: Any,
-                  dem: Any, matcher: Any, fe: Any, opts: Any
-                  ) -> tuple[F64, F64, F64, F64, F64] | None:
+def _match_window(
+    window: Any,
+    a: tuple[Any, Any, str],
+    b: tuple[Any, Any, str],
+    ref: Any,
+    dem: Any,
+    matcher: Any,
+    fe: Any,
+    opts: Any,
+) -> tuple[F64, F64, F64, F64, F64] | None:
     """Tie points of two CCD images in one window.
 
     Returns:
@@ -109,8 +119,7 @@ def _match_window(window: Any, a: tuple[Any, Any, str], b: tuple[Any, Any, str],
 
     sides = []
     for camera, image, ccd in (a, b):
-        o = orthorectify(image, camera, ccd, ref, dem, window,
-                         lattice_step=fe.lattice_step_ref_px)
+        o = orthorectify(image, camera, ccd, ref, dem, window, lattice_step=fe.lattice_step_ref_px)
         if o.valid.mean() < 0.05 or o.valid.sum() < 256:
             return None
         sides.append(o)
@@ -122,8 +131,14 @@ def _match_window(window: Any, a: tuple[Any, Any, str], b: tuple[Any, Any, str],
     conf = np.asarray(m.confidence, np.float64).reshape(-1)
     if len(kp0) < opts.tie_min_inliers:
         return None
-    inl = verify_points(kp0, kp1, fe.ransac_model, fe.ransac_threshold_ref_px,
-                        fe.ransac_confidence, fe.ransac_max_iters)
+    inl = verify_points(
+        kp0,
+        kp1,
+        fe.ransac_model,
+        fe.ransac_threshold_ref_px,
+        fe.ransac_confidence,
+        fe.ransac_max_iters,
+    )
     if inl.sum() < opts.tie_min_inliers:
         return None
     idx = np.flatnonzero(inl)
@@ -154,8 +169,14 @@ def _match_window(window: Any, a: tuple[Any, Any, str], b: tuple[Any, Any, str],
     return xyz[good], la[good], sa[good], lb[good], sb[good]
 
 
-def find_tie_points(strips: dict[str, tuple[Any, dict[str, Any]]], ref: Any, dem: Any,
-                    matcher: Any, frontend: Any, options: Any) -> TiePoints:
+def find_tie_points(
+    strips: dict[str, tuple[Any, dict[str, Any]]],
+    ref: Any,
+    dem: Any,
+    matcher: Any,
+    frontend: Any,
+    options: Any,
+) -> TiePoints:
     """Match tie points between the overlapping CCD images of different strips.
 
     Args:
@@ -180,16 +201,22 @@ def find_tie_points(strips: dict[str, tuple[Any, dict[str, Any]]], ref: Any, dem
     xyz, strip, ccd, line, sample, pids = [], [], [], [], [], []
     tp = TiePoints()
     for i, ka in enumerate(keys):
-        for kb in keys[i + 1:]:
+        for kb in keys[i + 1 :]:
             if ka[0] == kb[0]:
                 continue
             pair = f"{ka[0]}/{ka[1]}~{kb[0]}/{kb[1]}"
             a = (strips[ka[0]][0], strips[ka[0]][1][ka[1]], ka[1])
             b = (strips[kb[0]][0], strips[kb[0]][1][kb[1]], kb[1])
             n_pair = 0
-            for k, win in enumerate(_overlap_windows(windows[ka], windows[kb], ref.shape,
-                                                     options.tie_window_ref_px,
-                                                     options.tie_min_overlap_ref_px)):
+            for k, win in enumerate(
+                _overlap_windows(
+                    windows[ka],
+                    windows[kb],
+                    ref.shape,
+                    options.tie_window_ref_px,
+                    options.tie_min_overlap_ref_px,
+                )
+            ):
                 try:
                     got = _match_window(win, a, b, ref, dem, matcher, frontend, options)
                 except PlanetrefError as exc:

@@ -50,8 +50,9 @@ class CompareOutcome:
     files: dict[str, Any] = field(default_factory=dict)
 
 
-def resolve_matchers(spec: str | Sequence[str], weights_dir: str | os.PathLike[str] | None
-                     ) -> tuple[list[str], dict[str, str]]:
+def resolve_matchers(
+    spec: str | Sequence[str], weights_dir: str | os.PathLike[str] | None
+) -> tuple[list[str], dict[str, str]]:
     """Matcher names from ``"a,b,c"``, ``"all"`` or a list; and those skipped, with why.
 
     ``all`` means every registered matcher; those whose weights are missing are listed
@@ -62,15 +63,21 @@ def resolve_matchers(spec: str | Sequence[str], weights_dir: str | os.PathLike[s
     """
     from planetref.matching.registry import available_matchers
 
-    avail = {name: (present, missing) for name, present, missing
-             in available_matchers(weights_dir)}
-    names = list(avail) if spec == "all" or spec == ["all"] else (
-        [s.strip() for s in spec.split(",") if s.strip()] if isinstance(spec, str)
-        else list(spec))
+    avail = {name: (present, missing) for name, present, missing in available_matchers(weights_dir)}
+    names = (
+        list(avail)
+        if spec == "all" or spec == ["all"]
+        else (
+            [s.strip() for s in spec.split(",") if s.strip()]
+            if isinstance(spec, str)
+            else list(spec)
+        )
+    )
     unknown = [n for n in names if n not in avail]
     if unknown or not names:
-        raise InputError(f"unknown matcher(s) {unknown or names}; valid: {', '.join(avail)} "
-                         "or 'all'")
+        raise InputError(
+            f"unknown matcher(s) {unknown or names}; valid: {', '.join(avail)} or 'all'"
+        )
     run, skipped = [], {}
     for n in names:
         present, missing = avail[n]
@@ -81,10 +88,17 @@ def resolve_matchers(spec: str | Sequence[str], weights_dir: str | os.PathLike[s
     return run, skipped
 
 
-def run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
-                out: str | os.PathLike[str], *, config: GeorefConfig | None = None,
-                weights_dir: str | os.PathLike[str] | None = None, overwrite: bool = False,
-                progress: bool = True, executor: Any = None) -> CompareOutcome:
+def run_compare(
+    scene: str | os.PathLike[str],
+    matchers: str | Sequence[str],
+    out: str | os.PathLike[str],
+    *,
+    config: GeorefConfig | None = None,
+    weights_dir: str | os.PathLike[str] | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    executor: Any = None,
+) -> CompareOutcome:
     """Run georef once per matcher with identical settings and tabulate the results.
 
     A matcher whose run fails (missing weights, too few matches, a degenerate
@@ -111,17 +125,22 @@ def run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
     owned = executor is not None and not isinstance(executor, Executor)
     ex = make_executor(executor)
     try:
-        return _run_compare(scene, matchers, out, config, weights_dir, overwrite, progress,
-                            ex)
+        return _run_compare(scene, matchers, out, config, weights_dir, overwrite, progress, ex)
     finally:
         if owned:
             ex.close()
 
 
-def _run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
-                 out: str | os.PathLike[str], config: GeorefConfig | None,
-                 weights_dir: str | os.PathLike[str] | None, overwrite: bool, progress: bool,
-                 executor: Any) -> CompareOutcome:
+def _run_compare(
+    scene: str | os.PathLike[str],
+    matchers: str | Sequence[str],
+    out: str | os.PathLike[str],
+    config: GeorefConfig | None,
+    weights_dir: str | os.PathLike[str] | None,
+    overwrite: bool,
+    progress: bool,
+    executor: Any,
+) -> CompareOutcome:
     from planetref.pipeline.georef import _scene_path, run_georef
     from planetref.report.georef import figure_headline_bars, write_compare_tables
 
@@ -134,14 +153,23 @@ def _run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
     run = RunDir(out, "compare", identity, overwrite=overwrite)
     runs: dict[str, Any] = {}
     with run.logging_to_file():
-        run.write_json("config.json", {"scene": str(scene_path), "matchers": names,
-                                       "skipped": skipped, **cfg.to_json()})
+        run.write_json(
+            "config.json",
+            {"scene": str(scene_path), "matchers": names, "skipped": skipped, **cfg.to_json()},
+        )
         for name in names:
             log.info("compare: running %s", name)
             try:
-                outcome = run_georef(scene_path, name, run.path / "runs" / name, config=cfg,
-                                     weights_dir=weights_dir, overwrite=overwrite,
-                                     progress=progress, executor=executor)
+                outcome = run_georef(
+                    scene_path,
+                    name,
+                    run.path / "runs" / name,
+                    config=cfg,
+                    weights_dir=weights_dir,
+                    overwrite=overwrite,
+                    progress=progress,
+                    executor=executor,
+                )
             except (WeightsError, PlanetrefError) as exc:
                 log.warning("compare: %s skipped: %s", name, exc)
                 skipped[name] = str(exc)
@@ -154,10 +182,10 @@ def _run_compare(scene: str | os.PathLike[str], matchers: str | Sequence[str],
         tables = write_compare_tables(runs, skipped, run.path, scene=scene_name)
         files = {k: v for k, v in tables.items() if k != "markdown"}
         if runs:
-            files["headline"] = str(figure_headline_bars(runs, run.file("figures",
-                                                                          "headline.png")))
-    return CompareOutcome(report=report, run_dir=run.path, tables_markdown=tables["markdown"],
-                          files=files)
+            files["headline"] = str(figure_headline_bars(runs, run.file("figures", "headline.png")))
+    return CompareOutcome(
+        report=report, run_dir=run.path, tables_markdown=tables["markdown"], files=files
+    )
 
 
 def _collect_figures(run_dir: Path, figures: Path, matcher: str) -> None:

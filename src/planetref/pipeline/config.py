@@ -121,7 +121,8 @@ class GeorefConfig(_Frozen):
     ortho: OrthoOptions = OrthoOptions()
     campaign: CampaignOptions = CampaignOptions()
     matchers: dict[str, dict[str, Any]] = Field(
-        default_factory=lambda: {k: dict(v) for k, v in DEFAULT_MATCHER_OPTIONS.items()})
+        default_factory=lambda: {k: dict(v) for k, v in DEFAULT_MATCHER_OPTIONS.items()}
+    )
 
     @field_validator("adjust", mode="before")
     @classmethod
@@ -153,8 +154,7 @@ class GeorefConfig(_Frozen):
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     out = dict(base)
     for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
-            else v
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 
@@ -179,8 +179,9 @@ def config_from_mapping(doc: dict[str, Any], *, source: str | None = None) -> Ge
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
         valid = ", ".join(_valid_keys(err["loc"]))
-        raise InputError(f"{err['msg']}; valid keys here: {valid}", path=source,
-                         field=loc or None) from None
+        raise InputError(
+            f"{err['msg']}; valid keys here: {valid}", path=source, field=loc or None
+        ) from None
     except InputError as exc:
         raise InputError(str(exc), path=source) from None
 

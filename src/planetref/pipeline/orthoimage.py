@@ -29,14 +29,17 @@ __all__ = ["orthorectify_ccd"]
 F64 = NDArray[np.float64]
 
 
-def _footprint(camera: Camera, ccd: str, terrain: Terrain, ground: Any, n_edge: int = 17
-               ) -> tuple[float, float, float, float]:
+def _footprint(
+    camera: Camera, ccd: str, terrain: Terrain, ground: Any, n_edge: int = 17
+) -> tuple[float, float, float, float]:
     n_lines, n_samples = camera.image_size(ccd)
     t = np.linspace(0.0, 1.0, n_edge)
-    line = np.concatenate([t * n_lines, np.full(n_edge, n_lines), (1 - t) * n_lines,
-                           np.zeros(n_edge)])
-    sample = np.concatenate([np.zeros(n_edge), t * n_samples, np.full(n_edge, n_samples),
-                             (1 - t) * n_samples])
+    line = np.concatenate(
+        [t * n_lines, np.full(n_edge, n_lines), (1 - t) * n_lines, np.zeros(n_edge)]
+    )
+    sample = np.concatenate(
+        [np.zeros(n_edge), t * n_samples, np.full(n_edge, n_samples), (1 - t) * n_samples]
+    )
     xyz = rays_to_ground(camera, ccd, line, sample, terrain)
     ok = np.all(np.isfinite(xyz), axis=1)
     if not ok.any():
@@ -45,9 +48,18 @@ def _footprint(camera: Camera, ccd: str, terrain: Terrain, ground: Any, n_edge: 
     return float(x.min()), float(y.min()), float(x.max()), float(y.max())
 
 
-def orthorectify_ccd(image: Any, camera: Camera, ccd: str, terrain: Terrain, crs: Any,
-                     path: str | os.PathLike[str], *, gsd_m: float,
-                     lattice_step: int = 8, block_rows: int = 256) -> Path:
+def orthorectify_ccd(
+    image: Any,
+    camera: Camera,
+    ccd: str,
+    terrain: Terrain,
+    crs: Any,
+    path: str | os.PathLike[str],
+    *,
+    gsd_m: float,
+    lattice_step: int = 8,
+    block_rows: int = 256,
+) -> Path:
     """Write the orthoimage of one CCD image.
 
     Args:
@@ -76,10 +88,20 @@ def orthorectify_ccd(image: Any, camera: Camera, ccd: str, terrain: Terrain, crs
     height = max(1, math.ceil((y1 - y0) / gsd_m))
     transform = from_origin(x0, y1, gsd_m, gsd_m)
     n_lines, n_samples = camera.image_size(ccd)
-    profile = {"driver": "GTiff", "width": width, "height": height, "count": 1,
-               "dtype": "float32", "crs": ground.crs.to_wkt(), "transform": transform,
-               "nodata": float("nan"), "tiled": True, "blockxsize": 256, "blockysize": 256,
-               "compress": "deflate"}
+    profile = {
+        "driver": "GTiff",
+        "width": width,
+        "height": height,
+        "count": 1,
+        "dtype": "float32",
+        "crs": ground.crs.to_wkt(),
+        "transform": transform,
+        "nodata": float("nan"),
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "compress": "deflate",
+    }
     cols = np.arange(0, width + lattice_step, lattice_step, dtype=np.float64)
     cols = np.minimum(cols, width)
     with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
@@ -107,15 +129,29 @@ def orthorectify_ccd(image: Any, camera: Camera, ccd: str, terrain: Terrain, crs
                 # Dense maps by bilinear interpolation of the lattice (output pixel centres).
                 fy = (np.arange(r0, r1) + 0.5 - rows[0]) / lattice_step
                 fx = (np.arange(width) + 0.5 - cols[0]) / lattice_step
-                gy, gx = np.meshgrid(fy.astype(np.float32), fx.astype(np.float32),
-                                     indexing="ij")
-                map_line = cv2.remap(lat_line.astype(np.float32), gx, gy, cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_REPLICATE)
-                map_sample = cv2.remap(lat_sample.astype(np.float32), gx, gy,
-                                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                gy, gx = np.meshgrid(fy.astype(np.float32), fx.astype(np.float32), indexing="ij")
+                map_line = cv2.remap(
+                    lat_line.astype(np.float32),
+                    gx,
+                    gy,
+                    cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE,
+                )
+                map_sample = cv2.remap(
+                    lat_sample.astype(np.float32),
+                    gx,
+                    gy,
+                    cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE,
+                )
                 finite = np.isfinite(map_line) & np.isfinite(map_sample)
-                inside = finite & (map_line >= 0) & (map_line < n_lines) & (map_sample >= 0) \
+                inside = (
+                    finite
+                    & (map_line >= 0)
+                    & (map_line < n_lines)
+                    & (map_sample >= 0)
                     & (map_sample < n_samples)
+                )
                 if inside.any():
                     l_lo = max(0, int(np.floor(map_line[inside].min())) - 2)
                     l_hi = min(n_lines, int(np.ceil(map_line[inside].max())) + 2)
@@ -124,8 +160,14 @@ def orthorectify_ccd(image: Any, camera: Camera, ccd: str, terrain: Terrain, crs
                     # Pixel centres are at +0.5: remap indexes pixel centres from 0.
                     mx_ = np.where(inside, map_sample - 0.5, -10).astype(np.float32)
                     my_ = np.where(inside, map_line - l_lo - 0.5, -10).astype(np.float32)
-                    vals = cv2.remap(raw, mx_, my_, cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+                    vals = cv2.remap(
+                        raw,
+                        mx_,
+                        my_,
+                        cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=np.nan,
+                    )
                     out = np.where(inside, vals, np.nan).astype(np.float32)
             dst.write(out, 1, window=rasterio.windows.Window(0, r0, width, r1 - r0))
     return Path(path)

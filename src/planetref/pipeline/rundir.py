@@ -57,8 +57,14 @@ class RunDir:
             directory, or holds a different run and ``overwrite`` is false.
     """
 
-    def __init__(self, path: str | os.PathLike[str], kind: str, identity: Mapping[str, Any],
-                 *, overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        kind: str,
+        identity: Mapping[str, Any],
+        *,
+        overwrite: bool = False,
+    ) -> None:
         self.path = Path(path)
         self.kind = kind
         self.identity = json_safe(dict(identity))
@@ -69,13 +75,16 @@ class RunDir:
         self.resumed = False
         if existing:
             if not marker.is_file():
-                raise InputError("the output directory is not empty and was not written by "
-                                 "planetref; choose another --out", path=self.path)
+                raise InputError(
+                    "the output directory is not empty and was not written by "
+                    "planetref; choose another --out",
+                    path=self.path,
+                )
             try:
                 previous = json.loads(marker.read_text(encoding="utf-8"))
             except (OSError, json.JSONDecodeError):
                 previous = {}
-            same = (previous.get("kind") == kind and previous.get("identity") == self.identity)
+            same = previous.get("kind") == kind and previous.get("identity") == self.identity
             if overwrite:
                 for child in existing:
                     if child.is_dir() and not child.is_symlink():
@@ -88,10 +97,13 @@ class RunDir:
                 raise InputError(
                     f"the output directory holds another run ({previous.get('kind')}: "
                     f"{previous.get('identity')}); use --overwrite to replace it or choose "
-                    "another --out", path=self.path)
+                    "another --out",
+                    path=self.path,
+                )
         self.path.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(marker, {"kind": kind, "identity": self.identity,
-                                   "planetref_version": __version__})
+        write_json_atomic(
+            marker, {"kind": kind, "identity": self.identity, "planetref_version": __version__}
+        )
 
     def file(self, *parts: str) -> Path:
         """A path inside the run directory (parent folders are created)."""
@@ -109,8 +121,7 @@ class RunDir:
         path = self.file(name)
         handler = logging.FileHandler(path, mode="a", encoding="utf-8")
         handler.setLevel(logging.INFO)
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: "
-                                               "%(message)s"))
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         logger = logging.getLogger("planetref")
         previous_level = logger.level
         if logger.level == logging.NOTSET or logger.level > logging.INFO:

@@ -66,20 +66,23 @@ class RayHits:
 class _EqcSphere:
     """Closed-form equidistant cylindrical on a sphere (PROJ ``eqc``), for speed."""
 
-    def __init__(self, radius: float, lat_ts: float, lat_0: float, lon_0: float,
-                 x_0: float, y_0: float) -> None:
+    def __init__(
+        self, radius: float, lat_ts: float, lat_0: float, lon_0: float, x_0: float, y_0: float
+    ) -> None:
         self.r = radius
         self.kx = radius * np.cos(np.radians(lat_ts)) * np.pi / 180.0
         self.ky = radius * np.pi / 180.0
         self.lat_0, self.lon_0, self.x_0, self.y_0 = lat_0, lon_0, x_0, y_0
 
-    def lonlat_to_map(self, lon: NDArray[np.float64], lat: NDArray[np.float64]
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def lonlat_to_map(
+        self, lon: NDArray[np.float64], lat: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         dlon = wrap_longitude(lon - self.lon_0)
         return self.x_0 + self.kx * dlon, self.y_0 + self.ky * (lat - self.lat_0)
 
-    def map_to_lonlat(self, x: NDArray[np.float64], y: NDArray[np.float64]
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def map_to_lonlat(
+        self, x: NDArray[np.float64], y: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         lon = self.lon_0 + (x - self.x_0) / self.kx
         return wrap_longitude(lon), self.lat_0 + (y - self.y_0) / self.ky
 
@@ -93,15 +96,21 @@ def _eqc_fast_path(ground: CrsGround) -> _EqcSphere | None:
     if op is None or "equidistant cylindrical" not in op.method_name.lower():
         return None
     axes = crs.axis_info
-    if (len(axes) != 2 or axes[0].direction.lower() != "east"
-            or axes[1].direction.lower() != "north"
-            or any(a.unit_name not in ("metre", "meter") for a in axes)):
+    if (
+        len(axes) != 2
+        or axes[0].direction.lower() != "east"
+        or axes[1].direction.lower() != "north"
+        or any(a.unit_name not in ("metre", "meter") for a in axes)
+    ):
         return None
     values = {"lat_ts": 0.0, "lat_0": 0.0, "lon_0": 0.0, "x_0": 0.0, "y_0": 0.0}
-    names = {"latitude of 1st standard parallel": "lat_ts",
-             "latitude of natural origin": "lat_0",
-             "longitude of natural origin": "lon_0",
-             "false easting": "x_0", "false northing": "y_0"}
+    names = {
+        "latitude of 1st standard parallel": "lat_ts",
+        "latitude of natural origin": "lat_0",
+        "longitude of natural origin": "lon_0",
+        "false easting": "x_0",
+        "false northing": "y_0",
+    }
     for p in op.params:
         key = names.get(p.name.lower())
         if key is None:
@@ -143,24 +152,27 @@ class MapProjection:
         """True when the closed-form equirectangular path is used."""
         return self._fast is not None
 
-    def lonlat_to_map(self, lon_deg: ArrayLike, lat_deg: ArrayLike
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def lonlat_to_map(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Planetocentric lon/lat (degrees) to map coordinates."""
         lon, lat = np.asarray(lon_deg, float), np.asarray(lat_deg, float)
         if self._fast is not None:
             return self._fast.lonlat_to_map(lon, lat)
         return self.ground.lonlat_to_map(lon, lat)
 
-    def map_to_lonlat(self, x: ArrayLike, y: ArrayLike
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def map_to_lonlat(
+        self, x: ArrayLike, y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Map coordinates to planetocentric lon/lat in degrees."""
         x, y = np.asarray(x, float), np.asarray(y, float)
         if self._fast is not None:
             return self._fast.map_to_lonlat(x, y)
         return self.ground.map_to_lonlat(x, y)
 
-    def xyz_to_map(self, xyz: ArrayLike
-                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    def xyz_to_map(
+        self, xyz: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Body-fixed XYZ (m, shape ``(..., 3)``) to map ``x, y`` and height above the body."""
         if self._fast is not None:
             lon, lat, h = xyz_to_lonlat(xyz, self.ellipsoid)
@@ -199,8 +211,9 @@ class GridTerrain:
         CrsError: If the CRS is invalid or geocentric.
     """
 
-    def __init__(self, heights: ArrayLike, transform: object, crs: object,
-                 *, nodata: float | None = None) -> None:
+    def __init__(
+        self, heights: ArrayLike, transform: object, crs: object, *, nodata: float | None = None
+    ) -> None:
         from affine import Affine
 
         h = np.asarray(heights)
@@ -259,8 +272,9 @@ class GridTerrain:
         try:
             with rasterio.open(p) as ds:
                 if not 1 <= band <= ds.count:
-                    raise InputError(f"band {band} does not exist (the file has {ds.count})",
-                                     path=p)
+                    raise InputError(
+                        f"band {band} does not exist (the file has {ds.count})", path=p
+                    )
                 if ds.crs is None:
                     raise CrsError("the DEM has no CRS", path=p)
                 data = ds.read(band)
@@ -285,9 +299,14 @@ class GridTerrain:
         import rasterio
 
         profile = {
-            "driver": "GTiff", "width": self.shape[1], "height": self.shape[0], "count": 1,
-            "dtype": self.heights.dtype.name, "crs": rasterio.crs.CRS.from_wkt(self.crs.to_wkt()),
-            "transform": self.transform, "nodata": float("nan"),
+            "driver": "GTiff",
+            "width": self.shape[1],
+            "height": self.shape[0],
+            "count": 1,
+            "dtype": self.heights.dtype.name,
+            "crs": rasterio.crs.CRS.from_wkt(self.crs.to_wkt()),
+            "transform": self.transform,
+            "nodata": float("nan"),
         }
         if compress != "none":
             profile.update(compress=compress, predictor=3)
@@ -341,18 +360,21 @@ class GridTerrain:
         return self._max_slope
 
     # -- coordinates --------------------------------------------------------------------
-    def lonlat_to_map(self, lon_deg: ArrayLike, lat_deg: ArrayLike
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def lonlat_to_map(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Planetocentric lon/lat (degrees) to map coordinates of the grid's CRS."""
         return self.projection.lonlat_to_map(lon_deg, lat_deg)
 
-    def map_to_lonlat(self, x: ArrayLike, y: ArrayLike
-                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def map_to_lonlat(
+        self, x: ArrayLike, y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Map coordinates to planetocentric lon/lat in degrees."""
         return self.projection.map_to_lonlat(x, y)
 
-    def xyz_to_map(self, xyz: ArrayLike
-                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    def xyz_to_map(
+        self, xyz: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Body-fixed XYZ (m, shape ``(..., 3)``) to map ``x, y`` and height above the body."""
         return self.projection.xyz_to_map(xyz)
 
@@ -360,8 +382,9 @@ class GridTerrain:
         """Map ``x, y`` and height (m) to body-fixed XYZ (m), shape ``(..., 3)``."""
         return self.projection.map_to_xyz(x, y, height_m)
 
-    def map_to_pixel(self, x: ArrayLike, y: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def map_to_pixel(
+        self, x: ArrayLike, y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Map coordinates to continuous ``(row, col)`` with pixel centres at integers.
 
         Pixel ``(0, 0)``'s centre maps to ``(0.0, 0.0)`` here (unlike image coordinates of
@@ -380,14 +403,14 @@ class GridTerrain:
         row, col = self.map_to_pixel(x, y)
         return self._bilinear(row, col)
 
-    def height(self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
-               ) -> NDArray[np.float64]:
+    def height(
+        self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
         """Height (m) at planetocentric lon/lat (degrees); NaN outside or in holes."""
         x, y = self.lonlat_to_map(lon_deg, lat_deg)
         return self.height_at_map(x, y)
 
-    def _bilinear(self, row: NDArray[np.float64], col: NDArray[np.float64]
-                  ) -> NDArray[np.float64]:
+    def _bilinear(self, row: NDArray[np.float64], col: NDArray[np.float64]) -> NDArray[np.float64]:
         rows, cols = self.shape
         inside = (row >= -0.5) & (row <= rows - 0.5) & (col >= -0.5) & (col <= cols - 0.5)
         r = np.clip(row, 0.0, rows - 1.0)
@@ -410,8 +433,9 @@ class GridTerrain:
         return out.astype(np.float64, copy=False)
 
     # -- ray intersection ---------------------------------------------------------------
-    def intersect_rays(self, origin: ArrayLike, direction: ArrayLike, *,
-                       tol_m: float = 1e-5, max_iter: int = 60) -> RayHits:
+    def intersect_rays(
+        self, origin: ArrayLike, direction: ArrayLike, *, tol_m: float = 1e-5, max_iter: int = 60
+    ) -> RayHits:
         """First intersection of rays with the (bilinearly interpolated) DEM surface.
 
         Rays whose direction is close to the local vertical (so that the slope of the DEM
@@ -453,8 +477,11 @@ class GridTerrain:
         h_mid = 0.5 * (self.min_height_m + self.max_height_m)
         if self.ellipsoid.is_sphere:
             od = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1] + o[:, 2] * d[:, 2]
-            disc = od * od - (o[:, 0] ** 2 + o[:, 1] ** 2 + o[:, 2] ** 2) + (
-                self.ellipsoid.semi_major_m + h_mid) ** 2
+            disc = (
+                od * od
+                - (o[:, 0] ** 2 + o[:, 1] ** 2 + o[:, 2] ** 2)
+                + (self.ellipsoid.semi_major_m + h_mid) ** 2
+            )
             with np.errstate(invalid="ignore"):
                 s_mid = -od - np.sqrt(disc)
             s_mid[~(s_mid >= 0)] = np.nan
@@ -462,8 +489,9 @@ class GridTerrain:
             s_mid = ray_ellipsoid_intersection(o, d, self.ellipsoid, h_mid)
         p_mid = o + s_mid[:, None] * d
         cos_t = -(p_mid[:, 0] * d[:, 0] + p_mid[:, 1] * d[:, 1] + p_mid[:, 2] * d[:, 2])
-        cos_t = np.clip(cos_t / np.sqrt(p_mid[:, 0] ** 2 + p_mid[:, 1] ** 2 + p_mid[:, 2] ** 2),
-                        1e-9, 1.0)
+        cos_t = np.clip(
+            cos_t / np.sqrt(p_mid[:, 0] ** 2 + p_mid[:, 1] ** 2 + p_mid[:, 2] ** 2), 1e-9, 1.0
+        )
         tan_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None)) / cos_t
         easy = np.isfinite(s_mid) & (tan_t * self.max_slope < 0.5)
 
@@ -487,8 +515,9 @@ class GridTerrain:
             self._march(o[hard], d[hard], hard, out_xyz, out_x, out_y, out_h, tol_m)
         return RayHits(out_xyz, out_x, out_y, out_h)
 
-    def _fixed_point(self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float,
-                     tol_m: float, max_iter: int) -> tuple[NDArray[np.float64], ...]:
+    def _fixed_point(
+        self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float, tol_m: float, max_iter: int
+    ) -> tuple[NDArray[np.float64], ...]:
         """``h <- DEM(ray point at height h)`` for any body and CRS."""
         h = np.full(len(o), h0)
         done = np.zeros(len(o), dtype=bool)
@@ -506,8 +535,9 @@ class GridTerrain:
         x, y, _ = self.xyz_to_map(pts)
         return h, done, pts, x, y
 
-    def _fixed_point_sphere(self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float,
-                            tol_m: float, max_iter: int) -> tuple[NDArray[np.float64], ...]:
+    def _fixed_point_sphere(
+        self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float, tol_m: float, max_iter: int
+    ) -> tuple[NDArray[np.float64], ...]:
         """The same iteration, in closed form for a sphere and an equirectangular map."""
         fast = self.projection._fast
         if fast is None:
@@ -546,23 +576,33 @@ class GridTerrain:
         pts = o + s[:, None] * d
         return h, done, pts, x, y
 
-    def _ray_height_minus_dem(self, o: NDArray[np.float64], d: NDArray[np.float64],
-                              s: NDArray[np.float64]
-                              ) -> tuple[NDArray[np.float64], ...]:
+    def _ray_height_minus_dem(
+        self, o: NDArray[np.float64], d: NDArray[np.float64], s: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], ...]:
         pts = o + s[:, None] * d
         x, y, h_ray = self.xyz_to_map(pts)
         return h_ray - self.height_at_map(x, y), pts, x, y
 
-    def _march(self, o: NDArray[np.float64], d: NDArray[np.float64], idx: NDArray[np.intp],
-               out_xyz: NDArray[np.float64], out_x: NDArray[np.float64],
-               out_y: NDArray[np.float64], out_h: NDArray[np.float64], tol_m: float) -> None:
+    def _march(
+        self,
+        o: NDArray[np.float64],
+        d: NDArray[np.float64],
+        idx: NDArray[np.intp],
+        out_xyz: NDArray[np.float64],
+        out_x: NDArray[np.float64],
+        out_y: NDArray[np.float64],
+        out_h: NDArray[np.float64],
+        tol_m: float,
+    ) -> None:
         s_top = ray_ellipsoid_intersection(o, d, self.ellipsoid, self.max_height_m + 1.0)
         s_bot = ray_ellipsoid_intersection(o, d, self.ellipsoid, self.min_height_m - 1.0)
-        s_bot = np.where(np.isfinite(s_bot), s_bot, s_top + 4.0 * (self.max_height_m
-                                                                  - self.min_height_m + 2.0))
+        s_bot = np.where(
+            np.isfinite(s_bot), s_bot, s_top + 4.0 * (self.max_height_m - self.min_height_m + 2.0)
+        )
         step = 0.5 * self.sampling_m
-        n_steps = int(np.nanmax(np.ceil((s_bot - s_top) / step))) if np.any(
-            np.isfinite(s_top)) else 0
+        n_steps = (
+            int(np.nanmax(np.ceil((s_bot - s_top) / step))) if np.any(np.isfinite(s_top)) else 0
+        )
         active = np.isfinite(s_top)
         s_prev = s_top.copy()
         f_prev, *_ = self._ray_height_minus_dem(o, d, s_prev)

@@ -57,8 +57,9 @@ ISIS_VALID_RANGE: dict[str, tuple[float, float]] = {
 _ISIS_DRIVERS = frozenset({"ISIS3", "ISIS2", "PDS", "PDS4"})
 
 
-def isis_valid_mask(data: NDArray[Any], dtype: np.dtype[Any] | str | None = None
-                    ) -> NDArray[np.bool_]:
+def isis_valid_mask(
+    data: NDArray[Any], dtype: np.dtype[Any] | str | None = None
+) -> NDArray[np.bool_]:
     """True where ``data`` holds no ISIS special pixel value.
 
     Args:
@@ -78,9 +79,12 @@ def isis_valid_mask(data: NDArray[Any], dtype: np.dtype[Any] | str | None = None
         return (data >= lo) & (data <= hi)
 
 
-def masked_block_mean(data: NDArray[np.floating], valid: NDArray[np.bool_], factor: int,
-                      min_valid_fraction: float = 0.5
-                      ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+def masked_block_mean(
+    data: NDArray[np.floating],
+    valid: NDArray[np.bool_],
+    factor: int,
+    min_valid_fraction: float = 0.5,
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """Average non-overlapping ``factor x factor`` blocks over their valid pixels only.
 
     Invalid pixels never enter the mean (so no-data cannot bias the statistics). A
@@ -145,9 +149,16 @@ class BandReader:
         InputError: If the band does not exist or an array is not 2-D numeric.
     """
 
-    def __init__(self, source: str | PathLike[str] | ArrayLike, *, band: int = 1,
-                 nodata: float | None = None, isis_special: bool | None = None,
-                 name: str | None = None, what: str = "raster") -> None:
+    def __init__(
+        self,
+        source: str | PathLike[str] | ArrayLike,
+        *,
+        band: int = 1,
+        nodata: float | None = None,
+        isis_special: bool | None = None,
+        name: str | None = None,
+        what: str = "raster",
+    ) -> None:
         self._ds: Any = None
         self._array: NDArray[Any] | None = None
         self.band = int(band)
@@ -168,13 +179,13 @@ class BandReader:
                     warnings.simplefilter("ignore", NotGeoreferencedWarning)
                     self._ds = rasterio.open(self.path)
             except RasterioIOError as exc:
-                raise UnsupportedFormatError(f"cannot read raster ({exc})",
-                                             path=self.path) from None
+                raise UnsupportedFormatError(
+                    f"cannot read raster ({exc})", path=self.path
+                ) from None
             if not 1 <= self.band <= self._ds.count:
                 n = self._ds.count
                 self.close()
-                raise InputError(f"band {band} does not exist (the file has {n})",
-                                 path=self.path)
+                raise InputError(f"band {band} does not exist (the file has {n})", path=self.path)
             own = self._ds.nodatavals[self.band - 1]
             if own is not None and np.isfinite(own):
                 self._nodata.append(float(own))
@@ -184,10 +195,13 @@ class BandReader:
             self.name = name or str(self.path)
         else:
             arr = np.asarray(source)
-            if arr.ndim != 2 or not (np.issubdtype(arr.dtype, np.integer)
-                                     or np.issubdtype(arr.dtype, np.floating)):
-                raise InputError(f"a {what} array must be 2-D numeric, got shape "
-                                 f"{arr.shape} and dtype {arr.dtype}")
+            if arr.ndim != 2 or not (
+                np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
+            ):
+                raise InputError(
+                    f"a {what} array must be 2-D numeric, got shape "
+                    f"{arr.shape} and dtype {arr.dtype}"
+                )
             self._array = arr
             self.dtype = arr.dtype
             self._shape = (int(arr.shape[0]), int(arr.shape[1]))
@@ -223,8 +237,9 @@ class BandReader:
             valid &= raw != nd
         return valid
 
-    def _read_window(self, row0: int, col0: int, height: int, width: int
-                     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    def _read_window(
+        self, row0: int, col0: int, height: int, width: int
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """Rows ``row0 + [0, height)``, columns ``col0 + [0, width)``; outside: invalid."""
         row0, col0, height, width = int(row0), int(col0), int(height), int(width)
         if height <= 0 or width <= 0:
@@ -267,11 +282,18 @@ class CcdImage(BandReader):
         InputError: If the band does not exist or an array is not 2-D numeric.
     """
 
-    def __init__(self, source: str | PathLike[str] | ArrayLike, *, band: int = 1,
-                 nodata: float | None = None, isis_special: bool | None = None,
-                 name: str | None = None) -> None:
-        super().__init__(source, band=band, nodata=nodata, isis_special=isis_special,
-                         name=name, what="CCD image")
+    def __init__(
+        self,
+        source: str | PathLike[str] | ArrayLike,
+        *,
+        band: int = 1,
+        nodata: float | None = None,
+        isis_special: bool | None = None,
+        name: str | None = None,
+    ) -> None:
+        super().__init__(
+            source, band=band, nodata=nodata, isis_special=isis_special, name=name, what="CCD image"
+        )
 
     def __enter__(self) -> CcdImage:
         return self
@@ -284,8 +306,9 @@ class CcdImage(BandReader):
         """``(n_lines, n_samples)``."""
         return self._shape
 
-    def read(self, line0: int, sample0: int, n_lines: int, n_samples: int
-             ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    def read(
+        self, line0: int, sample0: int, n_lines: int, n_samples: int
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """Read a window; parts outside the image come back invalid.
 
         Args:
@@ -300,10 +323,16 @@ class CcdImage(BandReader):
         """
         return self._read_window(line0, sample0, n_lines, n_samples)
 
-    def read_block_mean(self, line0: int, sample0: int, n_lines: int, n_samples: int,
-                        factor: int, min_valid_fraction: float = 0.5,
-                        max_pixels: int = 1 << 22
-                        ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    def read_block_mean(
+        self,
+        line0: int,
+        sample0: int,
+        n_lines: int,
+        n_samples: int,
+        factor: int,
+        min_valid_fraction: float = 0.5,
+        max_pixels: int = 1 << 22,
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """Read a window averaged over ``factor x factor`` blocks of valid pixels.
 
         The window is read in strips of whole block rows of at most about ``max_pixels``

@@ -60,24 +60,41 @@ class RefWindow:
     @property
     def bounds_px(self) -> tuple[int, int, int, int]:
         """``(col0, row0, col1, row1)`` in full-resolution reference pixels (end exclusive)."""
-        return (self.col0, self.row0, self.col0 + self.width * self.factor,
-                self.row0 + self.height * self.factor)
+        return (
+            self.col0,
+            self.row0,
+            self.col0 + self.width * self.factor,
+            self.row0 + self.height * self.factor,
+        )
 
-    def to_ref_pixel(self, x: ArrayLike, y: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def to_ref_pixel(
+        self, x: ArrayLike, y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Window pixel coordinates ``(x, y)`` to full-resolution reference ``(col, row)``."""
-        return (self.col0 + np.asarray(x, float) * self.factor,
-                self.row0 + np.asarray(y, float) * self.factor)
+        return (
+            self.col0 + np.asarray(x, float) * self.factor,
+            self.row0 + np.asarray(y, float) * self.factor,
+        )
 
-    def from_ref_pixel(self, col: ArrayLike, row: ArrayLike
-                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def from_ref_pixel(
+        self, col: ArrayLike, row: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Full-resolution reference ``(col, row)`` to window pixel coordinates ``(x, y)``."""
-        return ((np.asarray(col, float) - self.col0) / self.factor,
-                (np.asarray(row, float) - self.row0) / self.factor)
+        return (
+            (np.asarray(col, float) - self.col0) / self.factor,
+            (np.asarray(row, float) - self.row0) / self.factor,
+        )
 
     @classmethod
-    def around(cls, col_min: float, row_min: float, col_max: float, row_max: float,
-               pad_px: float = 0.0, factor: int = 1) -> RefWindow:
+    def around(
+        cls,
+        col_min: float,
+        row_min: float,
+        col_max: float,
+        row_max: float,
+        pad_px: float = 0.0,
+        factor: int = 1,
+    ) -> RefWindow:
         """The smallest window of the given factor covering a box plus a margin.
 
         Args:
@@ -102,19 +119,26 @@ class RefWindow:
     def coarsened(self, factor: int) -> RefWindow:
         """A window of the given factor covering (at least) the same area."""
         c0, r0, c1, r1 = self.bounds_px
-        return RefWindow(c0, r0, max(1, -(-(c1 - c0) // factor)),
-                         max(1, -(-(r1 - r0) // factor)), factor)
+        return RefWindow(
+            c0, r0, max(1, -(-(c1 - c0) // factor)), max(1, -(-(r1 - r0) // factor)), factor
+        )
 
     def shifted(self, dcol: float, drow: float) -> RefWindow:
         """The window moved by whole full-resolution pixels (rounded)."""
-        return RefWindow(self.col0 + round(dcol), self.row0 + round(drow), self.width,
-                         self.height, self.factor)
+        return RefWindow(
+            self.col0 + round(dcol), self.row0 + round(drow), self.width, self.height, self.factor
+        )
 
     def padded(self, pad_px: int) -> RefWindow:
         """The window grown by ``pad_px`` full-resolution pixels on every side."""
         pad_w = -(-pad_px // self.factor)
-        return RefWindow(self.col0 - pad_w * self.factor, self.row0 - pad_w * self.factor,
-                         self.width + 2 * pad_w, self.height + 2 * pad_w, self.factor)
+        return RefWindow(
+            self.col0 - pad_w * self.factor,
+            self.row0 - pad_w * self.factor,
+            self.width + 2 * pad_w,
+            self.height + 2 * pad_w,
+            self.factor,
+        )
 
     def to_tuple(self) -> tuple[int, int, int, int, int]:
         """``(col0, row0, width, height, factor)`` (for serialisation)."""
@@ -139,9 +163,15 @@ class ReferenceOrtho(BandReader):
         InputError: Bad band, array or transform.
     """
 
-    def __init__(self, source: str | PathLike[str] | ArrayLike, *,
-                 transform: Any = None, crs: Any = None, band: int = 1,
-                 nodata: float | None = None) -> None:
+    def __init__(
+        self,
+        source: str | PathLike[str] | ArrayLike,
+        *,
+        transform: Any = None,
+        crs: Any = None,
+        band: int = 1,
+        nodata: float | None = None,
+    ) -> None:
         from affine import Affine
 
         super().__init__(source, band=band, nodata=nodata, what="reference orthoimage")
@@ -184,15 +214,17 @@ class ReferenceOrtho(BandReader):
         xs, ys = [p[0] for p in pts], [p[1] for p in pts]
         return (min(xs), min(ys), max(xs), max(ys))
 
-    def pixel_to_map(self, col: ArrayLike, row: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def pixel_to_map(
+        self, col: ArrayLike, row: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Continuous reference ``(col, row)`` (pixel centre at +0.5) to map ``(x, y)``."""
         t = self.transform
         col, row = np.asarray(col, float), np.asarray(row, float)
         return t.a * col + t.b * row + t.c, t.d * col + t.e * row + t.f
 
-    def map_to_pixel(self, x: ArrayLike, y: ArrayLike
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def map_to_pixel(
+        self, x: ArrayLike, y: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Map ``(x, y)`` to continuous reference ``(col, row)`` (pixel centre at +0.5)."""
         t = self._inverse
         x, y = np.asarray(x, float), np.asarray(y, float)
@@ -209,11 +241,15 @@ class ReferenceOrtho(BandReader):
         """The affine transform of a window's own pixel grid."""
         from affine import Affine
 
-        return (self.transform @ Affine.translation(window.col0, window.row0)
-                @ Affine.scale(window.factor))
+        return (
+            self.transform
+            @ Affine.translation(window.col0, window.row0)
+            @ Affine.scale(window.factor)
+        )
 
-    def ground_sampling_m(self, col: float | None = None, row: float | None = None
-                          ) -> tuple[float, float]:
+    def ground_sampling_m(
+        self, col: float | None = None, row: float | None = None
+    ) -> tuple[float, float]:
         """Ground size (m) of one reference pixel along columns and rows at a location.
 
         Map units are not ground metres away from a projection's true-scale line (e.g.
@@ -235,8 +271,9 @@ class ReferenceOrtho(BandReader):
         return (float(np.linalg.norm(xyz[1] - xyz[0])), float(np.linalg.norm(xyz[2] - xyz[0])))
 
     # -- reading ----------------------------------------------------------------------
-    def read(self, window: RefWindow, min_valid_fraction: float = 0.5
-             ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    def read(
+        self, window: RefWindow, min_valid_fraction: float = 0.5
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
         """Read a window; pixels outside the raster or without data come back invalid.
 
         A coarsened window averages each ``factor x factor`` block over its valid pixels
@@ -251,8 +288,9 @@ class ReferenceOrtho(BandReader):
             ``(data, valid)`` of shape ``window.shape``; data is float32, 0 where invalid.
         """
         f = window.factor
-        data, valid = self._read_window(window.row0, window.col0, window.height * f,
-                                        window.width * f)
+        data, valid = self._read_window(
+            window.row0, window.col0, window.height * f, window.width * f
+        )
         if f == 1:
             return data, valid
         return masked_block_mean(data, valid, f, min_valid_fraction)

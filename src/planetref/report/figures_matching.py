@@ -67,14 +67,25 @@ def panels_from_tile(result: Any) -> list[MatchPanel]:
     """
     stages = getattr(result, "debug", None) or []
     if not stages:
-        raise InputError(f"tile {getattr(result, 'tile_id', '?')} has no stage images; "
-                         "match it with debug=True (or list it in debug_tiles)")
+        raise InputError(
+            f"tile {getattr(result, 'tile_id', '?')} has no stage images; "
+            "match it with debug=True (or list it in debug_tiles)"
+        )
     out = []
     for s in stages:
         n_in = int(np.count_nonzero(s.inliers))
-        out.append(MatchPanel(f"{s.stage}: {n_in} of {len(s.inliers)} matches kept",
-                              s.image0, s.image1, s.keypoints0, s.keypoints1, s.inliers,
-                              s.valid0, s.valid1))
+        out.append(
+            MatchPanel(
+                f"{s.stage}: {n_in} of {len(s.inliers)} matches kept",
+                s.image0,
+                s.image1,
+                s.keypoints0,
+                s.keypoints1,
+                s.inliers,
+                s.valid0,
+                s.valid1,
+            )
+        )
     return out
 
 
@@ -97,8 +108,14 @@ def _save(fig: Any, path: str | PathLike[str], dpi: int) -> Path:
     return Path(path)
 
 
-def figure_tile_matches(panels: Sequence[MatchPanel], path: str | PathLike[str], *,
-                        title: str = "", max_lines: int = 300, dpi: int = 110) -> Path:
+def figure_tile_matches(
+    panels: Sequence[MatchPanel],
+    path: str | PathLike[str],
+    *,
+    title: str = "",
+    max_lines: int = 300,
+    dpi: int = 110,
+) -> Path:
     """Draw each stage's image pair side by side with its matches; write a PNG.
 
     Args:
@@ -122,19 +139,23 @@ def figure_tile_matches(panels: Sequence[MatchPanel], path: str | PathLike[str],
     cmap = _gray()
     for row, pnl in enumerate(panels):
         a0, a1 = axes[row]
-        for ax, img, valid, label in ((a0, pnl.image0, pnl.valid0, "CCD tile"),
-                                      (a1, pnl.image1, pnl.valid1, "reference")):
+        for ax, img, valid, label in (
+            (a0, pnl.image0, pnl.valid0, "CCD tile"),
+            (a1, pnl.image1, pnl.valid1, "reference"),
+        ):
             h, w = np.shape(img)
-            ax.imshow(_display(img, valid), cmap=cmap, extent=(0, w, h, 0),
-                      interpolation="nearest")
+            ax.imshow(_display(img, valid), cmap=cmap, extent=(0, w, h, 0), interpolation="nearest")
             ax.set_title(f"{label} ({w} x {h} px)", fontsize=9)
             ax.set_xlim(0, w)
             ax.set_ylim(h, 0)
             ax.tick_params(labelsize=7)
         k0 = np.asarray(pnl.keypoints0, np.float64).reshape(-1, 2)
         k1 = np.asarray(pnl.keypoints1, np.float64).reshape(-1, 2)
-        inl = (np.ones(len(k0), bool) if pnl.inliers is None
-               else np.asarray(pnl.inliers, bool).reshape(-1))
+        inl = (
+            np.ones(len(k0), bool)
+            if pnl.inliers is None
+            else np.asarray(pnl.inliers, bool).reshape(-1)
+        )
         if len(k1) != len(k0) or len(inl) != len(k0):
             raise InputError(f"panel {pnl.title!r}: keypoint and inlier counts differ")
         idx = np.arange(len(k0))
@@ -142,9 +163,17 @@ def figure_tile_matches(panels: Sequence[MatchPanel], path: str | PathLike[str],
             idx = idx[np.linspace(0, len(idx) - 1, max_lines).astype(int)]
         for i in idx:
             colour = INLIER_COLOUR if inl[i] else OUTLIER_COLOUR
-            fig.add_artist(ConnectionPatch(xyA=tuple(k0[i]), coordsA=a0.transData,
-                                           xyB=tuple(k1[i]), coordsB=a1.transData,
-                                           color=colour, lw=0.6, alpha=0.7))
+            fig.add_artist(
+                ConnectionPatch(
+                    xyA=tuple(k0[i]),
+                    coordsA=a0.transData,
+                    xyB=tuple(k1[i]),
+                    coordsB=a1.transData,
+                    color=colour,
+                    lw=0.6,
+                    alpha=0.7,
+                )
+            )
         for ax, k in ((a0, k0), (a1, k1)):
             if len(k):
                 ax.scatter(k[inl, 0], k[inl, 1], s=6, c=INLIER_COLOUR, linewidths=0)
@@ -162,10 +191,17 @@ def _gray() -> Any:
     return matplotlib.colormaps["gray"].with_extremes(bad="#f4e3c8")
 
 
-def figure_mcp_distribution(table: Any, image_sizes: Mapping[str, tuple[int, int]],
-                            path: str | PathLike[str], *, ccd_order: Sequence[str] | None = None,
-                            title: str = "", gap_fraction: float = 0.08, dpi: int = 110,
-                            grids: Sequence[int] | None = None) -> Path:
+def figure_mcp_distribution(
+    table: Any,
+    image_sizes: Mapping[str, tuple[int, int]],
+    path: str | PathLike[str],
+    *,
+    ccd_order: Sequence[str] | None = None,
+    title: str = "",
+    gap_fraction: float = 0.08,
+    dpi: int = 110,
+    grids: Sequence[int] | None = None,
+) -> Path:
     """Plot the MCPs over the CCD images of a strip, one colour per CCD; write a PNG.
 
     Args:
@@ -202,8 +238,9 @@ def figure_mcp_distribution(table: Any, image_sizes: Mapping[str, tuple[int, int
     max_h = max(heights)
     aspect = max_h / total_w
     fig_w = 10.0
-    fig = Figure(figsize=(fig_w, float(np.clip(fig_w * aspect, 3.0, 14.0)) + 0.8),
-                 layout="constrained")
+    fig = Figure(
+        figsize=(fig_w, float(np.clip(fig_w * aspect, 3.0, 14.0)) + 0.8), layout="constrained"
+    )
     ax = fig.subplots()
     import matplotlib
 
@@ -216,8 +253,14 @@ def figure_mcp_distribution(table: Any, image_sizes: Mapping[str, tuple[int, int
         sel = ccd == c
         ax.scatter(x0 + sample[sel], line[sel], s=4, color=colour, linewidths=0, label=c)
         sdu = sdu_percent(line[sel], sample[sel], nl, ns, grids or SDU_GRIDS)
-        ax.text(x0 + ns / 2, -0.01 * max_h, f"{c}\nNCP {int(sel.sum())}\nSDU {sdu:.1f}%",
-                ha="center", va="bottom", fontsize=8)
+        ax.text(
+            x0 + ns / 2,
+            -0.01 * max_h,
+            f"{c}\nNCP {int(sel.sum())}\nSDU {sdu:.1f}%",
+            ha="center",
+            va="bottom",
+            fontsize=8,
+        )
         x0 += ns + gap
     ax.set_xlim(-gap / 2, total_w + gap / 2)
     ax.set_ylim(max_h * 1.0, -0.12 * max_h)

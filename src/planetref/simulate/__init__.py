@@ -27,8 +27,9 @@ def available_presets() -> tuple[str, ...]:
     return _f()
 
 
-def load_config(preset: str = "tiny", overrides: Any = None, *, seed: int | None = None
-                ) -> SimulationConfig:
+def load_config(
+    preset: str = "tiny", overrides: Any = None, *, seed: int | None = None
+) -> SimulationConfig:
     """Load a preset, apply overrides; see :func:`planetref.simulate.config.load_config`."""
     from planetref.simulate.config import load_config as _f
 

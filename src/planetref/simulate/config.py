@@ -311,8 +311,10 @@ class CameraConfig(_Model):
     @model_validator(mode="after")
     def _check_overlap(self) -> CameraConfig:
         if self.overlap_samples >= self.n_samples:
-            raise ValueError(f"overlap_samples ({self.overlap_samples}) must be smaller than "
-                             f"n_samples ({self.n_samples})")
+            raise ValueError(
+                f"overlap_samples ({self.overlap_samples}) must be smaller than "
+                f"n_samples ({self.n_samples})"
+            )
         return self
 
 
@@ -437,8 +439,13 @@ class ReferenceConfig(_Model):
     ortho_gsd_m: float = Field(default=5.0, gt=0.0)
     ortho_offset_m: tuple[float, float] = (0.0, 0.0)
     ortho_sensor: SensorConfig = SensorConfig(
-        bit_depth=8, mtf_sigma_px=0.6, full_well_e=30_000.0, mean_signal_e=10_000.0,
-        read_noise_e=60.0, supersample=4)
+        bit_depth=8,
+        mtf_sigma_px=0.6,
+        full_well_e=30_000.0,
+        mean_signal_e=10_000.0,
+        read_noise_e=60.0,
+        supersample=4,
+    )
     dem_pixel_m: float = Field(default=463.0836, gt=0.0)
     dem_pad_m: float = Field(default=3000.0, ge=0.0)
     dem_smoothing_px: float = Field(default=0.5, ge=0.0)
@@ -509,6 +516,7 @@ class SimulationConfig(_Model):
 
 # -- presets and overrides ---------------------------------------------------------------
 
+
 def available_presets() -> tuple[str, ...]:
     """Names of the presets shipped in ``planetref/simulate/presets`` (sorted)."""
     folder = resources.files("planetref.simulate") / "presets"
@@ -523,10 +531,12 @@ def load_preset_dict(name: str) -> dict[str, Any]:
     """
     names = available_presets()
     if name not in names:
-        raise InputError(f"unknown preset {name!r}; valid presets: {', '.join(names)}",
-                         field="preset")
+        raise InputError(
+            f"unknown preset {name!r}; valid presets: {', '.join(names)}", field="preset"
+        )
     text = (resources.files("planetref.simulate") / "presets" / f"{name}.toml").read_text(
-        encoding="utf-8")
+        encoding="utf-8"
+    )
     return tomllib.loads(text)
 
 
@@ -611,9 +621,12 @@ def validate_config(data: dict[str, Any], *, source: str | None = None) -> Simul
         raise InputError(f"invalid simulation config: {msg}", path=source) from None
 
 
-def load_config(preset: str = "tiny",
-                overrides: str | PathLike[str] | dict[str, Any] | None = None,
-                *, seed: int | None = None) -> SimulationConfig:
+def load_config(
+    preset: str = "tiny",
+    overrides: str | PathLike[str] | dict[str, Any] | None = None,
+    *,
+    seed: int | None = None,
+) -> SimulationConfig:
     """A preset with optional overrides and seed.
 
     Args:

@@ -41,11 +41,14 @@ def local_crs(lat_deg: float, lon_deg: float) -> object:
     from pyproj.crs import ProjectedCRS
     from pyproj.crs.coordinate_operation import EquidistantCylindricalConversion
 
-    conv = EquidistantCylindricalConversion(latitude_first_parallel=float(lat_deg),
-                                            longitude_natural_origin=float(lon_deg))
-    return ProjectedCRS(conversion=conv, geodetic_crs=CRS.from_user_input("IAU_2015:49900"),
-                        name=f"Mars 2015 sphere / local equirectangular "
-                             f"({lat_deg:.4f}N, {lon_deg:.4f}E)")
+    conv = EquidistantCylindricalConversion(
+        latitude_first_parallel=float(lat_deg), longitude_natural_origin=float(lon_deg)
+    )
+    return ProjectedCRS(
+        conversion=conv,
+        geodetic_crs=CRS.from_user_input("IAU_2015:49900"),
+        name=f"Mars 2015 sphere / local equirectangular ({lat_deg:.4f}N, {lon_deg:.4f}E)",
+    )
 
 
 def enu_basis(lat_deg: float, lon_deg: float) -> NDArray[np.float64]:
@@ -80,8 +83,16 @@ class MapGrid:
             raise InputError(f"bad grid: res={self.res}, shape=({self.rows}, {self.cols})")
 
     @classmethod
-    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, res: float,
-                 *, align: float | None = None) -> MapGrid:
+    def covering(
+        cls,
+        xmin: float,
+        ymin: float,
+        xmax: float,
+        ymax: float,
+        res: float,
+        *,
+        align: float | None = None,
+    ) -> MapGrid:
         """The smallest grid of cell size ``res`` covering a box.
 
         Its edges lie on multiples of ``align`` (default ``res``) from the map origin.
@@ -110,8 +121,7 @@ class MapGrid:
     @property
     def bounds(self) -> tuple[float, float, float, float]:
         """``(xmin, ymin, xmax, ymax)``."""
-        return (self.x0, self.y0 - self.rows * self.res, self.x0 + self.cols * self.res,
-                self.y0)
+        return (self.x0, self.y0 - self.rows * self.res, self.x0 + self.cols * self.res, self.y0)
 
     def x_centres(self) -> NDArray[np.float64]:
         """Map x of the column centres, shape ``(cols,)``."""
@@ -121,8 +131,9 @@ class MapGrid:
         """Map y of the row centres, shape ``(rows,)``."""
         return self.y0 - (np.arange(self.rows) + 0.5) * self.res
 
-    def to_index(self, x: NDArray[np.float64], y: NDArray[np.float64]
-                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def to_index(
+        self, x: NDArray[np.float64], y: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Continuous ``(row, col)`` of map points, cell centres at integers."""
         return (self.y0 - y) / self.res - 0.5, (x - self.x0) / self.res - 0.5
 
@@ -139,18 +150,23 @@ def _cubic_weights(pos: NDArray[np.float64], n: int) -> sp.csr_matrix:
     a = -0.5
     for k in (-1, 0, 1, 2):
         d = np.abs(t - k)
-        w = np.where(d <= 1, (a + 2) * d**3 - (a + 3) * d**2 + 1,
-                     np.where(d < 2, a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a, 0.0))
+        w = np.where(
+            d <= 1,
+            (a + 2) * d**3 - (a + 3) * d**2 + 1,
+            np.where(d < 2, a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a, 0.0),
+        )
         idx = np.clip(base + k, 0, n - 1)
         rows.append(np.arange(len(pos)))
         cols.append(idx)
         vals.append(w)
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                         shape=(len(pos), n))
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(len(pos), n)
+    )
 
 
-def cubic_resample(values: NDArray[np.floating], src: MapGrid, dst: MapGrid,
-                   dtype: type = np.float32) -> NDArray[np.floating]:
+def cubic_resample(
+    values: NDArray[np.floating], src: MapGrid, dst: MapGrid, dtype: type = np.float32
+) -> NDArray[np.floating]:
     """Separable cubic interpolation of a grid onto another (edges clamped).
 
     Args:
@@ -170,7 +186,7 @@ def cubic_resample(values: NDArray[np.floating], src: MapGrid, dst: MapGrid,
     out = np.empty(dst.shape, dtype=dtype)
     wxt = wx.T.tocsr()
     for a in range(0, dst.rows, 512):  # row blocks bound the float64 temporaries
-        out[a:a + 512] = tmp[a:a + 512] @ wxt
+        out[a : a + 512] = tmp[a : a + 512] @ wxt
     return out
 
 

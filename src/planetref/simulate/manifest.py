@@ -233,8 +233,9 @@ class SceneManifest(_Model):
         raise InputError(f"unknown strip {strip_id!r}; strips: {[s.id for s in self.strips]}")
 
 
-def load_manifest(path: str | os.PathLike[str], *, check_files: bool = True
-                  ) -> tuple[SceneManifest, Path]:
+def load_manifest(
+    path: str | os.PathLike[str], *, check_files: bool = True
+) -> tuple[SceneManifest, Path]:
     """Read and validate a scene manifest.
 
     Args:
@@ -256,19 +257,22 @@ def load_manifest(path: str | os.PathLike[str], *, check_files: bool = True
     data = read_toml(p, "scene manifest")
     fmt = data.get("format")
     if fmt != MANIFEST_FORMAT:
-        raise InputError(f"expected format = {MANIFEST_FORMAT!r}, got {fmt!r}", path=p,
-                         field="format")
+        raise InputError(
+            f"expected format = {MANIFEST_FORMAT!r}, got {fmt!r}", path=p, field="format"
+        )
     try:
         manifest = SceneManifest.model_validate(data)
     except ValidationError as exc:
-        raise InputError(f"invalid scene manifest: {format_validation_error(exc, SceneManifest)}",
-                         path=p) from None
+        raise InputError(
+            f"invalid scene manifest: {format_validation_error(exc, SceneManifest)}", path=p
+        ) from None
     root = p.parent
     if check_files:
         for rel in manifest.paths():
             if not manifest.resolve(root, rel).exists():
-                raise MissingFileError(f"file named by the manifest not found: {rel}",
-                                       path=manifest.resolve(root, rel))
+                raise MissingFileError(
+                    f"file named by the manifest not found: {rel}", path=manifest.resolve(root, rel)
+                )
     return manifest, root
 
 
@@ -290,7 +294,8 @@ def write_manifest(manifest: SceneManifest, path: str | os.PathLike[str]) -> Pat
     import tomli_w
 
     p = Path(path)
-    text = ("# planetref scene manifest; see docs/scene-manifest.md\n"
-            + tomli_w.dumps(manifest_to_dict(manifest)))
+    text = "# planetref scene manifest; see docs/scene-manifest.md\n" + tomli_w.dumps(
+        manifest_to_dict(manifest)
+    )
     p.write_text(text, encoding="utf-8")
     return p

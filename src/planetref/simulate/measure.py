@@ -34,12 +34,16 @@ def _stats(v: F64) -> dict[str, float]:
     v = v[np.isfinite(v)]
     if v.size == 0:
         return {"mean": float("nan"), "rms": float("nan"), "max": float("nan")}
-    return {"mean": float(np.mean(v)), "rms": float(np.sqrt(np.mean(v * v))),
-            "max": float(np.max(np.abs(v)))}
+    return {
+        "mean": float(np.mean(v)),
+        "rms": float(np.sqrt(np.mean(v * v))),
+        "max": float(np.max(np.abs(v))),
+    }
 
 
-def measure_initial_errors(truth: LineScanCamera, initial: LineScanCamera,
-                           terrain: GridTerrain, frame: F64, n: int) -> dict[str, Any]:
+def measure_initial_errors(
+    truth: LineScanCamera, initial: LineScanCamera, terrain: GridTerrain, frame: F64, n: int
+) -> dict[str, Any]:
     """How far the initial camera is from the truth, over all CCDs.
 
     For an ``n x n`` grid of pixel centres per CCD, the true ground point ``P`` (truth
@@ -70,16 +74,24 @@ def measure_initial_errors(truth: LineScanCamera, initial: LineScanCamera,
     d = np.concatenate(d_all)
     dl, ds = np.concatenate(dl_all), np.concatenate(ds_all)
     return {
-        "ground_m": {"along": _stats(d[:, 0]), "cross": _stats(d[:, 1]), "up": _stats(d[:, 2]),
-                     "horizontal": _stats(np.hypot(d[:, 0], d[:, 1]))},
-        "image_px": {"line": _stats(dl), "sample": _stats(ds),
-                     "distance": _stats(np.hypot(dl, ds))},
+        "ground_m": {
+            "along": _stats(d[:, 0]),
+            "cross": _stats(d[:, 1]),
+            "up": _stats(d[:, 2]),
+            "horizontal": _stats(np.hypot(d[:, 0], d[:, 1])),
+        },
+        "image_px": {
+            "line": _stats(dl),
+            "sample": _stats(ds),
+            "distance": _stats(np.hypot(dl, ds)),
+        },
         "n_points": int(np.count_nonzero(np.isfinite(d[:, 0]))),
     }
 
 
-def measure_consistency(camera: LineScanCamera, terrain: GridTerrain, n: int,
-                        rng: np.random.Generator) -> dict[str, float]:
+def measure_consistency(
+    camera: LineScanCamera, terrain: GridTerrain, n: int, rng: np.random.Generator
+) -> dict[str, float]:
     """Round trip pixel -> truth DEM -> pixel, and the renderer's rays against the camera's.
 
     Args:
@@ -103,14 +115,15 @@ def measure_consistency(camera: LineScanCamera, terrain: GridTerrain, n: int,
         ip = camera.ground_to_image(p, ccd=c.name)
         worst_px = max(worst_px, float(np.max(np.hypot(ip.line - lines, ip.sample - samples))))
         for i in range(n):
-            o, d = corner_rays(camera, c.name, lines[i:i + 1], samples[i:i + 1])
+            o, d = corner_rays(camera, c.name, lines[i : i + 1], samples[i : i + 1])
             hit = terrain.intersect_rays(o, d.reshape(-1, 3))
             worst_m = max(worst_m, float(np.linalg.norm(hit.xyz[0] - p[i])))
     return {"roundtrip_max_px": worst_px, "render_ray_max_m": worst_m}
 
 
-def checkpoints(camera: LineScanCamera, terrain: GridTerrain, strip_id: str, n: int,
-                rng: np.random.Generator) -> list[dict[str, Any]]:
+def checkpoints(
+    camera: LineScanCamera, terrain: GridTerrain, strip_id: str, n: int, rng: np.random.Generator
+) -> list[dict[str, Any]]:
     """Random true image/ground correspondences of every CCD of a strip.
 
     Returns:
@@ -124,7 +137,18 @@ def checkpoints(camera: LineScanCamera, terrain: GridTerrain, strip_id: str, n: 
         p = camera.image_to_ground(lines, samples, terrain, ccd=c.name)
         lon, lat, h = xyz_to_lonlat(p, camera.ellipsoid)
         for i in range(n):
-            rows.append({"strip": strip_id, "ccd": c.name, "line": lines[i],
-                         "sample": samples[i], "x_m": p[i, 0], "y_m": p[i, 1], "z_m": p[i, 2],
-                         "lon_deg": lon[i], "lat_deg": lat[i], "height_m": h[i]})
+            rows.append(
+                {
+                    "strip": strip_id,
+                    "ccd": c.name,
+                    "line": lines[i],
+                    "sample": samples[i],
+                    "x_m": p[i, 0],
+                    "y_m": p[i, 1],
+                    "z_m": p[i, 2],
+                    "lon_deg": lon[i],
+                    "lat_deg": lat[i],
+                    "height_m": h[i],
+                }
+            )
     return rows

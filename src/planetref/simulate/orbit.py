@@ -209,8 +209,9 @@ class StripCameras:
     jitter: tuple[tuple[str, float, float, float], ...]
 
 
-def _strip_centre(cfg: SimulationConfig, strip: StripConfig, heading_deg: float
-                  ) -> tuple[float, float]:
+def _strip_centre(
+    cfg: SimulationConfig, strip: StripConfig, heading_deg: float
+) -> tuple[float, float]:
     """Lon/lat of the strip's centre, offset from the site along/across the track."""
     ell = MARS_IAU2015_SPHERE
     lat, lon = math.radians(cfg.site.lat_deg), math.radians(cfg.site.lon_deg)
@@ -234,8 +235,9 @@ def _node_lines(n_lines: int, spacing: int, order: int) -> F64:
     return np.arange(-margin, n_lines + margin + 0.5 * spacing, spacing, dtype=np.float64)
 
 
-def build_strip_cameras(cfg: SimulationConfig, strip: StripConfig, rng: np.random.Generator
-                        ) -> StripCameras:
+def build_strip_cameras(
+    cfg: SimulationConfig, strip: StripConfig, rng: np.random.Generator
+) -> StripCameras:
     """The truth and initial cameras of a strip.
 
     Args:
@@ -255,13 +257,21 @@ def build_strip_cameras(cfg: SimulationConfig, strip: StripConfig, rng: np.rando
     period = cam_cfg.line_period_s or cam_cfg.gsd_m / ground_speed
     n_lines = cam_cfg.n_lines
     rates = LineRateTable(((0.0, -0.5 * n_lines * period, period),))
-    ccds = ccd_row(cam_cfg.n_ccds, cam_cfg.n_samples, n_lines, cam_cfg.pixel_pitch_mm,
-                   overlap_px=cam_cfg.overlap_samples, stagger_mm=cam_cfg.ccd_stagger_mm)
+    ccds = ccd_row(
+        cam_cfg.n_ccds,
+        cam_cfg.n_samples,
+        n_lines,
+        cam_cfg.pixel_pitch_mm,
+        overlap_px=cam_cfg.overlap_samples,
+        stagger_mm=cam_cfg.ccd_stagger_mm,
+    )
     r0 = orbit.frame(np.zeros(1))[0]
     pointing = _rpy(*np.radians(np.asarray(strip.pointing_deg, dtype=np.float64)))
 
-    jitter = tuple((j.axis, j.amplitude_urad, j.frequency_hz, float(rng.uniform(0, 2 * np.pi)))
-                   for j in cfg.jitter)
+    jitter = tuple(
+        (j.axis, j.amplitude_urad, j.frequency_hz, float(rng.uniform(0, 2 * np.pi)))
+        for j in cfg.jitter
+    )
 
     def jitter_angles(t: F64) -> F64:
         out = np.zeros((len(t), 3))
@@ -284,27 +294,50 @@ def build_strip_cameras(cfg: SimulationConfig, strip: StripConfig, rng: np.rando
     t_lines = _node_lines(n_lines, orb.truth_node_spacing_lines, order)
     t_truth = rates.time(t_lines)
     truth_nodes = nodes_for(t_lines, jitter_angles(t_truth), np.zeros((len(t_lines), 3)))
-    truth = LineScanCamera(ellipsoid=MARS_IAU2015_SPHERE, frame_rotation=r0, line_rates=rates,
-                           node_lines=t_lines, nodes=truth_nodes,
-                           interior=InteriorOrientation(focal_length_mm=focal), ccds=ccds,
-                           interpolation_order=order, name=f"{strip.id} (truth)")
+    truth = LineScanCamera(
+        ellipsoid=MARS_IAU2015_SPHERE,
+        frame_rotation=r0,
+        line_rates=rates,
+        node_lines=t_lines,
+        nodes=truth_nodes,
+        interior=InteriorOrientation(focal_length_mm=focal),
+        ccds=ccds,
+        interpolation_order=order,
+        name=f"{strip.id} (truth)",
+    )
 
     e = cfg.initial_errors
     i_lines = _node_lines(n_lines, orb.initial_node_spacing_lines, order)
     t_init = rates.time(i_lines)[:, None]
-    att = (np.asarray(e.attitude_bias_urad) + np.asarray(e.attitude_drift_urad_per_s) * t_init
-           ) * 1e-6
+    att = (
+        np.asarray(e.attitude_bias_urad) + np.asarray(e.attitude_drift_urad_per_s) * t_init
+    ) * 1e-6
     pos = np.asarray(e.position_bias_m) + np.asarray(e.position_drift_m_per_s) * t_init
     init_nodes = nodes_for(i_lines, att, pos)
     initial = LineScanCamera(
-        ellipsoid=MARS_IAU2015_SPHERE, frame_rotation=r0, line_rates=rates,
-        node_lines=i_lines, nodes=init_nodes,
-        interior=InteriorOrientation(focal_length_mm=focal * (1.0 + e.focal_length_error_ppm
-                                                              * 1e-6)),
-        ccds=ccds, interpolation_order=order, name=f"{strip.id} (initial)")
-    facts = {"focal_length_mm": focal, "gsd_m": cam_cfg.gsd_m, "line_period_s": period,
-             "ground_speed_m_s": ground_speed, "altitude_m": orb.altitude_m,
-             "duration_s": n_lines * period, "centre_lon_deg": lon, "centre_lat_deg": lat,
-             "heading_deg": heading}
-    return StripCameras(strip=strip, truth=truth, initial=initial, orbit=orbit, facts=facts,
-                        jitter=jitter)
+        ellipsoid=MARS_IAU2015_SPHERE,
+        frame_rotation=r0,
+        line_rates=rates,
+        node_lines=i_lines,
+        nodes=init_nodes,
+        interior=InteriorOrientation(
+            focal_length_mm=focal * (1.0 + e.focal_length_error_ppm * 1e-6)
+        ),
+        ccds=ccds,
+        interpolation_order=order,
+        name=f"{strip.id} (initial)",
+    )
+    facts = {
+        "focal_length_mm": focal,
+        "gsd_m": cam_cfg.gsd_m,
+        "line_period_s": period,
+        "ground_speed_m_s": ground_speed,
+        "altitude_m": orb.altitude_m,
+        "duration_s": n_lines * period,
+        "centre_lon_deg": lon,
+        "centre_lat_deg": lat,
+        "heading_deg": heading,
+    }
+    return StripCameras(
+        strip=strip, truth=truth, initial=initial, orbit=orbit, facts=facts, jitter=jitter
+    )

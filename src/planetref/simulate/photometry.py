@@ -78,8 +78,11 @@ def lambert(cos_i: NDArray[np.floating]) -> NDArray[np.floating]:
     return np.maximum(cos_i, 0.0)
 
 
-def lunar_lambert(cos_i: NDArray[np.floating], cos_e: NDArray[np.floating],
-                  phase_deg: NDArray[np.floating] | float) -> NDArray[np.floating]:
+def lunar_lambert(
+    cos_i: NDArray[np.floating],
+    cos_e: NDArray[np.floating],
+    phase_deg: NDArray[np.floating] | float,
+) -> NDArray[np.floating]:
     """Lunar-Lambert reflectance (McEwen 1991); zero where ``cos i <= 0``.
 
     Args:
@@ -93,8 +96,12 @@ def lunar_lambert(cos_i: NDArray[np.floating], cos_e: NDArray[np.floating],
     return 2.0 * ell * ci / (ci + ce) + (1.0 - ell) * ci
 
 
-def reflectance(model: str, cos_i: NDArray[np.floating], cos_e: NDArray[np.floating],
-                phase_deg: NDArray[np.floating] | float) -> NDArray[np.floating]:
+def reflectance(
+    model: str,
+    cos_i: NDArray[np.floating],
+    cos_e: NDArray[np.floating],
+    phase_deg: NDArray[np.floating] | float,
+) -> NDArray[np.floating]:
     """``lambert`` or ``lunar-lambert`` reflectance (see the module docstring)."""
     if model == "lambert":
         return lambert(cos_i)
@@ -176,10 +183,10 @@ class TextureTiles:
         self.offsets = [rng.uniform(0, n, 2) for n in self._SIZES]
         max_wl_relief = max(4.0 * dem_gsd_m, 4.0 * self.gsd)
         for n in self._SIZES:
-            alb = fractal_field((n, n), self.gsd, rng, hurst=0.5,
-                                max_wavelength_m=min(30.0, 0.5 * n * self.gsd))
-            relief = fractal_field((n, n), self.gsd, rng, hurst=0.7,
-                                   max_wavelength_m=max_wl_relief)
+            alb = fractal_field(
+                (n, n), self.gsd, rng, hurst=0.5, max_wavelength_m=min(30.0, 0.5 * n * self.gsd)
+            )
+            relief = fractal_field((n, n), self.gsd, rng, hurst=0.7, max_wavelength_m=max_wl_relief)
             relief *= np.float32(albedo.micro_relief_rms_m)
             # Periodic central differences: d/du along columns, d/dv along rows (metres).
             g_u = (np.roll(relief, -1, axis=1) - np.roll(relief, 1, axis=1)) / (2 * self.gsd)
@@ -187,14 +194,16 @@ class TextureTiles:
             tile = np.ascontiguousarray(np.stack([alb, g_u, g_v], axis=-1), dtype=np.float32)
             self.tiles.append(tile)
         # Each cell's three channels as one 12-byte item, for fast gathering.
-        self._cells = [t.reshape(-1, 3).view(np.dtype((np.void, 12))).reshape(-1)
-                       for t in self.tiles]
+        self._cells = [
+            t.reshape(-1, 3).view(np.dtype((np.void, 12))).reshape(-1) for t in self.tiles
+        ]
 
     def sample(self, x: F64, y: F64) -> F32:
         """Texture at map points: ``(M, 3)`` = albedo texture, d(relief)/dx, d(relief)/dy."""
         out = np.zeros((len(x), 3), dtype=np.float32)
-        for tile, cells, ang, off in zip(self.tiles, self._cells, self.angles, self.offsets,
-                                         strict=True):
+        for tile, cells, ang, off in zip(
+            self.tiles, self._cells, self.angles, self.offsets, strict=True
+        ):
             n = tile.shape[0]
             mask = n - 1
             ca, sa = math.cos(ang), math.sin(ang)
@@ -240,8 +249,14 @@ class ShadingFields:
         shadow: Shadow fraction in [0, 1], ``grid.shape``.
     """
 
-    def __init__(self, grid: MapGrid, height: NDArray[np.floating], albedo: NDArray[np.floating],
-                 texture_amplitude: NDArray[np.floating], shadow: NDArray[np.floating]) -> None:
+    def __init__(
+        self,
+        grid: MapGrid,
+        height: NDArray[np.floating],
+        albedo: NDArray[np.floating],
+        texture_amplitude: NDArray[np.floating],
+        shadow: NDArray[np.floating],
+    ) -> None:
         self.grid = grid
         rows, cols = grid.shape
         st = np.empty((rows, cols, 5), dtype=np.float16)
@@ -258,8 +273,8 @@ class ShadingFields:
             gy[1:-1] = -(blk[2:] - blk[:-2]) * inv2  # rows run south
             gy[0] = -(blk[1] - blk[0]) * (2 * inv2)
             gy[-1] = -(blk[-1] - blk[-2]) * (2 * inv2)
-            st[a:b, :, 0] = gx[a - lo:a - lo + (b - a)]
-            st[a:b, :, 1] = gy[a - lo:a - lo + (b - a)]
+            st[a:b, :, 0] = gx[a - lo : a - lo + (b - a)]
+            st[a:b, :, 1] = gy[a - lo : a - lo + (b - a)]
         st[:, :, 2] = albedo
         st[:, :, 3] = texture_amplitude
         st[:, :, 4] = shadow
@@ -303,8 +318,15 @@ class RadianceModel:
         haze: Additive path radiance relative to a flat mean-albedo surface.
     """
 
-    def __init__(self, fields: ShadingFields, tiles: TextureTiles, sun: SunConfig,
-                 photometry: PhotometryConfig, albedo: AlbedoConfig, haze: float) -> None:
+    def __init__(
+        self,
+        fields: ShadingFields,
+        tiles: TextureTiles,
+        sun: SunConfig,
+        photometry: PhotometryConfig,
+        albedo: AlbedoConfig,
+        haze: float,
+    ) -> None:
         self.fields = fields
         self.tiles = tiles
         self.sun = sun
@@ -318,12 +340,12 @@ class RadianceModel:
     def flat_radiance(self) -> float:
         """Radiance of a level, unshadowed, mean-albedo surface seen at nadir (no haze)."""
         ci = float(self.s[2])
-        f = float(reflectance(self.model, np.array(ci), np.array(1.0),
-                              math.degrees(math.acos(ci))))
+        f = float(reflectance(self.model, np.array(ci), np.array(1.0), math.degrees(math.acos(ci))))
         return self.albedo_mean * (f + self.sky * ci)
 
-    def evaluate(self, x: F64, y: F64, view: NDArray[np.floating],
-                 fields: F32 | None = None) -> F32:
+    def evaluate(
+        self, x: F64, y: F64, view: NDArray[np.floating], fields: F32 | None = None
+    ) -> F32:
         """Radiance at map points of the truth grid.
 
         Args:

@@ -15,8 +15,12 @@ from numpy.typing import NDArray
 __all__ = ["hillshade", "write_preview"]
 
 
-def hillshade(height: NDArray[np.floating], res_m: float, azimuth_deg: float = 315.0,
-              elevation_deg: float = 45.0) -> NDArray[np.float32]:
+def hillshade(
+    height: NDArray[np.floating],
+    res_m: float,
+    azimuth_deg: float = 315.0,
+    elevation_deg: float = 45.0,
+) -> NDArray[np.float32]:
     """Lambertian hillshade in [0, 1] of a north-up height grid (square cells of ``res_m``).
 
     Args:
@@ -58,8 +62,9 @@ def _stretch(img: NDArray[np.float32]) -> NDArray[np.float32]:
     return np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
 
 
-def write_preview(scene: str | os.PathLike[str], out_png: str | os.PathLike[str],
-                  *, max_size: int = 1200) -> Path:
+def write_preview(
+    scene: str | os.PathLike[str], out_png: str | os.PathLike[str], *, max_size: int = 1200
+) -> Path:
     """Save a PNG with the ortho, the truth (or reference) DEM hillshade and all CCD images.
 
     Args:
@@ -79,8 +84,11 @@ def write_preview(scene: str | os.PathLike[str], out_png: str | os.PathLike[str]
     ortho, _ = _read(manifest.resolve(root, manifest.reference.ortho), max_size)
     dem_rel = manifest.truth.dem if manifest.truth else manifest.reference.dem
     dem, dem_res = _read(manifest.resolve(root, dem_rel), max_size)
-    ccds = [(f"{s.id}/{c.name}", manifest.resolve(root, c.image))
-            for s in manifest.strips for c in s.ccds]
+    ccds = [
+        (f"{s.id}/{c.name}", manifest.resolve(root, c.image))
+        for s in manifest.strips
+        for c in s.ccds
+    ]
     n = 2 + len(ccds)
     fig = Figure(figsize=(3.2 * n, 6.0))
     FigureCanvasAgg(fig)

@@ -45,23 +45,32 @@ F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
 
-def box_in_crs(bounds: tuple[float, float, float, float], src: MapProjection,
-               dst: MapProjection, n: int = 21) -> tuple[float, float, float, float]:
+def box_in_crs(
+    bounds: tuple[float, float, float, float], src: MapProjection, dst: MapProjection, n: int = 21
+) -> tuple[float, float, float, float]:
     """Bounding box in ``dst`` of a box of ``src`` (its edges densified with ``n`` points)."""
     xmin, ymin, xmax, ymax = bounds
     t = np.linspace(0.0, 1.0, n)
-    xs = np.concatenate([xmin + t * (xmax - xmin), np.full(n, xmax),
-                         xmax - t * (xmax - xmin), np.full(n, xmin)])
-    ys = np.concatenate([np.full(n, ymin), ymin + t * (ymax - ymin), np.full(n, ymax),
-                         ymax - t * (ymax - ymin)])
+    xs = np.concatenate(
+        [xmin + t * (xmax - xmin), np.full(n, xmax), xmax - t * (xmax - xmin), np.full(n, xmin)]
+    )
+    ys = np.concatenate(
+        [np.full(n, ymin), ymin + t * (ymax - ymin), np.full(n, ymax), ymax - t * (ymax - ymin)]
+    )
     lon, lat = src.map_to_lonlat(xs, ys)
     x, y = dst.lonlat_to_map(lon, lat)
     return float(np.min(x)), float(np.min(y)), float(np.max(x)), float(np.max(y))
 
 
-def render_ortho(grid: MapGrid, projection: MapProjection, truth_projection: MapProjection,
-                 radiance: RadianceModel, cfg: ReferenceConfig, rng: np.random.Generator,
-                 progress: Callable[[int], None] | None = None) -> NDArray[np.integer]:
+def render_ortho(
+    grid: MapGrid,
+    projection: MapProjection,
+    truth_projection: MapProjection,
+    radiance: RadianceModel,
+    cfg: ReferenceConfig,
+    rng: np.random.Generator,
+    progress: Callable[[int], None] | None = None,
+) -> NDArray[np.integer]:
     """Render the reference ortho on ``grid``.
 
     Pixels show the surface at their true positions; the ortho offset is applied to
@@ -105,9 +114,15 @@ def render_ortho(grid: MapGrid, projection: MapProjection, truth_projection: Map
     return quantize(e, sensor)
 
 
-def reference_dem(grid: MapGrid, projection: MapProjection, truth_projection: MapProjection,
-                  coarse_grid: MapGrid, coarse: F64, cfg: ReferenceConfig,
-                  rng: np.random.Generator) -> F32:
+def reference_dem(
+    grid: MapGrid,
+    projection: MapProjection,
+    truth_projection: MapProjection,
+    coarse_grid: MapGrid,
+    coarse: F64,
+    cfg: ReferenceConfig,
+    rng: np.random.Generator,
+) -> F32:
     """Sample the smoothed coarse truth at the reference DEM's pixel centres.
 
     Args:
@@ -134,9 +149,15 @@ def reference_dem(grid: MapGrid, projection: MapProjection, truth_projection: Ma
     return h.astype(np.float32)
 
 
-def write_raster(path: str | os.PathLike[str], data: NDArray[np.generic], grid: MapGrid,
-                 crs_wkt: str, *, nodata: float | None = None,
-                 offset: tuple[float, float] = (0.0, 0.0)) -> None:
+def write_raster(
+    path: str | os.PathLike[str],
+    data: NDArray[np.generic],
+    grid: MapGrid,
+    crs_wkt: str,
+    *,
+    nodata: float | None = None,
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> None:
     """Write a single-band georeferenced GeoTIFF, byte-reproducibly.
 
     Args:
@@ -153,9 +174,15 @@ def write_raster(path: str | os.PathLike[str], data: NDArray[np.generic], grid: 
     transform = Affine(grid.res, 0.0, grid.x0 + offset[0], 0.0, -grid.res, grid.y0 + offset[1])
     floating = np.issubdtype(data.dtype, np.floating)
     profile: dict[str, object] = {
-        "driver": "GTiff", "width": grid.cols, "height": grid.rows, "count": 1,
-        "dtype": data.dtype.name, "crs": rasterio.crs.CRS.from_wkt(crs_wkt),
-        "transform": transform, "compress": "deflate", "predictor": 3 if floating else 2,
+        "driver": "GTiff",
+        "width": grid.cols,
+        "height": grid.rows,
+        "count": 1,
+        "dtype": data.dtype.name,
+        "crs": rasterio.crs.CRS.from_wkt(crs_wkt),
+        "transform": transform,
+        "compress": "deflate",
+        "predictor": 3 if floating else 2,
     }
     if nodata is not None:
         profile["nodata"] = nodata

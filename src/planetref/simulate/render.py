@@ -48,8 +48,7 @@ F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
 
-def corner_rays(camera: LineScanCamera, ccd: str, lines: F64, samples: F64
-                ) -> tuple[F64, F64]:
+def corner_rays(camera: LineScanCamera, ccd: str, lines: F64, samples: F64) -> tuple[F64, F64]:
     """Rays of the grid ``lines x samples`` (continuous image coordinates).
 
     Equivalent to ``camera.look_rays`` on the meshgrid, but the exterior orientation is
@@ -69,16 +68,22 @@ def corner_rays(camera: LineScanCamera, ccd: str, lines: F64, samples: F64
     origin, rot = camera.exterior(np.asarray(lines, dtype=np.float64))
     x, y = c.focal_plane(np.asarray(samples, dtype=np.float64))
     io = camera.interior
-    v_cam = np.stack([x - io.x0_mm, y - io.y0_mm, np.full_like(x, -io.focal_length_mm)],
-                     axis=-1)
+    v_cam = np.stack([x - io.x0_mm, y - io.y0_mm, np.full_like(x, -io.focal_length_mm)], axis=-1)
     d = np.einsum("lij,sj->lsi", rot, v_cam)
     d /= np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2)[..., None]
     return origin, d
 
 
-def render_radiance(camera: LineScanCamera, ccd: str, terrain: GridTerrain,
-                    radiance: RadianceModel, enu: F64, line0: int, line1: int,
-                    supersample: int) -> F32:
+def render_radiance(
+    camera: LineScanCamera,
+    ccd: str,
+    terrain: GridTerrain,
+    radiance: RadianceModel,
+    enu: F64,
+    line0: int,
+    line1: int,
+    supersample: int,
+) -> F32:
     """Footprint-integrated radiance of image lines ``[line0, line1)`` (all samples).
 
     Args:
@@ -108,7 +113,8 @@ def render_radiance(camera: LineScanCamera, ccd: str, terrain: GridTerrain,
         bad = int(np.flatnonzero(~hits.hit)[0])
         raise GeometryError(
             f"the ray of corner (line {lines[bad // (ns + 1)]}, sample {bad % (ns + 1)}) of "
-            f"CCD {ccd} misses the truth DEM; enlarge site.margin_m")
+            f"CCD {ccd} misses the truth DEM; enlarge site.margin_m"
+        )
     gx = hits.x.reshape(nl + 1, ns + 1)
     gy = hits.y.reshape(nl + 1, ns + 1)
     # View vectors (ground -> camera) in the shading frame, one per pixel.
@@ -136,8 +142,9 @@ def render_radiance(camera: LineScanCamera, ccd: str, terrain: GridTerrain,
     return acc.reshape(nl, ns)
 
 
-def write_image_geotiff(path: str | os.PathLike[str], n_lines: int, n_samples: int,
-                        dtype: str) -> object:
+def write_image_geotiff(
+    path: str | os.PathLike[str], n_lines: int, n_samples: int, dtype: str
+) -> object:
     """Open a single-band GeoTIFF for writing an image without georeference.
 
     Deflate-compressed with horizontal differencing, 256 x 256 tiles when the image is
@@ -146,18 +153,32 @@ def write_image_geotiff(path: str | os.PathLike[str], n_lines: int, n_samples: i
     import rasterio
 
     profile: dict[str, object] = {
-        "driver": "GTiff", "width": n_samples, "height": n_lines, "count": 1,
-        "dtype": dtype, "compress": "deflate", "predictor": 2,
+        "driver": "GTiff",
+        "width": n_samples,
+        "height": n_lines,
+        "count": 1,
+        "dtype": dtype,
+        "compress": "deflate",
+        "predictor": 2,
     }
     if n_lines >= 256 and n_samples >= 256:
         profile.update(tiled=True, blockxsize=256, blockysize=256)
     return rasterio.open(path, "w", **profile)
 
 
-def render_ccd(camera: LineScanCamera, ccd: str, terrain: GridTerrain,
-               radiance: RadianceModel, enu: F64, sensor: SensorConfig, out_path: Path,
-               *, chunk_pixels: int, noise_seed: np.random.SeedSequence,
-               progress: Callable[[int], None] | None = None) -> dict[str, float]:
+def render_ccd(
+    camera: LineScanCamera,
+    ccd: str,
+    terrain: GridTerrain,
+    radiance: RadianceModel,
+    enu: F64,
+    sensor: SensorConfig,
+    out_path: Path,
+    *,
+    chunk_pixels: int,
+    noise_seed: np.random.SeedSequence,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, float]:
     """Render one CCD image and write it as a GeoTIFF (no georeference).
 
     Args:
@@ -197,11 +218,13 @@ def render_ccd(camera: LineScanCamera, ccd: str, terrain: GridTerrain,
             for a, child in zip(starts, children, strict=True):
                 b = min(n_lines, a + chunk)
                 ra, rb = max(0, a - halo), min(n_lines, b + halo)
-                rad = render_radiance(camera, ccd, terrain, radiance, enu, ra, rb,
-                                      sensor.supersample)
-                blurred = apply_psf(rad, sensor)[a - ra:a - ra + (b - a)]
-                e = with_noise(to_electrons(blurred, flat, sensor), sensor,
-                               np.random.default_rng(child))
+                rad = render_radiance(
+                    camera, ccd, terrain, radiance, enu, ra, rb, sensor.supersample
+                )
+                blurred = apply_psf(rad, sensor)[a - ra : a - ra + (b - a)]
+                e = with_noise(
+                    to_electrons(blurred, flat, sensor), sensor, np.random.default_rng(child)
+                )
                 dn = quantize(e, sensor)
                 ds.write(dn, 1, window=Window(0, a, n_samples, b - a))
                 total += float(dn.sum(dtype=np.float64))
@@ -210,5 +233,8 @@ def render_ccd(camera: LineScanCamera, ccd: str, terrain: GridTerrain,
                 n_pix += dn.size
                 if progress is not None:
                     progress(b - a)
-    return {"mean_dn": total / n_pix, "saturated_fraction": n_sat / n_pix,
-            "zero_fraction": n_zero / n_pix}
+    return {
+        "mean_dn": total / n_pix,
+        "saturated_fraction": n_sat / n_pix,
+        "zero_fraction": n_zero / n_pix,
+    }

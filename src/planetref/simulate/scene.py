@@ -46,9 +46,20 @@ from planetref.simulate.config import SimulationConfig
 __all__ = ["SceneModel", "SceneResult", "build_scene_model", "simulate_scene", "stream"]
 
 _STREAMS = {
-    "regional": 1, "fractal": 2, "plains": 3, "dunes": 4, "craters": 5, "ridges": 6,
-    "albedo": 7, "texture": 8, "ortho_noise": 9, "dem_noise": 10, "checkpoints": 11,
-    "consistency": 12, "strip": 100, "ccd_noise": 200,
+    "regional": 1,
+    "fractal": 2,
+    "plains": 3,
+    "dunes": 4,
+    "craters": 5,
+    "ridges": 6,
+    "albedo": 7,
+    "texture": 8,
+    "ortho_noise": 9,
+    "dem_noise": 10,
+    "checkpoints": 11,
+    "consistency": 12,
+    "strip": 100,
+    "ccd_noise": 200,
 }
 
 COARSE_FACTOR = 32
@@ -87,8 +98,9 @@ def _check_target(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a directory", path=out)
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError("directory exists and is not empty (use --overwrite to replace it)",
-                         path=out)
+        raise InputError(
+            "directory exists and is not empty (use --overwrite to replace it)", path=out
+        )
 
 
 def _commit(tmp: Path, out: Path) -> None:
@@ -102,9 +114,15 @@ def _commit(tmp: Path, out: Path) -> None:
         os.replace(tmp, out)
 
 
-def simulate_scene(config: SimulationConfig, out_dir: str | os.PathLike[str], *,
-                   overwrite: bool = False, preview: bool = False, progress: bool = False,
-                   log: Callable[[str], None] | None = None) -> SceneResult:
+def simulate_scene(
+    config: SimulationConfig,
+    out_dir: str | os.PathLike[str],
+    *,
+    overwrite: bool = False,
+    preview: bool = False,
+    progress: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> SceneResult:
     """Simulate a scene and write it to ``out_dir``.
 
     Args:
@@ -128,8 +146,9 @@ def simulate_scene(config: SimulationConfig, out_dir: str | os.PathLike[str], *,
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        result = _build(config, tmp, preview=preview, progress=progress,
-                        log=log or (lambda _m: None))
+        result = _build(
+            config, tmp, preview=preview, progress=progress, log=log or (lambda _m: None)
+        )
         _commit(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -139,8 +158,9 @@ def simulate_scene(config: SimulationConfig, out_dir: str | os.PathLike[str], *,
     return result
 
 
-def _footprint_bounds(cameras: list[Any], projection: Any, heights: tuple[float, float]
-                      ) -> tuple[float, float, float, float]:
+def _footprint_bounds(
+    cameras: list[Any], projection: Any, heights: tuple[float, float]
+) -> tuple[float, float, float, float]:
     """Map box of the image borders of all cameras at two heights."""
     xs, ys = [], []
     for cam in cameras:
@@ -164,8 +184,12 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(columns)
         for r in rows:
-            w.writerow([repr(float(r[k])) if isinstance(r[k], float | np.floating) else r[k]
-                        for k in columns])
+            w.writerow(
+                [
+                    repr(float(r[k])) if isinstance(r[k], float | np.floating) else r[k]
+                    for k in columns
+                ]
+            )
 
 
 @dataclass
@@ -239,8 +263,9 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
     from planetref.simulate.terrain import generate_terrain
 
     seed = cfg.seed
-    strips = [build_strip_cameras(cfg, s, stream(seed, "strip", i))
-              for i, s in enumerate(cfg.strips)]
+    strips = [
+        build_strip_cameras(cfg, s, stream(seed, "strip", i)) for i, s in enumerate(cfg.strips)
+    ]
     t = cfg.terrain
     local_wkt = local_crs_wkt(cfg.site.lat_deg, cfg.site.lon_deg)
     local = MapProjection(local_wkt)
@@ -259,27 +284,42 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
     sigma_m = cfg.reference.dem_smoothing_px * cfg.reference.dem_pixel_m
     cpad = 4 * coarse_res + 3.0 * sigma_m + cfg.reference.dem_pixel_m
     cb = box_in_crs(dem_grid.bounds, ref, local)
-    coarse_grid = MapGrid.covering(cb[0] - cpad, cb[1] - cpad, cb[2] + cpad, cb[3] + cpad,
-                                   coarse_res, align=coarse_res)
+    coarse_grid = MapGrid.covering(
+        cb[0] - cpad, cb[1] - cpad, cb[2] + cpad, cb[3] + cpad, coarse_res, align=coarse_res
+    )
     inner = 2 * res + 2 * cfg.reference.ortho_gsd_m
     ob = box_in_crs((gb[0] + inner, gb[1] + inner, gb[2] - inner, gb[3] - inner), local, ref)
     g = cfg.reference.ortho_gsd_m
     ox0, ox1 = math.ceil(ob[0] / g) * g, math.floor(ob[2] / g) * g
     oy1, oy0 = math.ceil(ob[1] / g) * g, math.floor(ob[3] / g) * g
     ortho_grid = MapGrid(ox0, oy0, g, round((oy0 - oy1) / g), round((ox1 - ox0) / g))
-    streams = {k: stream(seed, k) for k in
-               ("regional", "fractal", "plains", "dunes", "craters", "ridges", "albedo")}
+    streams = {
+        k: stream(seed, k)
+        for k in ("regional", "fractal", "plains", "dunes", "craters", "ridges", "albedo")
+    }
     terrain = generate_terrain(cfg, grid, coarse_grid, streams)
     dem = GridTerrain(terrain.height, grid.transform, local_wkt)
     tiles = TextureTiles(cfg.albedo, res, stream(seed, "texture"))
-    return SceneModel(cfg=cfg, strips=strips, local_wkt=local_wkt, local=local, ref=ref,
-                      grid=grid, coarse_grid=coarse_grid, dem_grid=dem_grid,
-                      ortho_grid=ortho_grid, terrain=terrain, dem=dem,
-                      enu=enu_basis(cfg.site.lat_deg, cfg.site.lon_deg), tiles=tiles)
+    return SceneModel(
+        cfg=cfg,
+        strips=strips,
+        local_wkt=local_wkt,
+        local=local,
+        ref=ref,
+        grid=grid,
+        coarse_grid=coarse_grid,
+        dem_grid=dem_grid,
+        ortho_grid=ortho_grid,
+        terrain=terrain,
+        dem=dem,
+        enu=enu_basis(cfg.site.lat_deg, cfg.site.lon_deg),
+        tiles=tiles,
+    )
 
 
-def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
-           log: Callable[[str], None]) -> SceneResult:
+def _build(
+    cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool, log: Callable[[str], None]
+) -> SceneResult:
     from tqdm import tqdm
 
     from planetref.simulate.manifest import (
@@ -314,9 +354,11 @@ def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
     strips, grid, terrain, dem, enu = sm.strips, sm.grid, sm.terrain, sm.dem, sm.enu
     ortho_grid, dem_grid, local, ref = sm.ortho_grid, sm.dem_grid, sm.local, sm.ref
     res = grid.res
-    log(f"truth DEM {grid.rows} x {grid.cols} at {res} m, ortho {ortho_grid.rows} x "
+    log(
+        f"truth DEM {grid.rows} x {grid.cols} at {res} m, ortho {ortho_grid.rows} x "
         f"{ortho_grid.cols} at {ortho_grid.res} m, reference DEM {dem_grid.rows} x "
-        f"{dem_grid.cols}, {len(terrain.craters)} craters")
+        f"{dem_grid.cols}, {len(terrain.craters)} craters"
+    )
     lap("terrain")
 
     # Line-scan images ---------------------------------------------------------------
@@ -325,8 +367,9 @@ def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
     total_lines = sum(c.n_lines for s in strips for c in s.truth.ccds)
     render_stats: dict[str, dict[str, dict[str, float]]] = {}
     strip_specs = []
-    with tqdm(total=total_lines, unit="line", desc="rendering", disable=not progress,
-              leave=False) as bar:
+    with tqdm(
+        total=total_lines, unit="line", desc="rendering", disable=not progress, leave=False
+    ) as bar:
         for i, s in enumerate(strips):
             sdir = root / "strips" / s.strip.id
             sdir.mkdir()
@@ -335,9 +378,17 @@ def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
             for k, c in enumerate(s.truth.ccds):
                 img = sdir / f"{c.name}.tif"
                 render_stats[s.strip.id][c.name] = render_ccd(
-                    s.truth, c.name, dem, model, enu, cfg.sensor, img,
+                    s.truth,
+                    c.name,
+                    dem,
+                    model,
+                    enu,
+                    cfg.sensor,
+                    img,
                     chunk_pixels=cfg.render.chunk_pixels,
-                    noise_seed=seed_sequence(seed, "ccd_noise", i, k), progress=bar.update)
+                    noise_seed=seed_sequence(seed, "ccd_noise", i, k),
+                    progress=bar.update,
+                )
                 ccd_specs.append((c.name, img))
             s.initial.to_json(sdir / "camera.json")
             specs = []
@@ -346,14 +397,23 @@ def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
                 if cfg.render.write_rpc:
                     from planetref.camera.rpc import MARS_BODY, fit_rpc, write_rpc
 
-                    rpc, rep = fit_rpc(s.initial, ccd=name, height_range_m=(
-                        dem.min_height_m - 100.0, dem.max_height_m + 100.0))
+                    rpc, rep = fit_rpc(
+                        s.initial,
+                        ccd=name,
+                        height_range_m=(dem.min_height_m - 100.0, dem.max_height_m + 100.0),
+                    )
                     render_stats[s.strip.id][name]["rpc_check_max_px"] = rep.check_max_px
                     write_rpc(rpc, sdir / f"{name}.RPB", body=MARS_BODY)
                     rpc_rel = f"strips/{s.strip.id}/{name}.RPB"
-                specs.append(CcdSpec(name=name, image=img.relative_to(root).as_posix(),
-                                     camera=f"strips/{s.strip.id}/camera.json",
-                                     camera_ccd=name, rpc=rpc_rel))
+                specs.append(
+                    CcdSpec(
+                        name=name,
+                        image=img.relative_to(root).as_posix(),
+                        camera=f"strips/{s.strip.id}/camera.json",
+                        camera_ccd=name,
+                        rpc=rpc_rel,
+                    )
+                )
             strip_specs.append(StripSpec(id=s.strip.id, ccds=tuple(specs)))
             s.truth.to_json(root / "truth" / f"{s.strip.id}.camera.json")
     del model
@@ -361,18 +421,37 @@ def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
 
     # Reference ortho and DEM ---------------------------------------------------------
     model = sm.radiance_model("reference")
-    with tqdm(total=ortho_grid.rows, unit="row", desc="reference ortho", disable=not progress,
-              leave=False) as bar:
-        ortho = render_ortho(ortho_grid, ref, local, model, cfg.reference,
-                             stream(seed, "ortho_noise"), progress=bar.update)
+    with tqdm(
+        total=ortho_grid.rows, unit="row", desc="reference ortho", disable=not progress, leave=False
+    ) as bar:
+        ortho = render_ortho(
+            ortho_grid,
+            ref,
+            local,
+            model,
+            cfg.reference,
+            stream(seed, "ortho_noise"),
+            progress=bar.update,
+        )
     del model
     ref_wkt = ref.crs.to_wkt()
-    write_raster(root / "reference" / "ortho.tif", ortho, ortho_grid, ref_wkt,
-                 offset=cfg.reference.ortho_offset_m)
-    ref_dem = reference_dem(dem_grid, ref, local, sm.coarse_grid, terrain.regional_composite,
-                            cfg.reference, stream(seed, "dem_noise"))
-    write_raster(root / "reference" / "dem.tif", ref_dem, dem_grid, ref_wkt,
-                 nodata=float("nan"))
+    write_raster(
+        root / "reference" / "ortho.tif",
+        ortho,
+        ortho_grid,
+        ref_wkt,
+        offset=cfg.reference.ortho_offset_m,
+    )
+    ref_dem = reference_dem(
+        dem_grid,
+        ref,
+        local,
+        sm.coarse_grid,
+        terrain.regional_composite,
+        cfg.reference,
+        stream(seed, "dem_noise"),
+    )
+    write_raster(root / "reference" / "dem.tif", ref_dem, dem_grid, ref_wkt, nodata=float("nan"))
     lap("reference")
 
     # Truth ---------------------------------------------------------------------------
@@ -382,54 +461,83 @@ def _build(cfg: SimulationConfig, root: Path, *, preview: bool, progress: bool,
     for i, s in enumerate(strips):
         frame = s.orbit.frame(np.zeros(1))[0]
         errors[s.strip.id] = {
-            "initial_errors": measure_initial_errors(s.truth, s.initial, dem, frame,
-                                                     cfg.render.measure_grid),
-            "consistency": measure_consistency(s.truth, dem, 8,
-                                               stream(seed, "consistency", i)),
+            "initial_errors": measure_initial_errors(
+                s.truth, s.initial, dem, frame, cfg.render.measure_grid
+            ),
+            "consistency": measure_consistency(s.truth, dem, 8, stream(seed, "consistency", i)),
             "facts": s.facts,
-            "jitter": [{"axis": a, "amplitude_urad": amp, "frequency_hz": f, "phase_rad": ph}
-                       for a, amp, f, ph in s.jitter],
+            "jitter": [
+                {"axis": a, "amplitude_urad": amp, "frequency_hz": f, "phase_rad": ph}
+                for a, amp, f, ph in s.jitter
+            ],
             "render": render_stats[s.strip.id],
         }
         if cfg.render.n_checkpoints:
-            cp_rows += checkpoints(s.truth, dem, s.strip.id, cfg.render.n_checkpoints,
-                                   stream(seed, "checkpoints", i))
-    errors["truth_dem"] = {"rows": grid.rows, "cols": grid.cols, "gsd_m": res,
-                           "min_height_m": dem.min_height_m, "max_height_m": dem.max_height_m,
-                           "n_craters": len(terrain.craters)}
-    (root / "truth" / "errors.json").write_text(json.dumps(errors, indent=1, sort_keys=True)
-                                                + "\n", encoding="utf-8")
-    _write_csv(root / "truth" / "checkpoints.csv", cp_rows,
-               ["strip", "ccd", "line", "sample", "x_m", "y_m", "z_m", "lon_deg", "lat_deg",
-                "height_m"])
+            cp_rows += checkpoints(
+                s.truth, dem, s.strip.id, cfg.render.n_checkpoints, stream(seed, "checkpoints", i)
+            )
+    errors["truth_dem"] = {
+        "rows": grid.rows,
+        "cols": grid.cols,
+        "gsd_m": res,
+        "min_height_m": dem.min_height_m,
+        "max_height_m": dem.max_height_m,
+        "n_craters": len(terrain.craters),
+    }
+    (root / "truth" / "errors.json").write_text(
+        json.dumps(errors, indent=1, sort_keys=True) + "\n", encoding="utf-8"
+    )
+    _write_csv(
+        root / "truth" / "checkpoints.csv",
+        cp_rows,
+        ["strip", "ccd", "line", "sample", "x_m", "y_m", "z_m", "lon_deg", "lat_deg", "height_m"],
+    )
     cr = terrain.craters
     lon, lat = local.map_to_lonlat(cr.x, cr.y)
-    _write_csv(root / "truth" / "craters.csv",
-               [{"x_m": cr.x[j], "y_m": cr.y[j], "lon_deg": lon[j], "lat_deg": lat[j],
-                 "diameter_m": cr.diameter_m[j], "degradation": cr.degradation[j]}
-                for j in range(len(cr))],
-               ["x_m", "y_m", "lon_deg", "lat_deg", "diameter_m", "degradation"])
+    _write_csv(
+        root / "truth" / "craters.csv",
+        [
+            {
+                "x_m": cr.x[j],
+                "y_m": cr.y[j],
+                "lon_deg": lon[j],
+                "lat_deg": lat[j],
+                "diameter_m": cr.diameter_m[j],
+                "degradation": cr.degradation[j],
+            }
+            for j in range(len(cr))
+        ],
+        ["x_m", "y_m", "lon_deg", "lat_deg", "diameter_m", "degradation"],
+    )
     import tomli_w
 
     (root / "truth" / "config.toml").write_text(
         "# the configuration that made this scene (planetref simulate --config)\n"
-        + tomli_w.dumps(cfg.model_dump(mode="json", exclude_none=True)), encoding="utf-8")
+        + tomli_w.dumps(cfg.model_dump(mode="json", exclude_none=True)),
+        encoding="utf-8",
+    )
     lap("truth")
 
     manifest = SceneManifest(
         name=cfg.name,
         reference=ReferenceSpec(ortho="reference/ortho.tif", dem="reference/dem.tif"),
         strips=tuple(strip_specs),
-        truth=TruthSpec(dem="truth/dem.tif",
-                        cameras={s.strip.id: f"truth/{s.strip.id}.camera.json" for s in strips},
-                        ortho_offset_m=cfg.reference.ortho_offset_m,
-                        checkpoints="truth/checkpoints.csv", errors="truth/errors.json",
-                        craters="truth/craters.csv", config="truth/config.toml"))
+        truth=TruthSpec(
+            dem="truth/dem.tif",
+            cameras={s.strip.id: f"truth/{s.strip.id}.camera.json" for s in strips},
+            ortho_offset_m=cfg.reference.ortho_offset_m,
+            checkpoints="truth/checkpoints.csv",
+            errors="truth/errors.json",
+            craters="truth/craters.csv",
+            config="truth/config.toml",
+        ),
+    )
     write_manifest(manifest, root / "scene.toml")
     if preview:
         from planetref.simulate.preview import write_preview
 
         write_preview(root, root / "preview.png")
         lap("preview")
-    return SceneResult(root=root, manifest_path=root / "scene.toml", errors=errors,
-                       timings_s=timings)
+    return SceneResult(
+        root=root, manifest_path=root / "scene.toml", errors=errors, timings_s=timings
+    )

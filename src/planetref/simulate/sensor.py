@@ -45,15 +45,17 @@ def apply_psf(image: NDArray[np.floating], sensor: SensorConfig) -> NDArray[np.f
     return gaussian_filter(img, sensor.mtf_sigma_px, mode="nearest", truncate=4.0)
 
 
-def to_electrons(radiance: NDArray[np.floating], flat_radiance: float,
-                 sensor: SensorConfig) -> NDArray[np.float32]:
+def to_electrons(
+    radiance: NDArray[np.floating], flat_radiance: float, sensor: SensorConfig
+) -> NDArray[np.float32]:
     """Mean signal in electrons (before noise)."""
     scale = np.float32(sensor.mean_signal_e / flat_radiance)
     return np.asarray(radiance, dtype=np.float32) * scale
 
 
-def with_noise(electrons: NDArray[np.float32], sensor: SensorConfig,
-               rng: np.random.Generator) -> NDArray[np.float32]:
+def with_noise(
+    electrons: NDArray[np.float32], sensor: SensorConfig, rng: np.random.Generator
+) -> NDArray[np.float32]:
     """Add photon (Poisson, Gaussian approximation) and read noise."""
     e = np.maximum(electrons, 0.0)
     sigma = np.sqrt(e + np.float32(sensor.read_noise_e) ** 2)

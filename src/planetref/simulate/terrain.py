@@ -54,9 +54,15 @@ F64 = NDArray[np.float64]
 
 
 # ------------------------------------------------------------------------ noise fields
-def fractal_field(shape: tuple[int, int], res_m: float, rng: np.random.Generator, *,
-                  hurst: float, min_wavelength_m: float | None = None,
-                  max_wavelength_m: float | None = None) -> F32:
+def fractal_field(
+    shape: tuple[int, int],
+    res_m: float,
+    rng: np.random.Generator,
+    *,
+    hurst: float,
+    min_wavelength_m: float | None = None,
+    max_wavelength_m: float | None = None,
+) -> F32:
     """A zero-mean, unit-RMS fractal (fBm-like) surface by spectral synthesis.
 
     The amplitude spectrum is ``k^-(H+1)`` (power ``k^-(2H+2)``), rolled off smoothly
@@ -117,8 +123,7 @@ def smooth_noise(grid: MapGrid, feature_size_m: float, rng: np.random.Generator)
     return cubic_resample(field, coarse, grid)
 
 
-def smooth_noise_at(grid: MapGrid, feature_size_m: float, rng: np.random.Generator
-                    ) -> object:
+def smooth_noise_at(grid: MapGrid, feature_size_m: float, rng: np.random.Generator) -> object:
     """Like :func:`smooth_noise`, but a function ``f(x, y)`` evaluating it at map points.
 
     The coarse field is interpolated bilinearly, so memory is spent only where the noise
@@ -152,8 +157,12 @@ def soft_mask(noise: F32, fraction: float, width: float = 0.35) -> F32:
         return np.zeros_like(noise, dtype=np.float32)
     if fraction >= 1:
         return np.ones_like(noise, dtype=np.float32)
-    thr = float(np.quantile(noise[:: max(1, noise.shape[0] // 256),
-                                  :: max(1, noise.shape[1] // 256)], 1.0 - fraction))
+    thr = float(
+        np.quantile(
+            noise[:: max(1, noise.shape[0] // 256), :: max(1, noise.shape[1] // 256)],
+            1.0 - fraction,
+        )
+    )
     t = noise.astype(np.float32, copy=True)
     t -= np.float32(thr)
     t *= np.float32(1.0 / width)
@@ -192,9 +201,12 @@ class CraterPopulation:
         return self.degradation == 0.0
 
 
-def sample_crater_population(cfg: TerrainConfig, bounds: tuple[float, float, float, float],
-                             rng: np.random.Generator,
-                             keep_probability: object = None) -> CraterPopulation:
+def sample_crater_population(
+    cfg: TerrainConfig,
+    bounds: tuple[float, float, float, float],
+    rng: np.random.Generator,
+    keep_probability: object = None,
+) -> CraterPopulation:
     """Draw craters with a truncated power-law SFD over a map box.
 
     Centres are uniform over ``bounds`` grown by ``0.75 * d_max_m`` (so craters centred
@@ -229,8 +241,9 @@ def sample_crater_population(cfg: TerrainConfig, bounds: tuple[float, float, flo
     return CraterPopulation(x[keep][order], y[keep][order], d[keep][order], degr[keep][order])
 
 
-def crater_profile(rho: F64, *, depth_ratio: float, rim_ratio: float, diameter_m: float,
-                   degradation: float) -> F64:
+def crater_profile(
+    rho: F64, *, depth_ratio: float, rim_ratio: float, diameter_m: float, degradation: float
+) -> F64:
     """Height (m) of a crater relative to the pre-impact surface at normalised radii.
 
     Args:
@@ -261,8 +274,15 @@ def crater_profile(rho: F64, *, depth_ratio: float, rim_ratio: float, diameter_m
     return out
 
 
-def _stamp_craters(height: F32, albedo_mod: F32, grid: MapGrid, pop: CraterPopulation,
-                   cfg: TerrainConfig, halo: float, rng: np.random.Generator) -> None:
+def _stamp_craters(
+    height: F32,
+    albedo_mod: F32,
+    grid: MapGrid,
+    pop: CraterPopulation,
+    cfg: TerrainConfig,
+    halo: float,
+    rng: np.random.Generator,
+) -> None:
     """Add crater relief to ``height`` and relative albedo changes to ``albedo_mod``."""
     c = cfg.craters
     res = grid.res
@@ -288,8 +308,9 @@ def _stamp_craters(height: F32, albedo_mod: F32, grid: MapGrid, pop: CraterPopul
         for j in range(4):
             wobble += harm[j] * np.cos((j + 2) * theta + phase[j])
         rho = dist / (r * wobble)
-        prof = crater_profile(rho, depth_ratio=c.depth_diameter, rim_ratio=c.rim_diameter,
-                              diameter_m=d, degradation=k)
+        prof = crater_profile(
+            rho, depth_ratio=c.depth_diameter, rim_ratio=c.rim_diameter, diameter_m=d, degradation=k
+        )
         height[r0:r1, c0:c1] += prof.astype(np.float32)
         if k == 0.0 and halo > 0:
             # Fresh ejecta and walls are brighter (less dust, exposed blocks).
@@ -297,13 +318,13 @@ def _stamp_craters(height: F32, albedo_mod: F32, grid: MapGrid, pop: CraterPopul
             albedo_mod[r0:r1, c0:c1] += bright.astype(np.float32)
         elif k > 0.4:
             # Dust and sand collect on old crater floors.
-            albedo_mod[r0:r1, c0:c1] -= (0.06 * k * np.clip(1.0 - rho, 0.0, 1.0)).astype(
-                np.float32)
+            albedo_mod[r0:r1, c0:c1] -= (0.06 * k * np.clip(1.0 - rho, 0.0, 1.0)).astype(np.float32)
 
 
 # ---------------------------------------------------------------------- ridges, dunes
-def _wrinkle_ridges(height: F32, grid: MapGrid, cfg: TerrainConfig,
-                    rng: np.random.Generator) -> None:
+def _wrinkle_ridges(
+    height: F32, grid: MapGrid, cfg: TerrainConfig, rng: np.random.Generator
+) -> None:
     rcfg = cfg.ridges
     if rcfg.count == 0 or rcfg.height_m == 0:
         return
@@ -321,7 +342,7 @@ def _wrinkle_ridges(height: F32, grid: MapGrid, cfg: TerrainConfig,
         ct, st = np.float32(math.cos(theta)), np.float32(math.sin(theta))
         k = [np.float32(2 * np.pi / v) for v in lam]
         for a in range(0, grid.rows, 256):  # row blocks bound the temporaries
-            xs, ys = xs_all - np.float32(px), ys_all[a:a + 256] - np.float32(py)
+            xs, ys = xs_all - np.float32(px), ys_all[a : a + 256] - np.float32(py)
             u = xs * ct + ys * st
             v = -xs * st + ys * ct
             v -= np.float32(amp[0]) * np.sin(u * k[0] + np.float32(ph[0]))
@@ -331,11 +352,10 @@ def _wrinkle_ridges(height: F32, grid: MapGrid, cfg: TerrainConfig,
             vc = v - np.float32(0.2) * w
             crest_w = np.where(vc > 0, np.float32(0.1) * w, np.float32(0.28) * w)
             crest = np.float32(0.65) * np.exp(-((vc / crest_w) ** 2))
-            height[a:a + 256] += np.float32(rcfg.height_m) * (arch + crest) * along
+            height[a : a + 256] += np.float32(rcfg.height_m) * (arch + crest) * along
 
 
-def _dune_relief(grid: MapGrid, mask: F32, cfg: TerrainConfig, rng: np.random.Generator
-                 ) -> F32:
+def _dune_relief(grid: MapGrid, mask: F32, cfg: TerrainConfig, rng: np.random.Generator) -> F32:
     """Heights of transverse dunes (two self-similar generations) inside ``mask``."""
     dcfg = cfg.dunes
     out = np.zeros(grid.shape, dtype=np.float32)
@@ -349,7 +369,7 @@ def _dune_relief(grid: MapGrid, mask: F32, cfg: TerrainConfig, rng: np.random.Ge
         amp_mod = smooth_noise_at(grid, 6.0 * lam, rng)
         gens.append((lam, az, hfac, warp, amp_mod))
     for a in range(0, grid.rows, 256):  # row blocks bound the temporaries
-        sub_mask = mask[a:a + 256]
+        sub_mask = mask[a : a + 256]
         rows, cols = np.nonzero(sub_mask > 0)
         if rows.size == 0:
             continue
@@ -363,8 +383,7 @@ def _dune_relief(grid: MapGrid, mask: F32, cfg: TerrainConfig, rng: np.random.Ge
             stoss = 0.75
             prof = np.where(f < stoss, f / stoss, (1.0 - f) / (1.0 - stoss))
             prof = prof * prof * (3.0 - 2.0 * prof)  # round crests and troughs
-            total += dcfg.height_m * hfac * prof * np.clip(
-                0.75 + 0.25 * amp_mod(x, y), 0.2, 1.3)  # type: ignore[operator]
+            total += dcfg.height_m * hfac * prof * np.clip(0.75 + 0.25 * amp_mod(x, y), 0.2, 1.3)  # type: ignore[operator]
         out[a + rows, cols] = (total * sub_mask[rows, cols]).astype(np.float32)
     return out
 
@@ -422,18 +441,22 @@ def _block_mean_into(coarse: F64, coarse_grid: MapGrid, fine: F32, fine_grid: Ma
         lo, hi = max(r, 0), min(r + factor, fine_grid.rows)
         row[:] = 0.0
         cnt[:] = 0.0
-        row[lo - r:hi - r, left:left + fine_grid.cols] = fine[lo:hi]
-        cnt[lo - r:hi - r, left:left + fine_grid.cols] = 1.0
+        row[lo - r : hi - r, left : left + fine_grid.cols] = fine[lo:hi]
+        cnt[lo - r : hi - r, left : left + fine_grid.cols] = 1.0
         s = row.reshape(factor, n_cb, factor).sum(axis=(0, 2))
         n = cnt.reshape(factor, n_cb, factor).sum(axis=(0, 2))
         mean = np.where(n > 0, s / np.maximum(n, 1.0), 0.0)
         br = (r_off + r) // factor
-        coarse[br, bc:bc + n_cb] += (n / (factor * factor)) * mean
+        coarse[br, bc : bc + n_cb] += (n / (factor * factor)) * mean
         r += factor
 
 
-def generate_terrain(cfg: SimulationConfig, grid: MapGrid, regional_grid: MapGrid,
-                     streams: dict[str, np.random.Generator]) -> TruthTerrain:
+def generate_terrain(
+    cfg: SimulationConfig,
+    grid: MapGrid,
+    regional_grid: MapGrid,
+    streams: dict[str, np.random.Generator],
+) -> TruthTerrain:
     """Synthesise the truth terrain.
 
     Args:
@@ -449,27 +472,39 @@ def generate_terrain(cfg: SimulationConfig, grid: MapGrid, regional_grid: MapGri
     """
     t = cfg.terrain
     # Regional relief on the coarse grid (also the reference DEM's source).
-    regional = fractal_field(regional_grid.shape, regional_grid.res, streams["regional"],
-                             hurst=t.regional.hurst,
-                             min_wavelength_m=t.regional.min_wavelength_m).astype(np.float64)
+    regional = fractal_field(
+        regional_grid.shape,
+        regional_grid.res,
+        streams["regional"],
+        hurst=t.regional.hurst,
+        min_wavelength_m=t.regional.min_wavelength_m,
+    ).astype(np.float64)
     regional *= t.regional.rms_m
 
-    plains = soft_mask(smooth_noise(grid, t.plains.feature_size_m, streams["plains"]),
-                       t.plains.fraction)
+    plains = soft_mask(
+        smooth_noise(grid, t.plains.feature_size_m, streams["plains"]), t.plains.fraction
+    )
     if t.dunes.enabled:
-        dunes = soft_mask(smooth_noise(grid, t.dunes.feature_size_m, streams["dunes"]),
-                          t.dunes.fraction).astype(np.float16)
+        dunes = soft_mask(
+            smooth_noise(grid, t.dunes.feature_size_m, streams["dunes"]), t.dunes.fraction
+        ).astype(np.float16)
     else:
         dunes = np.zeros(grid.shape, dtype=np.float16)
     plains = plains.astype(np.float16)
 
     # Fine relief (zero mean): fractal scaled down on plains, ridges, craters, dunes.
-    height = fractal_field(grid.shape, grid.res, streams["fractal"], hurst=t.fractal.hurst,
-                           max_wavelength_m=t.fractal.max_wavelength_m)
+    height = fractal_field(
+        grid.shape,
+        grid.res,
+        streams["fractal"],
+        hurst=t.fractal.hurst,
+        max_wavelength_m=t.fractal.max_wavelength_m,
+    )
     rough_loss = np.float32(1.0 - t.plains.roughness_factor)
     for a in range(0, grid.rows, 512):
-        height[a:a + 512] *= np.float32(t.fractal.rms_m) * (
-            np.float32(1.0) - rough_loss * plains[a:a + 512])
+        height[a : a + 512] *= np.float32(t.fractal.rms_m) * (
+            np.float32(1.0) - rough_loss * plains[a : a + 512]
+        )
     _wrinkle_ridges(height, grid, t, streams["ridges"])
 
     def keep(x: F64, y: F64) -> F64:
@@ -480,8 +515,7 @@ def generate_terrain(cfg: SimulationConfig, grid: MapGrid, regional_grid: MapGri
 
     craters = sample_crater_population(t, grid.bounds, streams["craters"], keep)
     albedo = np.zeros(grid.shape, dtype=np.float32)  # relative crater albedo changes first
-    _stamp_craters(height, albedo, grid, craters, t, cfg.albedo.crater_halo,
-                   streams["craters"])
+    _stamp_craters(height, albedo, grid, craters, t, cfg.albedo.crater_halo, streams["craters"])
     # Dunes sit on top of everything (sand fills lows and crater floors alike).
     height += _dune_relief(grid, dunes.astype(np.float32), t, streams["dunes"])
 
@@ -505,13 +539,22 @@ def generate_terrain(cfg: SimulationConfig, grid: MapGrid, regional_grid: MapGri
         base *= np.float32(1.0) - dune_loss * d
         base *= np.float32(1.0) + albedo[sl]
         albedo[sl] = np.clip(np.float32(a_cfg.mean) * base, 0.02, 0.9)
-        albedo_ref[sl] = np.clip(albedo[sl] * (np.float32(1.0) + np.float32(
-            a_cfg.reference_change) * change[sl]), 0.02, 0.9)
-        texture[sl] = np.clip(np.float32(1.0) - rough_loss * p - np.float32(0.5) * d,
-                              0.05, 1.0)
+        albedo_ref[sl] = np.clip(
+            albedo[sl] * (np.float32(1.0) + np.float32(a_cfg.reference_change) * change[sl]),
+            0.02,
+            0.9,
+        )
+        texture[sl] = np.clip(np.float32(1.0) - rough_loss * p - np.float32(0.5) * d, 0.05, 1.0)
     del variation, change
-    return TruthTerrain(grid=grid, height=height.astype(np.float32, copy=False),
-                        albedo=albedo.astype(np.float16), albedo_reference=albedo_ref,
-                        texture_amplitude=texture, plains=plains, dunes=dunes,
-                        craters=craters,
-                        regional_grid=regional_grid, regional_composite=composite)
+    return TruthTerrain(
+        grid=grid,
+        height=height.astype(np.float32, copy=False),
+        albedo=albedo.astype(np.float16),
+        albedo_reference=albedo_ref,
+        texture_amplitude=texture,
+        plains=plains,
+        dunes=dunes,
+        craters=craters,
+        regional_grid=regional_grid,
+        regional_composite=composite,
+    )
