@@ -137,6 +137,24 @@ def _figure(
     _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"), ".png.tmp")
 
 
+def _refined(matches, img0, valid0, img1, valid1, method: str):
+    """Refine ``matches`` in place of their image-1 points; drop the failures."""
+    from planetref.matching.base import Matches
+    from planetref.matching.refine import RefineConfig, refine_matches
+
+    res = refine_matches(
+        img0,
+        img1,
+        matches.keypoints0,
+        matches.keypoints1,
+        RefineConfig(method=method),  # type: ignore[arg-type]
+        valid0,
+        valid1,
+    )
+    kept = Matches(matches.keypoints0, res.points1, matches.confidence).select(res.ok)
+    return kept, res.counts()
+
+
 @click.command("matchers")
 @click.option(
     "--weights-dir",
@@ -242,6 +260,15 @@ def matchers_command(weights_dir: str | None, as_json: bool) -> None:
     type=click.FloatRange(min=0, min_open=True),
     help="Inlier threshold of the verification (pixels).",
 )
+@click.option(
+    "--refine",
+    "refine",
+    default="none",
+    show_default=True,
+    type=click.Choice(["none", "lsm", "ncc"]),
+    help="Sub-pixel refinement of the verified matches (least-squares matching with NCC "
+    "fallback, or NCC alone); matches whose refinement fails are dropped.",
+)
 def match_command(
     image0: str,
     image1: str,
@@ -254,11 +281,13 @@ def match_command(
     overlap: int,
     model: str,
     threshold: float,
+    refine: str,
 ) -> None:
     """Match IMAGE0 against IMAGE1 and write the verified matches to a CSV.
 
     Coordinates are pixels of each image (x = column, first pixel centre at 0.5, 0.5).
-    Prints one JSON line: {"matcher", "ncp", "seconds"}.
+    Prints one JSON line: {"matcher", "ncp", "seconds", "refine"} where "refine" counts the
+    refined matches per method and the drops per reason (empty without --refine).
     """
     from planetref.matching.ransac import verify_matches
     from planetref.matching.tiling import match_tiled
@@ -277,6 +306,9 @@ def match_command(
         )
         verdict = verify_matches(found, model, threshold=threshold)  # type: ignore[arg-type]
         inliers = found.select(verdict.inliers)
+        refine_counts: dict[str, int] = {}
+        if refine != "none" and len(inliers):
+            inliers, refine_counts = _refined(inliers, img0, valid0, img1, valid1, refine)
         if len(inliers) == 0:
             raise MatchingError(
                 f"no verified matches between {image0} and {image1} with matcher {matcher_name} "
@@ -300,5 +332,12 @@ def match_command(
         raise click.ClickException(f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
     seconds = time.perf_counter() - start
     click.echo(
-        json.dumps({"matcher": matcher_name, "ncp": len(inliers), "seconds": round(seconds, 3)})
+        json.dumps(
+            {
+                "matcher": matcher_name,
+                "ncp": len(inliers),
+                "seconds": round(seconds, 3),
+                "refine": refine_counts,
+            }
+        )
     )
