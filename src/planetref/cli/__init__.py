@@ -31,6 +31,7 @@ COMMANDS: dict[str, str] = {
     "georef": "planetref.cli.georef:georef_command",
     "compare": "planetref.cli.georef:compare_command",
     "demo": "planetref.cli.georef:demo_command",
+    "weights": "planetref.cli.weights:weights_group",
 }
 
 log = logging.getLogger("planetref")

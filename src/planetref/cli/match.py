@@ -165,6 +165,7 @@ def _refined(matches, img0, valid0, img1, valid1, method: str):
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def matchers_command(weights_dir: str | None, as_json: bool) -> None:
     """List every matcher, its paradigm and whether its weights are present."""
+    from planetref.matching.weights import fix_command
     from planetref.matching.weights import weights_dir as resolve_dir
 
     rows = []
@@ -178,6 +179,10 @@ def matchers_command(weights_dir: str | None, as_json: bool) -> None:
                 "weights": list(spec.weights),
                 "present": avail.present,
                 "missing": list(avail.missing),
+                "fix": f"planetref weights download {spec.name}"
+                + (" --unverified" if "--unverified" in fix_command(avail.missing) else "")
+                if avail.missing
+                else None,
             }
         )
     if as_json:
@@ -194,8 +199,9 @@ def matchers_command(weights_dir: str | None, as_json: bool) -> None:
         elif r["present"]:
             status = "ready"
         else:
-            status = "missing: " + ", ".join(r["missing"])
+            status = "missing: " + ", ".join(r["missing"]) + f"  -> {r['fix']}"
         click.echo(f"{r['name']:<{width}}  {r['paradigm']:<{pwidth}}  {status}")
+    click.echo("weight files, sha256, URLs and licences: planetref weights list")
 
 
 @click.command("match")

