@@ -146,11 +146,7 @@ def where_command(weights_dir: str | None) -> None:
         "then the packages of planetref[weights]"
     )
     packages = sorted(
-        {
-            info.packaged[0]
-            for n, info in WEIGHT_FILES.items()
-            if info.packaged and packaged_path(n)
-        }
+        {info.packaged[0] for n, info in WEIGHT_FILES.items() if info.packaged and packaged_path(n)}
     )
     click.echo(f"packages with weights: {', '.join(packages) or 'none installed'}")
 
