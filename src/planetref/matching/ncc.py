@@ -147,6 +147,10 @@ class NccMatcher(BaseMatcher):
         subpixel: ``"quadratic"`` (2-D least-squares quadratic on 3x3) or ``"parabola"``.
         initial_offset: Predicted displacement ``(dx, dy)`` of image 1 relative to image 0,
             pixels; the search is centred there.
+        dense_spacing_px: Dense mode: image 0 is cut into cells of this many pixels and
+            each cell contributes one template, centred on its most textured usable pixel
+            (largest template standard deviation, at least ``min_std``). ``None``: templates
+            on the regular ``spacing`` grid.
 
     Raises:
         InputError: A parameter out of range.
@@ -165,8 +169,12 @@ class NccMatcher(BaseMatcher):
         ambiguity_ratio: float = 0.9,
         subpixel: Subpixel = "quadratic",
         initial_offset: tuple[float, float] = (0.0, 0.0),
+        dense_spacing_px: int | None = None,
     ) -> None:
         super().__init__()
+        if dense_spacing_px is not None and int(dense_spacing_px) < 1:
+            raise InputError(f"must be >= 1, got {dense_spacing_px}", field="dense_spacing_px")
+        self.dense_spacing_px = None if dense_spacing_px is None else int(dense_spacing_px)
         if int(template_radius) < 2:
             raise InputError(f"must be >= 2, got {template_radius}", field="template_radius")
         if int(spacing) < 1:
@@ -203,6 +211,23 @@ class NccMatcher(BaseMatcher):
         rr, cc = np.meshgrid(axes[0], axes[1], indexing="ij")
         return rr.ravel(), cc.ravel()
 
+    def _dense_grid(
+        self, std: NDArray[np.float64], usable: NDArray[np.bool_]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """One template per ``dense_spacing_px`` cell: its most textured usable pixel."""
+        s = int(self.dense_spacing_px)  # type: ignore[arg-type]
+        h, w = std.shape
+        score = np.where(usable, std, -1.0)
+        hc, wc = -(-h // s), -(-w // s)
+        padded = np.full((hc * s, wc * s), -1.0)
+        padded[:h, :w] = score
+        cells = padded.reshape(hc, s, wc, s).transpose(0, 2, 1, 3).reshape(hc, wc, s * s)
+        best = cells.argmax(axis=2)
+        ok = np.take_along_axis(cells, best[..., None], axis=2)[..., 0] >= self.min_std
+        ci, cj = np.nonzero(ok)
+        di, dj = np.divmod(best[ci, cj], s)
+        return ci * s + di, cj * s + dj
+
     def _match_normalised(
         self,
         image0: NDArray[np.float32],
@@ -214,33 +239,117 @@ class NccMatcher(BaseMatcher):
         with self._timed("forward"):
             std0, bad0 = _box_stats(image0, valid0, t)
             _, bad1 = _box_stats(image1, valid1, t)
-            rows, cols = self._grid(image0.shape)
-            keep = (std0[rows, cols] >= self.min_std) & ~bad0[rows, cols]
-            rows, cols = rows[keep], cols[keep]
+            h0, w0 = image0.shape
+            rr, cc = np.mgrid[0:h0, 0:w0]
+            usable = ~bad0 & (rr >= t) & (rr < h0 - t) & (cc >= t) & (cc < w0 - t)
+            if self.dense_spacing_px is None:
+                rows, cols = self._grid(image0.shape)
+                keep = (std0[rows, cols] >= self.min_std) & usable[rows, cols]
+                rows, cols = rows[keep], cols[keep]
+            else:
+                rows, cols = self._dense_grid(std0, usable)
             dx0, dy0 = self.initial_offset
-            k0, k1, conf = [], [], []
-            for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
-                hit = _correlate(
-                    image0,
-                    image1,
-                    bad1,
-                    r,
-                    c,
-                    round(r + dy0),
-                    round(c + dx0),
-                    t,
-                    self.search_radius,
-                    self.min_ncc,
-                    self.ambiguity_ratio,
-                    self.subpixel,
-                )
-                if hit is not None:
-                    k0.append((c + 0.5, r + 0.5))
-                    k1.append(hit[:2])
-                    conf.append(hit[2])
-        if not k0:
+            out = correlate_batch(
+                image0,
+                image1,
+                bad1,
+                rows,
+                cols,
+                np.round(rows + dy0).astype(np.int64),
+                np.round(cols + dx0).astype(np.int64),
+                self,
+            )
+        x1, y1, conf, ok = out
+        if not ok.any():
             return Matches.empty()
-        return Matches(np.asarray(k0), np.asarray(k1), np.asarray(conf))
+        k0 = np.column_stack([cols[ok] + 0.5, rows[ok] + 0.5])
+        return Matches(k0, np.column_stack([x1[ok], y1[ok]]), conf[ok])
+
+
+#: Templates correlated together by :func:`correlate_batch` (memory ~ CHUNK x window^2 x 8 B).
+CHUNK = 512
+
+
+def correlate_batch(
+    image0: NDArray[np.float32],
+    image1: NDArray[np.float32],
+    bad1: NDArray[np.bool_],
+    r0: NDArray[np.int64],
+    c0: NDArray[np.int64],
+    r1: NDArray[np.int64],
+    c1: NDArray[np.int64],
+    settings: NccMatcher,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Vectorised template search: the batched equivalent of :func:`_correlate`.
+
+    Template ``n`` is centred on image-0 pixel ``(r0[n], c0[n])`` and searched around image-1
+    pixel ``(r1[n], c1[n])`` within ``settings.search_radius``; candidate centres whose window
+    leaves image 1 or touches an invalid pixel (``bad1``) are excluded. Peak, ambiguity and
+    sub-pixel rules are those of :class:`NccMatcher`.
+
+    Returns:
+        ``(x1, y1, ncc, ok)`` per template, corner-convention pixels.
+    """
+    from scipy import ndimage
+
+    from planetref.matching.correlation import quadratic_peaks, zncc_surfaces
+
+    t, radius = settings.template_radius, settings.search_radius
+    n = len(r0)
+    x1 = np.zeros(n)
+    y1 = np.zeros(n)
+    conf = np.zeros(n)
+    ok = np.zeros(n, bool)
+    if n == 0:
+        return x1, y1, conf, ok
+    side, big, span = 2 * t + 1, 2 * (t + radius) + 1, 2 * radius + 1
+    m = t + radius
+    img1 = np.pad(image1.astype(np.float64), m, mode="edge")
+    # a candidate centre is usable when its window is inside image 1 and all valid
+    h1, w1 = image1.shape
+    rr, cc = np.mgrid[0:h1, 0:w1]
+    inside = (rr >= t) & (rr < h1 - t) & (cc >= t) & (cc < w1 - t)
+    blocked = np.pad(bad1 | ~inside, radius, constant_values=True)
+    ko = np.arange(side)
+    kw = np.arange(big)
+    ks = np.arange(span)
+    reachable = (r1 >= 0) & (r1 < h1) & (c1 >= 0) & (c1 < w1)
+    r1 = np.clip(r1, 0, h1 - 1)
+    c1 = np.clip(c1, 0, w1 - 1)
+    for start in range(0, n, CHUNK):
+        sl = slice(start, min(n, start + CHUNK))
+        templ = image0[(r0[sl] - t)[:, None, None] + ko[:, None], (c0[sl] - t)[:, None, None] + ko]
+        # search window rows r1 - radius - t ... r1 + radius + t, in padded coordinates (+m)
+        win = img1[r1[sl][:, None, None] + kw[:, None], c1[sl][:, None, None] + kw]
+        res = zncc_surfaces(templ, win)
+        # candidate centre (r1 - radius + i, c1 - radius + j) -> blocked index (+radius)
+        res[blocked[r1[sl][:, None, None] + ks[:, None], c1[sl][:, None, None] + ks]] = _INVALID
+        flat = res.reshape(len(res), -1)
+        best = flat.argmax(axis=1)
+        i, j = np.divmod(best, span)
+        peak = flat[np.arange(len(res)), best]
+        good = (peak >= settings.min_ncc) & (i > 0) & (j > 0) & (i < span - 1) & (j < span - 1)
+        ii, jj = np.clip(i, 1, span - 2), np.clip(j, 1, span - 2)
+        idx = np.arange(len(res))[:, None, None]
+        patch = res[
+            idx, ii[:, None, None] + np.arange(-1, 2)[:, None], jj[:, None, None] + np.arange(-1, 2)
+        ]
+        good &= ~(patch <= _INVALID).any(axis=(1, 2))
+        if settings.ambiguity_ratio < 1.0 and span * span > 9:
+            dil = ndimage.maximum_filter(res, size=(1, 3, 3), mode="nearest")
+            maxima = (res >= dil) & (res > _INVALID)
+            near = (np.abs(ks[None, :, None] - i[:, None, None]) <= 2) & (
+                np.abs(ks[None, None, :] - j[:, None, None]) <= 2
+            )
+            rival = np.where(maxima & ~near, res, _INVALID).reshape(len(res), -1).max(axis=1)
+            good &= ~(rival >= settings.ambiguity_ratio * peak)
+        dx, dy, value, found = quadratic_peaks(patch, settings.subpixel)
+        good &= found
+        x1[sl] = c1[sl] - radius + j + dx + 0.5
+        y1[sl] = r1[sl] - radius + i + dy + 0.5
+        conf[sl] = np.minimum(value, 1.0)
+        ok[sl] = good & reachable[sl]
+    return x1, y1, conf, ok
 
 
 def refine_matches_ncc(
