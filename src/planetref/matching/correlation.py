@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["INVALID", "bilinear", "quadratic_peaks", "zncc_surfaces"]
+__all__ = ["INVALID", "quadratic_peaks", "zncc_surfaces"]
 
 #: Value given to surface positions without a defined correlation (below any ZNCC).
 INVALID = -2.0
@@ -106,56 +106,3 @@ def quadratic_peaks(
     val[good] = (f0 - 0.25 * (fm - fp) * px - 0.25 * (gm - gp) * py)[good]
     done |= good
     return dx, dy, val, done
-
-
-def bilinear(
-    image: NDArray[np.floating],
-    x: NDArray[np.floating],
-    y: NDArray[np.floating],
-    valid: NDArray[np.bool_] | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Bilinear interpolation at corner-convention coordinates.
-
-    Pixel ``(row r, column c)`` has its centre at ``(x, y) = (c + 0.5, r + 0.5)``. A sample
-    is defined when its four neighbouring pixel centres lie inside the image and are valid.
-
-    Args:
-        image: ``(H, W)`` image, or ``(H, W, C)`` to sample ``C`` channels at once.
-        x: Column coordinates, any shape.
-        y: Row coordinates, same shape.
-        valid: Optional ``(H, W)`` validity mask.
-
-    Returns:
-        ``(values, defined)``: values shaped like ``x`` (plus ``C`` last for a stack),
-        ``defined`` shaped like ``x``; undefined samples are 0.
-    """
-    img = np.asarray(image)
-    h, w = img.shape[:2]
-    cx = np.asarray(x, np.float64) - 0.5
-    cy = np.asarray(y, np.float64) - 0.5
-    finite = np.isfinite(cx) & np.isfinite(cy)
-    c0 = np.floor(np.where(finite, cx, -10.0))
-    r0 = np.floor(np.where(finite, cy, -10.0))
-    fx, fy = cx - c0, cy - r0
-    c0 = c0.astype(np.int64)
-    r0 = r0.astype(np.int64)
-    # a sample exactly on the last pixel centre uses that pixel only
-    c1 = np.where(fx > 0, c0 + 1, c0)
-    r1 = np.where(fy > 0, r0 + 1, r0)
-    inside = finite & (c0 >= 0) & (r0 >= 0) & (c1 < w) & (r1 < h)
-    i00 = np.where(inside, r0 * w + c0, 0)
-    i01 = np.where(inside, r0 * w + c1, 0)
-    i10 = np.where(inside, r1 * w + c0, 0)
-    i11 = np.where(inside, r1 * w + c1, 0)
-    flat = img.reshape(h * w, -1)
-    if img.ndim == 3:
-        fx, fy = fx[..., None], fy[..., None]
-    else:
-        flat = flat[:, 0]
-    top = flat[i00] * (1 - fx) + flat[i01] * fx
-    out = top * (1 - fy) + (flat[i10] * (1 - fx) + flat[i11] * fx) * fy
-    if valid is not None:
-        vf = np.asarray(valid).reshape(-1)
-        inside &= vf[i00] & vf[i01] & vf[i10] & vf[i11]
-    mask = inside[..., None] if img.ndim == 3 else inside
-    return np.where(mask, out, 0.0), inside

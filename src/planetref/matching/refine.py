@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from planetref.errors import InputError
-from planetref.matching.correlation import INVALID, bilinear, quadratic_peaks, zncc_surfaces
+from planetref.matching.correlation import INVALID, quadratic_peaks, zncc_surfaces
 
 __all__ = ["RefineConfig", "RefineResult", "refine_matches"]
 
@@ -145,21 +145,42 @@ def _as_mask(mask: ArrayLike | None, image: NDArray[np.float64], which: str) -> 
     return valid
 
 
-@dataclass(frozen=True)
 class _Images:
-    """Image 1 and its bilinear-resampling inputs (gradients), shared by all chunks."""
+    """Image 1, its gradients and validity, resampled together (torch ``grid_sample``).
 
-    stack: NDArray[np.float64]  # (H, W, 3): image 1, d/dx, d/dy
-    valid1: NDArray[np.bool_]
+    One bilinear pass samples all four bands at float32 positions normalised to the image
+    size (resolution about ``6e-8 * size`` pixels, e.g. 1e-4 px on 2000 px), several times
+    faster than separate ``scipy.ndimage.map_coordinates`` calls; values return as float64.
+    """
 
-    @property
-    def img1(self) -> NDArray[np.float64]:
-        return self.stack[:, :, 0]
+    def __init__(self, img1: NDArray[np.float64], valid1: NDArray[np.bool_]) -> None:
+        import torch
+
+        gy, gx = np.gradient(img1)
+        bands = np.stack([img1, gx, gy, valid1.astype(np.float64)]).astype(np.float32)
+        self.tensor = torch.from_numpy(bands)[None]
+        self.h, self.w = img1.shape
 
     def sample(self, x, y):
-        """Image 1 and its gradients at ``(x, y)``: ``(g, gx, gy, defined)``."""
-        s, ok = bilinear(self.stack, x, y, self.valid1)
-        return s[..., 0], s[..., 1], s[..., 2], ok
+        """Image 1 and its gradients at ``(x, y)`` ``(N, M)``: ``(g, gx, gy, defined)``."""
+        import torch
+        import torch.nn.functional as F
+
+        grid = np.empty((*x.shape, 2), np.float32)
+        grid[..., 0] = 2.0 * x / self.w - 1.0
+        grid[..., 1] = 2.0 * y / self.h - 1.0
+        with torch.inference_mode():
+            out = F.grid_sample(
+                self.tensor,
+                torch.from_numpy(grid)[None],
+                mode="bilinear",
+                padding_mode="border",
+                align_corners=False,
+            )[0].numpy()
+        g, gx, gy, v = out.astype(np.float64)
+        ok = (x >= 0.5) & (x <= self.w - 0.5) & (y >= 0.5) & (y <= self.h - 0.5)
+        ok &= v >= 1.0 - 1e-4
+        return np.where(ok, g, 0.0), gx, gy, ok
 
 
 def _templates(
@@ -198,9 +219,23 @@ def _solve(normal: NDArray[np.float64], rhs: NDArray[np.float64]):
     return x, inv, ok
 
 
+def _jacobian(g, gx, gy, r1, u, v) -> NDArray[np.float64]:
+    """``(N, 8, M)`` Jacobian of ``r0 + r1 g(affine(u, v))`` w.r.t. tx a1 a2 ty b1 b2 r0 r1."""
+    jac = np.empty((g.shape[0], 8, g.shape[1]))
+    np.multiply(r1, gx, out=jac[:, 0])
+    np.multiply(r1, gy, out=jac[:, 3])
+    np.multiply(jac[:, 0], u, out=jac[:, 1])
+    np.multiply(jac[:, 0], v, out=jac[:, 2])
+    np.multiply(jac[:, 3], u, out=jac[:, 4])
+    np.multiply(jac[:, 3], v, out=jac[:, 5])
+    jac[:, 6] = 1.0
+    jac[:, 7] = g
+    return jac
+
+
 def _gram(jac: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Batched ``J'J`` of ``(N, M, K)`` Jacobians."""
-    return jac.transpose(0, 2, 1) @ jac
+    """Batched ``J'J`` of ``(N, K, M)`` Jacobians (parameters first)."""
+    return jac @ jac.transpose(0, 2, 1)
 
 
 def _zncc(f: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -235,10 +270,9 @@ def _lsm_chunk(f, u, v, p1, images: _Images, cfg: RefineConfig):
         bad = ~ok.all(axis=1)
         r1 = p[:, 7:8]
         e = f[idx] - p[:, 6:7] - r1 * g
-        jx, jy = r1 * gx, r1 * gy
-        jac = np.stack([jx, jx * uu, jx * vv, jy, jy * uu, jy * vv, np.ones_like(g), g], axis=2)
+        jac = _jacobian(g, gx, gy, r1, uu, vv)
         normal = _gram(jac)
-        rhs = (jac.transpose(0, 2, 1) @ e[:, :, None])[:, :, 0]
+        rhs = (jac @ e[:, :, None])[:, :, 0]
         delta, _, solvable = _solve(normal, rhs)
         p = p + np.where(solvable[:, None], delta, 0.0)
         moved = np.hypot(p[:, 0] - p1[idx, 0], p[:, 3] - p1[idx, 1])
@@ -271,8 +305,7 @@ def _lsm_chunk(f, u, v, p1, images: _Images, cfg: RefineConfig):
         g, gx, gy, ok = images.sample(x, y)
         r1 = p[:, 7:8]
         e = f[idx] - p[:, 6:7] - r1 * g
-        jx, jy = r1 * gx, r1 * gy
-        jac = np.stack([jx, jx * uu, jx * vv, jy, jy * uu, jy * vv, np.ones_like(g), g], axis=2)
+        jac = _jacobian(g, gx, gy, r1, uu, vv)
         _, inv, solvable = _solve(_gram(jac), np.zeros((idx.size, 8)))
         s0sq = np.sum(e * e, axis=1) / (m - 8)
         sigma[idx] = np.sqrt(s0sq * (inv[:, 0, 0] + inv[:, 3, 3]) / 2)
@@ -297,7 +330,12 @@ def _ncc_chunk(f, u, v, p1, images: _Images, cfg: RefineConfig):
     v0 = v[:, :1] - (-h)
     wx = p1[:, :1, None] + u0[:, :, None] + kx[None]
     wy = p1[:, 1:, None] + v0[:, :, None] + ky[None]
-    win, defined = bilinear(images.img1, wx, wy, images.valid1)
+    win, _, _, defined = images.sample(
+        np.broadcast_to(wx, (n, big, big)).reshape(n, -1),
+        np.broadcast_to(wy, (n, big, big)).reshape(n, -1),
+    )
+    win = win.reshape(n, big, big)
+    defined = defined.reshape(n, big, big)
     surf = zncc_surfaces(f.reshape(n, side, side), win)
     undefined = np.zeros((n, big + 1, big + 1))
     undefined[:, 1:, 1:] = np.cumsum(np.cumsum(~defined, axis=1), axis=2)
@@ -325,11 +363,11 @@ def _ncc_chunk(f, u, v, p1, images: _Images, cfg: RefineConfig):
     out = p1 + np.column_stack([j - r + dx, i - r + dy])
     # precision from the translation-only LSM normal equations at the NCC position
     g, gx, gy, ok = images.sample(out[:, :1] + u, out[:, 1:] + v)
-    design = np.stack([np.ones_like(g), g], axis=2)
-    coef, _, _ = _solve(_gram(design), (design.transpose(0, 2, 1) @ f[:, :, None])[:, :, 0])
+    design = np.stack([np.ones_like(g), g], axis=1)
+    coef, _, _ = _solve(_gram(design), (design @ f[:, :, None])[:, :, 0])
     r0, r1 = coef[:, :1], coef[:, 1:]
     e = f - r0 - r1 * g
-    jac = np.stack([r1 * gx, r1 * gy, np.ones_like(g), g], axis=2)
+    jac = np.stack([r1 * gx, r1 * gy, np.ones_like(g), g], axis=1)
     _, inv, solvable = _solve(_gram(jac), np.zeros((n, 4)))
     s0sq = np.sum(e * e, axis=1) / (f.shape[1] - 4)
     sigma = np.where(solvable, np.sqrt(s0sq * (inv[:, 0, 0] + inv[:, 1, 1]) / 2), np.nan)
@@ -416,8 +454,7 @@ def refine_matches(
     v1 = _as_mask(valid1, img1, "valid1")
     img0, v0 = _smoothed(img0, v0, config.smooth_px)
     img1, v1 = _smoothed(img1, v1, config.smooth_px)
-    gy, gx = np.gradient(img1)
-    images = _Images(np.stack([img1, gx, gy], axis=-1), v1)
+    images = _Images(img1, v1)
     inflation = _noise_inflation(config.smooth_px)
     h = config.half_window
     for start in range(0, n, CHUNK):
