@@ -161,3 +161,23 @@ def test_match_command_errors(pair_tifs, tmp_path):
         str(pair_tifs[0]), str(pair_tifs[1]), "--out", str(tmp_path / "no" / "dir" / "m.csv")
     )
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_match_command_refine_lsm(pair_tifs, tmp_path):
+    raw, refined = tmp_path / "raw.csv", tmp_path / "lsm.csv"
+    for out, how in ((raw, "none"), (refined, "lsm")):
+        res = CliRunner().invoke(
+            match_command,
+            [str(pair_tifs[0]), str(pair_tifs[1]), "--matcher", "sift", "--out", str(out)]
+            + ["--refine", how],
+        )
+        assert res.exit_code == 0, res.output
+        line = json.loads(res.output.strip().splitlines()[-1])
+    assert line["refine"].get("lsm", 0) >= 0.9 * line["ncp"]
+    a = np.loadtxt(raw, delimiter=",", skiprows=1)
+    b = np.loadtxt(refined, delimiter=",", skiprows=1)
+    err_raw = np.abs(a[:, 2:4] - a[:, 0:2] - [3.0, -2.0])
+    err_lsm = np.abs(b[:, 2:4] - b[:, 0:2] - [3.0, -2.0])
+    # refinement keeps image-0 points and brings image-1 points onto the true shift
+    assert set(map(tuple, b[:, :2].round(4))) <= set(map(tuple, a[:, :2].round(4)))
+    assert np.median(err_lsm) < 0.5 * np.median(err_raw) and np.median(err_lsm) < 0.02
