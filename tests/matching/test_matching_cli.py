@@ -166,11 +166,8 @@ def test_match_command_errors(pair_tifs, tmp_path):
 def test_match_command_refine_lsm(pair_tifs, tmp_path):
     raw, refined = tmp_path / "raw.csv", tmp_path / "lsm.csv"
     for out, how in ((raw, "none"), (refined, "lsm")):
-        res = CliRunner().invoke(
-            match_command,
-            [str(pair_tifs[0]), str(pair_tifs[1]), "--matcher", "sift", "--out", str(out)]
-            + ["--refine", how],
-        )
+        args = [str(pair_tifs[0]), str(pair_tifs[1]), "--matcher", "sift", "--out", str(out)]
+        res = CliRunner().invoke(match_command, [*args, "--refine", how])
         assert res.exit_code == 0, res.output
         line = json.loads(res.output.strip().splitlines()[-1])
     assert line["refine"].get("lsm", 0) >= 0.9 * line["ncp"]
