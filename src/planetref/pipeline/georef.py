@@ -831,11 +831,7 @@ def _figures_matching(
     cfg: GeorefConfig,
 ) -> None:
     from planetref.frontend.match_tile import match_tile
-    from planetref.report.figures_matching import (
-        figure_mcp_distribution,
-        figure_tile_matches,
-        panels_from_tile,
-    )
+    from planetref.report.figures_matching import draw_tile_selection, figure_mcp_distribution
 
     figure_mcp_distribution(
         table,
@@ -844,31 +840,31 @@ def _figures_matching(
         ccd_order=list(sizes),
         title=f"{strip}: MCPs of {matches.matcher}",
     )
-    ok = [t for t in matches.tiles if t.status == "ok"]
-    if not ok:
-        return
-    best = max(ok, key=lambda t: t.n_points)
-    plan = matches.plans[best.tile.ccd]
-    try:
-        again = match_tile(
-            best.tile,
-            image=images[best.tile.ccd],
+
+    def rematch(t: Any) -> Any:
+        return match_tile(
+            t.tile,
+            image=images[t.tile.ccd],
             camera=camera,
             ref=ref,
             terrain=dem,
             matcher=fine,
             config=cfg.frontend,
-            ratio=plan.ratio,
+            ratio=matches.plans[t.tile.ccd].ratio,
             debug=True,
             coarse_matcher=coarse,
         )
-        figure_tile_matches(
-            panels_from_tile(again),
+
+    try:  # a figure must never sink a run
+        draw_tile_selection(
+            matches.tiles,
+            rematch,
             run.file("figures", f"{strip}_tile_matches.png"),
-            title=f"{matches.matcher}: tile {best.tile_id} (coarse, fine)",
+            title=f"{matches.matcher}, {strip}: tiles with the most, the median and the "
+            "fewest MCPs (rows); coarse and fine stage (columns)",
         )
-    except PlanetrefError as exc:  # a figure must never sink a run
-        log.warning("no tile-match figure for %s: %s", best.tile_id, exc)
+    except PlanetrefError as exc:
+        log.warning("no tile-match figure for %s: %s", strip, exc)
 
 
 def _figure_residuals(
