@@ -19,7 +19,7 @@ from typing import Any
 from planetref.atomic import write_text_atomic
 from planetref.report.tables import _fmt, _numeric, format_markdown_table
 
-__all__ = ["DEFINITIONS", "Document", "Figure", "Table"]
+__all__ = ["DEFINITIONS", "Document", "Figure", "HtmlContents", "Table", "read_report_html"]
 
 DEFINITIONS: list[tuple[str, str]] = [
     (
@@ -183,6 +183,83 @@ class Document:
         md = write_text_atomic(folder / f"{stem}.md", self.markdown(folder))
         page = write_text_atomic(folder / f"{stem}.html", self.html())
         return {"report_md": str(md), "report_html": str(page)}
+
+
+@dataclass
+class HtmlContents:
+    """What :func:`read_report_html` found in a report page.
+
+    Attributes:
+        figures: ``(file name, decoded bytes)`` of every ``<img>`` (``data:`` URIs only).
+        external: ``src`` of images that are not embedded (a self-contained page has none).
+        tables: Per ``<table>``: its caption and its rows of cell texts (header first).
+    """
+
+    figures: list[tuple[str, bytes]] = field(default_factory=list)
+    external: list[str] = field(default_factory=list)
+    tables: list[tuple[str, list[list[str]]]] = field(default_factory=list)
+
+
+def read_report_html(path: str | os.PathLike[str]) -> HtmlContents:
+    """Parse a report page: its embedded figures (base64 decoded) and its tables.
+
+    Raises:
+        InputError: An image whose ``data:`` URI is not base64 PNG.
+    """
+    from html.parser import HTMLParser
+
+    from planetref.errors import InputError
+
+    found = HtmlContents()
+
+    class _Parser(HTMLParser):
+        def __init__(self) -> None:
+            super().__init__()
+            self.cell: list[str] | None = None
+            self.row: list[str] | None = None
+            self.caption: list[str] | None = None
+
+        def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+            a = dict(attrs)
+            if tag == "img":
+                src = a.get("src") or ""
+                prefix = "data:image/png;base64,"
+                if not src.startswith(prefix):
+                    found.external.append(src)
+                    return
+                try:
+                    data = base64.b64decode(src[len(prefix) :], validate=True)
+                except ValueError as exc:
+                    raise InputError(f"figure {a.get('data-file')}: bad base64", path=path) from exc
+                found.figures.append((a.get("data-file") or a.get("alt") or "", data))
+            elif tag == "table":
+                found.tables.append(("", []))
+            elif tag == "caption":
+                self.caption = []
+            elif tag == "tr":
+                self.row = []
+            elif tag in ("td", "th"):
+                self.cell = []
+
+        def handle_endtag(self, tag: str) -> None:
+            if tag in ("td", "th") and self.cell is not None and self.row is not None:
+                self.row.append("".join(self.cell).strip())
+                self.cell = None
+            elif tag == "tr" and self.row is not None and found.tables:
+                found.tables[-1][1].append(self.row)
+                self.row = None
+            elif tag == "caption" and self.caption is not None and found.tables:
+                found.tables[-1] = ("".join(self.caption).strip(), found.tables[-1][1])
+                self.caption = None
+
+        def handle_data(self, data: str) -> None:
+            if self.cell is not None:
+                self.cell.append(data)
+            elif self.caption is not None:
+                self.caption.append(data)
+
+    _Parser().feed(Path(path).read_text(encoding="utf-8"))
+    return found
 
 
 def _inline(text: str) -> str:

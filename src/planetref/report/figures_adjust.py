@@ -19,7 +19,6 @@ Residuals are ``(line, sample)`` in pixels, projected minus observed (as
 
 from __future__ import annotations
 
-import itertools
 import math
 import os
 from collections.abc import Mapping
@@ -108,7 +107,8 @@ def residual_pattern(
         d_line: Line residual (px).
         d_sample: Sample residual (px).
         group: Per point a group label (e.g. the CCD): neighbours are found within the
-            group only, and permutations shuffle within groups.
+            group only; permutations shuffle over all points, so that an offset shared
+            by a group counts as a pattern too.
         k: Neighbours per point.
         n_permutations: Shuffles for the p-value (p >= 1 / (n_permutations + 1)).
         seed: Random seed of the shuffles.
@@ -135,13 +135,8 @@ def residual_pattern(
     vv = v[idx]
     c = _nn_corr(vv, nbr)
     rng = np.random.default_rng(seed)
-    bounds = np.cumsum([0] + [len(m) for m in members])
-    hits = 0
-    for _ in range(n_permutations):
-        perm = np.concatenate(
-            [rng.permutation(np.arange(a, b)) for a, b in itertools.pairwise(bounds)]
-        )
-        hits += _nn_corr(vv[perm], nbr) >= c
+    # Shuffling over every position (not within groups) also catches a per-CCD offset.
+    hits = sum(_nn_corr(vv[rng.permutation(n)], nbr) >= c for _ in range(n_permutations))
     p = (hits + 1) / (n_permutations + 1)
     return ResidualPattern(c, p, n, k, bool(c >= PATTERN_MIN_C and p <= PATTERN_MAX_P))
 

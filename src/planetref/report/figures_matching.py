@@ -272,7 +272,7 @@ def _legend(fig: Any, max_lines: int) -> None:
 
     handles = [
         Line2D([], [], color=INLIER_COLOUR, marker="o", mfc="none", lw=0.8, label="kept (inlier)"),
-        Line2D([], [], color=OUTLIER_COLOUR, marker="x", lw=0.8, label="rejected by the stage"),
+        Line2D([], [], color=OUTLIER_COLOUR, marker="x", lw=0.8, label="rejected"),
     ]
     fig.legend(
         handles=handles,
@@ -417,7 +417,7 @@ def figure_pair_matches(
     )
     for ax in (a0, a1):
         ax.set_xlabel("x = sample (px)", fontsize=8)
-        ax.set_ylabel("y = line (px)", fontsize=8)
+    a0.set_ylabel("y = line (px)", fontsize=8)
     fig.suptitle(f"{title}: {n_in} matches kept" + (f", {n_out} rejected" if n_out else ""))
     _legend(fig, max_lines)
     return _save(fig, path, dpi)

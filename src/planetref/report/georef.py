@@ -98,6 +98,15 @@ _TABLES = {
 }
 
 
+_SECTIONS = {
+    "matching": "Matching (Table 1)",
+    "adjustment": "Adjustment (Table 2)",
+    "truth": "True geolocation error",
+    "funnel": "Front-end funnel",
+    "timing": "Timing",
+}
+
+
 def _tables(
     runs: Mapping[str, Mapping[str, Any]], funnels: Mapping[str, Mapping[str, int]]
 ) -> dict[str, tuple[list[str], list[list[Any]]]]:
@@ -232,13 +241,14 @@ def write_compare_report(
         "dashes: per-CCD values; whisker: maximum true error. Each panel says which "
         "direction is better.",
     )
-    doc.heading("Tables")
     for name, (h, r) in tables.items():
+        doc.heading(_SECTIONS[name])
         doc.table(_TABLES[name], h, r)
     if "funnel" not in tables:
         doc.para("Front-end funnel: not available (no tile journal).")
     eh, er = _extra_adjustment(runs)
     if len(eh) > 1:
+        doc.heading("Further adjustment statistics")
         doc.table("Further adjustment statistics (as in report.json)", eh, er)
     doc.para(
         "CSV of every table: `matching.csv`, `adjustment.csv`, `truth.csv`, `funnel.csv`, "
