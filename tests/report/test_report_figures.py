@@ -107,6 +107,20 @@ def test_select_tiles_rule():
     ]
     assert [t.tile_id for _, t in select_tiles(tiles[:1])] == ["t0"]
     assert select_tiles(tiles[-1:]) == []
+    # A cap may equalise the MCPs: the rule ranks by verified matches (the funnel's last
+    # stage before thinning, else n_inliers).
+    capped = [
+        SimpleNamespace(tile_id="a", status="ok", n_points=200, n_inliers=250),
+        SimpleNamespace(tile_id="b", status="ok", n_points=200, n_inliers=400),
+        SimpleNamespace(
+            tile_id="c",
+            status="ok",
+            n_points=200,
+            n_inliers=300,
+            funnel={"raw": 900, "ransac": 700, "mcp": 200},
+        ),
+    ]
+    assert [t.tile_id for _, t in select_tiles(capped)] == ["c", "b", "a"]
 
 
 def test_tile_grid_pair_figure_and_html_embedding(tmp_path):

@@ -256,6 +256,13 @@ def figure_residual_vectors(
     return _save(fig, path, dpi)
 
 
+def _label(v: float) -> str:
+    """A bar's value: whole numbers from 100 up, three significant digits below."""
+    if not math.isfinite(v):
+        return "n/a"
+    return f"{v:.0f}" if abs(v) >= 100 else f"{v:.3g}"
+
+
 def _num(v: Any) -> float:
     try:
         f = float(v)
@@ -380,22 +387,15 @@ def figure_headline(
             ax.bar(x - w / 2, np.nan_to_num(before), w, color="white", edgecolor="0.35", hatch="//")
             for xi, v in zip(x - w / 2, before, strict=True):
                 if math.isfinite(v):
-                    ax.text(xi, v, f"{v:.3g}", ha="center", va="bottom", fontsize=6, color="0.35")
+                    ax.text(xi, v, _label(v), ha="center", va="bottom", fontsize=6, color="0.35")
         colours = [f"C{i % 10}" for i in range(len(names))]
         ax.bar(xa, np.nan_to_num(after), w, color=colours)
-        for xi, v in zip(xa, after, strict=True):
-            ax.text(
-                xi,
-                v if math.isfinite(v) else 0,
-                f"{v:.3g}" if math.isfinite(v) else "n/a",
-                ha="center",
-                va="bottom",
-                fontsize=7,
-            )
-        for xi, d in zip(xa, p.get("dots", []), strict=False):
+        tops = np.nan_to_num(after).copy()
+        for j, (xi, d) in enumerate(zip(xa, p.get("dots", []), strict=False)):
             d = [v for v in d if math.isfinite(v)]
             if d:
-                ax.scatter(np.full(len(d), xi), d, s=10, c="black", zorder=3, marker="_")
+                ax.scatter(np.full(len(d), xi), d, s=90, c="black", zorder=3, marker="_", lw=1.2)
+                tops[j] = max(tops[j], max(d))
         if "max" in p:
             mx = np.asarray(p["max"], float)
             ax.errorbar(
@@ -406,6 +406,17 @@ def figure_headline(
                 ecolor="0.2",
                 capsize=3,
                 lw=0.8,
+            )
+            tops = np.fmax(tops, np.nan_to_num(mx))
+        for xi, v, top in zip(xa, after, tops, strict=True):
+            ax.text(
+                xi,
+                top,
+                _label(v),
+                ha="center",
+                va="bottom",
+                fontsize=7,
+                fontweight="bold",
             )
         if p.get("log") and np.nanmin(np.r_[after, p.get("before", after)]) > 0:
             ax.set_yscale("log")
@@ -421,7 +432,7 @@ def figure_headline(
                 color="0.3",
             )
         ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
-        ax.set_ylabel(f"{p['label']} ({p['unit']})", fontsize=8)
+        ax.set_ylabel(f"{p['label'].split(' (')[0]} ({p['unit']})", fontsize=8)
         arrow = "\u2191" if p["better"] == "higher" else "\u2193"
         ax.set_title(f"{p['label']}\n{arrow} {p['better']} is better", fontsize=8)
         ax.tick_params(axis="y", labelsize=7)

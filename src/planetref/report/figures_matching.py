@@ -43,6 +43,7 @@ __all__ = [
     "figure_tile_matches",
     "panels_from_tile",
     "select_tiles",
+    "verified_count",
 ]
 
 INLIER_COLOUR = "#1a9850"
@@ -114,14 +115,33 @@ def panels_from_tile(result: Any) -> list[MatchPanel]:
     ]
 
 
-def select_tiles(tiles: Sequence[Any], n: int = 3) -> list[tuple[str, Any]]:
-    """Tiles for Fig. 2 by a stated rule: best, median and worst by inlier count.
+def verified_count(tile: Any) -> int:
+    """Correspondences a tile result verified, before any thinning for speed.
 
-    Only tiles with status ``ok`` take part; ties keep plan order. With fewer than three
-    such tiles the distinct ones are returned.
+    The funnel's last stage before ``mcp`` when the result has a funnel, else
+    ``n_inliers`` (passed MAGSAC++), else ``n_points`` (MCPs written).
+    """
+    funnel = getattr(tile, "funnel", None)
+    if isinstance(funnel, Mapping) and funnel:
+        stages = [k for k in funnel if k != "mcp"]
+        if stages:
+            return int(funnel[stages[-1]])
+    for attr in ("n_inliers", "n_points"):
+        v = getattr(tile, attr, None)
+        if v is not None:
+            return int(v)
+    return 0
+
+
+def select_tiles(tiles: Sequence[Any], n: int = 3) -> list[tuple[str, Any]]:
+    """Tiles for Fig. 2 by a stated rule: best, median and worst by verified count.
+
+    Only tiles with status ``ok`` take part; they are ranked by :func:`verified_count`
+    (not by MCPs, which a per-tile cap may equalise); ties keep plan order. With fewer
+    than three such tiles the distinct ones are returned.
 
     Args:
-        tiles: Tile results (``status``, ``n_points`` or ``n_inliers``).
+        tiles: Tile results.
         n: 3 for best/median/worst, 2 for best/worst, 1 for best.
 
     Returns:
@@ -130,11 +150,7 @@ def select_tiles(tiles: Sequence[Any], n: int = 3) -> list[tuple[str, Any]]:
     ok = [t for t in tiles if getattr(t, "status", "ok") == "ok"]
     if not ok:
         return []
-
-    def count(t: Any) -> int:
-        return int(getattr(t, "n_points", None) or getattr(t, "n_inliers", 0) or 0)
-
-    ranked = sorted(ok, key=lambda t: -count(t))
+    ranked = sorted(ok, key=lambda t: -verified_count(t))
     picks = [("best", 0), ("median", (len(ranked) - 1) // 2), ("worst", len(ranked) - 1)]
     if n == 2:
         picks = [picks[0], picks[2]]
@@ -170,9 +186,11 @@ def draw_tile_selection(
     """
     rows = []
     for rule, t in select_tiles(tiles):
-        n = int(getattr(t, "n_points", 0) or getattr(t, "n_inliers", 0) or 0)
+        label = f"{rule}: {t.tile_id}\n{verified_count(t)} verified"
+        if getattr(t, "n_points", None) is not None:
+            label += f", {int(t.n_points)} MCPs"
         try:
-            rows.append(TileRow(f"{rule}: {t.tile_id} ({n} MCPs)", panels_from_tile(rematch(t))))
+            rows.append(TileRow(label, panels_from_tile(rematch(t))))
         except PlanetrefError:
             continue
     if not rows:
