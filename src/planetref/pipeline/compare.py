@@ -206,7 +206,8 @@ def _run_compare(
 
 _FIGURE_CAPTIONS = {
     "tile_matches": "Fig. 2 (matches of one tile, coarse and fine stage side by side) for "
-    "the tiles with the most, the median and the fewest MCPs; green: kept, red: rejected",
+    "the tiles with the most, the median and the fewest verified matches; green: kept, "
+    "red: rejected",
     "mcp_distribution": "Fig. 3 (MCP distribution) per CCD in image coordinates, with the "
     "coarsest SDU grid (occupied cells shaded)",
     "residuals": "Fig. 4 (residual vectors after the adjustment) per CCD; black: check "

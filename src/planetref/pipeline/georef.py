@@ -861,7 +861,7 @@ def _figures_matching(
             rematch,
             run.file("figures", f"{strip}_tile_matches.png"),
             title=f"{matches.matcher}, {strip}: tiles with the most, the median and the "
-            "fewest MCPs (rows); coarse and fine stage (columns)",
+            "fewest verified matches (rows); coarse and fine stage (columns)",
         )
     except PlanetrefError as exc:
         log.warning("no tile-match figure for %s: %s", strip, exc)

@@ -25,6 +25,7 @@ from planetref.report.tables import (
     format_csv,
     format_latex_table,
     format_markdown_table,
+    funnel_from_journal,
     funnel_rows,
     matching_rows,
     timing_rows,
@@ -281,29 +282,48 @@ def _short(v: Any) -> Any:
 
 
 def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str]) -> Path:
-    """report.md of one georef run: both tables, truth, lost tiles, timings, definitions."""
+    """report.md of one georef run, and beside it a self-contained report.html.
+
+    Tables 1 and 2, the true error, the funnel (from the run's tile journals), the
+    timings, lost tiles, warnings, the definitions and the run's figures
+    (``figures/*.png`` next to ``path``).
+    """
+    path = Path(path)
+    folder = path.parent
     runs = {report["matcher"]: report}
-    lines = [f"# georef: {report['scene']} with {report['matcher']}", ""]
-    for title, (h, r) in (
-        ("Matching (Table 1: NCP and SDU per CCD image)", matching_rows(runs)),
-        ("Adjustment (Table 2, pixels; x = sample, y = line)", adjustment_rows(runs)),
-        ("True geolocation error", truth_rows(runs)),
-        ("Timing", timing_rows(runs)),
-    ):
-        if r:
-            lines += [f"## {title}", "", format_markdown_table(h, r), ""]
+    journals = [folder / sid / "tiles.jsonl" for sid in report.get("strips") or {}]
+    fun = report["matching"].get("funnel")
+    funnel = dict(fun) if isinstance(fun, dict) else funnel_from_journal(journals)
+    doc = Document(f"georef: {report['scene']} with {report['matcher']}")
+    for name, (h, r) in _tables(runs, {report["matcher"]: funnel} if funnel else {}).items():
+        doc.heading(_SECTIONS[name])
+        doc.table(_TABLES[name], h, r)
     lost = report["matching"].get("tiles_lost") or []
     if lost:
-        lines += (
-            ["## Tiles without MCPs", ""]
-            + [
-                f"- {t.get('strip', '')} {t['tile']}: {t['status']} {t.get('message', '')}"
+        doc.heading("Tiles without MCPs")
+        doc.items(
+            [
+                f"{t.get('strip', '')} {t['tile']}: {t['status']} {t.get('message', '')}"
                 for t in lost
             ]
-            + [""]
         )
     warns = _warnings(runs)
     if warns:
-        lines += ["## Warnings", ""] + [f"- {w}" for w in warns] + [""]
-    lines += ["## Metric definitions", ""] + [f"- **{k}**: {v}" for k, v in DEFINITIONS] + [""]
-    return write_text_atomic(path, "\n".join(lines))
+        doc.heading("Warnings")
+        doc.items(warns)
+    doc.heading("Figures")
+    for kind, caption in _RUN_FIGURES.items():
+        for png in sorted((folder / "figures").glob(f"*_{kind}.png")):
+            doc.figure(png, f"{png.stem[: -len(kind) - 1]}: {caption}")
+    doc.heading("Metric definitions")
+    doc.items([f"**{k}**: {v}" for k, v in DEFINITIONS])
+    write_text_atomic(path.with_suffix(".html"), doc.html())
+    return write_text_atomic(path, doc.markdown(folder))
+
+
+_RUN_FIGURES = {
+    "tile_matches": "matches of the tiles with the most, the median and the fewest verified "
+    "matches, coarse and fine stage side by side (green: kept, red: rejected)",
+    "mcp_distribution": "MCP distribution per CCD in image coordinates with the SDU grid",
+    "residuals": "residual vectors after the adjustment per CCD (black: check points)",
+}
