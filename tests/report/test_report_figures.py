@@ -147,7 +147,7 @@ def test_tile_grid_pair_figure_and_html_embedding(tmp_path):
     found = read_report_html(paths["report_html"])
     assert [n for n, _ in found.figures] == ["grid.png"] and not found.external
     assert found.figures[0][1] == grid.read_bytes()
-    assert found.tables == [("Table 1. t", [["a", "b"], ["1", "x"], ["2.500", "-"]])]
+    assert found.tables == [("t", [["a", "b"], ["1", "x"], ["2.500", "-"]])]
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "](../grid.png)" in md
 

@@ -18,6 +18,7 @@ Output directory::
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -276,12 +277,29 @@ def _context(
         ("front end", ", ".join(f"{k} = {v}" for k, v in fe.items() if not isinstance(v, dict))),
         ("MCPs", ", ".join(f"{k} = {v}" for k, v in mcp.items() if not isinstance(v, dict))),
         ("adjustment", "see `runs/<matcher>/<strip>/adjustment/config.json`"),
+        *(
+            [
+                (
+                    "per-tile cap",
+                    f"`max_mcps_per_tile = {fe['max_mcps_per_tile']}`: NCP and SDU count the "
+                    "MCPs kept after this cap; the funnel table shows how many were verified",
+                )
+            ]
+            if fe.get("max_mcps_per_tile")
+            else []
+        ),
         ("full configuration", "`config.json` (and `runs/<matcher>/config.json`)"),
     ]
     for name, rep in runs.items():
         run_dir = out / "runs" / name
         ctx.matcher_settings[name] = _matcher_settings(name, cfg, run_dir)
         journals = [run_dir / sid / "tiles.jsonl" for sid in rep.get("strips") or {}]
+        for sid in rep.get("strips") or {}:
+            try:
+                adj = json.loads((run_dir / sid / "adjustment" / "report.json").read_text())
+            except (OSError, ValueError):
+                continue
+            ctx.output_warnings.setdefault(name, []).extend(adj.get("output_warnings") or [])
         funnel = rep["matching"].get("funnel")
         ctx.funnels[name] = (
             dict(funnel) if isinstance(funnel, dict) else funnel_from_journal(journals)
@@ -302,8 +320,6 @@ def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, 
     Its entry of the configuration's ``matchers`` table, and what the pipeline derives
     for it (NCC's template spacing and search radii).
     """
-    import json
-
     out: dict[str, Any] = {}
     try:
         conf = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))

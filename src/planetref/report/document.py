@@ -153,7 +153,7 @@ class Document:
                     for r in b.rows
                 )
                 body.append(
-                    f'<table id="table-{n_tab}"><caption>Table {n_tab}. {e(b.caption)}</caption>'
+                    f'<table id="table-{n_tab}"><caption>{e(b.caption)}</caption>'
                     f"<thead><tr>{head}</tr></thead><tbody>{rows}</tbody></table>"
                 )
             elif isinstance(b, Figure):
@@ -162,7 +162,7 @@ class Document:
                 body.append(
                     f'<figure id="figure-{n_fig}"><img alt="{e(b.path.name)}" '
                     f'data-file="{e(b.path.name)}" src="data:image/png;base64,{data}">'
-                    f"<figcaption>Figure {n_fig}. {e(b.caption)}</figcaption></figure>"
+                    f"<figcaption>{e(b.caption)}</figcaption></figure>"
                 )
             elif b[0] == "h":
                 body.append(f"<h{b[1]}>{e(b[2])}</h{b[1]}>")

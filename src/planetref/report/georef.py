@@ -10,8 +10,9 @@ formulas, the tables, the figures and the warnings that matter.
 
 from __future__ import annotations
 
+import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,7 @@ class CompareContext:
         figures: Matcher -> ``(png, caption)`` pairs.
         headline: The headline PNG.
         simulated: The scene has truth (state why its numbers are easier than reality).
+        output_warnings: Matcher -> warnings written with the outputs (e.g. RPC fits).
     """
 
     scene: str
@@ -87,6 +89,7 @@ class CompareContext:
     figures: dict[str, list[tuple[Path, str]]] = field(default_factory=dict)
     headline: Path | None = None
     simulated: bool = False
+    output_warnings: dict[str, list[str]] = field(default_factory=dict)
 
 
 _TABLES = {
@@ -157,9 +160,14 @@ def write_compare_tables(
     return paths
 
 
-def _warnings(runs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+def _warnings(
+    runs: Mapping[str, Mapping[str, Any]], more: Mapping[str, Sequence[str]] | None = None
+) -> list[str]:
     """The warnings of every run (adjustment and outputs), once each, with their matcher."""
     seen: dict[str, list[str]] = {}
+    for name, ws in (more or {}).items():
+        for w in ws:
+            seen.setdefault(w, []).append(name)
     for name, rep in runs.items():
         for sid, s in (rep.get("strips") or {}).items():
             for w in s.get("warnings") or []:
@@ -262,7 +270,7 @@ def write_compare_report(
         for png, caption in figs:
             doc.figure(png, caption)
     doc.heading("Warnings")
-    warns = _warnings(runs)
+    warns = _warnings(runs, context.output_warnings)
     doc.items(warns)
     if not warns:
         doc.para("None.")
@@ -307,7 +315,14 @@ def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str
                 for t in lost
             ]
         )
-    warns = _warnings(runs)
+    more: list[str] = []
+    for sid in report.get("strips") or {}:
+        try:
+            adj = json.loads((folder / sid / "adjustment" / "report.json").read_text())
+        except (OSError, ValueError):
+            continue
+        more += adj.get("output_warnings") or []
+    warns = _warnings(runs, {report["matcher"]: more})
     if warns:
         doc.heading("Warnings")
         doc.items(warns)
