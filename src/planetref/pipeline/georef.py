@@ -464,6 +464,15 @@ def _strip_mcps(
     )
     table = mcps_from_tiles(matches, ref=ref, dem=dem)
     timing["matching"] += time.perf_counter() - t0
+    log.info(
+        "strip %s: %d tiles matched with %s in %.0f s (%s): %d MCPs",
+        strip.id,
+        len(matches.tiles),
+        matches.matcher,
+        time.perf_counter() - t0,
+        ", ".join(f"{k} {v}" for k, v in matches.status_counts().items()),
+        len(table),
+    )
     written = write_mcps(table, run.file(strip.id, "mcps.parquet"))
     out["files"]["mcps"] = [
         str(p) for p in (written if isinstance(written, list | tuple) else [written])

@@ -310,7 +310,7 @@ def figure_tile_grid(
     *,
     title: str = "",
     max_lines: int = 40,
-    dpi: int = 110,
+    dpi: int = 90,
 ) -> Path:
     """Several tiles, one row each, their stages side by side (coarse | fine); write a PNG.
 

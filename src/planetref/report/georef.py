@@ -93,9 +93,9 @@ class CompareContext:
 
 
 _TABLES = {
-    "matching": "Table 1. NCP and SDU (%) per CCD image",
-    "adjustment": "Table 2. Residuals after adjustment per strip (pixels; x = sample, "
-    "y = line; OR in %)",
+    "matching": "NCP and SDU (%) per CCD image (the seed's Table 1)",
+    "adjustment": "Residuals after adjustment per strip (pixels; x = sample, y = line; "
+    "OR in %) (the seed's Table 2)",
     "truth": "True geolocation error (RMS over an image grid), before and after",
     "funnel": "Front-end funnel: correspondences left after each stage, summed over tiles",
     "timing": "Wall-clock time per step (seconds)",
