@@ -14,6 +14,7 @@ from planetref.report.tables import (
     format_latex_table,
     format_markdown_table,
     funnel_from_journal,
+    funnel_from_report,
     funnel_rows,
     matching_rows,
     timing_rows,
@@ -141,3 +142,15 @@ def test_funnel_from_journal_and_rows(tmp_path):
         "kept of raw (%)",
     ]
     assert rows[0][-2] == 60 and rows[0][-1] == pytest.approx(40.0)
+
+
+def test_funnel_from_report_sums_strips_or_takes_the_runs_own():
+    rep = _run()
+    assert funnel_from_report(rep) == {}
+    rep["strips"] = {
+        "s1": {"matching": {"funnel": {"raw": 10, "ransac": 8, "mcp": 8}}},
+        "s2": {"matching": {"funnel": {"raw": 5, "ransac": 4, "mcp": 3}}},
+    }
+    assert funnel_from_report(rep) == {"raw": 15, "ransac": 12, "mcp": 11}
+    rep["matching"]["funnel"] = {"raw": 1, "mcp": 1}
+    assert funnel_from_report(rep) == {"raw": 1, "mcp": 1}

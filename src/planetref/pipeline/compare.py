@@ -250,7 +250,7 @@ def _context(
 ) -> Any:
     """What the comparison report says about the scene, the settings and the figures."""
     from planetref.report.georef import CompareContext
-    from planetref.report.tables import funnel_from_journal
+    from planetref.report.tables import funnel_from_journal, funnel_from_report
 
     ctx = CompareContext(scene=scene_name, scene_path=str(scene_path), headline=headline)
     ctx.scene_facts.append(("manifest", f"`{scene_path}`"))
@@ -300,10 +300,7 @@ def _context(
             except (OSError, ValueError):
                 continue
             ctx.output_warnings.setdefault(name, []).extend(adj.get("output_warnings") or [])
-        funnel = rep["matching"].get("funnel")
-        ctx.funnels[name] = (
-            dict(funnel) if isinstance(funnel, dict) else funnel_from_journal(journals)
-        )
+        ctx.funnels[name] = funnel_from_report(rep) or funnel_from_journal(journals)
         figs = []
         for kind in ("tile_matches", "mcp_distribution", "residuals"):
             for png in sorted((out / "figures").glob(f"{name}_*_{kind}.png")):

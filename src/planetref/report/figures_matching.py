@@ -118,9 +118,12 @@ def panels_from_tile(result: Any) -> list[MatchPanel]:
 def verified_count(tile: Any) -> int:
     """Correspondences a tile result verified, before any thinning for speed.
 
-    The funnel's last stage before ``mcp`` when the result has a funnel, else
-    ``n_inliers`` (passed MAGSAC++), else ``n_points`` (MCPs written).
+    The result's ``ncp`` when it has one, else the funnel's last stage before ``mcp``,
+    else ``n_inliers`` (passed MAGSAC++), else ``n_points`` (MCPs written).
     """
+    ncp = getattr(tile, "ncp", None)
+    if isinstance(ncp, int | np.integer):
+        return int(ncp)
     funnel = getattr(tile, "funnel", None)
     if isinstance(funnel, Mapping) and funnel:
         stages = [k for k in funnel if k != "mcp"]

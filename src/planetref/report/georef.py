@@ -27,6 +27,7 @@ from planetref.report.tables import (
     format_latex_table,
     format_markdown_table,
     funnel_from_journal,
+    funnel_from_report,
     funnel_rows,
     matching_rows,
     timing_rows,
@@ -300,8 +301,7 @@ def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str
     folder = path.parent
     runs = {report["matcher"]: report}
     journals = [folder / sid / "tiles.jsonl" for sid in report.get("strips") or {}]
-    fun = report["matching"].get("funnel")
-    funnel = dict(fun) if isinstance(fun, dict) else funnel_from_journal(journals)
+    funnel = funnel_from_report(report) or funnel_from_journal(journals)
     doc = Document(f"georef: {report['scene']} with {report['matcher']}")
     for name, (h, r) in _tables(runs, {report["matcher"]: funnel} if funnel else {}).items():
         doc.heading(_SECTIONS[name])

@@ -29,6 +29,7 @@ __all__ = [
     "format_latex_table",
     "format_markdown_table",
     "funnel_from_journal",
+    "funnel_from_report",
     "funnel_rows",
     "matching_rows",
     "timing_rows",
@@ -224,6 +225,19 @@ def funnel_from_journal(paths: Sequence[str | Path]) -> dict[str, int]:
             for k, v in fun.items():
                 if isinstance(v, int | float):
                     total[k] = total.get(k, 0) + int(v)
+    return total
+
+
+def funnel_from_report(rep: Mapping[str, Any]) -> dict[str, int]:
+    """A run's funnel from its report.json: the run's own, else its strips' summed."""
+    top = rep["matching"].get("funnel")
+    if isinstance(top, Mapping) and top:
+        return {k: int(v) for k, v in top.items() if isinstance(v, int | float)}
+    total: dict[str, int] = {}
+    for s in (rep.get("strips") or {}).values():
+        for k, v in ((s.get("matching") or {}).get("funnel") or {}).items():
+            if isinstance(v, int | float):
+                total[k] = total.get(k, 0) + int(v)
     return total
 
 
