@@ -27,8 +27,17 @@ def test_compare_tables_and_figures(tiny_scene, tmp_path, monkeypatch):
     assert (
         "disk-lightglue" in rep["skipped"] and "depth-save.pth" in rep["skipped"]["disk-lightglue"]
     )
-    for run in rep["runs"].values():
+    for name, run in rep["runs"].items():
         assert run["check"]["geoloc_rmse_m"] < 5.0
+        # Only actionable warnings: the tiny strip's unobserved nodes all lie in the
+        # margin beyond the imaged lines, and its refitted RPCs (~0.2 px) are well below
+        # half the adjustment's RMSE.
+        warnings = [w for s in run["strips"].values() for w in s["warnings"]]
+        assert not any("weak node" in w for w in warnings), warnings
+        adj = json.loads(
+            (out.run_dir / "runs" / name / "strip1" / "adjustment" / "report.json").read_text()
+        )
+        assert not any("RPC" in w for w in adj.get("output_warnings", [])), adj
     md = (out.run_dir / "report.md").read_text()
     assert "## Matching" in md and "## Adjustment" in md and "Skipped" in md
     for name in ("RMSE", "Mean", "Max X", "Max Y", "Min X", "Min Y", "OR (%)"):
@@ -45,6 +54,54 @@ def test_compare_tables_and_figures(tiny_scene, tmp_path, monkeypatch):
     ]
     for name in expected:
         assert (figs / name).read_bytes()[:8] == PNG, name
+    _check_report_html(out.run_dir, expected)
+
+
+def _check_report_html(run_dir, expected):
+    """report.html stands alone: every figure embedded and decodable, every table parses."""
+    import csv
+    import io
+
+    import matplotlib.image as mpimg
+
+    from planetref.report.document import read_report_html
+
+    page = read_report_html(run_dir / "report.html")
+    assert not page.external
+    names = [n for n, _ in page.figures]
+    assert sorted(names) == sorted(expected)  # every figure once, none missing
+    for name, data in page.figures:
+        assert data == (run_dir / "figures" / name).read_bytes(), name
+        img = mpimg.imread(io.BytesIO(data), format="png")
+        assert img.shape[0] > 200 and img.shape[1] > 300, name
+    captions = [c for c, _ in page.tables]
+    for key in (
+        "NCP and SDU",
+        "Residuals after adjustment",
+        "True geolocation error",
+        "funnel",
+        "Wall-clock",
+        "differ per matcher",
+    ):
+        assert any(key in c for c in captions), (key, captions)
+    for caption, rows in page.tables:
+        assert len(rows) >= 2 and all(len(r) == len(rows[0]) for r in rows), caption
+    # The HTML tables hold the numbers of the CSVs.
+    adj = next(rows for c, rows in page.tables if "Residuals after adjustment" in c)
+    with open(run_dir / "adjustment.csv", encoding="utf-8") as fh:
+        csv_rows = list(csv.reader(fh))
+    assert adj[0] == csv_rows[0]
+    for html_row, csv_row in zip(adj[1:], csv_rows[1:], strict=True):
+        assert float(html_row[2]) == pytest.approx(float(csv_row[2]), abs=5e-4)
+    text = (run_dir / "report.html").read_text()
+    for word in ("Metric definitions", "sqrt((1/n)", "lower is better", "simulated"):
+        assert word.lower() in text.lower(), word
+    md = (run_dir / "report.md").read_text()
+    assert "](figures/headline.png)" in md and "## Warnings" in md
+    for name in ("matching", "adjustment", "truth", "funnel", "timing"):
+        assert (run_dir / f"{name}.csv").is_file()
+        tex = (run_dir / "tables" / f"{name}.tex").read_text()
+        assert "\\toprule" in tex and "\\bottomrule" in tex
 
 
 def test_resolve_matchers(tmp_path):

@@ -35,6 +35,7 @@ Implementations
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -46,6 +47,8 @@ from numpy.typing import NDArray
 from planetref.adjust.config import AdjustConfig, CsmParameters, LineScanParameters, Mode
 from planetref.camera.linescan import InteriorOrientation, LineScanCamera
 from planetref.errors import AdjustmentError, InputError
+
+log = logging.getLogger("planetref.adjust")
 
 __all__ = [
     "AdjustableCamera",
@@ -683,9 +686,29 @@ class LineScanParameterization:
             )
         if cfg.weak_nodes == "smooth" and self._n_nodes >= 3:
             self._smooth(issues)
+            # Nodes placed beyond the imaged lines (the margin) have no observations by
+            # design: that is no news. Only weak nodes inside the image are worth a warning.
+            n_lines = max(c.n_lines for c in self.camera.ccds)
+            inside = [
+                i
+                for i in issues
+                if 0.0 <= float(self.camera.node_lines[i.indices[0] // 6]) <= n_lines
+            ]
+            margin = len(issues) - len(inside)
+            if margin:
+                log.info(
+                    "strip %r: %d margin node(s) beyond the imaged lines follow the "
+                    "corrections of their neighbours",
+                    self.camera_id,
+                    margin,
+                )
+            if not inside:
+                return []
+            listing = ", ".join(f"{i.label}: {i.count} < {i.required}" for i in inside)
             return [
-                f"strip {self.camera_id!r}: weak node(s) follow the corrections of their "
-                f"neighbours ({listing})"
+                f"strip {self.camera_id!r}: weak node(s) inside the image follow the "
+                f"corrections of their neighbours ({listing}); more matches near them "
+                "(smaller tiles, another matcher) or fewer nodes would determine them"
             ]
         for issue in issues:
             for j in issue.indices:

@@ -147,7 +147,7 @@ def compare_command(
         executor=scheduler,
     )
     click.echo(outcome.tables_markdown)
-    click.echo(f"report: {outcome.run_dir / 'report.json'}")
+    click.echo(f"report: {outcome.run_dir / 'report.html'} (and report.md, report.json)")
 
 
 def _default_demo_dir() -> Path:
@@ -216,6 +216,6 @@ def demo_command(
         executor=scheduler,
     )
     click.echo(outcome.tables_markdown)
-    click.echo(f"report:  {outcome.run_dir / 'report.md'} (and report.json)")
+    click.echo(f"report:  {outcome.run_dir / 'report.html'} (and report.md, report.json)")
     click.echo(f"figures: {outcome.run_dir / 'figures'}")
     click.echo(f"scene:   {scene_dir} (preview.png)")

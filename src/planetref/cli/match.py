@@ -89,52 +89,33 @@ def write_matches_csv(path: str | os.PathLike[str], keypoints0, keypoints1, conf
 
 
 def _figure(
-    path: Path, image0, valid0, image1, valid1, k0, k1, title: str, max_lines: int = 400
+    path: Path,
+    image0,
+    valid0,
+    image1,
+    valid1,
+    k0,
+    k1,
+    title: str,
+    max_lines: int = 80,
+    inliers=None,
 ) -> None:
-    """Side-by-side images with lines joining matched keypoints (Agg, no pyplot state)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    """Side-by-side images with the matches (see ``report.figures_matching``)."""
+    from planetref.report.figures_matching import figure_pair_matches
 
-    from planetref.matching.base import robust_normalise
-
-    def show(img, valid):
-        # decimate big rasters for display only; the extent keeps pixel coordinates
-        step = max(1, int(np.ceil(max(img.shape) / 2000)))
-        norm, _ = robust_normalise(img[::step, ::step], valid[::step, ::step])
-        return np.ma.masked_array(norm, ~valid[::step, ::step])
-
-    fig = Figure(figsize=(12, 6.5), dpi=100)
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(1, 2)
-    for ax, img, valid in ((axes[0], image0, valid0), (axes[1], image1, valid1)):
-        ax.imshow(
-            show(img, valid),
-            cmap="gray",
-            interpolation="nearest",
-            extent=(0, img.shape[1], img.shape[0], 0),
-        )
-        ax.set_axis_off()
-    rng = np.random.default_rng(0)
-    pick = rng.choice(len(k0), min(len(k0), max_lines), replace=False) if len(k0) else []
-    from matplotlib.patches import ConnectionPatch
-
-    for i in pick:
-        fig.add_artist(
-            ConnectionPatch(
-                xyA=tuple(k0[i]),
-                coordsA=axes[0].transData,
-                xyB=tuple(k1[i]),
-                coordsB=axes[1].transData,
-                color="yellow",
-                linewidth=0.5,
-                alpha=0.7,
-            )
-        )
-    axes[0].plot(k0[:, 0], k0[:, 1], ",", color="red")
-    axes[1].plot(k1[:, 0], k1[:, 1], ",", color="red")
-    fig.suptitle(title)
-    fig.tight_layout()
-    _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"), ".png.tmp")
+    figure_pair_matches(
+        path,
+        image0,
+        valid0,
+        image1,
+        valid1,
+        k0,
+        k1,
+        title,
+        max_lines,
+        inliers=inliers,
+        labels=("image0", "image1"),
+    )
 
 
 def _refined(matches, img0, valid0, img1, valid1, method: str):
@@ -328,9 +309,10 @@ def match_command(
                 valid0,
                 img1,
                 valid1,
-                inliers.keypoints0,
-                inliers.keypoints1,
-                f"{matcher_name}: {len(inliers)} verified matches",
+                found.keypoints0,
+                found.keypoints1,
+                f"{matcher_name}, {model} verification",
+                inliers=verdict.inliers,
             )
     except PlanetrefError as exc:
         raise click.ClickException(str(exc)) from None

@@ -869,7 +869,12 @@ def match_strip(
                     results,
                 )
             else:
-                bar = tqdm(pending, desc=f"matching ({name})", unit="tile", disable=not progress)
+                bar = tqdm(
+                    pending,
+                    desc=f"matching ({name})",
+                    unit="tile",
+                    disable=None if progress else True,
+                )
                 for t in bar:
                     record(match_here(t))
                     bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
@@ -943,7 +948,7 @@ def _match_parallel(
         total=len(pending),
         desc=f"matching ({name}, {executor.name})",
         unit="tile",
-        disable=not progress,
+        disable=None if progress else True,  # None: off when stderr is no terminal
     )
     try:
         for t in pending:

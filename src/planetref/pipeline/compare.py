@@ -7,15 +7,18 @@ Output directory::
 
     run.json, config.json, planetref.log
     report.json            {"scene", "runs": {matcher: georef report}, "skipped": {...}}
-    report.md              both tables (and the true error where known)
-    matching.csv, adjustment.csv, truth.csv
-    figures/headline.png   bar chart of the headline metrics
+    report.md, report.html the report (scene, settings, definitions, tables, figures,
+                           warnings); the HTML is one self-contained file
+    matching.csv, adjustment.csv, truth.csv, funnel.csv, timing.csv
+    tables/*.tex           the same tables as LaTeX booktabs
+    figures/headline.png   the headline metrics per matcher
     figures/<matcher>_*.png  copies of each run's figures
     runs/<matcher>/        each georef run directory
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -142,7 +145,7 @@ def _run_compare(
     executor: Any,
 ) -> CompareOutcome:
     from planetref.pipeline.georef import _scene_path, run_georef
-    from planetref.report.georef import figure_headline_bars, write_compare_tables
+    from planetref.report.georef import figure_headline_bars, write_compare_report
 
     cfg = config or GeorefConfig()
     names, skipped = resolve_matchers(matchers, weights_dir)
@@ -175,17 +178,166 @@ def _run_compare(
                 skipped[name] = str(exc)
                 continue
             runs[name] = outcome.report
+            adj = outcome.report.get("adjustment") or {}
+            log.info(
+                "compare: %s done in %.0f s: NCP %s, RMSE %.3g px",
+                name,
+                (outcome.report.get("timing_s") or {}).get("total", float("nan")),
+                outcome.report["matching"].get("ncp"),
+                adj.get("rmse_px", float("nan")),
+            )
             _collect_figures(outcome.run_dir, run.path / "figures", name)
         scene_name = next((r["scene"] for r in runs.values()), scene_path.parent.name)
         report = {"scene": scene_name, "runs": runs, "skipped": skipped}
         run.write_json("report.json", report)
-        tables = write_compare_tables(runs, skipped, run.path, scene=scene_name)
-        files = {k: v for k, v in tables.items() if k != "markdown"}
+        headline = None
         if runs:
-            files["headline"] = str(figure_headline_bars(runs, run.file("figures", "headline.png")))
+            headline = figure_headline_bars(
+                runs, run.file("figures", "headline.png"), scene=scene_name
+            )
+        context = _context(scene_path, scene_name, cfg, runs, run.path, headline)
+        tables = write_compare_report(runs, skipped, run.path, context)
+        files = {k: v for k, v in tables.items() if k != "markdown"}
+        if headline is not None:
+            files["headline"] = str(headline)
     return CompareOutcome(
         report=report, run_dir=run.path, tables_markdown=tables["markdown"], files=files
     )
+
+
+_FIGURE_CAPTIONS = {
+    "tile_matches": "Fig. 2 (matches of one tile, coarse and fine stage side by side) for "
+    "the tiles with the most, the median and the fewest verified matches; green: kept, "
+    "red: rejected",
+    "mcp_distribution": "Fig. 3 (MCP distribution) per CCD in image coordinates, with the "
+    "coarsest SDU grid (occupied cells shaded)",
+    "residuals": "Fig. 4 (residual vectors after the adjustment) per CCD; black: check "
+    "points; the title says whether neighbouring residuals correlate",
+}
+
+
+def _load_manifest(scene_path: Path) -> Any:
+    try:
+        from planetref.pipeline.scene import load_manifest
+    except ImportError:  # before the manifest moved to the pipeline package
+        from planetref.simulate.manifest import load_manifest  # type: ignore[no-redef]
+    return load_manifest(scene_path)
+
+
+def _raster_fact(path: Path) -> str:
+    import rasterio
+
+    try:
+        with rasterio.open(path) as ds:
+            crs = ds.crs.to_string() if ds.crs else "no CRS"
+            if len(crs) > 60:
+                crs = (ds.crs.to_dict() or {}).get("proj", "") or crs[:57] + "..."
+            return (
+                f"`{path.name}`, {ds.width} x {ds.height} px, "
+                f"{abs(ds.res[0]):.4g} x {abs(ds.res[1]):.4g} m/px, {crs}"
+            )
+    except Exception as exc:
+        return f"`{path}` (not readable: {exc})"
+
+
+def _context(
+    scene_path: Path,
+    scene_name: str,
+    cfg: GeorefConfig,
+    runs: dict[str, Any],
+    out: Path,
+    headline: Path | None,
+) -> Any:
+    """What the comparison report says about the scene, the settings and the figures."""
+    from planetref.report.georef import CompareContext
+    from planetref.report.tables import funnel_from_journal, funnel_from_report
+
+    ctx = CompareContext(scene=scene_name, scene_path=str(scene_path), headline=headline)
+    ctx.scene_facts.append(("manifest", f"`{scene_path}`"))
+    try:
+        manifest, root = _load_manifest(scene_path)
+    except PlanetrefError as exc:
+        ctx.scene_facts.append(("scene", f"not readable again: {exc}"))
+        manifest = None
+    if manifest is not None:
+        ref = manifest.reference
+        ctx.scene_facts += [
+            ("body", manifest.body.name),
+            ("reference ortho", _raster_fact(Path(manifest.resolve(root, ref.ortho)))),
+            ("reference DEM", _raster_fact(Path(manifest.resolve(root, ref.dem)))),
+        ]
+        for strip in manifest.strips:
+            ctx.scene_facts.append(
+                (f"strip {strip.id}", ", ".join(c.name for c in strip.ccds) + " (left to right)")
+            )
+        ctx.simulated = manifest.truth is not None
+    conf = cfg.to_json()
+    fe, mcp = conf.get("frontend", {}), conf.get("mcp", {})
+    ctx.common_settings += [
+        ("front end", ", ".join(f"{k} = {v}" for k, v in fe.items() if not isinstance(v, dict))),
+        ("MCPs", ", ".join(f"{k} = {v}" for k, v in mcp.items() if not isinstance(v, dict))),
+        ("adjustment", "see `runs/<matcher>/<strip>/adjustment/config.json`"),
+        *(
+            [
+                (
+                    "per-tile cap",
+                    f"`max_mcps_per_tile = {fe['max_mcps_per_tile']}`: NCP and SDU count the "
+                    "MCPs kept after this cap; the funnel table shows how many were verified",
+                )
+            ]
+            if fe.get("max_mcps_per_tile")
+            else []
+        ),
+        ("full configuration", "`config.json` (and `runs/<matcher>/config.json`)"),
+    ]
+    for name, rep in runs.items():
+        run_dir = out / "runs" / name
+        ctx.matcher_settings[name] = _matcher_settings(name, cfg, run_dir)
+        journals = [run_dir / sid / "tiles.jsonl" for sid in rep.get("strips") or {}]
+        for sid in rep.get("strips") or {}:
+            try:
+                adj = json.loads((run_dir / sid / "adjustment" / "report.json").read_text())
+            except (OSError, ValueError):
+                continue
+            ctx.output_warnings.setdefault(name, []).extend(adj.get("output_warnings") or [])
+        ctx.funnels[name] = funnel_from_report(rep) or funnel_from_journal(journals)
+        figs = []
+        for kind in ("tile_matches", "mcp_distribution", "residuals"):
+            for png in sorted((out / "figures").glob(f"{name}_*_{kind}.png")):
+                strip = png.stem[len(name) + 1 : -len(kind) - 1]
+                figs.append((png, f"{name}, {strip}: {_FIGURE_CAPTIONS[kind]}"))
+        ctx.figures[name] = figs
+    ctx.funnels = {k: v for k, v in ctx.funnels.items() if v}
+    return ctx
+
+
+def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, Any]:
+    """The options a matcher ran with beyond the shared settings.
+
+    Its entry of the configuration's ``matchers`` table, and what the pipeline derives
+    for it (NCC's template spacing and search radii).
+    """
+    out: dict[str, Any] = {}
+    try:
+        conf = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        conf = {}
+    out.update({f"option {k}": v for k, v in (conf.get("matchers") or {}).get(name, {}).items()})
+    if name == "ncc":
+        from planetref.pipeline.georef import matcher_options
+
+        try:
+            manifest, root = _load_manifest(Path(conf.get("scene", "")))
+            import rasterio
+
+            with rasterio.open(manifest.resolve(root, manifest.reference.ortho)) as ds:
+                gsd = float(abs(ds.res[0]))
+            fine, coarse = matcher_options(name, cfg, gsd)
+            out.update({f"fine {k}": v for k, v in fine.items()})
+            out.update({f"coarse {k}": v for k, v in (coarse or {}).items()})
+        except (PlanetrefError, OSError, ValueError) as exc:
+            out["derived options"] = f"not available ({exc})"
+    return out
 
 
 def _collect_figures(run_dir: Path, figures: Path, matcher: str) -> None:

@@ -464,6 +464,15 @@ def _strip_mcps(
     )
     table = mcps_from_tiles(matches, ref=ref, dem=dem)
     timing["matching"] += time.perf_counter() - t0
+    log.info(
+        "strip %s: %d tiles matched with %s in %.0f s (%s): %d MCPs",
+        strip.id,
+        len(matches.tiles),
+        matches.matcher,
+        time.perf_counter() - t0,
+        ", ".join(f"{k} {v}" for k, v in matches.status_counts().items()),
+        len(table),
+    )
     written = write_mcps(table, run.file(strip.id, "mcps.parquet"))
     out["files"]["mcps"] = [
         str(p) for p in (written if isinstance(written, list | tuple) else [written])
@@ -831,11 +840,7 @@ def _figures_matching(
     cfg: GeorefConfig,
 ) -> None:
     from planetref.frontend.match_tile import match_tile
-    from planetref.report.figures_matching import (
-        figure_mcp_distribution,
-        figure_tile_matches,
-        panels_from_tile,
-    )
+    from planetref.report.figures_matching import draw_tile_selection, figure_mcp_distribution
 
     figure_mcp_distribution(
         table,
@@ -844,31 +849,31 @@ def _figures_matching(
         ccd_order=list(sizes),
         title=f"{strip}: MCPs of {matches.matcher}",
     )
-    ok = [t for t in matches.tiles if t.status == "ok"]
-    if not ok:
-        return
-    best = max(ok, key=lambda t: t.n_points)
-    plan = matches.plans[best.tile.ccd]
-    try:
-        again = match_tile(
-            best.tile,
-            image=images[best.tile.ccd],
+
+    def rematch(t: Any) -> Any:
+        return match_tile(
+            t.tile,
+            image=images[t.tile.ccd],
             camera=camera,
             ref=ref,
             terrain=dem,
             matcher=fine,
             config=cfg.frontend,
-            ratio=plan.ratio,
+            ratio=matches.plans[t.tile.ccd].ratio,
             debug=True,
             coarse_matcher=coarse,
         )
-        figure_tile_matches(
-            panels_from_tile(again),
+
+    try:  # a figure must never sink a run
+        draw_tile_selection(
+            matches.tiles,
+            rematch,
             run.file("figures", f"{strip}_tile_matches.png"),
-            title=f"{matches.matcher}: tile {best.tile_id} (coarse, fine)",
+            title=f"{matches.matcher}, {strip}: tiles with the most, the median and the "
+            "fewest verified matches (rows); coarse and fine stage (columns)",
         )
-    except PlanetrefError as exc:  # a figure must never sink a run
-        log.warning("no tile-match figure for %s: %s", best.tile_id, exc)
+    except PlanetrefError as exc:
+        log.warning("no tile-match figure for %s: %s", strip, exc)
 
 
 def _figure_residuals(

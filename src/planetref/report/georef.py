@@ -1,156 +1,128 @@
-"""Reports of georef and compare runs: Markdown, CSV and JSON tables, and figures.
+"""Reports of georef and compare runs: tables (CSV, Markdown, LaTeX), report.md, report.html.
 
-The two tables of the seed:
-
-* **Matching** — NCP and SDU (%) per CCD image, one row per matcher.
-* **Adjustment** — RMSE, Mean, Max X, Max Y, Min X, Min Y (pixels) and OR (%) per strip,
-  one row per matcher; ``x`` is the sample residual, ``y`` the line residual.
-
-Where truth is known a third table gives the true geolocation error before and after.
-Figures are written with matplotlib's Agg canvas through a temporary file.
+The tables (see :mod:`planetref.report.tables`) follow the seed: Table 1 (NCP and SDU per
+CCD image), Table 2 (RMSE, Mean, Max/Min X/Y, OR per strip); beside them the true error
+where known, the front-end funnel and the timings. The comparison's report
+(:func:`write_compare_report`) is one document a reader understands alone: the scene and
+its reference, the settings (and what differs per matcher), the metric definitions with
+formulas, the tables, the figures and the warnings that matter.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import math
+import json
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from planetref.atomic import write_text_atomic
-from planetref.report.figures_matching import _save
+from planetref.report.document import DEFINITIONS, Document
+from planetref.report.figures_adjust import figure_headline, figure_residual_vectors
+from planetref.report.tables import (
+    ADJ_COLUMNS,
+    adjustment_rows,
+    format_csv,
+    format_latex_table,
+    format_markdown_table,
+    funnel_from_journal,
+    funnel_from_report,
+    funnel_rows,
+    matching_rows,
+    timing_rows,
+    truth_rows,
+)
 
 __all__ = [
+    "ADJ_COLUMNS",
+    "CompareContext",
     "adjustment_rows",
     "figure_headline_bars",
     "figure_residual_vectors",
     "format_markdown_table",
     "matching_rows",
+    "truth_rows",
+    "write_compare_report",
     "write_compare_tables",
     "write_georef_markdown",
 ]
 
-ADJ_COLUMNS = [
-    ("RMSE", "rmse_px"),
-    ("Mean", "mean_px"),
-    ("Max X", "max_x_px"),
-    ("Max Y", "max_y_px"),
-    ("Min X", "min_x_px"),
-    ("Min Y", "min_y_px"),
-    ("OR (%)", "outlier_ratio_pct"),
-]
+_csv = format_csv
 
 
-def _fmt(v: Any, digits: int = 3) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return "-" if not math.isfinite(v) else f"{v:.{digits}f}"
-    return str(v)
+def figure_headline_bars(
+    runs: Mapping[str, Mapping[str, Any]],
+    path: str | os.PathLike[str],
+    *,
+    dpi: int = 110,
+    scene: str = "",
+) -> Path:
+    """The headline figure (see :func:`~planetref.report.figures_adjust.figure_headline`)."""
+    if not scene:
+        scene = next((str(r.get("scene", "")) for r in runs.values()), "")
+    return figure_headline(runs, path, scene=scene, dpi=dpi)
 
 
-def format_markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    """A GitHub-flavoured Markdown table (numbers right-aligned, text left-aligned)."""
-    cells = [[_fmt(v) for v in r] for r in rows]
-    widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
-    numeric = [
-        all(isinstance(r[i], int | float) or r[i] is None for r in rows) for i in range(len(header))
-    ]
-    out = [
-        "| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |",
-        "|"
-        + "|".join(
-            "-" * (w + 1) + (":" if num else "-") for w, num in zip(widths, numeric, strict=True)
-        )
-        + "|",
-    ]
-    for r in cells:
-        out.append(
-            "| "
-            + " | ".join(
-                c.rjust(w) if num else c.ljust(w)
-                for c, w, num in zip(r, widths, numeric, strict=True)
-            )
-            + " |"
-        )
-    return "\n".join(out)
+@dataclass
+class CompareContext:
+    """What a comparison report says beyond the runs' reports.
+
+    Attributes:
+        scene: Scene name.
+        scene_path: The scene manifest.
+        scene_facts: ``(label, value)`` lines about the scene and its reference.
+        common_settings: ``(label, value)`` lines of settings every matcher shared.
+        matcher_settings: Matcher -> its own settings (options that differ per matcher).
+        funnels: Matcher -> front-end stage counts.
+        figures: Matcher -> ``(png, caption)`` pairs.
+        headline: The headline PNG.
+        simulated: The scene has truth (state why its numbers are easier than reality).
+        output_warnings: Matcher -> warnings written with the outputs (e.g. RPC fits).
+    """
+
+    scene: str
+    scene_path: str = ""
+    scene_facts: list[tuple[str, str]] = field(default_factory=list)
+    common_settings: list[tuple[str, str]] = field(default_factory=list)
+    matcher_settings: dict[str, dict[str, Any]] = field(default_factory=dict)
+    funnels: dict[str, dict[str, int]] = field(default_factory=dict)
+    figures: dict[str, list[tuple[Path, str]]] = field(default_factory=dict)
+    headline: Path | None = None
+    simulated: bool = False
+    output_warnings: dict[str, list[str]] = field(default_factory=dict)
 
 
-def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Header and rows of the matching table (NCP and SDU per CCD image, per matcher)."""
-    ccds: list[str] = []
-    for rep in runs.values():
-        for c in rep["matching"]["ccds"]:
-            if c not in ccds:
-                ccds.append(c)
-    header = (
-        ["Matcher"]
-        + [f"{c} NCP" for c in ccds]
-        + [f"{c} SDU (%)" for c in ccds]
-        + ["NCP", "SDU (%)", "tiles failed"]
-    )
-    rows = []
-    for name, rep in runs.items():
-        m = rep["matching"]
-        per = m["ccds"]
-        rows.append(
-            [name]
-            + [per.get(c, {}).get("ncp") for c in ccds]
-            + [per.get(c, {}).get("sdu_pct") for c in ccds]
-            + [m["ncp"], m["sdu_pct"], f"{m['tiles_failed']}/{m['tiles_total']}"]
-        )
-    return header, rows
+_TABLES = {
+    "matching": "NCP and SDU (%) per CCD image (the seed's Table 1)",
+    "adjustment": "Residuals after adjustment per strip (pixels; x = sample, y = line; "
+    "OR in %) (the seed's Table 2)",
+    "truth": "True geolocation error (RMS over an image grid), before and after",
+    "funnel": "Front-end funnel: correspondences left after each stage, summed over tiles",
+    "timing": "Wall-clock time per step (seconds)",
+}
 
 
-def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Header and rows of the adjustment table (per strip, per matcher)."""
-    header = ["Matcher", "Strip"] + [h for h, _ in ADJ_COLUMNS] + ["RMSE before", "sigma0"]
-    rows = []
-    for name, rep in runs.items():
-        strips = rep.get("strips") or {"strip": {"adjustment": rep["adjustment"]}}
-        for sid, s in strips.items():
-            a = s["adjustment"]
-            rows.append(
-                [name, sid]
-                + [a.get(k) for _, k in ADJ_COLUMNS]
-                + [a.get("rmse_px_before"), a.get("sigma0")]
-            )
-    return header, rows
+_SECTIONS = {
+    "matching": "Matching (Table 1)",
+    "adjustment": "Adjustment (Table 2)",
+    "truth": "True geolocation error",
+    "funnel": "Front-end funnel",
+    "timing": "Timing",
+}
 
 
-def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Header and rows of the true geolocation error (where truth is known)."""
-    header = ["Matcher", "before (m)", "after (m)", "after (px)", "max after (m)"]
-    rows = [
-        [
-            name,
-            c["geoloc_rmse_m_before"],
-            c["geoloc_rmse_m"],
-            c["geoloc_rmse_px"],
-            c["geoloc_max_m"],
-        ]
-        for name, rep in runs.items()
-        if (c := rep.get("check"))
-    ]
-    return header, rows
-
-
-def _csv(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
-    for r in rows:
-        w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in r])
-    return buf.getvalue()
+def _tables(
+    runs: Mapping[str, Mapping[str, Any]], funnels: Mapping[str, Mapping[str, int]]
+) -> dict[str, tuple[list[str], list[list[Any]]]]:
+    out = {"matching": matching_rows(runs), "adjustment": adjustment_rows(runs)}
+    th, tr = truth_rows(runs)
+    if tr:
+        out["truth"] = (th, tr)
+    if funnels:
+        out["funnel"] = funnel_rows(funnels, {n: r["matching"]["ncp"] for n, r in runs.items()})
+    out["timing"] = timing_rows(runs)
+    return out
 
 
 def write_compare_tables(
@@ -159,186 +131,214 @@ def write_compare_tables(
     folder: str | os.PathLike[str],
     *,
     scene: str = "",
+    funnels: Mapping[str, Mapping[str, int]] | None = None,
 ) -> dict[str, str]:
-    """Write the tables as Markdown (``report.md``) and CSV files.
+    """Write every table as CSV (``<name>.csv``) and LaTeX booktabs (``tables/<name>.tex``).
 
     Returns:
-        Paths by name, and ``"markdown"`` with the Markdown text itself.
+        Paths by name, and ``"markdown"`` with the tables as Markdown (what ``demo``
+        prints).
     """
     out = Path(folder)
-    mh, mr = matching_rows(runs)
-    ah, ar = adjustment_rows(runs)
-    th, tr = truth_rows(runs)
-    paths = {
-        "matching_csv": str(write_text_atomic(out / "matching.csv", _csv(mh, mr))),
-        "adjustment_csv": str(write_text_atomic(out / "adjustment.csv", _csv(ah, ar))),
+    tables = _tables(runs, funnels or {})
+    paths: dict[str, str] = {}
+    md = [f"# Matcher comparison{': ' + scene if scene else ''}", ""]
+    titles = {
+        "matching": "## Matching (NCP and SDU per CCD image)",
+        "adjustment": "## Adjustment (pixels; x = sample, y = line; OR = outlier ratio)",
+        "truth": "## True geolocation error (RMS over an image grid)",
+        "funnel": "## Front-end funnel (correspondences per stage)",
+        "timing": "## Timing (s)",
     }
-    md = [
-        f"# Matcher comparison{': ' + scene if scene else ''}",
-        "",
-        "## Matching (NCP and SDU per CCD image)",
-        "",
-        format_markdown_table(mh, mr),
-        "",
-        "## Adjustment (pixels; x = sample, y = line; OR = outlier ratio)",
-        "",
-        format_markdown_table(ah, ar),
-        "",
-    ]
-    if tr:
-        paths["truth_csv"] = str(write_text_atomic(out / "truth.csv", _csv(th, tr)))
-        md += [
-            "## True geolocation error (RMS over an image grid)",
-            "",
-            format_markdown_table(th, tr),
-            "",
-        ]
+    for name, (h, r) in tables.items():
+        paths[f"{name}_csv"] = str(write_text_atomic(out / f"{name}.csv", format_csv(h, r)))
+        tex = format_latex_table(h, r, caption=_TABLES[name], label=f"tab:{name}")
+        paths[f"{name}_tex"] = str(write_text_atomic(out / "tables" / f"{name}.tex", tex))
+        md += [titles[name], "", format_markdown_table(h, r), ""]
     if skipped:
         md += ["## Skipped", ""] + [f"- `{k}`: {v}" for k, v in skipped.items()] + [""]
-    text = "\n".join(md)
-    paths["report_md"] = str(write_text_atomic(out / "report.md", text))
-    paths["markdown"] = text
+    paths["markdown"] = "\n".join(md)
     return paths
 
 
-def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str]) -> Path:
-    """report.md of one georef run."""
-    runs = {report["matcher"]: report}
-    mh, mr = matching_rows(runs)
-    ah, ar = adjustment_rows(runs)
-    lines = [
-        f"# georef: {report['scene']} with {report['matcher']}",
-        "",
-        "## Matching",
-        "",
-        format_markdown_table(mh, mr),
-        "",
-        "## Adjustment (pixels)",
-        "",
-        format_markdown_table(ah, ar),
-        "",
+def _warnings(
+    runs: Mapping[str, Mapping[str, Any]], more: Mapping[str, Sequence[str]] | None = None
+) -> list[str]:
+    """The warnings of every run (adjustment and outputs), once each, with their matcher."""
+    seen: dict[str, list[str]] = {}
+    for name, ws in (more or {}).items():
+        for w in ws:
+            seen.setdefault(w, []).append(name)
+    for name, rep in runs.items():
+        for sid, s in (rep.get("strips") or {}).items():
+            for w in s.get("warnings") or []:
+                seen.setdefault(f"{sid}: {w}" if sid not in w else w, []).append(name)
+        for w in (rep.get("adjustment") or {}).get("output_warnings") or []:
+            seen.setdefault(w, []).append(name)
+        for t in rep["matching"].get("tiles_lost") or []:
+            msg = f"tile {t.get('strip', '')} {t['tile']}: {t['status']} {t.get('message', '')}"
+            seen.setdefault(msg.strip(), []).append(name)
+    return [f"{w} ({', '.join(ms)})" for w, ms in seen.items()]
+
+
+def _extra_adjustment(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """Scalar adjustment statistics the tables above do not show (e.g. DOF, other ORs)."""
+    shown = {k for _, k in ADJ_COLUMNS} | {
+        "rmse_x_px",
+        "rmse_y_px",
+        "rmse_px_before",
+        "sigma0",
+        "n_total",
+    }
+    keys: list[str] = []
+    for rep in runs.values():
+        for k, v in (rep.get("adjustment") or {}).items():
+            if k not in shown and k not in keys and isinstance(v, int | float | bool):
+                keys.append(k)
+    return ["Matcher", *keys], [
+        [name] + [(rep.get("adjustment") or {}).get(k) for k in keys] for name, rep in runs.items()
     ]
-    th, tr = truth_rows(runs)
-    if tr:
-        lines += ["## True geolocation error", "", format_markdown_table(th, tr), ""]
+
+
+def write_compare_report(
+    runs: Mapping[str, Mapping[str, Any]],
+    skipped: Mapping[str, str],
+    folder: str | os.PathLike[str],
+    context: CompareContext,
+) -> dict[str, str]:
+    """Write the tables (CSV, LaTeX), ``report.md`` and the self-contained ``report.html``.
+
+    Returns:
+        Paths by name, and ``"markdown"`` with the tables as Markdown.
+    """
+    folder = Path(folder)
+    paths = write_compare_tables(
+        runs, skipped, folder, scene=context.scene, funnels=context.funnels
+    )
+    tables = _tables(runs, context.funnels)
+    doc = Document(f"Matcher comparison: {context.scene}")
+    doc.para(
+        f"Matchers compared: {', '.join(f'`{n}`' for n in runs) or 'none'}. Every matcher ran "
+        "on the same scene with the same initial cameras, front-end and adjustment settings; "
+        "only the matcher (and the options listed under Settings) differs."
+    )
+    doc.heading("Scene and reference")
+    doc.items([f"**{k}**: {v}" for k, v in context.scene_facts] or [f"scene `{context.scene}`"])
+    if context.simulated:
+        doc.para(
+            "This is a **simulated** scene: the truth is known, so the true error can be "
+            "measured. It is easier than real data: the images and the reference are "
+            "rendered from one synthetic terrain by the same simulator, the camera model of "
+            "the adjustment is the one that made the images, and changes between image and "
+            "reference (illumination, season, surface) are only those the simulation "
+            "config (`truth/config.toml`) puts in."
+        )
+    doc.heading("Settings")
+    doc.items([f"**{k}**: {v}" for k, v in context.common_settings])
+    if context.matcher_settings:
+        keys = sorted({k for s in context.matcher_settings.values() for k in s})
+        doc.table(
+            "Settings that differ per matcher (options passed to the matcher; '-' = its defaults)",
+            ["Matcher", *keys],
+            [[n] + [_short(s.get(k)) for k in keys] for n, s in context.matcher_settings.items()],
+        )
+    doc.heading("Metric definitions")
+    doc.items([f"**{k}**: {v}" for k, v in DEFINITIONS])
+    doc.heading("Headline")
+    doc.figure(
+        context.headline,
+        "Headline metrics per matcher. Hatched: before the adjustment; coloured: after; "
+        "dashes: per-CCD values; whisker: maximum true error. Each panel says which "
+        "direction is better.",
+    )
+    for name, (h, r) in tables.items():
+        doc.heading(_SECTIONS[name])
+        doc.table(_TABLES[name], h, r)
+    if "funnel" not in tables:
+        doc.para("Front-end funnel: not available (no tile journal).")
+    eh, er = _extra_adjustment(runs)
+    if len(eh) > 1:
+        doc.heading("Further adjustment statistics")
+        doc.table("Further adjustment statistics (as in report.json)", eh, er)
+    doc.para(
+        "CSV of every table: `matching.csv`, `adjustment.csv`, `truth.csv`, `funnel.csv`, "
+        "`timing.csv`; LaTeX (booktabs): `tables/*.tex`."
+    )
+    doc.heading("Figures")
+    for name, figs in context.figures.items():
+        if figs:
+            doc.heading(name, 3)
+        for png, caption in figs:
+            doc.figure(png, caption)
+    doc.heading("Warnings")
+    warns = _warnings(runs, context.output_warnings)
+    doc.items(warns)
+    if not warns:
+        doc.para("None.")
+    if skipped:
+        doc.heading("Skipped matchers")
+        doc.items([f"`{k}`: {v}" for k, v in skipped.items()])
+    written = doc.write(folder)
+    paths.update(written)
+    return paths
+
+
+def _short(v: Any) -> Any:
+    if v is None or isinstance(v, int | float):
+        return v
+    s = str(v)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str]) -> Path:
+    """report.md of one georef run, and beside it a self-contained report.html.
+
+    Tables 1 and 2, the true error, the funnel (from the run's tile journals), the
+    timings, lost tiles, warnings, the definitions and the run's figures
+    (``figures/*.png`` next to ``path``).
+    """
+    path = Path(path)
+    folder = path.parent
+    runs = {report["matcher"]: report}
+    journals = [folder / sid / "tiles.jsonl" for sid in report.get("strips") or {}]
+    funnel = funnel_from_report(report) or funnel_from_journal(journals)
+    doc = Document(f"georef: {report['scene']} with {report['matcher']}")
+    for name, (h, r) in _tables(runs, {report["matcher"]: funnel} if funnel else {}).items():
+        doc.heading(_SECTIONS[name])
+        doc.table(_TABLES[name], h, r)
     lost = report["matching"].get("tiles_lost") or []
     if lost:
-        lines += (
-            ["## Tiles without MCPs", ""]
-            + [
-                f"- {t.get('strip', '')} {t['tile']}: {t['status']} {t.get('message', '')}"
+        doc.heading("Tiles without MCPs")
+        doc.items(
+            [
+                f"{t.get('strip', '')} {t['tile']}: {t['status']} {t.get('message', '')}"
                 for t in lost
             ]
-            + [""]
         )
-    t = report.get("timing_s", {})
-    lines += ["## Timing (s)", "", format_markdown_table(list(t), [list(t.values())]), ""]
-    return write_text_atomic(path, "\n".join(lines))
+    more: list[str] = []
+    for sid in report.get("strips") or {}:
+        try:
+            adj = json.loads((folder / sid / "adjustment" / "report.json").read_text())
+        except (OSError, ValueError):
+            continue
+        more += adj.get("output_warnings") or []
+    warns = _warnings(runs, {report["matcher"]: more})
+    if warns:
+        doc.heading("Warnings")
+        doc.items(warns)
+    doc.heading("Figures")
+    for kind, caption in _RUN_FIGURES.items():
+        for png in sorted((folder / "figures").glob(f"*_{kind}.png")):
+            doc.figure(png, f"{png.stem[: -len(kind) - 1]}: {caption}")
+    doc.heading("Metric definitions")
+    doc.items([f"**{k}**: {v}" for k, v in DEFINITIONS])
+    write_text_atomic(path.with_suffix(".html"), doc.html())
+    return write_text_atomic(path, doc.markdown(folder))
 
 
-def figure_residual_vectors(
-    result: Any,
-    image_sizes: Mapping[str, tuple[int, int]],
-    path: str | os.PathLike[str],
-    *,
-    title: str = "",
-    scale: float | None = None,
-    dpi: int = 110,
-) -> Path:
-    """Residual vectors of the inlier observations over the CCD images side by side.
-
-    Args:
-        result: An :class:`~planetref.adjust.api.AdjustmentResult` of one camera.
-        image_sizes: CCD name -> ``(n_lines, n_samples)``, left to right.
-        path: Output PNG.
-        title: Figure title.
-        scale: Image pixels drawn per pixel of residual (default: so that the 95th
-            percentile residual is drawn 4 % of the mean CCD width long).
-        dpi: Resolution.
-    """
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Rectangle
-
-    net = result.network
-    cam = result.cameras[net.camera_ids[0]]
-    names = np.array([cam.ccd_names[k] for k in net.obs_ccd])
-    r = result.residual
-    inl = result.status == "inlier"
-    order = list(image_sizes)
-    widths = [image_sizes[c][1] for c in order]
-    gap = 0.08 * float(np.mean(widths))
-    max_h = max(image_sizes[c][0] for c in order)
-    total_w = sum(widths) + gap * (len(order) - 1)
-    length = np.hypot(r[inl, 0], r[inl, 1]) if inl.any() else np.array([1.0])
-    p95 = float(np.nanpercentile(length, 95)) if length.size else 1.0
-    scale = scale or 0.04 * float(np.mean(widths)) / max(p95, 1e-6)
-    fig = Figure(
-        figsize=(10.0, float(np.clip(10.0 * max_h / total_w, 3.0, 14.0)) + 0.8),
-        layout="constrained",
-    )
-    ax = fig.subplots()
-    x0 = 0.0
-    for c in order:
-        nl, ns = image_sizes[c]
-        ax.add_patch(Rectangle((x0, 0), ns, nl, facecolor="#f7f7f7", edgecolor="0.3", lw=0.8))
-        sel = inl & (names == c)
-        if sel.any():
-            ax.quiver(
-                x0 + net.obs_sample[sel],
-                net.obs_line[sel],
-                r[sel, 1] * scale,
-                r[sel, 0] * scale,
-                angles="xy",
-                scale_units="xy",
-                scale=1.0,
-                width=0.0015,
-                color="tab:red",
-            )
-        ax.text(x0 + ns / 2, -0.01 * max_h, c, ha="center", va="bottom", fontsize=8)
-        x0 += ns + gap
-    ax.set_xlim(-gap / 2, total_w + gap / 2)
-    ax.set_ylim(max_h, -0.08 * max_h)
-    ax.set_aspect("equal" if 0.05 < max_h / total_w < 20 else "auto")
-    ax.set_xlabel("sample")
-    ax.set_ylabel("line")
-    ax.set_title((title or "residuals") + f"  (arrows x{scale:.0f})", fontsize=10)
-    return _save(fig, path, dpi)
-
-
-def figure_headline_bars(
-    runs: Mapping[str, Mapping[str, Any]], path: str | os.PathLike[str], *, dpi: int = 110
-) -> Path:
-    """Bar chart of the headline metrics per matcher: NCP, SDU, RMSE, OR, true error."""
-    from matplotlib.figure import Figure
-
-    names = list(runs)
-    panels = [
-        ("NCP", lambda r: r["matching"]["ncp"]),
-        ("SDU (%)", lambda r: r["matching"]["sdu_pct"]),
-        ("RMSE (px)", lambda r: r["adjustment"]["rmse_px"]),
-        ("OR (%)", lambda r: r["adjustment"]["outlier_ratio_pct"]),
-    ]
-    if any(r.get("check") for r in runs.values()):
-        panels.append(
-            (
-                "true error after (m)",
-                lambda r: (r.get("check") or {}).get("geoloc_rmse_m", float("nan")),
-            )
-        )
-    fig = Figure(figsize=(3.0 * len(panels), 3.4), layout="constrained")
-    axes = fig.subplots(1, len(panels))
-    import matplotlib
-
-    colours = [matplotlib.colormaps["tab10"](i % 10) for i in range(len(names))]
-    for ax, (label, get) in zip(np.atleast_1d(axes), panels, strict=True):
-        vals = []
-        for n in names:
-            try:
-                v = float(get(runs[n]))
-            except (KeyError, TypeError):
-                v = float("nan")
-            vals.append(v)
-        ax.bar(range(len(names)), np.nan_to_num(vals), color=colours)
-        ax.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=8)
-        ax.set_title(label, fontsize=9)
-    return _save(fig, path, dpi)
+_RUN_FIGURES = {
+    "tile_matches": "matches of the tiles with the most, the median and the fewest verified "
+    "matches, coarse and fine stage side by side (green: kept, red: rejected)",
+    "mcp_distribution": "MCP distribution per CCD in image coordinates with the SDU grid",
+    "residuals": "residual vectors after the adjustment per CCD (black: check points)",
+}

@@ -368,7 +368,11 @@ def _build(
     render_stats: dict[str, dict[str, dict[str, float]]] = {}
     strip_specs = []
     with tqdm(
-        total=total_lines, unit="line", desc="rendering", disable=not progress, leave=False
+        total=total_lines,
+        unit="line",
+        desc="rendering",
+        disable=None if progress else True,
+        leave=False,
     ) as bar:
         for i, s in enumerate(strips):
             sdir = root / "strips" / s.strip.id
@@ -422,7 +426,11 @@ def _build(
     # Reference ortho and DEM ---------------------------------------------------------
     model = sm.radiance_model("reference")
     with tqdm(
-        total=ortho_grid.rows, unit="row", desc="reference ortho", disable=not progress, leave=False
+        total=ortho_grid.rows,
+        unit="row",
+        desc="reference ortho",
+        disable=None if progress else True,
+        leave=False,
     ) as bar:
         ortho = render_ortho(
             ortho_grid,

@@ -1,0 +1,452 @@
+"""Figures and a statistic of the adjustment: residual vector fields and the headline.
+
+* :func:`residual_pattern`: does a residual field hold a systematic pattern? The
+  nearest-neighbour vector correlation ``C = sum_i v_i . m_i / sqrt(sum_i |v_i|^2
+  sum_i |m_i|^2)``, with ``v_i`` the residual vector of point ``i`` and ``m_i`` the mean
+  residual vector of its ``k`` nearest neighbours (image coordinates, same CCD). White
+  noise gives ``C ~ 0``; a smooth field (an uncorrected systematic error) gives ``C``
+  near 1. Significance by a permutation test (the vectors shuffled over the positions).
+  A pattern is reported when ``C >= PATTERN_MIN_C`` and ``p <= PATTERN_MAX_P``.
+* :func:`figure_residual_vectors`: the seed's Fig. 4: residuals per CCD, one panel each
+  in its own image coordinates, with a reference arrow, check points and outliers, and
+  the pattern note.
+* :func:`figure_headline`: the comparison's headline (NCP, SDU, RMSE before/after, OR,
+  true error before/after) with the scene, units and which direction is better.
+
+Residuals are ``(line, sample)`` in pixels, projected minus observed (as
+:mod:`planetref.metrics` defines them); ``x`` is the sample, ``y`` the line.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from planetref.report.figures_matching import _save, ccd_colour
+
+__all__ = [
+    "PATTERN_MAX_P",
+    "PATTERN_MIN_C",
+    "ResidualPattern",
+    "figure_headline",
+    "figure_residual_vectors",
+    "residual_pattern",
+]
+
+PATTERN_MIN_C = 0.3
+"""Nearest-neighbour vector correlation from which a residual field is called systematic."""
+PATTERN_MAX_P = 0.01
+"""Permutation p-value up to which the correlation counts as significant."""
+
+
+@dataclass(frozen=True)
+class ResidualPattern:
+    """Spatial correlation of a residual vector field.
+
+    Attributes:
+        c: Nearest-neighbour vector correlation (see the module docstring); NaN if
+            fewer than ``k + 2`` points.
+        p_value: Permutation p-value of ``c`` (one-sided, ``c`` larger than chance).
+        n: Points used.
+        k: Neighbours per point.
+        systematic: ``c >= PATTERN_MIN_C`` and ``p_value <= PATTERN_MAX_P``.
+    """
+
+    c: float
+    p_value: float
+    n: int
+    k: int
+    systematic: bool
+
+    def note(self) -> str:
+        """One line for a figure or report."""
+        if not math.isfinite(self.c):
+            return f"pattern test: too few points ({self.n})"
+        verdict = (
+            "SYSTEMATIC PATTERN: neighbouring residuals agree (an error the model does not "
+            "absorb, or matching errors shared by neighbouring matches)\n"
+            if self.systematic
+            else "no systematic pattern"
+        )
+        return (
+            f"{verdict} (nearest-neighbour correlation C = {self.c:.2f}, p = {self.p_value:.3f}, "
+            f"k = {self.k}, n = {self.n}; flagged when C >= {PATTERN_MIN_C} and "
+            f"p <= {PATTERN_MAX_P})"
+        )
+
+
+def _nn_corr(v: np.ndarray, nbr: np.ndarray) -> float:
+    m = v[nbr].mean(axis=1)
+    den = math.sqrt(float(np.sum(v * v)) * float(np.sum(m * m)))
+    return float(np.sum(v * m)) / den if den > 0 else 0.0
+
+
+def residual_pattern(
+    line: ArrayLike,
+    sample: ArrayLike,
+    d_line: ArrayLike,
+    d_sample: ArrayLike,
+    *,
+    group: ArrayLike | None = None,
+    k: int = 6,
+    n_permutations: int = 199,
+    seed: int = 0,
+) -> ResidualPattern:
+    """Nearest-neighbour correlation of residual vectors and its permutation p-value.
+
+    Args:
+        line: Image line of each point (px).
+        sample: Image sample (px).
+        d_line: Line residual (px).
+        d_sample: Sample residual (px).
+        group: Per point a group label (e.g. the CCD): neighbours are found within the
+            group only; permutations shuffle over all points, so that an offset shared
+            by a group counts as a pattern too.
+        k: Neighbours per point.
+        n_permutations: Shuffles for the p-value (p >= 1 / (n_permutations + 1)).
+        seed: Random seed of the shuffles.
+    """
+    from scipy.spatial import cKDTree
+
+    pos = np.column_stack([np.asarray(line, float), np.asarray(sample, float)])
+    v = np.column_stack([np.asarray(d_line, float), np.asarray(d_sample, float)])
+    grp = np.zeros(len(pos), int) if group is None else np.unique(group, return_inverse=True)[1]
+    ok = np.all(np.isfinite(pos), 1) & np.all(np.isfinite(v), 1)
+    pos, v, grp = pos[ok], v[ok], grp[ok]
+    members = [np.flatnonzero(grp == g) for g in np.unique(grp)]
+    members = [m for m in members if len(m) >= k + 2]
+    n = int(sum(len(m) for m in members))
+    if not members:
+        return ResidualPattern(float("nan"), float("nan"), len(pos), k, False)
+    idx = np.concatenate(members)
+    nbr_parts, offset = [], 0
+    for m in members:
+        _, nb = cKDTree(pos[m]).query(pos[m], k=k + 1)
+        nbr_parts.append(nb[:, 1:] + offset)
+        offset += len(m)
+    nbr = np.concatenate(nbr_parts)
+    vv = v[idx]
+    c = _nn_corr(vv, nbr)
+    rng = np.random.default_rng(seed)
+    # Shuffling over every position (not within groups) also catches a per-CCD offset.
+    hits = sum(_nn_corr(vv[rng.permutation(n)], nbr) >= c for _ in range(n_permutations))
+    p = (hits + 1) / (n_permutations + 1)
+    return ResidualPattern(c, p, n, k, bool(c >= PATTERN_MIN_C and p <= PATTERN_MAX_P))
+
+
+def _nice(x: float) -> float:
+    """A round arrow length (1, 2 or 5 times a power of ten) near ``x``."""
+    if not x > 0 or not math.isfinite(x):
+        return 1.0
+    e = math.floor(math.log10(x))
+    return min((m * 10.0**e for m in (1, 2, 5, 10)), key=lambda v: abs(math.log(v / x)))
+
+
+def figure_residual_vectors(
+    result: Any,
+    image_sizes: Mapping[str, tuple[int, int]],
+    path: str | os.PathLike[str],
+    *,
+    title: str = "",
+    scale: float | None = None,
+    dpi: int = 110,
+) -> Path:
+    """The seed's Fig. 4: residual vectors per CCD, each in its own image coordinates.
+
+    Inliers are drawn as arrows in the CCD's colour, check points as black arrows,
+    outliers as crosses. A reference arrow gives the length of a round number of pixels;
+    the title says whether neighbouring residuals correlate (:func:`residual_pattern`).
+
+    Args:
+        result: An :class:`~planetref.adjust.api.AdjustmentResult` of one camera (or any
+            object with ``network``, ``cameras``, ``residual`` and ``status``).
+        image_sizes: CCD name -> ``(n_lines, n_samples)``, left to right.
+        path: Output PNG.
+        title: Figure title.
+        scale: Image pixels drawn per pixel of residual (default: the 95th percentile
+            residual drawn 6 % of the mean CCD width long).
+        dpi: Resolution.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    net = result.network
+    cam = result.cameras[net.camera_ids[0]]
+    names = np.array([cam.ccd_names[k] for k in net.obs_ccd])
+    r = np.asarray(result.residual, float)
+    status = np.asarray(result.status).astype(str)
+    inl, chk, out = status == "inlier", status == "check", status == "outlier"
+    order = list(image_sizes)
+    widths = [image_sizes[c][1] for c in order]
+    max_h = max(image_sizes[c][0] for c in order)
+    length = np.hypot(r[inl | chk, 0], r[inl | chk, 1])
+    length = length[np.isfinite(length)]
+    p95 = float(np.percentile(length, 95)) if length.size else 1.0
+    scale = scale or 0.06 * float(np.mean(widths)) / max(p95, 1e-6)
+    ref_px = _nice(p95)
+    pattern = residual_pattern(
+        net.obs_line[inl], net.obs_sample[inl], r[inl, 0], r[inl, 1], group=names[inl]
+    )
+    aspect = max_h / float(np.mean(widths))
+    panel_w = float(np.clip(9.0 / len(order), 2.2, 4.0))
+    fig = Figure(
+        figsize=(panel_w * len(order) + 0.6, float(np.clip(panel_w * aspect, 2.5, 11.0)) + 1.6),
+        layout="constrained",
+    )
+    axes = np.atleast_1d(fig.subplots(1, len(order), sharey=True, width_ratios=widths))
+    q = None
+    for i, (ax, c) in enumerate(zip(axes, order, strict=True)):
+        _nl, ns = image_sizes[c]
+        on = names == c
+        for sel, colour, lw in ((inl & on, ccd_colour(i), 0.004), (chk & on, "black", 0.005)):
+            if sel.any():
+                q = ax.quiver(
+                    net.obs_sample[sel],
+                    net.obs_line[sel],
+                    r[sel, 1] * scale,
+                    r[sel, 0] * scale,
+                    angles="xy",
+                    scale_units="xy",
+                    scale=1.0,
+                    width=lw,
+                    color=colour,
+                )
+        if (out & on).any():
+            ax.scatter(net.obs_sample[out & on], net.obs_line[out & on], s=14, marker="x", c="0.4")
+        rms = float(np.sqrt(np.nanmean(np.sum(r[inl & on] ** 2, 1)))) if (inl & on).any() else 0.0
+        ax.set_title(f"{c}: {int((inl & on).sum())} inliers, RMSE {rms:.2f} px", fontsize=8)
+        ax.set_xlim(0, ns)
+        ax.set_ylim(max_h, 0)
+        ax.set_xlabel("sample (px)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_facecolor("#fafafa")
+    axes[0].set_ylabel("line (px)", fontsize=8)
+    if q is not None:
+        q.axes.quiverkey(
+            q,
+            0.86,
+            0.025,
+            ref_px * scale,
+            f"reference: {ref_px:g} px",
+            labelpos="E",
+            coordinates="figure",
+            color="black",
+            fontproperties={"size": 8},
+        )
+    handles = [
+        Line2D([], [], color=ccd_colour(0), lw=1.5, label="inlier residual (CCD colour)"),
+        Line2D([], [], color="black", lw=1.5, label=f"check point ({int(chk.sum())})"),
+        Line2D([], [], color="0.4", marker="x", lw=0, label=f"outlier ({int(out.sum())})"),
+    ]
+    fig.legend(handles=handles, loc="outside lower left", ncol=3, fontsize=7, frameon=False)
+    fig.suptitle(
+        (title or "residuals after adjustment")
+        + f"\narrows magnified x{scale:.0f} (reference arrow {ref_px:g} px)\n"
+        + pattern.note(),
+        fontsize=8,
+        color="#b2182b" if pattern.systematic else "black",
+    )
+    return _save(fig, path, dpi)
+
+
+def _label(v: float) -> str:
+    """A bar's value: whole numbers from 100 up, three significant digits below."""
+    if not math.isfinite(v):
+        return "n/a"
+    return f"{v:.0f}" if abs(v) >= 100 else f"{v:.3g}"
+
+
+def _num(v: Any) -> float:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+    return f if math.isfinite(f) else float("nan")
+
+
+def _panels(runs: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """What the headline draws: per panel a label, direction, values and spreads."""
+    names = list(runs)
+
+    def per(get: Any) -> list[float]:
+        out = []
+        for n in names:
+            try:
+                out.append(_num(get(runs[n])))
+            except (KeyError, TypeError, AttributeError):
+                out.append(float("nan"))
+        return out
+
+    def spread(get: Any) -> list[list[float]]:
+        out = []
+        for n in names:
+            try:
+                out.append([_num(v) for v in get(runs[n])])
+            except (KeyError, TypeError, AttributeError):
+                out.append([])
+        return out
+
+    adj = lambda r: r["adjustment"]  # noqa: E731
+    panels = [
+        {
+            "label": "NCP (matched control points)",
+            "unit": "count",
+            "better": "higher",
+            "after": per(lambda r: r["matching"]["ncp"]),
+            "dots": spread(lambda r: [v["ncp"] for v in r["matching"]["ccds"].values()]),
+            "dots_label": "per CCD",
+        },
+        {
+            "label": "SDU (spatial distribution)",
+            "unit": "%",
+            "better": "higher",
+            "after": per(lambda r: r["matching"]["sdu_pct"]),
+            "dots": spread(lambda r: [v["sdu_pct"] for v in r["matching"]["ccds"].values()]),
+            "dots_label": "per CCD",
+        },
+        {
+            "label": "RMSE of image residuals",
+            "unit": "px",
+            "better": "lower",
+            "before": per(lambda r: adj(r)["rmse_px_before"]),
+            "after": per(lambda r: adj(r)["rmse_px"]),
+            "dots": spread(lambda r: [v["rmse_px"] for v in adj(r).get("ccds", {}).values()]),
+            "dots_label": "per CCD",
+            "log": True,
+        },
+        {
+            "label": "OR (outlier ratio)",
+            "unit": "%",
+            "better": "lower",
+            "after": per(lambda r: adj(r)["outlier_ratio_pct"]),
+            "dots": [[] for _ in names],
+        },
+    ]
+    if any(r.get("check") for r in runs.values()):
+        chk = lambda r: r["check"]  # noqa: E731
+        panels.append(
+            {
+                "label": "true geolocation error",
+                "unit": "m",
+                "better": "lower",
+                "before": per(lambda r: chk(r)["geoloc_rmse_m_before"]),
+                "after": per(lambda r: chk(r)["geoloc_rmse_m"]),
+                "dots": spread(
+                    lambda r: [v["after"]["rms_m"] for v in chk(r).get("ccds", {}).values()]
+                ),
+                "dots_label": "per CCD",
+                "max": per(lambda r: chk(r)["geoloc_max_m"]),
+                "log": True,
+            }
+        )
+    return panels
+
+
+def figure_headline(
+    runs: Mapping[str, Mapping[str, Any]],
+    path: str | os.PathLike[str],
+    *,
+    scene: str = "",
+    dpi: int = 110,
+) -> Path:
+    """The comparison's headline figure: one panel per metric, one bar per matcher.
+
+    Bars are the values after the adjustment; where a value before exists (RMSE, true
+    error) it is drawn as a hollow bar beside it; dots give the per-CCD spread; the true
+    error has a whisker to its maximum. Each panel names its unit and which direction is
+    better; every bar carries its value.
+
+    Args:
+        runs: Matcher -> its georef report (report.json content).
+        path: Output PNG.
+        scene: Scene name for the title.
+        dpi: Resolution.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    names = list(runs)
+    panels = _panels(runs)
+    fig = Figure(figsize=(max(3.0 * len(panels), 9.0), 4.2), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(panels)))
+    x = np.arange(len(names), dtype=float)
+    for ax, p in zip(axes, panels, strict=True):
+        after = np.asarray(p["after"], float)
+        has_before = "before" in p
+        w = 0.38 if has_before else 0.7
+        xa = x + (w / 2 if has_before else 0.0)
+        if has_before:
+            before = np.asarray(p["before"], float)
+            ax.bar(x - w / 2, np.nan_to_num(before), w, color="white", edgecolor="0.35", hatch="//")
+            for xi, v in zip(x - w / 2, before, strict=True):
+                if math.isfinite(v):
+                    ax.text(xi, v, _label(v), ha="center", va="bottom", fontsize=6, color="0.35")
+        colours = [f"C{i % 10}" for i in range(len(names))]
+        ax.bar(xa, np.nan_to_num(after), w, color=colours)
+        tops = np.nan_to_num(after).copy()
+        for j, (xi, d) in enumerate(zip(xa, p.get("dots", []), strict=False)):
+            d = [v for v in d if math.isfinite(v)]
+            if d:
+                ax.scatter(np.full(len(d), xi), d, s=90, c="black", zorder=3, marker="_", lw=1.2)
+                tops[j] = max(tops[j], max(d))
+        if "max" in p:
+            mx = np.asarray(p["max"], float)
+            ax.errorbar(
+                xa,
+                np.nan_to_num(after),
+                yerr=[np.zeros_like(after), np.nan_to_num(np.maximum(mx - after, 0))],
+                fmt="none",
+                ecolor="0.2",
+                capsize=3,
+                lw=0.8,
+            )
+            tops = np.fmax(tops, np.nan_to_num(mx))
+        for xi, v, top in zip(xa, after, tops, strict=True):
+            ax.text(
+                xi,
+                top,
+                _label(v),
+                ha="center",
+                va="bottom",
+                fontsize=7,
+                fontweight="bold",
+            )
+        if p.get("log") and np.nanmin(np.r_[after, p.get("before", after)]) > 0:
+            ax.set_yscale("log")
+        if np.all(np.nan_to_num(after) == 0) and not has_before:
+            ax.set_ylim(0, 1)
+            ax.text(
+                0.5,
+                0.5,
+                "0 for every matcher",
+                transform=ax.transAxes,
+                ha="center",
+                fontsize=8,
+                color="0.3",
+            )
+        ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel(f"{p['label'].split(' (')[0]} ({p['unit']})", fontsize=8)
+        arrow = "\u2191" if p["better"] == "higher" else "\u2193"
+        ax.set_title(f"{p['label']}\n{arrow} {p['better']} is better", fontsize=8)
+        ax.tick_params(axis="y", labelsize=7)
+    legend = [
+        Patch(facecolor="white", edgecolor="0.35", hatch="//", label="before adjustment"),
+        Patch(facecolor="C0", label="after adjustment (one colour per matcher)"),
+        Patch(facecolor="black", label="dashes: per-CCD values; whisker: maximum"),
+    ]
+    fig.legend(
+        handles=legend,
+        loc="outside lower center",
+        ncol=3,
+        fontsize=7,
+        frameon=False,
+    )
+    fig.suptitle(f"Matcher comparison{': ' + scene if scene else ''}", fontsize=11)
+    return _save(fig, path, dpi)

@@ -1,0 +1,289 @@
+"""The report's tables in the seed's layout, as rows, and their CSV, Markdown and LaTeX forms.
+
+* **Table 1** (:func:`matching_rows`): NCP and SDU (%) per CCD image, one row per matcher.
+* **Table 2** (:func:`adjustment_rows`): RMSE, Mean, Max X, Max Y, Min X, Min Y (pixels)
+  and OR (%) per strip, one row per matcher (``x`` = sample, ``y`` = line residual); the
+  per-axis RMSE follows when the report holds it.
+* :func:`truth_rows`: the true geolocation error before and after (simulated scenes).
+* :func:`funnel_rows`: correspondences left after each front-end stage.
+* :func:`timing_rows`: seconds per step, per matcher.
+
+A value the report does not hold is ``None`` and prints as ``-`` ("not available").
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "ADJ_COLUMNS",
+    "FUNNEL_STAGES",
+    "adjustment_rows",
+    "format_csv",
+    "format_latex_table",
+    "format_markdown_table",
+    "funnel_from_journal",
+    "funnel_from_report",
+    "funnel_rows",
+    "matching_rows",
+    "timing_rows",
+    "truth_rows",
+]
+
+ADJ_COLUMNS = [
+    ("RMSE", "rmse_px"),
+    ("Mean", "mean_px"),
+    ("Max X", "max_x_px"),
+    ("Max Y", "max_y_px"),
+    ("Min X", "min_x_px"),
+    ("Min Y", "min_y_px"),
+    ("OR (%)", "outlier_ratio_pct"),
+]
+"""Table 2 of the seed: header and report.json key (pixels, OR in percent)."""
+EXTRA_ADJ = [("RMSE x", "rmse_x_px"), ("RMSE y", "rmse_y_px")]
+"""Per-axis RMSE, shown when the report holds it."""
+FUNNEL_STAGES = ("raw", "coarse_gate", "ransac", "consensus", "backprojection", "refine", "mcp")
+"""Front-end stages in order (see ``TileResult.funnel``)."""
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return "-" if not math.isfinite(v) else f"{v:.{digits}f}"
+    return str(v)
+
+
+def _numeric(rows: Sequence[Sequence[Any]], i: int) -> bool:
+    return all(isinstance(r[i], int | float) or r[i] is None for r in rows)
+
+
+def format_markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub-flavoured Markdown table (numbers right-aligned, text left-aligned)."""
+    cells = [[_fmt(v) for v in r] for r in rows]
+    widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
+    numeric = [_numeric(rows, i) for i in range(len(header))]
+    out = [
+        "| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |",
+        "|"
+        + "|".join(
+            "-" * (w + 1) + (":" if num else "-") for w, num in zip(widths, numeric, strict=True)
+        )
+        + "|",
+    ]
+    for r in cells:
+        out.append(
+            "| "
+            + " | ".join(
+                c.rjust(w) if num else c.ljust(w)
+                for c, w, num in zip(r, widths, numeric, strict=True)
+            )
+            + " |"
+        )
+    return "\n".join(out)
+
+
+def format_csv(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """CSV text (empty cell for a missing value, floats to 6 significant digits)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for r in rows:
+        w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in r])
+    return buf.getvalue()
+
+
+_TEX = {"&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{", "}": r"\}"}
+
+
+def _tex(s: str) -> str:
+    return "".join(_TEX.get(ch, ch) for ch in s)
+
+
+def format_latex_table(
+    header: Sequence[str], rows: Sequence[Sequence[Any]], *, caption: str = "", label: str = ""
+) -> str:
+    r"""A LaTeX ``booktabs`` table (needs ``\\usepackage{booktabs}``)."""
+    align = "".join("r" if _numeric(rows, i) else "l" for i in range(len(header)))
+    lines = [r"\begin{table}[htbp]", r"\centering"]
+    if caption:
+        lines.append(rf"\caption{{{_tex(caption)}}}")
+    if label:
+        lines.append(rf"\label{{{label}}}")
+    lines += [
+        rf"\begin{{tabular}}{{{align}}}",
+        r"\toprule",
+        " & ".join(_tex(str(h)) for h in header) + r" \\",
+        r"\midrule",
+    ]
+    lines += [" & ".join(_tex(_fmt(v)) for v in r) + r" \\" for r in rows]
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
+    return "\n".join(lines)
+
+
+def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """Table 1: NCP and SDU per CCD image, one row per matcher."""
+    ccds: list[str] = []
+    for rep in runs.values():
+        for c in rep["matching"]["ccds"]:
+            if c not in ccds:
+                ccds.append(c)
+    header = (
+        ["Matcher"]
+        + [f"{c} NCP" for c in ccds]
+        + [f"{c} SDU (%)" for c in ccds]
+        + ["NCP", "SDU (%)", "tiles failed"]
+    )
+    rows = []
+    for name, rep in runs.items():
+        m = rep["matching"]
+        per = m["ccds"]
+        rows.append(
+            [name]
+            + [per.get(c, {}).get("ncp") for c in ccds]
+            + [per.get(c, {}).get("sdu_pct") for c in ccds]
+            + [m["ncp"], m["sdu_pct"], f"{m['tiles_failed']}/{m['tiles_total']}"]
+        )
+    return header, rows
+
+
+def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """Table 2: per strip, per matcher; per-axis RMSE where the reports hold it."""
+    blocks = [
+        (name, sid, s["adjustment"])
+        for name, rep in runs.items()
+        for sid, s in (rep.get("strips") or {"strip": {"adjustment": rep["adjustment"]}}).items()
+    ]
+    extra = [(h, k) for h, k in EXTRA_ADJ if any(k in a for _, _, a in blocks)]
+    header = (
+        ["Matcher", "Strip"]
+        + [h for h, _ in ADJ_COLUMNS]
+        + [h for h, _ in extra]
+        + ["RMSE before", "sigma0", "n"]
+    )
+    rows = [
+        [name, sid]
+        + [a.get(k) for _, k in ADJ_COLUMNS + extra]
+        + [a.get("rmse_px_before"), a.get("sigma0"), a.get("n_total")]
+        for name, sid, a in blocks
+    ]
+    return header, rows
+
+
+def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """True geolocation error before and after (only runs with truth)."""
+    header = ["Matcher", "before (m)", "after (m)", "after (px)", "max after (m)"]
+    rows = [
+        [
+            name,
+            c.get("geoloc_rmse_m_before"),
+            c.get("geoloc_rmse_m"),
+            c.get("geoloc_rmse_px"),
+            c.get("geoloc_max_m"),
+        ]
+        for name, rep in runs.items()
+        if (c := rep.get("check"))
+    ]
+    return header, rows
+
+
+def funnel_from_journal(paths: Sequence[str | Path]) -> dict[str, int]:
+    """Stage counts summed over the tiles of ``tiles.jsonl`` journals.
+
+    Uses each tile's ``funnel`` when it holds one; otherwise what every journal holds:
+    the fine stage's raw matches (``raw``) and those that passed MAGSAC++ (``ransac``),
+    plus the coarse stage's matches and inliers (``coarse_raw``, ``coarse_kept``).
+    """
+    total: dict[str, int] = {}
+    for p in paths:
+        p = Path(p)
+        if not p.is_file():
+            continue
+        for text in p.read_text(encoding="utf-8").splitlines():
+            try:
+                res = json.loads(text).get("result") or {}
+            except (json.JSONDecodeError, AttributeError):
+                continue
+            fun = res.get("funnel")
+            if not isinstance(fun, dict):
+                fun = {
+                    "coarse_raw": res.get("n_coarse_matches"),
+                    "coarse_kept": res.get("n_coarse_inliers"),
+                    "raw": res.get("n_matches"),
+                    "ransac": res.get("n_inliers"),
+                }
+            for k, v in fun.items():
+                if isinstance(v, int | float):
+                    total[k] = total.get(k, 0) + int(v)
+    return total
+
+
+def funnel_from_report(rep: Mapping[str, Any]) -> dict[str, int]:
+    """A run's funnel from its report.json: the run's own, else its strips' summed."""
+    top = rep["matching"].get("funnel")
+    if isinstance(top, Mapping) and top:
+        return {k: int(v) for k, v in top.items() if isinstance(v, int | float)}
+    total: dict[str, int] = {}
+    for s in (rep.get("strips") or {}).values():
+        for k, v in ((s.get("matching") or {}).get("funnel") or {}).items():
+            if isinstance(v, int | float):
+                total[k] = total.get(k, 0) + int(v)
+    return total
+
+
+def funnel_rows(
+    funnels: Mapping[str, Mapping[str, int]], ncp: Mapping[str, int]
+) -> tuple[list[str], list[list[Any]]]:
+    """The front-end funnel: correspondences left after each stage, per matcher.
+
+    Args:
+        funnels: Matcher -> stage counts (see :func:`funnel_from_journal`).
+        ncp: Matcher -> MCPs in the report (the funnel's end).
+    """
+    order = ["coarse_raw", "coarse_kept", *FUNNEL_STAGES]
+    present = [s for s in order if any(s in f for f in funnels.values())]
+    if "mcp" not in present:
+        present.append("mcp")
+    header = ["Matcher", *present, "kept of raw (%)"]
+    rows = []
+    for name, f in funnels.items():
+        vals = {**f}
+        vals.setdefault("mcp", ncp.get(name))
+        raw = vals.get("raw")
+        end = vals.get("mcp")
+        rows.append(
+            [name]
+            + [vals.get(s) for s in present]
+            + [100.0 * end / raw if raw and end is not None else None]
+        )
+    return header, rows
+
+
+def timing_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """Wall-clock seconds per step and per tile, one row per matcher."""
+    keys: list[str] = []
+    for rep in runs.values():
+        for k in rep.get("timing_s") or {}:
+            if k not in keys:
+                keys.append(k)
+    header = ["Matcher"] + [f"{k} (s)" for k in keys] + ["matching per tile (s)"]
+    rows = []
+    for name, rep in runs.items():
+        t = rep.get("timing_s") or {}
+        n = rep["matching"].get("tiles_total") or 0
+        rows.append(
+            [name]
+            + [t.get(k) for k in keys]
+            + [t["matching"] / n if n and isinstance(t.get("matching"), int | float) else None]
+        )
+    return header, rows

@@ -1,0 +1,156 @@
+"""Report tables: paper layout, missing values, CSV/Markdown/LaTeX round trips, the funnel."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import pytest
+
+from planetref.report.tables import (
+    adjustment_rows,
+    format_csv,
+    format_latex_table,
+    format_markdown_table,
+    funnel_from_journal,
+    funnel_from_report,
+    funnel_rows,
+    matching_rows,
+    timing_rows,
+    truth_rows,
+)
+
+
+def _run(ncp=(10, 20, 30), rmse=0.5, extra=None, check=True):
+    ccds = {f"ccd{i + 1}": {"ncp": n, "sdu_pct": 2.0 * (i + 1)} for i, n in enumerate(ncp)}
+    adj = {
+        "rmse_px": rmse,
+        "mean_px": 0.4,
+        "max_x_px": 1.25,
+        "max_y_px": 1.5,
+        "min_x_px": -1.0,
+        "min_y_px": -2.0,
+        "outlier_ratio_pct": 3.0,
+        "rmse_px_before": 40.0,
+        "sigma0": 0.9,
+        "n_total": sum(ncp),
+        **(extra or {}),
+    }
+    return {
+        "scene": "t",
+        "matching": {
+            "ccds": ccds,
+            "ncp": sum(ncp),
+            "sdu_pct": 4.0,
+            "tiles_total": 4,
+            "tiles_failed": 1,
+        },
+        "adjustment": adj,
+        "strips": {"s1": {"adjustment": adj}},
+        "check": {
+            "geoloc_rmse_m_before": 100.0,
+            "geoloc_rmse_m": 1.5,
+            "geoloc_rmse_px": 0.6,
+            "geoloc_max_m": 3.0,
+        }
+        if check
+        else None,
+        "timing_s": {"matching": 8.0, "adjustment": 1.0, "total": 10.0},
+    }
+
+
+def test_table1_and_table2_in_the_paper_layout():
+    runs = {"sift": _run(), "ncc": _run((5, 6, 7), rmse=0.75)}
+    h, rows = matching_rows(runs)
+    assert h[:4] == ["Matcher", "ccd1 NCP", "ccd2 NCP", "ccd3 NCP"]
+    assert rows[1][:4] == ["ncc", 5, 6, 7] and rows[0][-1] == "1/4"
+    h, rows = adjustment_rows(runs)
+    assert h[:9] == [
+        "Matcher",
+        "Strip",
+        "RMSE",
+        "Mean",
+        "Max X",
+        "Max Y",
+        "Min X",
+        "Min Y",
+        "OR (%)",
+    ]
+    assert "RMSE x" not in h  # no run holds it
+    assert rows[1][:3] == ["ncc", "s1", 0.75] and rows[0][8] == 3.0
+
+
+def test_per_axis_rmse_shown_when_present_and_missing_prints_dash():
+    runs = {"a": _run(extra={"rmse_x_px": 0.3, "rmse_y_px": 0.4}), "b": _run()}
+    h, rows = adjustment_rows(runs)
+    ix, iy = h.index("RMSE x"), h.index("RMSE y")
+    assert rows[0][ix] == 0.3 and rows[0][iy] == 0.4 and rows[1][ix] is None
+    md = format_markdown_table(h, rows)
+    b_line = next(line for line in md.splitlines() if line.startswith("| b "))
+    assert [c.strip() for c in b_line.strip("|").split("|")][ix] == "-"
+
+
+def test_csv_markdown_latex_agree():
+    h, rows = adjustment_rows({"sift": _run()})
+    back = list(csv.reader(io.StringIO(format_csv(h, rows))))
+    assert back[0] == h and float(back[1][2]) == 0.5 and float(back[1][7]) == -2.0
+    tex = format_latex_table(h, rows, caption="Table 2 (50% of x_y)", label="tab:adj")
+    assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
+    assert r"50\% of x\_y" in tex and r"OR (\%)" in tex
+    body = [line for line in tex.splitlines() if line.endswith(r"\\")]
+    assert len(body) == 2 and all(line.count("&") == len(h) - 1 for line in body)
+    assert body[1].split(" & ")[2] == "0.500"
+    # Text columns left, numbers right.
+    assert tex.splitlines()[4].startswith(r"\begin{tabular}{ll" + "r" * 7)
+
+
+def test_truth_and_timing_rows():
+    runs = {"a": _run(), "b": _run(check=False)}
+    h, rows = truth_rows(runs)
+    assert [r[0] for r in rows] == ["a"] and rows[0][1:3] == [100.0, 1.5]
+    h, rows = timing_rows(runs)
+    assert h[-1] == "matching per tile (s)" and rows[0][-1] == pytest.approx(2.0)
+
+
+def test_funnel_from_journal_and_rows(tmp_path):
+    j = tmp_path / "tiles.jsonl"
+    lines = [
+        {
+            "result": {
+                "n_coarse_matches": 9,
+                "n_coarse_inliers": 7,
+                "n_matches": 50,
+                "n_inliers": 40,
+            }
+        },
+        {"result": {"n_coarse_matches": 3, "n_coarse_inliers": 0, "n_matches": 0, "n_inliers": 0}},
+        {"result": {"funnel": {"raw": 100, "ransac": 80, "consensus": 70}}},
+    ]
+    j.write_text("\n".join(json.dumps(x) for x in lines) + "\nnot json\n")
+    f = funnel_from_journal([j, tmp_path / "missing.jsonl"])
+    assert f == {"coarse_raw": 12, "coarse_kept": 7, "raw": 150, "ransac": 120, "consensus": 70}
+    h, rows = funnel_rows({"sift": f}, {"sift": 60})
+    assert h == [
+        "Matcher",
+        "coarse_raw",
+        "coarse_kept",
+        "raw",
+        "ransac",
+        "consensus",
+        "mcp",
+        "kept of raw (%)",
+    ]
+    assert rows[0][-2] == 60 and rows[0][-1] == pytest.approx(40.0)
+
+
+def test_funnel_from_report_sums_strips_or_takes_the_runs_own():
+    rep = _run()
+    assert funnel_from_report(rep) == {}
+    rep["strips"] = {
+        "s1": {"matching": {"funnel": {"raw": 10, "ransac": 8, "mcp": 8}}},
+        "s2": {"matching": {"funnel": {"raw": 5, "ransac": 4, "mcp": 3}}},
+    }
+    assert funnel_from_report(rep) == {"raw": 15, "ransac": 12, "mcp": 11}
+    rep["matching"]["funnel"] = {"raw": 1, "mcp": 1}
+    assert funnel_from_report(rep) == {"raw": 1, "mcp": 1}
