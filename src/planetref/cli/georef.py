@@ -186,10 +186,10 @@ def demo_command(
     scheduler: str | None,
 ) -> None:
     """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
+    from planetref.cli.simulate import simulate_run
     from planetref.pipeline.compare import run_compare
     from planetref.pipeline.config import load_config
     from planetref.simulate.config import load_config as load_sim_config
-    from planetref.simulate.scene import simulate_scene
 
     quiet = _quiet(ctx)
     base = Path(out) if out else _default_demo_dir()
@@ -199,8 +199,12 @@ def demo_command(
             click.echo(
                 f"simulating the {preset} scene (seed {seed}) into {scene_dir} ...", err=True
             )
-        simulate_scene(
-            load_sim_config(preset, seed=seed), scene_dir, preview=True, progress=not quiet
+        simulate_run(
+            load_sim_config(preset, seed=seed),
+            scene_dir,
+            overwrite=overwrite,
+            preview=True,
+            progress=not quiet,
         )
     elif not quiet:
         click.echo(f"using the cached scene {scene_dir}", err=True)

@@ -252,9 +252,7 @@ class RunDir:
                     path=self.path,
                 )
         self.inputs = {str(p.resolve()): file_fingerprint(p) for p in inputs}
-        self.weights = {
-            Path(w).name: file_fingerprint(w, full=True)["sha256"] for w in weights
-        }
+        self.weights = {Path(w).name: file_fingerprint(w, full=True)["sha256"] for w in weights}
         self._inspect()  # refuse a foreign folder before creating anything in it
         self.path.mkdir(parents=True, exist_ok=True)
         self._lock = _Lock(self.path)
