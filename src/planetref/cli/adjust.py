@@ -54,6 +54,8 @@ def _load_config_file(path: Path) -> dict[str, Any]:
         data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"malformed configuration ({exc})", path=path) from None
+    except RecursionError:
+        raise InputError("the configuration is nested too deeply", path=path) from None
     if not isinstance(data, dict):
         raise InputError("the configuration must be a table", path=path)
     return data.get("adjustment", data) if isinstance(data.get("adjustment"), dict) else data

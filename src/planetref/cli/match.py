@@ -351,7 +351,7 @@ def match_command(
                 f"{matcher_name}: {len(inliers)} verified matches",
             )
     except PlanetrefError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise click.ClickException(" ".join(str(exc).split())) from None
     except (MemoryError, OSError, RuntimeError) as exc:  # e.g. out of (GPU) memory
         raise click.ClickException(f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
     seconds = time.perf_counter() - start

@@ -483,6 +483,14 @@ class RunDir:
         try:
             with watch_outputs(self):
                 yield path
+        except BaseException as exc:
+            # The error's line goes to the run's log only (the CLI prints it once).
+            record = logging.LogRecord(
+                "planetref", logging.ERROR, __file__, 0, "run failed: %s: %s", None, None
+            )
+            record.args = (type(exc).__name__, " ".join(str(exc).split()))
+            handler.handle(record)
+            raise
         finally:
             logger.removeHandler(handler)
             handler.close()
