@@ -346,20 +346,40 @@ class DaskExecutor(Executor):
         m = re.fullmatch(r"tcp://\[?([^\]]+?)\]?:(\d+)", self.address)
         host, port = (m.group(1), int(m.group(2))) if m else ("", 0)
         where = f"the Dask scheduler {self.address}"
+        hint = f"(set the timeout with {self.address}?timeout=SECONDS)"
         try:  # a refused or unroutable port fails here at once, not after retries
-            socket.create_connection((host, port), timeout=self.connect_timeout_s).close()
+            probe = socket.create_connection((host, port), timeout=self.connect_timeout_s)
+        except TimeoutError:
+            raise SchedulerError(
+                f"cannot connect to {where} within {self.connect_timeout_s:g} s {hint}"
+            ) from None
         except OSError as exc:
             raise SchedulerError(
                 f"cannot connect to {where} ({exc.strerror or type(exc).__name__}); "
                 "is the scheduler running?"
             ) from None
+        # A Dask scheduler sends its handshake as soon as it accepts a connection; a
+        # listener that never speaks would otherwise hang the client forever.
+        with probe:
+            try:
+                probe.settimeout(self.connect_timeout_s)
+                greeting = probe.recv(1)
+            except TimeoutError:
+                greeting = None
+            except OSError:
+                greeting = b""
+        if not greeting:
+            what = "no answer" if greeting is None else "the connection was closed"
+            raise SchedulerError(
+                f"{what} from {where} within {self.connect_timeout_s:g} s; is it a Dask "
+                f"scheduler? {hint}"
+            )
         try:
             return client_cls(self.address, timeout=self.connect_timeout_s, set_as_default=False)
         except (OSError, TimeoutError) as exc:
             raise SchedulerError(
                 f"no answer from {where} within {self.connect_timeout_s:g} s "
-                f"({type(exc).__name__}); is it a Dask scheduler? (set the timeout with "
-                f"{self.address}?timeout=SECONDS)"
+                f"({type(exc).__name__}); is it a Dask scheduler? {hint}"
             ) from None
 
     def map_unordered(
