@@ -145,6 +145,7 @@ def test_earth_crs_on_the_reference(mini_scene: Path, tmp_path: Path) -> None:
     r = run_cli("-q", "georef", scene, "--matcher", "sift", "--out", tmp_path / "run")
     line = one_line_error(r, "not a Mars CRS (WGS 84 / Pseudo-Mercator", "ortho.tif")
     assert "overlap" not in line
+    assert not (tmp_path / "run").exists()  # refused before the run folder is claimed
 
 
 def test_fit_rpc_prints_valid_json_never_nan(camera: Path, tmp_path: Path) -> None:

@@ -171,14 +171,14 @@ def ground_to_image(
             raise InputError(f"--lat must be within [-90, 90], got {lat}")
         _check_height(cam, height)
         point = lonlat_to_xyz(lon, lat, height, cam.ellipsoid, cam.latitude_kind)
-    if by_xyz:
-        _check_height(cam, float(xyz_to_lonlat(point, cam.ellipsoid, cam.latitude_kind)[2]), "xyz")
     ip = cam.ground_to_image(point[None, :], ccd=ccd)
     if not bool(ip.valid[0]):
         raise GeometryError(
             "the point cannot be projected into the image (behind the camera "
             "or outside the camera's time span)"
         )
+    if by_xyz:
+        _check_height(cam, float(xyz_to_lonlat(point, cam.ellipsoid, cam.latitude_kind)[2]), "xyz")
     out = {"line": float(ip.line[0]), "sample": float(ip.sample[0])}
     if not (math.isfinite(out["line"]) and math.isfinite(out["sample"])):
         raise GeometryError("the point cannot be projected into the image (no finite result)")

@@ -200,14 +200,14 @@ def _checked_image(image: Any, camera: Any, ccd: str) -> Any:
 MARS_SEMI_MAJOR_M = 3396190.0
 
 
-def _check_body(camera: Any, raster: Any, what: str) -> None:
-    """Refuse a reference on another body than the cameras' (e.g. an Earth CRS), in words."""
+def _check_body(body: Any, raster: Any, what: str, path: Any = None) -> None:
+    """Refuse a reference on another body than ``body`` (e.g. an Earth CRS), in words."""
     from planetref.errors import CrsError
 
     crs = getattr(raster, "crs", None)
     ellipsoid = getattr(crs, "ellipsoid", None)
     a_ref = getattr(ellipsoid, "semi_major_metre", None)
-    a_cam = float(camera.ellipsoid.semi_major_m)
+    a_cam = float(body.semi_major_m)
     if a_ref is None or abs(float(a_ref) - a_cam) <= 0.01 * a_cam:
         return
     body = (
@@ -218,7 +218,7 @@ def _check_body(camera: Any, raster: Any, what: str) -> None:
     raise CrsError(
         f"the {what}'s CRS is not a {body} CRS ({crs.name}; ellipsoid "
         f"{ellipsoid.name}, a = {float(a_ref):.0f} m) but the cameras are on {body}",
-        path=getattr(raster, "path", None),
+        path=path or getattr(raster, "path", None),
     )
 
 
@@ -226,8 +226,8 @@ def _check_overlap(camera: Any, images: dict[str, Any], ref: Any, dem: Any, stri
     """Refuse a strip whose footprint misses the reference ortho entirely."""
     from planetref.frontend.geometry import image_to_ref_pixel
 
-    _check_body(camera, ref, "reference ortho")
-    _check_body(camera, dem, "reference DEM")
+    _check_body(camera.ellipsoid, ref, "reference ortho")
+    _check_body(camera.ellipsoid, dem, "reference DEM")
     for ccd in images:
         n_lines, n_samples = camera.image_size(ccd)
         t = np.linspace(0, 1, 5)
@@ -324,6 +324,9 @@ def _run_georef(
     # Inputs checked and matchers built before the run folder is claimed, so a failed
     # start (unknown matcher, missing weights, unreadable reference) leaves nothing behind.
     ref, dem = _open_reference(manifest, root)
+    body = manifest.body.ellipsoid()
+    _check_body(body, ref, "reference ortho")
+    _check_body(body, dem, "reference DEM", manifest.resolve(root, manifest.reference.dem))
     ref_gsd = float(np.mean(ref.ground_sampling_m()))
     fine, coarse = matchers or build_matchers(matcher, cfg, ref_gsd, weights_dir=weights_dir)
     identity = {
