@@ -83,6 +83,17 @@ def test_deeply_nested_json_camera(tmp_path: Path) -> None:
     assert "RecursionError" not in line
 
 
+def test_deeply_nested_toml(tmp_path: Path) -> None:
+    # planetref adjust deep.toml --out o; planetref georef deep.toml --matcher sift --out o
+    deep = tmp_path / "deep.toml"
+    deep.write_text("a = " + "[" * 200_000 + "]" * 200_000 + "\n")
+    r = run_cli("adjust", deep, "--out", tmp_path / "o1")
+    one_line_error(r, str(deep), "nested too deeply")
+    r = run_cli("georef", deep, "--matcher", "sift", "--out", tmp_path / "o2")
+    one_line_error(r, str(deep), "nested too deeply")
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
+
+
 def test_deeply_nested_adjust_config(tmp_path: Path) -> None:
     # planetref adjust network.toml --config deep.json --out out
     net = SHARED / "data" / "ctx_syrtis" / "network.toml"
