@@ -256,3 +256,18 @@ def test_simulate_overwrite_keeps_user_files(tmp_path: Path) -> None:
     assert (out / "NOTES.txt").read_text() == "seed 1 is the hard one"
     assert (out / "reference" / "mine.txt").read_text() == "keep"
     assert (out / "scene.toml").is_file()
+
+
+def test_the_error_line_also_goes_to_the_run_log(tmp_path: Path) -> None:
+    # any command failing inside its run: one line on stderr (the CLI) and in planetref.log
+    from planetref.errors import MatchingError
+
+    run = RunDir(tmp_path / "run", "georef", {"matcher": "sift"})
+    with pytest.raises(MatchingError), run.logging_to_file():
+        raise MatchingError("strip strip1: 3 MCPs,\nat least 6 are needed")
+    log = (tmp_path / "run" / "planetref.log").read_text().splitlines()
+    assert log[-1].endswith(
+        "ERROR planetref: run failed: MatchingError: strip strip1: 3 MCPs, at least 6 are needed"
+    )
+    # and the lock was released with the error
+    RunDir(tmp_path / "run", "georef", {"matcher": "sift"}).finish()
