@@ -2,31 +2,77 @@
 
 Readers never see a half-written file, and a failed write leaves any previous file
 untouched. Every planetref output goes through here.
+
+A run folder (:class:`planetref.pipeline.rundir.RunDir`) watches the writes made while it
+is active (:func:`watch_outputs`): it refuses to replace a file it did not write and
+records every file it did, so ``--overwrite`` later removes exactly those.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
+
+from planetref.errors import OutputError, PlanetrefError
 
 __all__ = [
+    "OutputWatcher",
     "atomic_path",
     "json_safe",
+    "watch_outputs",
     "write_bytes_atomic",
     "write_json_atomic",
     "write_text_atomic",
 ]
+
+#: Modules whose exceptions, raised while an output is written, are write failures
+#: (GDAL, OGR, Arrow, SQLite): they are re-raised naming the file.
+_WRITER_MODULES = frozenset({"rasterio", "pyogrio", "fiona", "osgeo", "pyarrow", "sqlite3"})
+
+
+class OutputWatcher(Protocol):
+    """Told about atomic writes while :func:`watch_outputs` is active."""
+
+    def check_output(self, path: Path) -> None:
+        """Raise if ``path`` (absolute) must not be written."""
+
+    def output_written(self, path: Path) -> None:
+        """``path`` (absolute) has just been written."""
+
+
+_WATCHERS: contextvars.ContextVar[tuple[OutputWatcher, ...]] = contextvars.ContextVar(
+    "planetref_output_watchers", default=()
+)
+
+
+@contextlib.contextmanager
+def watch_outputs(watcher: OutputWatcher) -> Iterator[None]:
+    """Let ``watcher`` check and record every atomic write made inside the block."""
+    token = _WATCHERS.set((*_WATCHERS.get(), watcher))
+    try:
+        yield
+    finally:
+        _WATCHERS.reset(token)
 
 
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def _write_failed(exc: BaseException) -> bool:
+    if isinstance(exc, PlanetrefError):
+        return False
+    if isinstance(exc, OSError):
+        return True
+    return type(exc).__module__.split(".")[0] in _WRITER_MODULES
 
 
 @contextlib.contextmanager
@@ -47,13 +93,24 @@ def atomic_path(
 
     Yields:
         The temporary path to write to.
+
+    Raises:
+        OutputError: The write failed (disk full, permissions, a GDAL or Arrow write
+            error); the message names ``path``.
     """
     target = Path(path)
-    if parents:
-        target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
-    )
+    absolute = Path(os.path.abspath(target))
+    watchers = _WATCHERS.get()
+    for w in watchers:
+        w.check_output(absolute)
+    try:
+        if parents:
+            target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
+        )
+    except OSError as exc:
+        raise OutputError(f"cannot create the file ({exc.strerror or exc})", path=target) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     if not create:
@@ -63,8 +120,18 @@ def atomic_path(
         # mkstemp creates 0600 files; outputs get the usual permissions.
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, target)
+    except Exception as exc:
+        if _write_failed(exc):
+            reason = (getattr(exc, "strerror", None) or str(exc) or type(exc).__name__).strip()
+            reason = reason.splitlines()[0] if reason else type(exc).__name__
+            raise OutputError(
+                f"cannot write the file ({type(exc).__name__}: {reason})", path=target
+            ) from exc
+        raise
     finally:
         tmp_path.unlink(missing_ok=True)
+    for w in watchers:
+        w.output_written(absolute)
 
 
 def write_bytes_atomic(path: str | os.PathLike[str], data: bytes, *, parents: bool = True) -> Path:

@@ -60,6 +60,24 @@ class GeometryError(PlanetrefError, ValueError):
     """
 
 
+class OutputError(PlanetrefError, OSError):
+    """An output cannot be written (disk full, permissions, a writer library failing).
+
+    The message names the file.
+    """
+
+    def __init__(self, message: str, *, path: str | PathLike[str] | None = None) -> None:
+        self.path = None if path is None else str(path)
+        super().__init__(f"{self.path}: {message}" if self.path else message)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class RunDirError(InputError):
+    """A run folder that cannot be claimed (foreign, in use, another run, inputs changed)."""
+
+
 class WeightsError(PlanetrefError, FileNotFoundError):
     """Pretrained weights are missing or do not match their expected checksum."""
 
@@ -82,7 +100,9 @@ __all__ = [
     "InputError",
     "MatchingError",
     "MissingFileError",
+    "OutputError",
     "PlanetrefError",
+    "RunDirError",
     "UnsupportedFormatError",
     "WeightsError",
 ]

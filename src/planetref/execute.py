@@ -30,18 +30,29 @@ from typing import Any
 from planetref.errors import InputError
 
 __all__ = [
+    "CONNECT_TIMEOUT_S",
+    "MAX_WORKERS",
     "SCHEDULER_HELP",
     "DaskExecutor",
     "Executor",
     "InProcessExecutor",
     "LocalPoolExecutor",
+    "SchedulerError",
     "TaskOutcome",
     "TileSources",
     "make_executor",
     "run_tile_task",
 ]
 
-SCHEDULER_HELP = "inprocess (default), pool:N, dask-local:N, or tcp://HOST:PORT"
+SCHEDULER_HELP = "inprocess (default), pool:N, dask-local:N, or tcp://HOST:PORT[?timeout=SECONDS]"
+CONNECT_TIMEOUT_S = 10.0
+"""Default time to connect to a Dask scheduler (seconds)."""
+MAX_WORKERS = 4096
+"""Most workers ``pool:N`` and ``dask-local:N`` accept."""
+
+
+class SchedulerError(InputError):
+    """A ``--scheduler`` that cannot be reached (refused, no answer within the timeout)."""
 
 
 # --------------------------------------------------------------------------- tasks
@@ -298,10 +309,13 @@ class DaskExecutor(Executor):
         retries: How often a failed or lost task is retried.
     """
 
-    def __init__(self, address: str, *, retries: int = 2) -> None:
+    def __init__(
+        self, address: str, *, retries: int = 2, connect_timeout_s: float = CONNECT_TIMEOUT_S
+    ) -> None:
         self.address = address
         self.name = address
         self.retries = int(retries)
+        self.connect_timeout_s = float(connect_timeout_s)
         self._cluster: Any = None
         self._client: Any = None
 
@@ -322,8 +336,51 @@ class DaskExecutor(Executor):
                 )
                 self._client = Client(self._cluster)
             else:
-                self._client = Client(self.address)
+                self._client = self._connect(Client)
         return self._client
+
+    def _connect(self, client_cls: Any) -> Any:
+        """Connect to ``tcp://HOST:PORT`` within ``connect_timeout_s``, or say why not."""
+        import socket
+
+        m = re.fullmatch(r"tcp://\[?([^\]]+?)\]?:(\d+)", self.address)
+        host, port = (m.group(1), int(m.group(2))) if m else ("", 0)
+        where = f"the Dask scheduler {self.address}"
+        hint = f"(set the timeout with {self.address}?timeout=SECONDS)"
+        try:  # a refused or unroutable port fails here at once, not after retries
+            probe = socket.create_connection((host, port), timeout=self.connect_timeout_s)
+        except TimeoutError:
+            raise SchedulerError(
+                f"cannot connect to {where} within {self.connect_timeout_s:g} s {hint}"
+            ) from None
+        except OSError as exc:
+            raise SchedulerError(
+                f"cannot connect to {where} ({exc.strerror or type(exc).__name__}); "
+                "is the scheduler running?"
+            ) from None
+        # A Dask scheduler sends its handshake as soon as it accepts a connection; a
+        # listener that never speaks would otherwise hang the client forever.
+        with probe:
+            try:
+                probe.settimeout(self.connect_timeout_s)
+                greeting = probe.recv(1)
+            except TimeoutError:
+                greeting = None
+            except OSError:
+                greeting = b""
+        if not greeting:
+            what = "no answer" if greeting is None else "the connection was closed"
+            raise SchedulerError(
+                f"{what} from {where} within {self.connect_timeout_s:g} s; is it a Dask "
+                f"scheduler? {hint}"
+            )
+        try:
+            return client_cls(self.address, timeout=self.connect_timeout_s, set_as_default=False)
+        except (OSError, TimeoutError) as exc:
+            raise SchedulerError(
+                f"no answer from {where} within {self.connect_timeout_s:g} s "
+                f"({type(exc).__name__}); is it a Dask scheduler? {hint}"
+            ) from None
 
     def map_unordered(
         self, fn: Callable[[Any], Any], tasks: Sequence[Any]
@@ -360,26 +417,52 @@ def make_executor(spec: str | Executor | None) -> Executor:
     """An executor from a ``--scheduler`` spec.
 
     Args:
-        spec: None or ``"inprocess"``; ``"pool:N"``; ``"dask-local:N"``;
-            ``"tcp://HOST:PORT"``; or an executor (returned as is).
+        spec: None or ``"inprocess"``; ``"pool:N"``; ``"dask-local:N"`` (N from 1 to
+            :data:`MAX_WORKERS`); ``"tcp://HOST:PORT"`` (port 1-65535), optionally with
+            ``?timeout=SECONDS`` (connection timeout, default :data:`CONNECT_TIMEOUT_S`);
+            or an executor (returned as is).
 
     Returns:
         The executor (nothing is started until it is first used).
 
     Raises:
-        InputError: Any other spec (the message lists the valid forms).
+        InputError: Any other spec (the message lists the valid forms), a worker count or
+            port out of range.
     """
     if spec is None or isinstance(spec, Executor):
         return spec or InProcessExecutor()
     s = str(spec).strip()
     if s.lower() in ("", "inprocess", "in-process"):
         return InProcessExecutor()
-    m = re.fullmatch(r"(pool|dask-local):(\d+)", s)
-    if m and int(m.group(2)) >= 1:
+    m = re.fullmatch(r"(pool|dask-local):(\d{1,12})", s)
+    if m:
         n = int(m.group(2))
+        if not 1 <= n <= MAX_WORKERS:
+            raise InputError(
+                f"{m.group(1)}:N needs 1 <= N <= {MAX_WORKERS} workers, got {n}; "
+                f"valid: {SCHEDULER_HELP}",
+                field="scheduler",
+            )
         return LocalPoolExecutor(n) if m.group(1) == "pool" else DaskExecutor(f"dask-local:{n}")
-    if re.fullmatch(r"tcp://([^\s:/\[\]]+|\[[0-9A-Fa-f:.]+\]):\d+/?", s):
-        return DaskExecutor(s.rstrip("/"))
+    m = re.fullmatch(
+        r"(tcp://(?:[^\s:/?\[\]]+|\[[0-9A-Fa-f:.]+\]):(\d{1,12}))/?(?:\?timeout=([^&\s]+))?", s
+    )
+    if m:
+        port = int(m.group(2))
+        if not 1 <= port <= 65535:
+            raise InputError(f"port {port} is outside 1-65535 in {spec!r}", field="scheduler")
+        timeout = CONNECT_TIMEOUT_S
+        if m.group(3) is not None:
+            try:
+                timeout = float(m.group(3))
+            except ValueError:
+                timeout = float("nan")
+            if not 0 < timeout <= 3600:
+                raise InputError(
+                    f"timeout={m.group(3)} must be a number of seconds in (0, 3600]",
+                    field="scheduler",
+                )
+        return DaskExecutor(m.group(1), connect_timeout_s=timeout)
     raise InputError(
         f"unknown scheduler {spec!r}; valid: {SCHEDULER_HELP} (N a positive integer)",
         field="scheduler",

@@ -32,3 +32,5 @@ def read_toml(path: str | os.PathLike[str], what: str = "file") -> dict[str, Any
         raise InputError(f"not valid TOML ({exc})", path=p) from None
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc})", path=p) from None
+    except RecursionError:
+        raise InputError(f"the {what} is nested too deeply to be read", path=p) from None

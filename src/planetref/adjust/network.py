@@ -236,6 +236,8 @@ def _read_measures(
         reader = csv.reader(fh)
         try:
             header = [h.strip() for h in next(reader)]
+        except UnicodeDecodeError:
+            raise InputError("not UTF-8 text; save the file as UTF-8", path=path) from None
         except StopIteration:
             raise InputError("empty file (a header row is required)", path=path) from None
         missing = [c for c in REQUIRED_COLUMNS if c not in header]
@@ -248,7 +250,14 @@ def _read_measures(
                 path=path,
             )
         col = {c: i for i, c in enumerate(header)}
-        rows = list(reader)
+        try:
+            rows = list(reader)
+        except UnicodeDecodeError as exc:
+            raise InputError(
+                f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start} of "
+                "a read block); save the file as UTF-8",
+                path=path,
+            ) from None
     if not rows:
         raise InputError("no measures (only a header)", path=path)
     obs_cam, obs_ccd, obs_pt, line, sample, sig, check, ids = [], [], [], [], [], [], [], []

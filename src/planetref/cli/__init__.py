@@ -37,6 +37,11 @@ COMMANDS: dict[str, str] = {
 log = logging.getLogger("planetref")
 
 
+def _one_line(message: str) -> str:
+    """A message on one line (the CLI's errors are exactly one line on stderr)."""
+    return "; ".join(part.strip() for part in message.splitlines() if part.strip())
+
+
 class _LazyGroup(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(name for name in COMMANDS if self._available(name))
@@ -61,7 +66,7 @@ class _LazyGroup(click.Group):
         except PlanetrefError as exc:
             if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
                 raise
-            raise click.ClickException(str(exc)) from None
+            raise click.ClickException(_one_line(str(exc))) from None
         except (
             click.ClickException,
             click.exceptions.Exit,
@@ -72,14 +77,16 @@ class _LazyGroup(click.Group):
         except (OSError, MemoryError) as exc:
             if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
                 raise
-            raise click.ClickException(f"{type(exc).__name__}: {exc}") from None
+            raise click.ClickException(_one_line(f"{type(exc).__name__}: {exc}")) from None
         except Exception as exc:
             # A bug, not bad input: one line here, the traceback with -vv.
             if ctx.obj and ctx.obj.get("verbosity", 0) >= 2:
                 raise
             raise click.ClickException(
-                f"internal error ({type(exc).__name__}: {exc}); rerun with -vv for the "
-                "traceback and please report it"
+                _one_line(
+                    f"internal error ({type(exc).__name__}: {exc}); rerun with -vv for the "
+                    "traceback and please report it"
+                )
             ) from None
 
 

@@ -54,6 +54,8 @@ def _load_config_file(path: Path) -> dict[str, Any]:
         data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"malformed configuration ({exc})", path=path) from None
+    except RecursionError:
+        raise InputError("the configuration is nested too deeply", path=path) from None
     if not isinstance(data, dict):
         raise InputError("the configuration must be a table", path=path)
     return data.get("adjustment", data) if isinstance(data.get("adjustment"), dict) else data
@@ -122,9 +124,13 @@ def _toml_safe(obj: Any) -> Any:
     "out_dir",
     type=click.Path(file_okay=False, path_type=Path),
     required=True,
-    help="Output folder (must be empty unless --overwrite).",
+    help="Output run folder (new, empty, or a previous adjust's with --overwrite).",
 )
-@click.option("--overwrite", is_flag=True, help="Write into a non-empty --out.")
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Replace a previous adjust's outputs in --out (only its files; never other files).",
+)
 @click.option(
     "--config",
     "config_file",
@@ -180,19 +186,13 @@ def adjust_command(
 
     Prints the headline numbers as JSON (the 'adjustment' block of report.json).
     """
-    import tomli_w
-
-    from planetref.adjust.api import adjust
     from planetref.adjust.network import read_network
-    from planetref.adjust.report import write_outputs
-    from planetref.atomic import write_text_atomic
+    from planetref.pipeline.rundir import RunDir, config_digest
     from planetref.tomlfile import read_toml
 
     quiet = bool(ctx.obj.get("quiet")) if ctx.obj else False
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("--out exists and is not a folder", path=out_dir)
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise InputError("--out is not empty; pass --overwrite to write into it", path=out_dir)
     doc = read_toml(network, "network file")
     cfg: dict[str, Any] = (
         dict(doc.get("adjustment", {})) if isinstance(doc.get("adjustment"), dict) else {}
@@ -212,20 +212,50 @@ def adjust_command(
     for a in assignments:
         _set(cfg, a)
     nf = read_network(network, config=cfg)
+    resolved = nf.config.model_dump(mode="json")
+    # The inputs are read and checked before the folder is claimed (nothing is left
+    # behind by a bad network); --overwrite replaces only the files a previous adjust wrote.
+    run = RunDir(
+        out_dir,
+        "adjust",
+        {"network": str(network.resolve()), "config": config_digest(resolved)},
+        overwrite=overwrite,
+        inputs=[network, nf.measures_path, *nf.camera_files.values()],
+        resumable=False,
+    )
+    with run.logging_to_file():
+        _adjust_into(
+            run.path, nf, resolved, network, quiet=quiet, rpc=not no_rpc, plots=not no_plots
+        )
+
+
+def _adjust_into(
+    out_dir: Path,
+    nf: Any,
+    resolved: dict[str, Any],
+    network: Path,
+    *,
+    quiet: bool,
+    rpc: bool,
+    plots: bool,
+) -> None:
+    import tomli_w
+
+    from planetref.adjust.api import adjust
+    from planetref.adjust.report import write_outputs
+    from planetref.atomic import write_text_atomic
 
     def progress(msg: str) -> None:
         if not quiet:
             click.echo(msg, err=True)
 
     result = adjust(nf.network, nf.config, progress=progress)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    resolved = nf.config.model_dump(mode="json")
     write_text_atomic(out_dir / "config.toml", tomli_w.dumps({"adjustment": _toml_safe(resolved)}))
     write_outputs(
         result,
         out_dir,
-        rpc=not no_rpc,
-        plots=not no_plots,
+        rpc=rpc,
+        plots=plots,
         extra={
             "inputs": {
                 "network": str(network.resolve()),

@@ -10,20 +10,63 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Any
 
 import click
 import numpy as np
 
+from planetref.atomic import json_safe
 from planetref.camera.geodesy import lonlat_to_xyz, xyz_to_lonlat
-from planetref.camera.io import load_camera
 from planetref.errors import GeometryError, InputError
 
-__all__ = ["camera_group"]
+__all__ = ["EXTRAPOLATION_MARGIN", "HEIGHT_LIMIT_FRACTION", "camera_group"]
+
+EXTRAPOLATION_MARGIN = 0.1
+"""Image points this far outside the image (fraction of its size, at least 64 px) are
+refused unless ``--extrapolate``: the camera model is not known there."""
+HEIGHT_LIMIT_FRACTION = 0.01
+"""Heights are accepted within +-1 % of the body's equatorial radius (+-33.96 km on Mars,
++-63.8 km on Earth): every terrain and no orbit."""
 
 
 def _finite(name: str, value: float | None) -> None:
     if value is not None and not math.isfinite(value):
         raise InputError(f"--{name} must be a finite number, got {value}")
+
+
+def load_camera(path: str) -> Any:
+    """Load a camera file; a pathologically nested JSON is an error naming the file."""
+    from planetref.camera.io import load_camera as _load
+
+    try:
+        return _load(path)
+    except RecursionError:
+        raise InputError("the file is nested too deeply to be a camera file", path=path) from None
+
+
+def _check_height(cam: Any, height: float, name: str = "height") -> None:
+    limit = HEIGHT_LIMIT_FRACTION * float(cam.ellipsoid.semi_major_m)
+    if abs(height) > limit:
+        raise InputError(
+            f"--{name} {height:g} m is outside the physically meaningful range "
+            f"[-{limit:.0f}, {limit:.0f}] m (1 % of the body's radius) of the camera's body"
+        )
+
+
+def _check_in_image(
+    cam: Any, ccd: str | None, line: float, sample: float, extrapolate: bool, what: str
+) -> None:
+    if extrapolate:
+        return
+    n_lines, n_samples = cam.image_size(ccd)
+    for name, value, n in (("line", line, n_lines), ("sample", sample, n_samples)):
+        margin = max(64.0, EXTRAPOLATION_MARGIN * n)
+        if not (-margin <= value <= n + margin):
+            raise InputError(
+                f"{what} {name} {value:g} is more than {margin:g} px outside the image "
+                f"(0 to {n}); the camera model is not known there: pass --extrapolate "
+                "to compute it anyway"
+            )
 
 
 @click.group("camera")
@@ -43,8 +86,18 @@ def camera_group() -> None:
     help="Height above the camera's reference body (m).",
 )
 @click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
+@click.option(
+    "--extrapolate",
+    is_flag=True,
+    help="Accept image points far outside the image (the model is extrapolated).",
+)
 def image_to_ground(
-    camera_file: str, line: float, sample: float, height: float, ccd: str | None
+    camera_file: str,
+    line: float,
+    sample: float,
+    height: float,
+    ccd: str | None,
+    extrapolate: bool,
 ) -> None:
     """Intersect the ray of an image point with a height; prints JSON.
 
@@ -53,10 +106,17 @@ def image_to_ground(
     for name, value in (("line", line), ("sample", sample), ("height", height)):
         _finite(name, value)
     cam = load_camera(camera_file)
+    _check_height(cam, height)
+    _check_in_image(cam, ccd, line, sample, extrapolate, "--line/--sample:")
     xyz = cam.image_to_ground(
         np.array([line]), np.array([sample]), height, ccd=ccd, on_miss="raise"
     )[0]
     lon, lat, h = xyz_to_lonlat(xyz, cam.ellipsoid, cam.latitude_kind)
+    if not (np.all(np.isfinite(xyz)) and abs(float(h) - height) <= 1.0):
+        raise GeometryError(
+            f"the ray of ({line:g}, {sample:g}) does not reach the height {height:g} m "
+            f"in front of the camera (got {float(h):.1f} m)"
+        )
     click.echo(
         json.dumps(
             {
@@ -78,6 +138,11 @@ def image_to_ground(
 @click.option("--lon", type=float, default=None, help="East longitude (deg).")
 @click.option("--height", type=float, default=None, help="Height (m), with --lat/--lon.")
 @click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
+@click.option(
+    "--extrapolate",
+    is_flag=True,
+    help="Accept points that project far outside the image.",
+)
 def ground_to_image(
     camera_file: str,
     xyz: tuple[float, float, float] | None,
@@ -85,6 +150,7 @@ def ground_to_image(
     lon: float | None,
     height: float | None,
     ccd: str | None,
+    extrapolate: bool,
 ) -> None:
     """Project a ground point into the image; prints JSON {"line", "sample"}."""
     by_xyz = xyz is not None
@@ -103,6 +169,7 @@ def ground_to_image(
             _finite(name, value)
         if abs(lat) > 90:
             raise InputError(f"--lat must be within [-90, 90], got {lat}")
+        _check_height(cam, height)
         point = lonlat_to_xyz(lon, lat, height, cam.ellipsoid, cam.latitude_kind)
     ip = cam.ground_to_image(point[None, :], ccd=ccd)
     if not bool(ip.valid[0]):
@@ -110,7 +177,12 @@ def ground_to_image(
             "the point cannot be projected into the image (behind the camera "
             "or outside the camera's time span)"
         )
+    if by_xyz:
+        _check_height(cam, float(xyz_to_lonlat(point, cam.ellipsoid, cam.latitude_kind)[2]), "xyz")
     out = {"line": float(ip.line[0]), "sample": float(ip.sample[0])}
+    if not (math.isfinite(out["line"]) and math.isfinite(out["sample"])):
+        raise GeometryError("the point cannot be projected into the image (no finite result)")
+    _check_in_image(cam, ccd, out["line"], out["sample"], extrapolate, "the point projects to")
     if not bool(ip.in_image[0]):
         click.echo("warning: the point projects outside the image", err=True)
     click.echo(json.dumps(out))
@@ -126,6 +198,11 @@ def ground_to_image(
     help="Output: NAME.RPB, NAME_RPC.TXT, or an existing GeoTIFF to embed them in.",
 )
 @click.option("--ccd", default=None, help="CCD name (default: the camera's first CCD).")
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Replace an existing .RPB/_RPC.TXT, or the RPCs a GeoTIFF already holds.",
+)
 @click.option(
     "--height-range",
     nargs=2,
@@ -146,6 +223,7 @@ def fit_rpc_command(
     camera_file: str,
     out: str,
     ccd: str | None,
+    overwrite: bool,
     height_range: tuple[float, float],
     grid: tuple[int, int, int],
 ) -> None:
@@ -158,8 +236,17 @@ def fit_rpc_command(
     lo, hi = height_range
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise InputError(f"--height-range needs two finite heights, low < high, got {lo}, {hi}")
+    _check_rpc_output(camera_file, out, overwrite)
     cam = load_camera(camera_file)
+    _check_height(cam, lo, "height-range")
+    _check_height(cam, hi, "height-range")
     rpc, report = fit_rpc(cam, ccd=ccd, height_range_m=(lo, hi), grid=grid)
+    if not (math.isfinite(report.fit_rms_px) and math.isfinite(report.check_rms_px)):
+        raise GeometryError(
+            f"the RPC fit failed (fit RMS {report.fit_rms_px}, check RMS "
+            f"{report.check_rms_px} px): the camera's rays miss the heights "
+            f"{lo:g} to {hi:g} m somewhere on the grid; nothing was written",
+        )
     path = write_rpc(rpc, out, body=RpcBody(cam.ellipsoid, cam.latitude_kind))
     doc = {
         "out": str(path),
@@ -169,4 +256,29 @@ def fit_rpc_command(
         "check_max_px": report.check_max_px,
         "check_max_ground_m": report.check_max_ground_m,
     }
-    click.echo(json.dumps(doc))
+    click.echo(json.dumps(json_safe(doc), allow_nan=False))
+
+
+def _check_rpc_output(camera_file: str, out: str, overwrite: bool) -> None:
+    """Never write over the camera; replace existing RPCs only with ``--overwrite``."""
+    from pathlib import Path
+
+    from planetref.pipeline.rundir import check_output_file
+
+    p = Path(out)
+    if p.suffix.lower() not in (".tif", ".tiff"):
+        check_output_file(p, [camera_file], overwrite=overwrite)
+        return
+    check_output_file(p, [camera_file], overwrite=True)
+    if not p.is_file() or overwrite:
+        return
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    try:
+        with rasterio.open(p) as ds:
+            has_rpc = bool(ds.tags(ns="RPC"))
+    except RasterioError:
+        return  # write_rpc reports an unreadable GeoTIFF itself
+    if has_rpc:
+        raise InputError("--out already holds RPCs; pass --overwrite to replace them", path=p)

@@ -136,6 +136,17 @@ def _refined(matches, img0, valid0, img1, valid1, method: str):
     return kept, res.counts()
 
 
+def _check_outputs(
+    image0: str, image1: str, out: str, figure: str | None, *, overwrite: bool
+) -> None:
+    """Refuse outputs that are an input or each other, or exist without ``--overwrite``."""
+    from planetref.pipeline.rundir import check_output_file
+
+    check_output_file(out, [image0, image1], overwrite=overwrite, option="--out")
+    if figure:
+        check_output_file(figure, [image0, image1, out], overwrite=overwrite, option="--figure")
+
+
 @click.command("matchers")
 @click.option(
     "--weights-dir",
@@ -210,6 +221,11 @@ def matchers_command(weights_dir: str | None, as_json: bool) -> None:
     help="Optional PNG figure of the verified matches.",
 )
 @click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Replace an existing --out / --figure (never an input image).",
+)
+@click.option(
     "--weights-dir",
     type=click.Path(file_okay=False),
     default=None,
@@ -262,6 +278,7 @@ def match_command(
     matcher_name: str,
     out: str,
     figure: str | None,
+    overwrite: bool,
     weights_dir: str | None,
     device: str,
     tile_size: int,
@@ -285,6 +302,7 @@ def match_command(
             raise InputError(
                 f"--overlap ({overlap}) must be smaller than --tile-size ({tile_size})"
             )
+        _check_outputs(image0, image1, out, figure, overwrite=overwrite)
         img0, valid0 = read_band(image0)
         img1, valid1 = read_band(image1)
         matcher = get_matcher(matcher_name, weights_dir=weights_dir, device=device)
@@ -315,7 +333,7 @@ def match_command(
                 inliers=verdict.inliers,
             )
     except PlanetrefError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise click.ClickException(" ".join(str(exc).split())) from None
     except (MemoryError, OSError, RuntimeError) as exc:  # e.g. out of (GPU) memory
         raise click.ClickException(f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
     seconds = time.perf_counter() - start

@@ -2,11 +2,57 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
-__all__ = ["simulate_command"]
+__all__ = ["simulate_command", "simulate_run"]
+
+
+def simulate_run(
+    cfg: Any,
+    out_dir: str | os.PathLike[str],
+    *,
+    overwrite: bool = False,
+    preview: bool = False,
+    progress: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> Any:
+    """Simulate a scene into a planetref run folder (see :mod:`planetref.pipeline.rundir`).
+
+    The scene is built beside the folder, then its files are moved in one by one and
+    recorded in the folder's manifest; ``overwrite`` removes only the files of the
+    previous scene, never the user's.
+
+    Returns:
+        The :class:`~planetref.simulate.scene.SceneResult` (``root`` is ``out_dir``).
+    """
+    from planetref.pipeline.rundir import RunDir, config_digest
+    from planetref.simulate.scene import simulate_scene
+
+    out = Path(out_dir).resolve()
+    identity = {
+        "scene": cfg.name,
+        "seed": cfg.seed,
+        "config": config_digest(cfg.model_dump(mode="json")),
+    }
+    run = RunDir(out, "simulate", identity, overwrite=overwrite, resumable=False)
+    with run.logging_to_file():
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.simulate-", dir=out.parent))
+        try:
+            result = simulate_scene(cfg, tmp / "scene", preview=preview, progress=progress, log=log)
+            for src in sorted(p for p in (tmp / "scene").rglob("*") if p.is_file()):
+                os.replace(src, run.file(*src.relative_to(tmp / "scene").parts))
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    result.root = out
+    result.manifest_path = out / "scene.toml"
+    return result
 
 
 def _preset_names() -> str:
@@ -34,7 +80,11 @@ def _preset_names() -> str:
     help="TOML file whose tables override the preset's.",
 )
 @click.option("--preview", is_flag=True, help="Also write OUT_DIR/preview.png.")
-@click.option("--overwrite", is_flag=True, help="Replace OUT_DIR if it exists and is not empty.")
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Replace the scene planetref wrote in OUT_DIR (only its files; never other files).",
+)
 @click.pass_context
 def simulate_command(
     ctx: click.Context,
@@ -52,7 +102,6 @@ def simulate_command(
     always give byte-identical rasters.
     """
     from planetref.simulate.config import load_config
-    from planetref.simulate.scene import simulate_scene
 
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
     cfg = load_config(preset, config_path, seed=seed)
@@ -61,7 +110,7 @@ def simulate_command(
         if not quiet:
             click.echo(msg, err=True)
 
-    result = simulate_scene(
+    result = simulate_run(
         cfg, out_dir, overwrite=overwrite, preview=preview, progress=not quiet, log=log
     )
     if quiet:

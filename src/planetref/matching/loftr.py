@@ -94,6 +94,28 @@ class LoftrMatcher(TorchMatcher):
         self.max_size = int(max_size)
         self.confidence_threshold = float(confidence_threshold)
 
+    def _checkpoint(self, name: str) -> Any:
+        """Load the checkpoint; a pickle that asks to import code is refused in one line."""
+        import pickle
+
+        from planetref.matching.weights import WEIGHT_FILES, weights_dir
+
+        try:
+            return super()._checkpoint(name)
+        except WeightsError as exc:
+            if not isinstance(exc.__cause__, pickle.UnpicklingError):
+                raise
+            lines = str(exc.__cause__).splitlines()
+            detail = next(
+                (ln.strip().rstrip(".") for ln in lines if "global" in ln.lower()),
+                "not a plain tensor checkpoint",
+            )
+            raise WeightsError(
+                f"weight file {weights_dir(self.weights_dir) / name} refused: it asks to "
+                f"import code ({detail}) and nothing of it was run; replace it with the "
+                f"official file from {WEIGHT_FILES[name].url}"
+            ) from None
+
     def _build(self) -> Any:
         from kornia.feature import LoFTR
         from kornia.feature.loftr.loftr import default_cfg

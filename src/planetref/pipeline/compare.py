@@ -152,8 +152,18 @@ def _run_compare(
     scene_path = _scene_path(scene)
     if not scene_path.is_file():
         raise InputError("scene manifest not found", path=scene_path)
+    from planetref.pipeline.georef import scene_input_files
+    from planetref.simulate.manifest import load_manifest
+
+    manifest, root = load_manifest(scene_path)
     identity = {"scene": str(scene_path), "config": config_digest(cfg.to_json())}
-    run = RunDir(out, "compare", identity, overwrite=overwrite)
+    run = RunDir(
+        out,
+        "compare",
+        identity,
+        overwrite=overwrite,
+        inputs=[scene_path, *scene_input_files(manifest, root)],
+    )
     runs: dict[str, Any] = {}
     with run.logging_to_file():
         run.write_json(
@@ -186,7 +196,7 @@ def _run_compare(
                 outcome.report["matching"].get("ncp"),
                 adj.get("rmse_px", float("nan")),
             )
-            _collect_figures(outcome.run_dir, run.path / "figures", name)
+            _collect_figures(outcome.run_dir, run, name)
         scene_name = next((r["scene"] for r in runs.values()), scene_path.parent.name)
         report = {"scene": scene_name, "runs": runs, "skipped": skipped}
         run.write_json("report.json", report)
@@ -340,7 +350,6 @@ def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, 
     return out
 
 
-def _collect_figures(run_dir: Path, figures: Path, matcher: str) -> None:
-    figures.mkdir(parents=True, exist_ok=True)
+def _collect_figures(run_dir: Path, run: RunDir, matcher: str) -> None:
     for png in sorted((run_dir / "figures").glob("*.png")):
-        shutil.copyfile(png, figures / f"{matcher}_{png.name}")
+        shutil.copyfile(png, run.file("figures", f"{matcher}_{png.name}"))

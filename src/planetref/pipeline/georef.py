@@ -30,7 +30,14 @@ from planetref.errors import InputError, MatchingError, PlanetrefError
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
 
-__all__ = ["GeorefOutcome", "build_matchers", "matcher_options", "run_georef"]
+__all__ = [
+    "GeorefOutcome",
+    "build_matchers",
+    "matcher_options",
+    "matcher_weight_files",
+    "run_georef",
+    "scene_input_files",
+]
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +110,30 @@ def _scene_path(scene: str | os.PathLike[str]) -> Path:
     return (p / "scene.toml" if p.is_dir() else p).resolve()
 
 
+def scene_input_files(manifest: Any, root: Path) -> list[Path]:
+    """Every file a scene manifest names (reference, images, cameras, truth): run inputs."""
+    names = [manifest.reference.ortho, manifest.reference.dem]
+    for strip in manifest.strips:
+        for c in strip.ccds:
+            names += [c.image, c.camera]
+    if manifest.truth is not None:
+        names += [manifest.truth.dem, *manifest.truth.cameras.values()]
+    paths = {manifest.resolve(root, n) for n in names}
+    return sorted(Path(p) for p in paths if Path(p).is_file())
+
+
+def matcher_weight_files(name: str, weights_dir: str | os.PathLike[str] | None) -> list[Path]:
+    """The weight files of a registered matcher that are present (their sha256 is identity)."""
+    from planetref.matching.registry import MATCHERS
+    from planetref.matching.weights import weights_dir as resolve_dir
+
+    spec = MATCHERS.get(name)
+    if spec is None:
+        return []
+    folder = resolve_dir(weights_dir)
+    return [folder / w for w in spec.weights if (folder / w).is_file()]
+
+
 def _open_reference(manifest: Any, root: Path) -> tuple[Any, Any]:
     from planetref.raster.dem import GridTerrain
     from planetref.raster.ortho import ReferenceOrtho
@@ -166,10 +197,37 @@ def _checked_image(image: Any, camera: Any, ccd: str) -> Any:
     return image
 
 
+MARS_SEMI_MAJOR_M = 3396190.0
+
+
+def _check_body(body: Any, raster: Any, what: str, path: Any = None) -> None:
+    """Refuse a reference on another body than ``body`` (e.g. an Earth CRS), in words."""
+    from planetref.errors import CrsError
+
+    crs = getattr(raster, "crs", None)
+    ellipsoid = getattr(crs, "ellipsoid", None)
+    a_ref = getattr(ellipsoid, "semi_major_metre", None)
+    a_cam = float(body.semi_major_m)
+    if a_ref is None or abs(float(a_ref) - a_cam) <= 0.01 * a_cam:
+        return
+    body = (
+        "Mars"
+        if abs(a_cam - MARS_SEMI_MAJOR_M) <= 0.01 * MARS_SEMI_MAJOR_M
+        else f"the cameras' body (a = {a_cam:.0f} m)"
+    )
+    raise CrsError(
+        f"the {what}'s CRS is not a {body} CRS ({crs.name}; ellipsoid "
+        f"{ellipsoid.name}, a = {float(a_ref):.0f} m) but the cameras are on {body}",
+        path=path or getattr(raster, "path", None),
+    )
+
+
 def _check_overlap(camera: Any, images: dict[str, Any], ref: Any, dem: Any, strip: str) -> None:
     """Refuse a strip whose footprint misses the reference ortho entirely."""
     from planetref.frontend.geometry import image_to_ref_pixel
 
+    _check_body(camera.ellipsoid, ref, "reference ortho")
+    _check_body(camera.ellipsoid, dem, "reference DEM")
     for ccd in images:
         n_lines, n_samples = camera.image_size(ccd)
         t = np.linspace(0, 1, 5)
@@ -263,12 +321,27 @@ def _run_georef(
     cfg = config or GeorefConfig()
     scene_path = _scene_path(scene)
     manifest, root = load_manifest(scene_path)
+    # Inputs checked and matchers built before the run folder is claimed, so a failed
+    # start (unknown matcher, missing weights, unreadable reference) leaves nothing behind.
+    ref, dem = _open_reference(manifest, root)
+    body = manifest.body.ellipsoid()
+    _check_body(body, ref, "reference ortho")
+    _check_body(body, dem, "reference DEM", manifest.resolve(root, manifest.reference.dem))
+    ref_gsd = float(np.mean(ref.ground_sampling_m()))
+    fine, coarse = matchers or build_matchers(matcher, cfg, ref_gsd, weights_dir=weights_dir)
     identity = {
         "scene": str(scene_path),
         "matcher": matcher,
         "config": config_digest(cfg.to_json()),
     }
-    run = RunDir(out, "georef", identity, overwrite=overwrite)
+    run = RunDir(
+        out,
+        "georef",
+        identity,
+        overwrite=overwrite,
+        inputs=[scene_path, *scene_input_files(manifest, root)],
+        weights=matcher_weight_files(matcher, weights_dir),
+    )
     with run.logging_to_file():
         log.info(
             "georef %s with %s into %s%s",
@@ -287,9 +360,6 @@ def _run_georef(
                 **cfg.to_json(),
             },
         )
-        ref, dem = _open_reference(manifest, root)
-        ref_gsd = float(np.mean(ref.ground_sampling_m()))
-        fine, coarse = matchers or build_matchers(matcher, cfg, ref_gsd, weights_dir=weights_dir)
         truth_cams, truth_dem = _truth(manifest, root)
         sources = None
         if executor.parallel:
