@@ -25,11 +25,10 @@ from planetref.camera.csm import (
     CsmCorrection,
     CsmIsd,
     CsmLineScanCamera,
-    _apply_distortion,
-    _remove_distortion,
     read_isd,
     write_isd,
 )
+from planetref.camera.csm.distortion import _apply_distortion, _remove_distortion
 from planetref.camera.geodesy import Ellipsoid, xyz_to_lonlat
 from planetref.errors import GeometryError, InputError, MissingFileError, UnsupportedFormatError
 

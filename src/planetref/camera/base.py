@@ -31,7 +31,6 @@ __all__ = [
     "ImagePoints",
     "OnMiss",
     "Terrain",
-    "csm_to_isis",
     "isis_to_csm",
 ]
 
@@ -41,11 +40,6 @@ OnMiss = Literal["nan", "raise"]
 def isis_to_csm(line: ArrayLike, sample: ArrayLike) -> tuple[NDArray[np.float64], ...]:
     """ISIS (1-based, first pixel centre at 1.0) -> planetref/CSM (first centre at 0.5)."""
     return np.asarray(line, float) - 0.5, np.asarray(sample, float) - 0.5
-
-
-def csm_to_isis(line: ArrayLike, sample: ArrayLike) -> tuple[NDArray[np.float64], ...]:
-    """planetref/CSM (first pixel centre at 0.5) -> ISIS (first pixel centre at 1.0)."""
-    return np.asarray(line, float) + 0.5, np.asarray(sample, float) + 0.5
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,32 @@
-"""USGS CSM line-scan ISDs and a camera model that follows usgscsm."""
+"""USGS CSM line-scan ISDs and a camera model that follows usgscsm.
 
-from planetref.camera.csm.isd import *  # noqa: F403
-from planetref.camera.csm.isd import _apply_distortion, _remove_distortion  # noqa: F401
+Modules: :mod:`~planetref.camera.csm.isd` (typed ISD, writer),
+:mod:`~planetref.camera.csm.reader` (parsing), :mod:`~planetref.camera.csm.orientation`
+(quaternions), :mod:`~planetref.camera.csm.interpolation` (ephemeris interpolation),
+:mod:`~planetref.camera.csm.distortion` (lens distortion),
+:mod:`~planetref.camera.csm.camera` (:class:`CsmLineScanCamera`).
+"""
+
+from planetref.camera.csm.camera import CsmLineScanCamera
+from planetref.camera.csm.isd import (
+    CORRECTION_PARAMETER_NAMES,
+    CSM_LINE_SCANNER_MODEL,
+    CsmCorrection,
+    CsmIsd,
+    CsmOrientations,
+    CsmStates,
+    write_isd,
+)
+from planetref.camera.csm.reader import read_isd
+
+__all__ = [
+    "CORRECTION_PARAMETER_NAMES",
+    "CSM_LINE_SCANNER_MODEL",
+    "CsmCorrection",
+    "CsmIsd",
+    "CsmLineScanCamera",
+    "CsmOrientations",
+    "CsmStates",
+    "read_isd",
+    "write_isd",
+]

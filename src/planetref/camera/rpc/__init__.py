@@ -1,3 +1,39 @@
-"""Rational polynomial coefficients (RPCs) and a camera on them."""
+"""Rational polynomial cameras (RPC00B): files, projection, localisation and fitting.
 
-from planetref.camera.rpc.model import *  # noqa: F403
+Modules: :mod:`~planetref.camera.rpc.model` (the RPC00B polynomials),
+:mod:`~planetref.camera.rpc.body` (the body and latitude an RPC refers to),
+:mod:`~planetref.camera.rpc.formats` (GeoTIFF, ``.RPB`` and ``_RPC.TXT`` readers and
+writers), :mod:`~planetref.camera.rpc.camera` (:class:`RpcCamera`) and
+:mod:`~planetref.camera.rpc.fit` (:func:`fit_rpc`).
+"""
+
+from planetref.camera.rpc.body import EARTH_BODY, MARS_BODY, RpcBody
+from planetref.camera.rpc.camera import RpcCamera
+from planetref.camera.rpc.fit import FitReport, fit_rpc
+from planetref.camera.rpc.formats import (
+    read_rpc,
+    read_rpc_body,
+    rpc_sidecar_path,
+    write_rpc,
+    write_rpc_geotiff,
+    write_rpc_rpb,
+    write_rpc_txt,
+)
+from planetref.camera.rpc.model import Rpc
+
+__all__ = [
+    "EARTH_BODY",
+    "MARS_BODY",
+    "FitReport",
+    "Rpc",
+    "RpcBody",
+    "RpcCamera",
+    "fit_rpc",
+    "read_rpc",
+    "read_rpc_body",
+    "rpc_sidecar_path",
+    "write_rpc",
+    "write_rpc_geotiff",
+    "write_rpc_rpb",
+    "write_rpc_txt",
+]
