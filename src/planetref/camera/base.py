@@ -8,6 +8,12 @@ corner of the first pixel at ``(0, 0)``, so the centre of the first pixel is
 ISIS measures (first pixel centre at ``(1, 1)``) convert with ``csm = isis - 0.5``
 (see :func:`isis_to_csm`).
 
+Terrains
+--------
+:class:`Terrain`, :class:`ConstantHeight` and ``OnMiss`` live in
+:mod:`planetref.geometry.terrain` (with the one ray/terrain intersection and its rule at
+holes) and are re-exported here.
+
 Ground coordinates
 ------------------
 Body-fixed XYZ in metres (see :mod:`planetref.camera.geodesy`), or longitude/latitude
@@ -18,12 +24,13 @@ camera's ellipsoid.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planetref.camera.geodesy import Ellipsoid, LatitudeKind
+from planetref.geometry.terrain import ConstantHeight, OnMiss, Terrain
 
 __all__ = [
     "Camera",
@@ -33,8 +40,6 @@ __all__ = [
     "Terrain",
     "isis_to_csm",
 ]
-
-OnMiss = Literal["nan", "raise"]
 
 
 def isis_to_csm(line: ArrayLike, sample: ArrayLike) -> tuple[NDArray[np.float64], ...]:
@@ -63,66 +68,6 @@ class ImagePoints:
     def as_array(self) -> NDArray[np.float64]:
         """``(M, 2)`` array of ``(line, sample)``."""
         return np.stack([self.line, self.sample], axis=-1)
-
-
-@runtime_checkable
-class Terrain(Protocol):
-    """A height surface above a reference ellipsoid.
-
-    Attributes:
-        ellipsoid: The body the heights refer to.
-        min_height_m: A lower bound of every height the surface takes (metres).
-        max_height_m: An upper bound (metres).
-    """
-
-    ellipsoid: Ellipsoid
-    min_height_m: float
-    max_height_m: float
-
-    def height(
-        self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
-    ) -> NDArray[np.float64]:
-        """Height (m) at planetocentric lon/lat (degrees); NaN outside or in holes."""
-        ...
-
-    @property
-    def sampling_m(self) -> float:
-        """The surface's ground sampling distance in metres (the step a ray marches)."""
-        ...
-
-
-@dataclass(frozen=True)
-class ConstantHeight:
-    """The surface at a constant height above an ellipsoid.
-
-    Attributes:
-        ellipsoid: The reference body.
-        height_m: Height above the ellipsoid in metres.
-    """
-
-    ellipsoid: Ellipsoid
-    height_m: float = 0.0
-
-    @property
-    def min_height_m(self) -> float:
-        """Equal to ``height_m``."""
-        return self.height_m
-
-    @property
-    def max_height_m(self) -> float:
-        """Equal to ``height_m``."""
-        return self.height_m
-
-    @property
-    def sampling_m(self) -> float:
-        """Infinite: a constant surface needs no marching."""
-        return float("inf")
-
-    def height(
-        self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]
-    ) -> NDArray[np.float64]:
-        """``height_m`` everywhere."""
-        return np.full(np.broadcast(np.asarray(lon_deg), np.asarray(lat_deg)).shape, self.height_m)
 
 
 @runtime_checkable

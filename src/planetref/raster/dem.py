@@ -13,7 +13,11 @@ Conventions
 * Heights are sampled with bilinear interpolation between pixel centres. Between the
   outermost pixel centres and the raster edge the edge values are held constant
   (clamped), outside the raster's extent the height is NaN. A NaN (nodata) pixel makes
-  every interpolated value that touches it NaN (holes are not filled).
+  every interpolated value that touches it NaN. :meth:`GridTerrain.from_geotiff` fills
+  small interior holes when it reads a file (see :class:`DemHoles`); an in-memory grid is
+  used as given.
+* Rays meet the DEM through :func:`planetref.geometry.terrain.intersect_terrain`, whose
+  rule at holes (unknown terrain) every camera shares.
 * Longitudes/latitudes are planetocentric degrees, east-positive (see
   :mod:`planetref.camera.geodesy`); XYZ are body-fixed metres.
 """
@@ -37,8 +41,16 @@ from planetref.camera.geodesy import (
     xyz_to_lonlat,
 )
 from planetref.errors import CrsError, InputError, MissingFileError, UnsupportedFormatError
+from planetref.geometry.terrain import TOP_MARGIN_M, intersect_terrain
 
 __all__ = ["GridTerrain", "MapProjection", "RayHits"]
+
+#: Height tolerance (m) of the fixed-point solver of :meth:`GridTerrain.first_hit_guess`.
+_FIXED_POINT_TOL_M = 1e-5
+#: Iterations of the fixed-point solver before the ray is left to marching.
+_FIXED_POINT_MAX_ITER = 60
+#: Tolerance (m along the ray) of the marched intersections.
+_MARCH_TOL_M = 1e-6
 
 
 @dataclass(frozen=True)
@@ -243,6 +255,8 @@ class GridTerrain:
         self.min_height_m = float(np.min(h[finite]))
         self.max_height_m = float(np.max(h[finite]))
         self._max_slope: float | None = None
+        self._holes: NDArray[np.int64] | bool | None = None
+        self._pixel_m: float | None = None
         self._flat = np.ascontiguousarray(h).reshape(-1)
 
     # -- construction -------------------------------------------------------------------
@@ -413,8 +427,9 @@ class GridTerrain:
     def _bilinear(self, row: NDArray[np.float64], col: NDArray[np.float64]) -> NDArray[np.float64]:
         rows, cols = self.shape
         inside = (row >= -0.5) & (row <= rows - 0.5) & (col >= -0.5) & (col <= cols - 0.5)
-        r = np.clip(row, 0.0, rows - 1.0)
-        c = np.clip(col, 0.0, cols - 1.0)
+        # NaN coordinates (a NaN point) are outside; index them at 0 and mask them below.
+        r = np.clip(np.where(inside, row, 0.0), 0.0, rows - 1.0)
+        c = np.clip(np.where(inside, col, 0.0), 0.0, cols - 1.0)
         r0 = np.minimum(r.astype(np.intp), rows - 2)
         c0 = np.minimum(c.astype(np.intp), cols - 2)
         fr = r - r0
@@ -433,29 +448,20 @@ class GridTerrain:
         return out.astype(np.float64, copy=False)
 
     # -- ray intersection ---------------------------------------------------------------
-    def intersect_rays(
-        self, origin: ArrayLike, direction: ArrayLike, *, tol_m: float = 1e-5, max_iter: int = 60
-    ) -> RayHits:
+    def intersect_rays(self, origin: ArrayLike, direction: ArrayLike) -> RayHits:
         """First intersection of rays with the (bilinearly interpolated) DEM surface.
 
-        Rays whose direction is close to the local vertical (so that the slope of the DEM
-        times the tangent of the ray's off-vertical angle stays below 0.5) are solved by
-        the fixed-point iteration ``h <- DEM(point of the ray at height h)``, which then
-        provably converges to the unique intersection. Other rays, and any that do not
-        converge, are marched from the DEM's top down in steps of half a DEM pixel and
-        refined by bisection, which returns the first intersection (occlusions handled).
-        Ray origins must lie above the DEM's highest point (a camera in orbit or in the
-        air); for a sphere and an equirectangular CRS the iteration runs in closed form.
+        The intersection is :func:`planetref.geometry.terrain.intersect_terrain` (its rule
+        at holes: a ray that reaches a NaN cell or leaves the DEM before crossing known
+        terrain is a miss), so cameras' ``image_to_ground`` with this DEM give the same
+        points. The grid contributes the fast path (:meth:`first_hit_guess`).
 
         Args:
             origin: Ray origins, body-fixed metres, shape ``(M, 3)``.
             direction: Ray directions (any length), shape ``(M, 3)``.
-            tol_m: Height tolerance of the solution in metres.
-            max_iter: Iterations of the fixed-point solver before falling back to marching.
 
         Returns:
-            The hits; rows are NaN where a ray misses the DEM (leaves its extent or meets a
-            hole first).
+            The hits; rows are NaN where a ray misses the DEM.
         """
         o = np.atleast_2d(np.asarray(origin, dtype=np.float64))
         d = np.atleast_2d(np.asarray(direction, dtype=np.float64))
@@ -464,84 +470,176 @@ class GridTerrain:
             raise InputError(f"rays need a last axis of length 3, got {o.shape}")
         o = o.reshape(-1, 3)
         d = d.reshape(-1, 3)
-        d = d / np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)[:, None]
         m = o.shape[0]
-        out_xyz = np.full((m, 3), np.nan)
         out_x = np.full(m, np.nan)
         out_y = np.full(m, np.nan)
         out_h = np.full(m, np.nan)
         if m == 0:
-            return RayHits(out_xyz, out_x, out_y, out_h)
+            return RayHits(np.full((0, 3), np.nan), out_x, out_y, out_h)
+        xyz = intersect_terrain(o, d, self, "nan", tol_m=_MARCH_TOL_M)
+        hit = np.flatnonzero(np.all(np.isfinite(xyz), axis=1))
+        if hit.size:
+            x, y, _ = self.xyz_to_map(xyz[hit])
+            out_x[hit], out_y[hit] = x, y
+            out_h[hit] = self.height_at_map(x, y)
+        return RayHits(xyz, out_x, out_y, out_h)
 
+    def first_hit_guess(
+        self, origin: NDArray[np.float64], direction: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Ray parameters of first hits the grid can certify (NaN: march the ray).
+
+        Rays whose direction is close to the local vertical (the slope of the DEM times
+        the tangent of the ray's off-vertical angle below 0.5) are solved by the
+        fixed-point iteration ``h <- DEM(point of the ray at height h)``, which then
+        converges to the unique intersection; for a sphere and an equirectangular CRS in
+        closed form. A solution is certified only if the ray's path from 1 m above the
+        DEM's top down to it stays inside the grid and meets no NaN cell (the hole rule of
+        :mod:`planetref.geometry.terrain`).
+
+        Args:
+            origin: Ray origins above the DEM's top, body-fixed metres, ``(M, 3)``.
+            direction: Unit ray directions, ``(M, 3)``.
+
+        Returns:
+            Metres along ``direction``, shape ``(M,)``; NaN where not certified.
+        """
+        o, d = origin, direction
+        m = o.shape[0]
+        s_out = np.full(m, np.nan)
         # Off-vertical angle of each ray at the mean terrain height.
         h_mid = 0.5 * (self.min_height_m + self.max_height_m)
-        if self.ellipsoid.is_sphere:
-            od = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1] + o[:, 2] * d[:, 2]
-            disc = (
-                od * od
-                - (o[:, 0] ** 2 + o[:, 1] ** 2 + o[:, 2] ** 2)
-                + (self.ellipsoid.semi_major_m + h_mid) ** 2
-            )
-            with np.errstate(invalid="ignore"):
-                s_mid = -od - np.sqrt(disc)
-            s_mid[~(s_mid >= 0)] = np.nan
-        else:
-            s_mid = ray_ellipsoid_intersection(o, d, self.ellipsoid, h_mid)
+        s_mid = self._sphere_or_ellipsoid_root(o, d, h_mid)
         p_mid = o + s_mid[:, None] * d
         cos_t = -(p_mid[:, 0] * d[:, 0] + p_mid[:, 1] * d[:, 1] + p_mid[:, 2] * d[:, 2])
         cos_t = np.clip(
             cos_t / np.sqrt(p_mid[:, 0] ** 2 + p_mid[:, 1] ** 2 + p_mid[:, 2] ** 2), 1e-9, 1.0
         )
         tan_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None)) / cos_t
-        easy = np.isfinite(s_mid) & (tan_t * self.max_slope < 0.5)
-
-        todo = np.flatnonzero(easy)
+        todo = np.flatnonzero(np.isfinite(s_mid) & (tan_t * self.max_slope < 0.5))
         if todo.size:
             oo, dd = o[todo], d[todo]
             if self.ellipsoid.is_sphere and self.projection._fast is not None:
-                h, done, pts, x, y = self._fixed_point_sphere(oo, dd, h_mid, tol_m, max_iter)
+                h, done, s, x, y = self._fixed_point_sphere(oo, dd, h_mid)
             else:
-                h, done, pts, x, y = self._fixed_point(oo, dd, h_mid, tol_m, max_iter)
+                h, done, s, x, y = self._fixed_point(oo, dd, h_mid)
+            done &= self._path_is_known(tan_t[todo], h, x, y)
             idx = todo[done]
-            out_xyz[idx] = pts[done]
-            out_h[idx] = h[done]
-            out_x[idx], out_y[idx] = x[done], y[done]
-            # Anything not converged (including rays that stepped off the grid on the way)
-            # is left to the marcher, which also finds genuine misses.
-            easy[todo[~done]] = False
+            s_out[idx] = s[done]
+        return s_out
 
-        hard = np.flatnonzero(~easy & np.isfinite(s_mid))
-        if hard.size:
-            self._march(o[hard], d[hard], hard, out_xyz, out_x, out_y, out_h, tol_m)
-        return RayHits(out_xyz, out_x, out_y, out_h)
+    def _sphere_or_ellipsoid_root(
+        self, o: NDArray[np.float64], d: NDArray[np.float64], h: float
+    ) -> NDArray[np.float64]:
+        """Ray parameter of the near intersection with the surface at height ``h``."""
+        if not self.ellipsoid.is_sphere:
+            return ray_ellipsoid_intersection(o, d, self.ellipsoid, h)
+        od = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1] + o[:, 2] * d[:, 2]
+        disc = (
+            od * od
+            - (o[:, 0] ** 2 + o[:, 1] ** 2 + o[:, 2] ** 2)
+            + (self.ellipsoid.semi_major_m + h) ** 2
+        )
+        with np.errstate(invalid="ignore"):
+            s = -od - np.sqrt(disc)
+        s[~(s >= 0)] = np.nan
+        return s
+
+    def _path_is_known(
+        self,
+        tan_t: NDArray[np.float64],
+        h_hit: NDArray[np.float64],
+        x_hit: NDArray[np.float64],
+        y_hit: NDArray[np.float64],
+    ) -> NDArray[np.bool_]:
+        """True where a ray's path from above the DEM's top to its hit meets no unknown cell.
+
+        The path's horizontal length is at most its height drop times the tangent of its
+        off-vertical angle (plus 1%); the square of pixels that many pixels around the
+        hit, grown by two (the support of the bilinear surface), must lie inside the grid
+        and hold no NaN cell (a summed-area table answers per ray). A conservative box
+        only sends more rays to marching, which applies the same rule exactly.
+        """
+        rows, cols = self.shape
+        r, c = self.map_to_pixel(x_hit, y_hit)
+        reach = (self.max_height_m + TOP_MARGIN_M - h_hit) * tan_t * 1.01 / self._min_pixel_m
+        rad = np.ceil(np.maximum(reach, 0.0)) + 2.0
+        with np.errstate(invalid="ignore"):
+            rlo, rhi, clo, chi = r - rad, r + rad, c - rad, c + rad
+            inside = (rlo >= -0.5) & (rhi <= rows - 0.5) & (clo >= -0.5) & (chi <= cols - 0.5)
+        table = self._hole_table
+        if table is None:
+            return inside
+        ok = inside.copy()
+        k = np.flatnonzero(inside)
+        a = np.clip(np.floor(rlo[k]), 0, rows).astype(np.intp)
+        b = np.clip(np.ceil(rhi[k]) + 1, 0, rows).astype(np.intp)
+        e0 = np.clip(np.floor(clo[k]), 0, cols).astype(np.intp)
+        e1 = np.clip(np.ceil(chi[k]) + 1, 0, cols).astype(np.intp)
+        holes = table[b, e1] - table[a, e1] - table[b, e0] + table[a, e0]
+        ok[k] = holes == 0
+        return ok
+
+    @property
+    def _min_pixel_m(self) -> float:
+        """Smallest ground distance (m) between neighbouring pixel centres over the grid.
+
+        Measured at the corners, edge midpoints and centre (map distortion is monotonic
+        between them for the CRSs of DEMs), computed once.
+        """
+        if self._pixel_m is None:
+            rows, cols = self.shape
+            best = np.inf
+            for c in (0.5, cols / 2.0, cols - 1.5):
+                for r in (0.5, rows / 2.0, rows - 1.5):
+                    pts = [self.transform @ p for p in ((c, r), (c + 1, r), (c, r + 1))]
+                    xs = np.array([p[0] for p in pts])
+                    ys = np.array([p[1] for p in pts])
+                    xyz = self.map_to_xyz(xs, ys, np.zeros(3))
+                    dist = min(np.linalg.norm(xyz[1] - xyz[0]), np.linalg.norm(xyz[2] - xyz[0]))
+                    best = min(best, float(dist))
+            self._pixel_m = best
+        return self._pixel_m
+
+    @property
+    def _hole_table(self) -> NDArray[np.int64] | None:
+        """Summed-area table of NaN cells, shape ``(rows + 1, cols + 1)`` (None: no holes)."""
+        if self._holes is None:
+            nan = ~np.isfinite(self.heights)
+            if not nan.any():
+                self._holes = False
+            else:
+                table = np.zeros((nan.shape[0] + 1, nan.shape[1] + 1), dtype=np.int64)
+                table[1:, 1:] = np.cumsum(np.cumsum(nan, axis=0), axis=1)
+                self._holes = table
+        return None if self._holes is False else self._holes
 
     def _fixed_point(
-        self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float, tol_m: float, max_iter: int
+        self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float
     ) -> tuple[NDArray[np.float64], ...]:
         """``h <- DEM(ray point at height h)`` for any body and CRS."""
         h = np.full(len(o), h0)
         done = np.zeros(len(o), dtype=bool)
-        for _ in range(max_iter):
+        for _ in range(_FIXED_POINT_MAX_ITER):
             s = ray_ellipsoid_intersection(o, d, self.ellipsoid, h)
             x, y, _ = self.xyz_to_map(o + s[:, None] * d)
             h_new = self.height_at_map(x, y)
-            done = np.isfinite(h_new) & (np.abs(h_new - h) < tol_m)
+            done = np.isfinite(h_new) & (np.abs(h_new - h) < _FIXED_POINT_TOL_M)
             h = np.where(np.isfinite(h_new), h_new, h)
             if np.all(done | ~np.isfinite(h_new)):
                 break
         s = ray_ellipsoid_intersection(o, d, self.ellipsoid, h)
         done &= np.isfinite(s)
-        pts = o + s[:, None] * d
-        x, y, _ = self.xyz_to_map(pts)
-        return h, done, pts, x, y
+        x, y, _ = self.xyz_to_map(o + s[:, None] * d)
+        return h, done, s, x, y
 
     def _fixed_point_sphere(
-        self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float, tol_m: float, max_iter: int
+        self, o: NDArray[np.float64], d: NDArray[np.float64], h0: float
     ) -> tuple[NDArray[np.float64], ...]:
         """The same iteration, in closed form for a sphere and an equirectangular map."""
         fast = self.projection._fast
         if fast is None:
-            return self._fixed_point(o, d, h0, tol_m, max_iter)
+            return self._fixed_point(o, d, h0)
         radius = self.ellipsoid.semi_major_m
         ox, oy, oz = (np.ascontiguousarray(o[:, k]) for k in range(3))
         dx, dy, dz = (np.ascontiguousarray(d[:, k]) for k in range(3))
@@ -563,81 +661,14 @@ class GridTerrain:
 
         h = np.full(len(o), h0)
         done = np.zeros(len(o), dtype=bool)
-        for _ in range(max_iter):
+        for _ in range(_FIXED_POINT_MAX_ITER):
             _, x, y = to_map(h)
             h_new = self.height_at_map(x, y)
             finite = np.isfinite(h_new)
-            done = finite & (np.abs(h_new - h) < tol_m)
+            done = finite & (np.abs(h_new - h) < _FIXED_POINT_TOL_M)
             h = np.where(finite, h_new, h)
             if np.all(done | ~finite):
                 break
         s, x, y = to_map(h)
         done &= np.isfinite(s)
-        pts = o + s[:, None] * d
-        return h, done, pts, x, y
-
-    def _ray_height_minus_dem(
-        self, o: NDArray[np.float64], d: NDArray[np.float64], s: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], ...]:
-        pts = o + s[:, None] * d
-        x, y, h_ray = self.xyz_to_map(pts)
-        return h_ray - self.height_at_map(x, y), pts, x, y
-
-    def _march(
-        self,
-        o: NDArray[np.float64],
-        d: NDArray[np.float64],
-        idx: NDArray[np.intp],
-        out_xyz: NDArray[np.float64],
-        out_x: NDArray[np.float64],
-        out_y: NDArray[np.float64],
-        out_h: NDArray[np.float64],
-        tol_m: float,
-    ) -> None:
-        s_top = ray_ellipsoid_intersection(o, d, self.ellipsoid, self.max_height_m + 1.0)
-        s_bot = ray_ellipsoid_intersection(o, d, self.ellipsoid, self.min_height_m - 1.0)
-        s_bot = np.where(
-            np.isfinite(s_bot), s_bot, s_top + 4.0 * (self.max_height_m - self.min_height_m + 2.0)
-        )
-        step = 0.5 * self.sampling_m
-        n_steps = (
-            int(np.nanmax(np.ceil((s_bot - s_top) / step))) if np.any(np.isfinite(s_top)) else 0
-        )
-        active = np.isfinite(s_top)
-        s_prev = s_top.copy()
-        f_prev, *_ = self._ray_height_minus_dem(o, d, s_prev)
-        lo = np.full(len(o), np.nan)
-        hi = np.full(len(o), np.nan)
-        for k in range(1, n_steps + 1):
-            if not active.any():
-                break
-            a = np.flatnonzero(active)
-            s_cur = np.minimum(s_top[a] + k * step, s_bot[a])
-            f_cur, *_ = self._ray_height_minus_dem(o[a], d[a], s_cur)
-            crossed = (f_cur <= 0) & np.isfinite(f_prev[a])
-            lost = ~np.isfinite(f_cur) & np.isfinite(f_prev[a])  # left the DEM or hit a hole
-            lo[a[crossed]] = s_prev[a[crossed]]
-            hi[a[crossed]] = s_cur[crossed]
-            finished = crossed | lost | (s_cur >= s_bot[a])
-            s_prev[a] = s_cur
-            f_prev[a] = f_cur
-            active[a[finished]] = False
-        found = np.flatnonzero(np.isfinite(lo))
-        if not found.size:
-            return
-        oo, dd, a_, b_ = o[found], d[found], lo[found], hi[found]
-        for _ in range(80):
-            mid = 0.5 * (a_ + b_)
-            f_mid, *_ = self._ray_height_minus_dem(oo, dd, mid)
-            above = f_mid > 0
-            a_ = np.where(above, mid, a_)
-            b_ = np.where(above, b_, mid)
-            if np.max(b_ - a_) < tol_m * 0.1:
-                break
-        s = 0.5 * (a_ + b_)
-        _, pts, x, y = self._ray_height_minus_dem(oo, dd, s)
-        h = self.height_at_map(x, y)
-        out_xyz[idx[found]] = pts
-        out_x[idx[found]] = x
-        out_y[idx[found]] = y
-        out_h[idx[found]] = h
+        return h, done, s, x, y

@@ -60,11 +60,11 @@ from planetref.camera.csm.isd import J2000, MIN_EPHEMERIS_NODES, CsmCorrection, 
 from planetref.camera.csm.orientation import _AleOrientations, _euler_matrix, _qmatrix
 from planetref.camera.csm.reader import read_isd
 from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
-from planetref.camera.raycast import intersect_terrain
 from planetref.errors import (
     GeometryError,
     InputError,
 )
+from planetref.geometry.terrain import intersect_terrain
 
 __all__ = ["CsmLineScanCamera"]
 
@@ -474,7 +474,7 @@ class CsmLineScanCamera:
             terrain: A height in metres above the camera's ellipsoid, a
                 :class:`~planetref.camera.base.ConstantHeight`, or any
                 :class:`~planetref.camera.base.Terrain` (intersected by
-                :func:`~planetref.camera.raycast.intersect_terrain`).
+                :func:`~planetref.geometry.terrain.intersect_terrain`).
             ccd: Must be ``None`` or the camera's only CCD name.
             on_miss: ``"raise"`` a :class:`~planetref.errors.GeometryError` when a ray
                 misses (or meets the surface only behind the sensor), or give NaN rows.
