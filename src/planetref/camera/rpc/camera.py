@@ -29,11 +29,15 @@ from planetref.errors import (
     GeometryError,
     InputError,
 )
+from planetref.geometry.terrain import first_crossing
 
 __all__ = ["RpcCamera"]
 
 
 # --------------------------------------------------------------------------- camera
+
+#: Bisection tolerance of terrain intersections in height (metres).
+_HEIGHT_TOL_M = 1e-5
 
 
 class RpcCamera:
@@ -207,11 +211,13 @@ class RpcCamera:
         """Intersect the RPC's lines of sight with a height or a terrain.
 
         For a height, the RPC is inverted at that height. For a :class:`Terrain`, the
-        line of sight (the curve ``h -> localize(line, sample, h)``) is marched from
+        line of sight (the curve ``h -> localize(line, sample, h)``) is followed from
         above ``max_height_m`` down to below ``min_height_m`` in steps that move at
-        most ``sampling_m`` horizontally, and the first crossing is refined by
-        regula falsi (Illinois) to 0.1 mm in height. Terrain heights are compared as
-        heights above the terrain's own ellipsoid at its planetocentric lon/lat.
+        most half ``sampling_m`` horizontally by
+        :func:`planetref.geometry.terrain.first_crossing` (the one marcher, with its rule
+        at terrain holes), and the first crossing is refined by bisection to 10 µm in
+        height. Terrain heights are compared as heights above the terrain's own
+        ellipsoid at its planetocentric lon/lat.
 
         Args:
             line: Line coordinates (planetref convention), shape ``(M,)`` or scalar.
@@ -252,19 +258,21 @@ class RpcCamera:
             )
         return xyz
 
-    def _terrain_residual(
+    def _line_of_sight(
         self,
         ln: NDArray[np.float64],
         sm: NDArray[np.float64],
         h: NDArray[np.float64],
         terrain: Terrain,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        # Height of the line-of-sight point above the terrain surface, and the point.
+    ) -> tuple[NDArray[np.float64], ...]:
+        """Line-of-sight points at heights ``h`` (camera's ellipsoid): their height above
+        the terrain's ellipsoid, the terrain's height below them (NaN: unknown) and XYZ.
+        """
         lon, lat = self.rpc.localize(ln, sm, h)
         xyz = lonlat_to_xyz(lon, lat, h, self.ellipsoid, self.latitude_kind)
         tlon, tlat, th = xyz_to_lonlat(xyz, terrain.ellipsoid, "planetocentric")
         surface = np.asarray(terrain.height(tlon, tlat), dtype=np.float64)
-        return th - surface, xyz
+        return th, surface, xyz
 
     def _intersect_terrain(
         self, ln: NDArray[np.float64], sm: NDArray[np.float64], terrain: Terrain
@@ -287,69 +295,37 @@ class RpcCamera:
             + abs(other.semi_minor_m - self.ellipsoid.semi_minor_m)
         )
         top, bottom = hi + margin, lo - margin
-        _, xyz_top = self._terrain_residual(ln, sm, np.full(m, top), terrain)
-        _, xyz_bot = self._terrain_residual(ln, sm, np.full(m, bottom), terrain)
+        *_, xyz_top = self._line_of_sight(ln, sm, np.full(m, top), terrain)
+        *_, xyz_bot = self._line_of_sight(ln, sm, np.full(m, bottom), terrain)
         chord = np.linalg.norm(xyz_top - xyz_bot, axis=1)
         horizontal = np.sqrt(np.maximum(chord**2 - (top - bottom) ** 2, 0.0))
-        sampling = float(terrain.sampling_m)
+        # Steps move at most half a terrain sample horizontally (as for straight rays).
+        half_sample = 0.5 * float(terrain.sampling_m)
         reach = float(np.nanmax(horizontal)) if np.any(np.isfinite(horizontal)) else 0.0
         n_steps = 1
-        if math.isfinite(sampling) and sampling > 0:
-            n_steps = int(min(max(math.ceil(reach / sampling), 1), 100_000))
-        heights = np.linspace(top, bottom, n_steps + 1)
+        if math.isfinite(half_sample) and half_sample > 0:
+            n_steps = int(min(max(math.ceil(reach / half_sample), 1), 100_000))
 
-        h_a = np.full(m, np.nan)  # last height above the surface (residual > 0)
-        r_a = np.full(m, np.nan)
-        h_b = np.full(m, np.nan)  # first height at or below it
-        r_b = np.full(m, np.nan)
-        found = np.zeros(m, dtype=bool)
-        prev_h = np.full(m, np.nan)
-        prev_r = np.full(m, np.nan)
-        for hk in heights:
-            idx = np.flatnonzero(~found)
-            if idx.size == 0:
-                break
-            r, _ = self._terrain_residual(ln[idx], sm[idx], np.full(idx.size, hk), terrain)
-            cross = (prev_r[idx] > 0) & (r <= 0)
-            ci = idx[cross]
-            h_a[ci], r_a[ci] = prev_h[ci], prev_r[ci]
-            h_b[ci], r_b[ci] = hk, r[cross]
-            found[ci] = True
-            prev_h[idx], prev_r[idx] = hk, r
+        def profile(
+            idx: NDArray[np.intp], drop: NDArray[np.float64]
+        ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+            # The line of sight is parametrised by the height drop below ``top``.
+            th, surface, _ = self._line_of_sight(ln[idx], sm[idx], top - drop, terrain)
+            return th, surface
 
+        drop = first_crossing(
+            profile,
+            np.zeros(m),
+            np.full(m, top - bottom),
+            (top - bottom) / n_steps,
+            max_height_m=hi,
+            tol_m=_HEIGHT_TOL_M,
+        )
         xyz = np.full((m, 3), np.nan)
-        idx = np.flatnonzero(found)
-        if idx.size == 0:
-            return xyz
-        ha, ra, hb, rb = h_a[idx], r_a[idx], h_b[idx], r_b[idx]
-        h_best = hb.copy()
-        side = np.zeros(idx.size, dtype=int)
-        live = np.ones(idx.size, dtype=bool)
-        for _ in range(100):
-            k = np.flatnonzero(live)
-            if k.size == 0:
-                break
-            hn = hb[k] - rb[k] * (hb[k] - ha[k]) / (rb[k] - ra[k])
-            hn = np.where(np.isfinite(hn), hn, 0.5 * (ha[k] + hb[k]))
-            rn, _ = self._terrain_residual(ln[idx[k]], sm[idx[k]], hn, terrain)
-            h_best[k] = hn
-            above = rn > 0
-            below = rn <= 0
-            # Illinois modification: when the same end survives twice in a row, halve
-            # its residual so that the bracket shrinks from both sides.
-            ha[k] = np.where(above, hn, ha[k])
-            hb[k] = np.where(below, hn, hb[k])
-            ra[k] = np.where(above, rn, np.where(side[k] == -1, 0.5 * ra[k], ra[k]))
-            rb[k] = np.where(below, rn, np.where(side[k] == 1, 0.5 * rb[k], rb[k]))
-            side[k] = np.where(above, 1, -1)
-            # A terrain hole inside the bracket (NaN) ends the search for that point.
-            hole = ~np.isfinite(rn)
-            h_best[k[hole]] = np.nan
-            done = hole | (np.abs(rn) < 1e-4) | (np.abs(ha[k] - hb[k]) < 1e-6)
-            live[k[done]] = False
-        r_final, xyz_final = self._terrain_residual(ln[idx], sm[idx], h_best, terrain)
-        ok = np.isfinite(r_final) & (np.abs(r_final) < 1e-2)
-        xyz[idx[ok]] = xyz_final[ok]
+        ok = np.flatnonzero(np.isfinite(drop))
+        if ok.size:
+            lon, lat = self.rpc.localize(ln[ok], sm[ok], top - drop[ok])
+            xyz[ok] = lonlat_to_xyz(lon, lat, top - drop[ok], self.ellipsoid, self.latitude_kind)
         return xyz
 
 
