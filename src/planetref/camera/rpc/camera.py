@@ -265,8 +265,11 @@ class RpcCamera:
         h: NDArray[np.float64],
         terrain: Terrain,
     ) -> tuple[NDArray[np.float64], ...]:
-        """Line-of-sight points at heights ``h`` (camera's ellipsoid): their height above
-        the terrain's ellipsoid, the terrain's height below them (NaN: unknown) and XYZ.
+        """Points of the line of sight at heights ``h`` above the camera's ellipsoid.
+
+        Returns:
+            Their heights above the terrain's ellipsoid, the terrain's height below them
+            (NaN: unknown terrain) and their body-fixed XYZ (all metres).
         """
         lon, lat = self.rpc.localize(ln, sm, h)
         xyz = lonlat_to_xyz(lon, lat, h, self.ellipsoid, self.latitude_kind)
