@@ -28,8 +28,9 @@ terrain*: the real surface is there, at an unknown height that is assumed to lie
   (at or below ``max_height_m``) before it has crossed known terrain has no
   intersection** (NaN, or a :class:`~planetref.errors.GeometryError`): the hidden surface
   could have stopped it there, so any point found beyond the hole could be wrong.
-* A crossing whose refinement meets unknown terrain (a hole inside the bracket) is a
-  miss for the same reason.
+* Whichever comes first along the line decides: the march brackets the first sample
+  that is on/below known terrain *or* in unknown terrain, and bisection finds which of
+  the two happens first (to ``tol_m``).
 * Unknown terrain that the line passes *above* ``max_height_m`` does not matter, and
   neither does anything after the first crossing (it is hidden from the camera).
 
@@ -208,31 +209,35 @@ def first_crossing(
     # Starting on or below the terrain (an origin under it) or in a hole: nothing seen.
     ok = f_prev > 0
     idx, s_prev = active[ok], s_prev[ok]
+    # March to the first "event": the path on/below known terrain, or in unknown terrain
+    # where the surface could be. The event that comes first decides (hit or miss).
     s_lo = np.full(m, np.nan)
     s_hi = np.full(m, np.nan)
+    f_hi = np.full(m, np.nan)
     while idx.size:
         s_cur = np.minimum(s_prev + step, s_end[idx])
         f_cur = above(idx, s_cur)
-        crossed = f_cur < 0
-        s_lo[idx[crossed]] = s_prev[crossed]
-        s_hi[idx[crossed]] = s_cur[crossed]
-        keep = (f_cur > 0) & (s_cur < s_end[idx])
+        event = ~(f_cur > 0)
+        s_lo[idx[event]] = s_prev[event]
+        s_hi[idx[event]] = s_cur[event]
+        f_hi[idx[event]] = f_cur[event]
+        keep = ~event & (s_cur < s_end[idx])
         idx, s_prev = idx[keep], s_cur[keep]
     found = np.flatnonzero(np.isfinite(s_hi))
     if found.size == 0:
         return result
-    lo, hi = s_lo[found], s_hi[found]
-    good = np.ones(found.size, dtype=bool)
-    # The upper end of the bracket is on or below the terrain and the lower end above it,
-    # so halving keeps the first crossing inside; unknown terrain inside is a miss.
+    lo, hi, fh = s_lo[found], s_hi[found], f_hi[found]
+    # No event at the lower end of the bracket, one at the upper end: halving keeps the
+    # first event inside; whether it is a crossing or unknown terrain decides.
     width = max(float(np.max(hi - lo)), tol_m)
     for _ in range(int(np.ceil(np.log2(width / tol_m))) + 1):
         mid = 0.5 * (lo + hi)
         f_mid = above(found, mid)
-        good &= np.isfinite(f_mid)
-        below = f_mid < 0
-        hi = np.where(below, mid, hi)
-        lo = np.where(below, lo, mid)
+        event = ~(f_mid > 0)
+        hi = np.where(event, mid, hi)
+        fh = np.where(event, f_mid, fh)
+        lo = np.where(event, lo, mid)
+    good = fh < 0
     result[found[good]] = hi[good]
     return result
 
