@@ -3,7 +3,7 @@
 The camera is sampled on a grid of image points at several heights; the rational
 polynomials are solved for with the denominators linearised and iterated (the standard
 "terrain-independent" RPC fit). The solves run with a single-threaded BLAS
-(:func:`planetref.adjust._blas.single_threaded_blas`): its threads gain nothing on these
+(:func:`planetref.blas.single_threaded_blas`): its threads gain nothing on these
 small systems and fight torch's and other processes' threads.
 """
 
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.blas import single_threaded_blas
 from planetref.camera.geodesy import (
     lonlat_to_xyz,
     wrap_longitude,
@@ -283,8 +284,11 @@ def fit_rpc(
     T = normalised(fit)
     rn = (fit.line - 0.5 - line_off) / line_scale
     cn = (fit.sample - 0.5 - samp_off) / samp_scale
-    line_num, line_den, it_l = _solve_rational(T, rn, regularization, max_iter)
-    samp_num, samp_den, it_s = _solve_rational(T, cn, regularization, max_iter)
+    # Small dense solves: BLAS threads gain nothing and fight torch's (and other
+    # processes') threads, so the solves run single-threaded.
+    with single_threaded_blas():
+        line_num, line_den, it_l = _solve_rational(T, rn, regularization, max_iter)
+        samp_num, samp_den, it_s = _solve_rational(T, cn, regularization, max_iter)
     rpc = Rpc(
         line_off=line_off,
         samp_off=samp_off,
