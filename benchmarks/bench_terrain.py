@@ -15,7 +15,7 @@ import time
 import numpy as np
 from scipy import ndimage
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, lonlat_to_xyz, xyz_to_lonlat
+from planetref.camera.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.raster.dem import GridTerrain
 

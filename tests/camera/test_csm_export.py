@@ -16,7 +16,12 @@ import numpy as np
 import pytest
 
 from planetref.camera.csm import CsmLineScanCamera, read_isd
-from planetref.camera.csm.export import isd_file_name, linescan_to_isd, write_linescan_isds
+from planetref.camera.csm.export import (
+    isd_agreement_px,
+    isd_file_name,
+    linescan_to_isd,
+    write_linescan_isds,
+)
 from planetref.camera.linescan import CcdGeometry, InteriorOrientation, LineRateTable
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.errors import InputError
@@ -24,9 +29,11 @@ from planetref.errors import InputError
 HEIGHTS = (-2500.0, 0.0, 3000.0)
 
 
-def _strip():
+def _strip(jitter_rad: float = 0.0):
     """A HiRIC-like three-CCD strip with a stagger, a rotated CCD, an offset principal
-    point, a perturbed attitude and a line-rate change halfway (two table rows)."""
+    point, a line-rate change halfway (two table rows) and adjusted orientation: smooth
+    corrections (bias + drift of position and attitude), plus optional random attitude
+    corrections per node (``jitter_rad``)."""
     ccds = list(ccd_row(3, 2048, 6000, 0.007, overlap_px=48, stagger_mm=0.35))
     ccds[2] = replace(ccds[2], angle_rad=0.002, x_mm=ccds[2].x_mm + 0.01)
     cam, facts = orbit_camera(
@@ -36,11 +43,16 @@ def _strip():
     t0 = cam.line_rates.time(0.0)
     rates = LineRateTable(((0.0, t0, period), (3000.0, t0 + 3000.0 * period, 1.07 * period)))
     nodes = cam.nodes.copy()
+    u = np.linspace(-1.0, 1.0, len(nodes))[:, None]
+    nodes[:, :3] += np.array([3.0, -2.0, 1.5]) + u * np.array([-4.0, 2.5, 1.0])  # metres
+    nodes[:, 3:] += np.array([2e-5, -1e-5, 3e-5]) + u * np.array([1e-5, 2e-5, -1e-5])  # rad
     rng = np.random.default_rng(3)
-    nodes[:, 3:] += rng.normal(scale=2e-5, size=(len(nodes), 3))  # attitude jitter (rad)
-    nodes[:, :3] += rng.normal(scale=5.0, size=(len(nodes), 3))  # orbit errors (m)
+    nodes[:, 3:] += rng.normal(scale=jitter_rad, size=(len(nodes), 3))
+    # The nodes keep their epochs (the orbit stays smooth in time); their lines move.
+    node_lines = rates.line(cam.line_rates.time(cam.node_lines))
     return cam.replace(
         line_rates=rates,
+        node_lines=node_lines,
         nodes=nodes,
         interior=InteriorOrientation(4640.0, x0_mm=0.02, y0_mm=-0.05),
     )
@@ -93,10 +105,13 @@ def test_sparser_sampling_stays_within_the_budget() -> None:
     back = csm.ground_to_image(xyz)
     err = np.hypot(back.line - line, back.sample - sample)
     assert err.max() <= 1e-3
-    # ... and sampling far too sparsely is visible: the check can fail.
-    coarse = CsmLineScanCamera.from_isd(linescan_to_isd(cam, ccd, lines_per_sample=3000.0))
-    back = coarse.ground_to_image(xyz)
-    assert np.nanmax(np.hypot(back.line - line, back.sample - sample)) > 1e-3
+    # The check can fail: a half-line timing slip (a centre-of-pixel mistake) is seen.
+    table = isd.line_scan_rate.copy()
+    table[:, 1] += 0.5 * table[:, 2]
+    slipped = replace(isd, line_scan_rate=table)
+    assert isd_agreement_px(cam, ccd, slipped) == pytest.approx(0.5, abs=0.01)
+    back = CsmLineScanCamera.from_isd(slipped).ground_to_image(xyz)
+    assert np.max(np.hypot(back.line - line, back.sample - sample)) > 0.49
 
 
 def test_isd_fields_follow_the_conventions(tmp_path: Path) -> None:
@@ -132,3 +147,21 @@ def test_bad_arguments(tmp_path: Path) -> None:
         linescan_to_isd(cam, lines_per_sample=0.0)
     with pytest.raises(InputError, match="unknown CCD"):
         linescan_to_isd(cam, "nope")
+
+
+def test_node_jitter_is_met_by_denser_sampling(tmp_path: Path) -> None:
+    """Random per-node attitude corrections put kinks in the native (piecewise Lagrange)
+    orientation, which usgscsm's 8-point Lagrange smooths over a few epochs: the writer
+    samples more densely until its own check passes, and records what it reached."""
+    cam = _strip(jitter_rad=1e-6)
+    ccd = cam.ccd_names[1]
+    sparse = linescan_to_isd(cam, ccd)  # every 32 lines
+    assert isd_agreement_px(cam, ccd, sparse) > 1e-3
+    paths = write_linescan_isds(cam, tmp_path, "jitter")
+    doc = json.loads(paths[1].read_text())["planetref"]
+    assert doc["lines_per_sample"] < 32.0 and doc["check_max_px"] <= 1e-3
+    csm = CsmLineScanCamera.from_file(paths[1])
+    line, sample = _grid(cam, ccd)
+    xyz = cam.image_to_ground(line, sample, 1000.0, ccd=ccd)
+    back = csm.ground_to_image(xyz)
+    assert np.max(np.hypot(back.line - line, back.sample - sample)) <= 1e-3

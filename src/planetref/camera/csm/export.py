@@ -43,6 +43,8 @@ from __future__ import annotations
 import math
 import os
 import re
+import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -62,7 +64,7 @@ from planetref.errors import InputError
 if TYPE_CHECKING:
     from planetref.camera.linescan import LineScanCamera
 
-__all__ = ["isd_file_name", "linescan_to_isd", "write_linescan_isds"]
+__all__ = ["isd_agreement_px", "isd_file_name", "linescan_to_isd", "write_linescan_isds"]
 
 #: Native camera frame (boresight -z) -> ISD sensor frame (boresight +z): 180 deg about x.
 _FLIP = np.diag([1.0, -1.0, -1.0])
@@ -106,9 +108,7 @@ def linescan_to_isd(
     t_first, t_last = rates.time([-margin_lines, n_lines + margin_lines])
     center = float(rates.time(n_lines / 2.0))
     period = float(np.min(rates.period(np.linspace(0.0, n_lines, 64))))
-    n = max(
-        math.ceil((t_last - t_first) / (lines_per_sample * period)) + 1, MIN_EPHEMERIS_NODES
-    )
+    n = max(math.ceil((t_last - t_first) / (lines_per_sample * period)) + 1, MIN_EPHEMERIS_NODES)
     times = t_first + (t_last - t_first) * np.arange(n) / (n - 1)
     lines = rates.line(times)
     pos, rot = camera.exterior(lines)
@@ -190,20 +190,77 @@ def linescan_to_isd(
     )
 
 
+def isd_agreement_px(camera: LineScanCamera, ccd: str | None, isd: CsmIsd) -> float:
+    """Largest image distance (pixels) between the native camera and the ISD's camera.
+
+    Ground points are made by the native camera from image points on a grid (every
+    native node line inside the image, with the lines half a native node interval on
+    either side, plus 33 evenly spaced lines; 5 samples across) at the height 0, and
+    projected by planetref's CSM camera (usgscsm's arithmetic); the distance to the
+    image points they came from is measured.
+
+    Args:
+        camera: The native camera.
+        ccd: The CCD the ISD describes.
+        isd: The ISD.
+
+    Returns:
+        The largest distance in pixels (``inf`` if a point cannot be projected).
+    """
+    from planetref.camera.csm.camera import CsmLineScanCamera
+
+    c = camera.ccd(ccd)
+    n_lines, n_samples = int(c.n_lines), int(c.n_samples)
+    nodes = np.asarray(camera.node_lines, dtype=np.float64)
+    half = 0.5 * float(np.min(np.diff(nodes))) if len(nodes) > 1 else 1.0
+    lines = np.concatenate(
+        [
+            nodes,
+            nodes - 1.0,
+            nodes + 1.0,
+            nodes - half,
+            nodes + half,
+            np.linspace(0.5, n_lines - 0.5, 33),
+        ]
+    )
+    lines = np.unique(lines[(lines >= 0.5) & (lines <= n_lines - 0.5)])
+    gl, gs = np.meshgrid(lines, np.linspace(0.5, n_samples - 0.5, 5), indexing="ij")
+    line, sample = gl.ravel(), gs.ravel()
+    xyz = camera.image_to_ground(line, sample, 0.0, ccd=c.name, on_miss="nan")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        back = CsmLineScanCamera.from_isd(isd).ground_to_image(xyz)
+    err = np.hypot(back.line - line, back.sample - sample)
+    return float(np.max(err)) if np.all(np.isfinite(err)) else math.inf
+
+
 def isd_file_name(stem: str, ccd: str) -> str:
     """``<stem>_<ccd>.json`` with characters outside ``[A-Za-z0-9._-]`` replaced by ``_``."""
     return re.sub(r"[^A-Za-z0-9._-]", "_", f"{stem}_{ccd}") + ".json"
 
 
 def write_linescan_isds(
-    camera: LineScanCamera, out_dir: str | os.PathLike[str], stem: str
+    camera: LineScanCamera,
+    out_dir: str | os.PathLike[str],
+    stem: str,
+    *,
+    tolerance_px: float = 1e-3,
 ) -> list[Path]:
     """Write one USGS CSM line-scan ISD per CCD of a native camera (atomically).
+
+    Each ISD is checked against the native camera (:func:`isd_agreement_px`); the
+    ephemeris is sampled more densely (from every 32 lines down to every half line)
+    until the two agree to ``tolerance_px``. The sampling and the agreement reached are
+    recorded in the ISD (``planetref.lines_per_sample``, ``planetref.check_max_px``);
+    an ISD that cannot reach the tolerance is still written, with a warning that says
+    how far off it is.
 
     Args:
         camera: The native camera (e.g. the adjusted camera of a strip).
         out_dir: Existing folder for the ISDs.
-        stem: File name stem; CCD ``c`` goes to ``<stem>_<c>.json``.
+        stem: File name stem; CCD ``c`` goes to ``<stem>_<c>.json`` (see
+            :func:`isd_file_name`).
+        tolerance_px: Largest accepted disagreement in pixels.
 
     Returns:
         The paths written, in the camera's CCD order.
@@ -216,6 +273,27 @@ def write_linescan_isds(
         raise InputError("the output folder does not exist", path=folder)
     paths = []
     for name in camera.ccd_names:
-        isd = linescan_to_isd(camera, name)
-        paths.append(write_isd(isd, folder / isd_file_name(stem, name)))
+        lps = 32.0
+        while True:
+            isd = linescan_to_isd(camera, name, lines_per_sample=lps)
+            err = isd_agreement_px(camera, name, isd)
+            if err <= tolerance_px or lps <= 0.5:
+                break
+            lps /= 2.0
+        extra = dict(isd.extra)
+        extra["planetref"] = {
+            **extra["planetref"],
+            "lines_per_sample": lps,
+            "check_max_px": err,
+            "check_tolerance_px": tolerance_px,
+        }
+        path = folder / isd_file_name(stem, name)
+        if not err <= tolerance_px:
+            warnings.warn(
+                f"{path}: the ISD of CCD {name} agrees with the native camera only to "
+                f"{err:.2g} pixel (tolerance {tolerance_px:g})",
+                UserWarning,
+                stacklevel=2,
+            )
+        paths.append(write_isd(replace(isd, extra=extra), path))
     return paths
