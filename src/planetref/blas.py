@@ -1,13 +1,13 @@
 """Run numpy's BLAS single-threaded for a while.
 
 Used by the bundle adjustment (normal equations) and by RPC fits (small dense least
-squares), which gain nothing from BLAS threads. The normal equations are accumulated
-with thousands of small matrix products (``q x q`` outputs, ``q`` ~ 27). Multi-threaded OpenBLAS gains nothing on them, and on a machine
-whose cores are busy with other work its threads wait for each other: products that take
-0.2 ms single-threaded then take up to 300 ms. :func:`single_threaded_blas` limits the
-BLAS that numpy loaded to one thread inside a ``with`` block (via threadpoolctl when it is
-installed, otherwise through OpenBLAS's own ``set_num_threads``), and is a no-op when
-neither is available.
+squares). The normal equations are accumulated with thousands of small matrix products
+(``q x q`` outputs, ``q`` ~ 27). Multi-threaded OpenBLAS gains nothing on them, and on a
+machine whose cores are busy with other work (or with torch's threads) its threads wait
+for each other: products that take 0.2 ms single-threaded then take up to 300 ms.
+:func:`single_threaded_blas` limits the BLAS that numpy loaded to one thread inside a
+``with`` block (via threadpoolctl when it is installed, otherwise through OpenBLAS's own
+``set_num_threads``), and is a no-op when neither is available.
 """
 
 from __future__ import annotations
