@@ -118,7 +118,8 @@ def test_many_small_holes_are_refused_by_the_fraction(tmp_path: Path) -> None:
     path = _write(tmp_path / "pitted.tif", h)
     with pytest.raises(InputError, match=r"pitted\.tif.*625 nodata cells in 625 holes"):
         GridTerrain.from_geotiff(path)
-    dem = GridTerrain.from_geotiff(path, holes=DemHoles(max_fraction=0.05))
+    with pytest.warns(UserWarning, match="filled 625 nodata cells in 625 holes"):
+        dem = GridTerrain.from_geotiff(path, holes=DemHoles(max_fraction=0.05))
     assert np.isfinite(dem.heights).all()
 
 
