@@ -25,7 +25,7 @@ Conventions
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from functools import cached_property
 from os import PathLike
 from pathlib import Path
 
@@ -51,9 +51,11 @@ _FIXED_POINT_MAX_ITER = 60
 _MARCH_TOL_M = 1e-6
 
 
-@dataclass(frozen=True)
 class RayHits:
     """Intersections of rays with a :class:`GridTerrain`.
+
+    The map coordinates and heights are computed from the points on first access (the
+    front end needs only ``xyz``).
 
     Attributes:
         xyz: Body-fixed points in metres, shape ``(M, 3)``; NaN rows for misses.
@@ -62,15 +64,40 @@ class RayHits:
         height: Terrain height (m) at the points, shape ``(M,)``; NaN for misses.
     """
 
-    xyz: NDArray[np.float64]
-    x: NDArray[np.float64]
-    y: NDArray[np.float64]
-    height: NDArray[np.float64]
+    def __init__(self, xyz: NDArray[np.float64], terrain: GridTerrain) -> None:
+        self.xyz = xyz
+        self._terrain = terrain
+
+    @cached_property
+    def _map(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        m = len(self.xyz)
+        x, y, h = np.full(m, np.nan), np.full(m, np.nan), np.full(m, np.nan)
+        hit = np.flatnonzero(np.all(np.isfinite(self.xyz), axis=1))
+        if hit.size:
+            xh, yh, _ = self._terrain.xyz_to_map(self.xyz[hit])
+            x[hit], y[hit] = xh, yh
+            h[hit] = self._terrain.height_at_map(xh, yh)
+        return x, y, h
+
+    @property
+    def x(self) -> NDArray[np.float64]:
+        """Map x of the points (NaN for misses)."""
+        return self._map[0]
+
+    @property
+    def y(self) -> NDArray[np.float64]:
+        """Map y of the points (NaN for misses)."""
+        return self._map[1]
+
+    @property
+    def height(self) -> NDArray[np.float64]:
+        """Terrain height (m) at the points (NaN for misses)."""
+        return self._map[2]
 
     @property
     def hit(self) -> NDArray[np.bool_]:
         """True where the ray met the terrain."""
-        return np.isfinite(self.height)
+        return np.all(np.isfinite(self.xyz), axis=1)
 
 
 class GridTerrain:
@@ -353,19 +380,9 @@ class GridTerrain:
             raise InputError(f"rays need a last axis of length 3, got {o.shape}")
         o = o.reshape(-1, 3)
         d = d.reshape(-1, 3)
-        m = o.shape[0]
-        out_x = np.full(m, np.nan)
-        out_y = np.full(m, np.nan)
-        out_h = np.full(m, np.nan)
-        if m == 0:
-            return RayHits(np.full((0, 3), np.nan), out_x, out_y, out_h)
-        xyz = intersect_terrain(o, d, self, "nan", tol_m=_MARCH_TOL_M)
-        hit = np.flatnonzero(np.all(np.isfinite(xyz), axis=1))
-        if hit.size:
-            x, y, _ = self.xyz_to_map(xyz[hit])
-            out_x[hit], out_y[hit] = x, y
-            out_h[hit] = self.height_at_map(x, y)
-        return RayHits(xyz, out_x, out_y, out_h)
+        if o.shape[0] == 0:
+            return RayHits(np.full((0, 3), np.nan), self)
+        return RayHits(intersect_terrain(o, d, self, "nan", tol_m=_MARCH_TOL_M), self)
 
     def first_hit_guess(
         self, origin: NDArray[np.float64], direction: NDArray[np.float64]
