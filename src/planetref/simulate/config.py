@@ -25,6 +25,12 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from planetref.errors import InputError
+from planetref.simulate.realism import (
+    MolaConfig,
+    MosaicConfig,
+    SurfaceChangeConfig,
+    TruthMismatchConfig,
+)
 from planetref.tomlfile import read_toml
 
 __all__ = [
@@ -48,8 +54,10 @@ __all__ = [
     "StripConfig",
     "SunConfig",
     "TerrainConfig",
+    "available_difficulties",
     "available_presets",
     "format_validation_error",
+    "load_difficulty_dict",
     "load_config",
     "load_preset_dict",
     "merge_overrides",
@@ -433,6 +441,8 @@ class ReferenceConfig(_Model):
         dem_pad_m: How far the reference DEM extends beyond the truth DEM (m).
         dem_smoothing_px: Gaussian smoothing sigma of the truth, in reference DEM pixels.
         dem_noise_m: RMS of noise added to the reference DEM (m).
+        mosaic: The ortho as a mosaic of source images (seams, per-source errors).
+        mola: The DEM gridded from altimetry tracks, optionally above an areoid.
     """
 
     crs: str = "IAU_2015:49910"
@@ -450,6 +460,8 @@ class ReferenceConfig(_Model):
     dem_pad_m: float = Field(default=3000.0, ge=0.0)
     dem_smoothing_px: float = Field(default=0.5, ge=0.0)
     dem_noise_m: float = Field(default=1.0, ge=0.0)
+    mosaic: MosaicConfig = MosaicConfig()
+    mola: MolaConfig = MolaConfig()
 
 
 class RenderConfig(_Model):
@@ -487,6 +499,8 @@ class SimulationConfig(_Model):
         sensor: Detector of the line-scan images.
         reference: Reference ortho and DEM.
         render: Rendering controls.
+        truth_mismatch: Departures of the true camera from the estimated model.
+        surface_change: Changes of the ground between the reference and the images.
     """
 
     name: str = "scene"
@@ -503,6 +517,8 @@ class SimulationConfig(_Model):
     sensor: SensorConfig = SensorConfig()
     reference: ReferenceConfig = ReferenceConfig()
     render: RenderConfig = RenderConfig()
+    truth_mismatch: TruthMismatchConfig = TruthMismatchConfig()
+    surface_change: SurfaceChangeConfig = SurfaceChangeConfig()
 
     @model_validator(mode="after")
     def _check_strips(self) -> SimulationConfig:
@@ -521,6 +537,30 @@ def available_presets() -> tuple[str, ...]:
     """Names of the presets shipped in ``planetref/simulate/presets`` (sorted)."""
     folder = resources.files("planetref.simulate") / "presets"
     return tuple(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml")))
+
+
+DIFFICULTIES = ("easy", "moderate", "hard", "extreme")
+"""The difficulty ladder, easiest first (``presets/difficulty/<name>.toml``)."""
+
+
+def available_difficulties() -> tuple[str, ...]:
+    """Names of the difficulty levels, easiest first."""
+    return DIFFICULTIES
+
+
+def load_difficulty_dict(name: str) -> dict[str, Any]:
+    """The overlay table of a difficulty level (merged over a preset).
+
+    Raises:
+        InputError: If no difficulty has that name (the message lists the valid names).
+    """
+    if name not in DIFFICULTIES:
+        raise InputError(
+            f"unknown difficulty {name!r}; valid difficulties: {', '.join(DIFFICULTIES)}",
+            field="difficulty",
+        )
+    folder = resources.files("planetref.simulate") / "presets" / "difficulty"
+    return tomllib.loads((folder / f"{name}.toml").read_text(encoding="utf-8"))
 
 
 def load_preset_dict(name: str) -> dict[str, Any]:
@@ -626,13 +666,18 @@ def load_config(
     overrides: str | PathLike[str] | dict[str, Any] | None = None,
     *,
     seed: int | None = None,
+    difficulty: str | None = None,
 ) -> SimulationConfig:
-    """A preset with optional overrides and seed.
+    """A preset with optional difficulty, overrides and seed.
 
     Args:
-        preset: Preset name (see :func:`available_presets`).
-        overrides: A TOML file (path) or a table merged into the preset.
+        preset: Preset name (see :func:`available_presets`); it sets the size and is
+            written at the ``moderate`` difficulty.
+        overrides: A TOML file (path) or a table merged into the preset (after the
+            difficulty).
         seed: If given, replaces the config's seed.
+        difficulty: A level of :data:`DIFFICULTIES` merged over the preset (the scene's
+            name gets ``-<difficulty>`` appended); None keeps the preset as it is.
 
     Returns:
         The validated, frozen config.
@@ -643,6 +688,9 @@ def load_config(
         MissingFileError: If the override file does not exist.
     """
     data = load_preset_dict(preset)
+    if difficulty is not None:
+        data = merge_overrides(data, load_difficulty_dict(difficulty))
+        data["name"] = f"{data.get('name', preset)}-{difficulty}"
     source = None
     if overrides is not None:
         if isinstance(overrides, dict):

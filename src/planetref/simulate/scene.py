@@ -58,6 +58,10 @@ _STREAMS = {
     "dem_noise": 10,
     "checkpoints": 11,
     "consistency": 12,
+    "mismatch": 13,
+    "change": 14,
+    "mosaic": 15,
+    "mola": 16,
     "strip": 100,
     "ccd_noise": 200,
 }
@@ -264,7 +268,8 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
 
     seed = cfg.seed
     strips = [
-        build_strip_cameras(cfg, s, stream(seed, "strip", i)) for i, s in enumerate(cfg.strips)
+        build_strip_cameras(cfg, s, stream(seed, "strip", i), stream(seed, "mismatch", i))
+        for i, s in enumerate(cfg.strips)
     ]
     t = cfg.terrain
     local_wkt = local_crs_wkt(cfg.site.lat_deg, cfg.site.lon_deg)
@@ -479,6 +484,7 @@ def _build(
                 for a, amp, f, ph in s.jitter
             ],
             "render": render_stats[s.strip.id],
+            "truth_mismatch": s.mismatch,
         }
         if cfg.render.n_checkpoints:
             cp_rows += checkpoints(
