@@ -408,6 +408,8 @@ class TruthTerrain:
         regional_composite: Regional relief plus the block means of all finer relief
             where the truth grid exists: the truth as seen at the coarse spacing, the
             input of the reference DEM.
+        height_reference: Heights of the reference epoch where the ground changed
+            (:mod:`planetref.simulate.change`); None when it equals ``height``.
     """
 
     grid: MapGrid
@@ -420,6 +422,7 @@ class TruthTerrain:
     craters: CraterPopulation
     regional_grid: MapGrid
     regional_composite: F64
+    height_reference: F32 | None = None
 
 
 def _block_mean_into(coarse: F64, coarse_grid: MapGrid, fine: F32, fine_grid: MapGrid) -> None:
