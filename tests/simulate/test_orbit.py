@@ -62,6 +62,7 @@ def test_orbit_is_circular_and_tracks_the_heading() -> None:
     assert 3000 < orb.ground_speed() < 3400
     assert MARS_ROTATION_RAD_S == pytest.approx(7.088218e-5, rel=1e-6)
 
+
 NO_MISMATCH = {
     "ccd_offset_px": 0.0,
     "ccd_rotation_urad": 0.0,
@@ -125,9 +126,7 @@ def test_renderer_rays_equal_look_rays(mini_config) -> None:  # type: ignore[no-
 def test_initial_camera_is_off_by_the_configured_amounts(  # type: ignore[no-untyped-def]
     mini_config, errors, check
 ) -> None:
-    cfg = mini_config(
-        initial_errors={**NO_ERRORS, **errors}, jitter=[], truth_mismatch=NO_MISMATCH
-    )
+    cfg = mini_config(initial_errors={**NO_ERRORS, **errors}, jitter=[], truth_mismatch=NO_MISMATCH)
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
     e = measure_initial_errors(
         sc.truth, sc.initial, _flat_dem(cfg), sc.orbit.frame(np.zeros(1))[0], 5

@@ -90,7 +90,8 @@ def dust_devil_tracks(
         length = length_m * rng.uniform(0.4, 1.6)
         k = max(2, int(length / step))
         heading = prevailing + rng.normal(0.0, math.radians(30.0))
-        turn = np.cumsum(rng.normal(0.0, 0.02, k)) * (step / 20.0)
+        # Curvature random walk, radius of curvature at least 250 m.
+        turn = np.clip(np.cumsum(rng.normal(0.0, 0.002, k)), -0.02, 0.02) * (step / 5.0)
         ang = heading + np.cumsum(turn)
         x0, y0 = rng.uniform(xmin, xmax), rng.uniform(ymin, ymax)
         xs = x0 + np.concatenate([[0.0], np.cumsum(step * np.sin(ang[:-1]))])

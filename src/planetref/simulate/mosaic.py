@@ -72,7 +72,9 @@ class Seams:
     def label(self, x: F64, y: F64) -> NDArray[np.intp]:
         """Source index at map points."""
         out = np.zeros(np.shape(x), dtype=np.intp)
-        for b, a, wl, ph in zip(self.base, self.amplitude, self.wavelength, self.phase, strict=True):
+        for b, a, wl, ph in zip(
+            self.base, self.amplitude, self.wavelength, self.phase, strict=True
+        ):
             out += x > b + a * np.sin(2.0 * np.pi * y / wl + ph)
         return out
 
@@ -148,14 +150,23 @@ def sources_to_dict(sources: list[MosaicSource], seams: Seams) -> dict[str, Any]
                 "gain": s.gain,
                 "offset_m": list(s.offset_m),
                 "waves": [
-                    dict(zip(("kx", "ky", "amp_x_m", "amp_y_m", "phase"), map(float, w), strict=True))
+                    dict(
+                        zip(("kx", "ky", "amp_x_m", "amp_y_m", "phase"), map(float, w), strict=True)
+                    )
                     for w in s.waves
                 ],
             }
             for s in sources
         ],
         "seams": [
-            {"base_x_m": float(b), "amplitude_m": float(a), "wavelength_m": float(w), "phase": float(p)}
-            for b, a, w, p in zip(seams.base, seams.amplitude, seams.wavelength, seams.phase, strict=True)
+            {
+                "base_x_m": float(b),
+                "amplitude_m": float(a),
+                "wavelength_m": float(w),
+                "phase": float(p),
+            }
+            for b, a, w, p in zip(
+                seams.base, seams.amplitude, seams.wavelength, seams.phase, strict=True
+            )
         ],
     }

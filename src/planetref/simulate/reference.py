@@ -118,24 +118,27 @@ def ortho_radiance(
                 continue
         else:
             mine = np.ones(shape, dtype=bool)
-        acc = np.zeros(shape, dtype=np.float32)
+        rr, cc = np.nonzero(mine)
+        acc = np.zeros(len(rr), dtype=np.float32)
         for fy in offs:
             for fx in offs:
-                x = np.broadcast_to((xc + fx * grid.res)[None, :], shape).ravel()
-                y = np.broadcast_to((yc - fy * grid.res)[:, None], shape).ravel()
+                x = xc[cc] + fx * grid.res
+                y = yc[rr] - fy * grid.res
                 if source is not None:
                     dx, dy = source.displacement(x, y)
                     x, y = x - dx, y - dy
                 lon, lat = projection.map_to_lonlat(x, y)
                 tx, ty = truth_projection.lonlat_to_map(lon, lat)
-                acc += radiance.evaluate(tx, ty, nadir).reshape(shape)
+                acc += radiance.evaluate(tx, ty, nadir)
         acc *= np.float32(scale / (ss * ss))
-        out[a:b][mine] = acc[mine]
+        out[a + rr, cc] = acc
         if progress is not None:
             progress(b - a)
 
 
-def finish_ortho(relative: F32, cfg: ReferenceConfig, rng: np.random.Generator) -> NDArray[np.integer]:
+def finish_ortho(
+    relative: F32, cfg: ReferenceConfig, rng: np.random.Generator
+) -> NDArray[np.integer]:
     """PSF, noise and quantisation of the ortho (radiance relative to a flat surface)."""
     sensor = cfg.ortho_sensor
     e = with_noise(to_electrons(apply_psf(relative, sensor), 1.0, sensor), sensor, rng)
@@ -276,9 +279,7 @@ def gridded_tracks(
     a0, a1 = a.min() - pad, a.max() + pad
     c0, c1 = c.min() - pad, c.max() + pad
     n_tracks = int(math.ceil((c1 - c0) / m.track_spacing_m)) + 1
-    across = c0 + m.track_spacing_m * (
-        np.arange(n_tracks) + rng.uniform(-0.3, 0.3, n_tracks)
-    )
+    across = c0 + m.track_spacing_m * (np.arange(n_tracks) + rng.uniform(-0.3, 0.3, n_tracks))
     along = np.arange(a0, a1 + m.shot_spacing_m, m.shot_spacing_m)
     offsets = rng.normal(0.0, m.track_offset_m, n_tracks)
     tilts = rng.normal(0.0, m.track_tilt_m, n_tracks)
