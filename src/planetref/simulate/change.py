@@ -109,7 +109,7 @@ def _track_raster(grid: MapGrid, tracks: list[F64], width_m: float) -> F32:
         lens = np.hypot(seg[:, 0], seg[:, 1])
         pts = []
         for (x, y), (dx, dy), ln in zip(t[:-1], seg, lens, strict=True):
-            m = max(1, int(math.ceil(ln / ds)))
+            m = max(1, math.ceil(ln / ds))
             f = (np.arange(m) + 0.5) / m
             pts.append(np.stack([x + f * dx, y + f * dy], axis=1))
         p = np.concatenate(pts)

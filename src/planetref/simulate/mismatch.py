@@ -1,13 +1,13 @@
 """How far the true camera lies from anything the estimated camera model can represent.
 
 :func:`best_fit_residuals` fits the *initial* camera's model (the native line-scan
-model with the initial camera's node spacing, every node's attitude free and its position
-weighted loosely (1 km),
-and the interior orientation ``x0, y0, f`` per CCD, loosely weighted (0.1 mm, 10 mm), the most general native
-parameterisation the adjustment offers) to exact synthetic observations of the *truth*:
-a grid of image points of every CCD, each with the ground point where its true ray meets
-a level surface. The residuals of that best fit are the part of the truth the model
-cannot represent: no run of the pipeline can get below them, whatever the matcher.
+model with the initial camera's node spacing, every node's attitude free and its
+position loosely weighted (1 km), the interior orientation ``x0, y0, f`` per CCD loosely
+weighted (0.1 mm, 10 mm): the most general native parameterisation the adjustment
+offers) to exact synthetic observations of the *truth*: a grid of image points of every
+CCD, each with the ground point where its true ray meets a level surface. The residuals
+of that best fit are the part of the truth the model cannot represent: no run of the
+pipeline can get below them, whatever the matcher.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""The reference ortho as a mosaic of source images (see :class:`~planetref.simulate.realism.MosaicConfig`).
+"""The reference ortho as a mosaic of source images (CTX-like).
+
+See :class:`~planetref.simulate.realism.MosaicConfig`.
 
 Each source covers a band of the ortho along map x between two meandering seams, has
 its own sun, haze and gain, and its own geometric error ``d_s(p) = offset_s +

@@ -278,7 +278,7 @@ def gridded_tracks(
     c = pts @ v
     a0, a1 = a.min() - pad, a.max() + pad
     c0, c1 = c.min() - pad, c.max() + pad
-    n_tracks = int(math.ceil((c1 - c0) / m.track_spacing_m)) + 1
+    n_tracks = math.ceil((c1 - c0) / m.track_spacing_m) + 1
     across = c0 + m.track_spacing_m * (np.arange(n_tracks) + rng.uniform(-0.3, 0.3, n_tracks))
     along = np.arange(a0, a1 + m.shot_spacing_m, m.shot_spacing_m)
     offsets = rng.normal(0.0, m.track_offset_m, n_tracks)
