@@ -473,12 +473,15 @@ class RenderConfig(_Model):
         n_checkpoints: Number of random truth checkpoints written per CCD.
         measure_grid: Pixels per axis of the grid on which initial errors are measured.
         write_rpc: Fit an RPC to each CCD's initial camera and write it (``.RPB``).
+        processes: Worker processes rendering image blocks in parallel (1: in this
+            process; 0: one per CPU). The images do not depend on it.
     """
 
     chunk_pixels: int = Field(default=1 << 18, ge=1024)
     n_checkpoints: int = Field(default=50, ge=0)
     measure_grid: int = Field(default=9, ge=2)
     write_rpc: bool = True
+    processes: int = Field(default=1, ge=0, le=256)
 
 
 class SimulationConfig(_Model):

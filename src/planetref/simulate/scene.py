@@ -424,6 +424,7 @@ def _build(
                     chunk_pixels=cfg.render.chunk_pixels,
                     noise_seed=seed_sequence(seed, "ccd_noise", i, k),
                     progress=bar.update,
+                    processes=cfg.render.processes or (os.cpu_count() or 1),
                 )
                 ccd_specs.append((c.name, img))
             s.initial.to_json(sdir / "camera.json")
