@@ -150,7 +150,8 @@ def _slope(x: list[float], y: list[float]) -> float:
 def _print(preset: str, r: dict[str, object]) -> None:
     print(
         f"{preset:12s} {r['n_lines']} lines, {r['processes']} process(es): "
-        f"wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:7.1f} s (+ workers {r['cpu_workers_s']:.1f} s)  "
+        f"wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:7.1f} s "
+        f"(+ workers {r['cpu_workers_s']:.1f} s)  "
         f"peak RSS {r['peak_rss_mb']:7.0f} MB (workers {r['worker_peak_rss_mb']:.0f}), "
         f"tree PSS {r['tree_peak_pss_mb']:7.0f} MB  "
         f"{r['pixels'] / 1e6:6.1f} Mpx  "
