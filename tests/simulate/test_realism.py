@@ -308,3 +308,37 @@ def test_parallel_rendering_gives_the_same_image(mini_config, tmp_path: Path) ->
                 out.append(ds.read(1))
     assert out[0].std() > 0
     np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_difficulty_ladder_is_ordered_and_validated() -> None:
+    from planetref.errors import InputError
+
+    def sun_gap(cfg):  # type: ignore[no-untyped-def]
+        t, r = cfg.photometry.target_sun, cfg.photometry.reference_sun
+        return abs((r.azimuth_deg - t.azimuth_deg + 180.0) % 360.0 - 180.0)
+
+    cfgs = [load_config("tiny", difficulty=d) for d in DIFFICULTIES]
+    gaps = [sun_gap(c) for c in cfgs]
+    assert gaps == sorted(gaps) and gaps[0] < gaps[-1]
+    offs = [c.truth_mismatch.ccd_offset_px for c in cfgs]
+    assert offs == sorted(offs)
+    assert [c.reference.mosaic.n_sources for c in cfgs] == [1, 1, 3, 4]
+    assert cfgs[2].surface_change.new_crater_density_per_km2 > 0
+    assert cfgs[2].reference.mola.tracks and not cfgs[1].reference.mola.tracks
+    # "moderate" is the preset as it is (only the name changes).
+    plain = load_config("tiny").model_dump()
+    moderate = cfgs[1].model_dump()
+    assert moderate.pop("name") == "tiny-moderate" and plain.pop("name") == "tiny"
+    assert moderate == plain
+    with pytest.raises(InputError, match="valid difficulties: easy, moderate, hard, extreme"):
+        load_config("tiny", difficulty="brutal")
+
+
+def test_hiric_preset_is_hirics_focal_plane() -> None:
+    cfg = load_config("hiric")
+    cam = cfg.camera
+    assert (cam.n_ccds, cam.n_samples) == (3, 6144) and cam.n_lines >= 16000
+    assert 0 < cam.overlap_samples < 200 and cam.gsd_m == 0.5
+    assert cfg.orbit.altitude_m == 265000.0 and cfg.render.processes == 2
+    swath = (cam.n_ccds * cam.n_samples - (cam.n_ccds - 1) * cam.overlap_samples) * cam.gsd_m
+    assert 8900.0 < swath < 9300.0
