@@ -31,8 +31,8 @@ from planetref.simulate.grid import MapGrid
 from planetref.simulate.terrain import (
     CraterPopulation,
     TruthTerrain,
-    _stamp_craters,
     sample_crater_population,
+    stamp_craters,
 )
 
 __all__ = ["ChangeRecord", "apply_surface_change", "dust_devil_tracks"]
@@ -172,7 +172,7 @@ def apply_surface_change(
     terrain.height_reference = ref_h
     albedo_mod = np.zeros(grid.shape, dtype=np.float32)
     if len(new):
-        _stamp_craters(terrain.height, albedo_mod, grid, new, tcfg, cfg.albedo.crater_halo, rng)
+        stamp_craters(terrain.height, albedo_mod, grid, new, tcfg, cfg.albedo.crater_halo, rng)
     if sc.dust_devil_tracks_per_km2 > 0:
         record.tracks = dust_devil_tracks(
             grid, sc.dust_devil_tracks_per_km2, sc.dust_devil_length_m, rng

@@ -47,6 +47,7 @@ __all__ = [
     "smooth_noise",
     "smooth_noise_at",
     "soft_mask",
+    "stamp_craters",
 ]
 
 F32 = NDArray[np.float32]
@@ -274,7 +275,7 @@ def crater_profile(
     return out
 
 
-def _stamp_craters(
+def stamp_craters(
     height: F32,
     albedo_mod: F32,
     grid: MapGrid,
@@ -518,7 +519,7 @@ def generate_terrain(
 
     craters = sample_crater_population(t, grid.bounds, streams["craters"], keep)
     albedo = np.zeros(grid.shape, dtype=np.float32)  # relative crater albedo changes first
-    _stamp_craters(height, albedo, grid, craters, t, cfg.albedo.crater_halo, streams["craters"])
+    stamp_craters(height, albedo, grid, craters, t, cfg.albedo.crater_halo, streams["craters"])
     # Dunes sit on top of everything (sand fills lows and crater floors alike).
     height += _dune_relief(grid, dunes.astype(np.float32), t, streams["dunes"])
 
