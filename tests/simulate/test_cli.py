@@ -67,3 +67,29 @@ def test_bad_preset_and_override(tmp_path: Path) -> None:
     assert res.exit_code == 1
     assert "sensor.bits" in res.output and "bit_depth" in res.output
     assert not (tmp_path / "x").exists()
+
+
+def test_difficulty_option(tmp_path: Path) -> None:
+    cfg = tmp_path / "mini.toml"
+    cfg.write_text(MINI_TOML)
+    out = tmp_path / "scene"
+    r = CliRunner().invoke(
+        main,
+        [
+            "-q",
+            "simulate",
+            str(out),
+            "--preset",
+            "tiny",
+            "--difficulty",
+            "hard",
+            "--config",
+            str(cfg),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    text = (out / "truth" / "config.toml").read_text()
+    assert 'name = "tiny-hard"' in text and "n_sources = 3" in text
+    for cmd in (["simulate", str(tmp_path / "x")], ["demo", "--out", str(tmp_path / "d")]):
+        r = CliRunner().invoke(main, ["-q", *cmd, "--difficulty", "brutal"])
+        assert r.exit_code == 2 and "brutal" in r.output

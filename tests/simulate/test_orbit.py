@@ -63,10 +63,21 @@ def test_orbit_is_circular_and_tracks_the_heading() -> None:
     assert MARS_ROTATION_RAD_S == pytest.approx(7.088218e-5, rel=1e-6)
 
 
+NO_MISMATCH = {
+    "ccd_offset_px": 0.0,
+    "ccd_rotation_urad": 0.0,
+    "ccd_scale_ppm": 0.0,
+    "line_rate_error_ppm": 0.0,
+    "position_oscillation_m": [0.0, 0.0, 0.0],
+    "attitude_oscillation_urad": [0.0, 0.0, 0.0],
+}
+
+
 def test_truth_camera_geometry_and_jitter(mini_config) -> None:  # type: ignore[no-untyped-def]
     cfg = mini_config(
         jitter=[{"axis": "roll", "amplitude_urad": 20.0, "frequency_hz": 40.0}],
         initial_errors=NO_ERRORS,
+        truth_mismatch=NO_MISMATCH,  # the jitter alone
     )
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
     cam = sc.truth
@@ -115,7 +126,7 @@ def test_renderer_rays_equal_look_rays(mini_config) -> None:  # type: ignore[no-
 def test_initial_camera_is_off_by_the_configured_amounts(  # type: ignore[no-untyped-def]
     mini_config, errors, check
 ) -> None:
-    cfg = mini_config(initial_errors={**NO_ERRORS, **errors}, jitter=[])
+    cfg = mini_config(initial_errors={**NO_ERRORS, **errors}, jitter=[], truth_mismatch=NO_MISMATCH)
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
     e = measure_initial_errors(
         sc.truth, sc.initial, _flat_dem(cfg), sc.orbit.frame(np.zeros(1))[0], 5
@@ -126,7 +137,11 @@ def test_initial_camera_is_off_by_the_configured_amounts(  # type: ignore[no-unt
 
 
 def test_focal_length_error_scales_the_swath(mini_config) -> None:  # type: ignore[no-untyped-def]
-    cfg = mini_config(initial_errors={**NO_ERRORS, "focal_length_error_ppm": 1000.0}, jitter=[])
+    cfg = mini_config(
+        initial_errors={**NO_ERRORS, "focal_length_error_ppm": 1000.0},
+        jitter=[],
+        truth_mismatch=NO_MISMATCH,
+    )
     sc = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0))
     e = measure_initial_errors(
         sc.truth, sc.initial, _flat_dem(cfg), sc.orbit.frame(np.zeros(1))[0], 5

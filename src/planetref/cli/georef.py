@@ -163,6 +163,13 @@ def _default_demo_dir() -> Path:
 )
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option(
+    "--difficulty",
+    type=click.Choice(["easy", "moderate", "hard", "extreme"]),
+    default="moderate",
+    show_default=True,
+    help="Difficulty of the simulated scene (see docs/scene-manifest.md).",
+)
+@click.option(
     "--matchers",
     default="all",
     show_default=True,
@@ -175,6 +182,7 @@ def demo_command(
     out: str | None,
     preset: str,
     seed: int,
+    difficulty: str,
     matchers: str,
     config_path: str | None,
     weights_dir: str | None,
@@ -189,14 +197,14 @@ def demo_command(
 
     quiet = _quiet(ctx)
     base = Path(out) if out else _default_demo_dir()
-    scene_dir = base / f"scene-{preset}-seed{seed}"
+    tag = preset if difficulty == "moderate" else f"{preset}-{difficulty}"
+    scene_dir = base / f"scene-{tag}-seed{seed}"
     if not (scene_dir / "scene.toml").is_file():
         if not quiet:
-            click.echo(
-                f"simulating the {preset} scene (seed {seed}) into {scene_dir} ...", err=True
-            )
+            click.echo(f"simulating the {tag} scene (seed {seed}) into {scene_dir} ...", err=True)
+        level = None if difficulty == "moderate" else difficulty
         simulate_run(
-            load_sim_config(preset, seed=seed),
+            load_sim_config(preset, seed=seed, difficulty=level),
             scene_dir,
             overwrite=overwrite,
             preview=True,
@@ -208,7 +216,7 @@ def demo_command(
     outcome = run_compare(
         scene_dir,
         matchers,
-        base / f"compare-{preset}-seed{seed}",
+        base / f"compare-{tag}-seed{seed}",
         config=cfg,
         weights_dir=weights_dir,
         overwrite=overwrite,

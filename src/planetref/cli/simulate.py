@@ -67,6 +67,12 @@ def _preset_names() -> str:
     "--preset", default="hiric-strip", show_default=True, help="Scene preset (tiny, hiric-strip)."
 )
 @click.option(
+    "--difficulty",
+    type=click.Choice(["easy", "moderate", "hard", "extreme"]),
+    default=None,
+    help="Difficulty level merged over the preset (default: the preset as is, moderate).",
+)
+@click.option(
     "--seed",
     type=click.IntRange(min=0),
     default=None,
@@ -90,6 +96,7 @@ def simulate_command(
     ctx: click.Context,
     out_dir: Path,
     preset: str,
+    difficulty: str | None,
     seed: int | None,
     config_path: Path | None,
     preview: bool,
@@ -104,7 +111,7 @@ def simulate_command(
     from planetref.simulate.config import load_config
 
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-    cfg = load_config(preset, config_path, seed=seed)
+    cfg = load_config(preset, config_path, seed=seed, difficulty=difficulty)
 
     def log(msg: str) -> None:
         if not quiet:

@@ -28,12 +28,16 @@ def available_presets() -> tuple[str, ...]:
 
 
 def load_config(
-    preset: str = "tiny", overrides: Any = None, *, seed: int | None = None
+    preset: str = "tiny",
+    overrides: Any = None,
+    *,
+    seed: int | None = None,
+    difficulty: str | None = None,
 ) -> SimulationConfig:
     """Load a preset, apply overrides; see :func:`planetref.simulate.config.load_config`."""
     from planetref.simulate.config import load_config as _f
 
-    return _f(preset, overrides, seed=seed)
+    return _f(preset, overrides, seed=seed, difficulty=difficulty)
 
 
 def simulate_scene(config: SimulationConfig, out_dir: Any, **kwargs: Any) -> Any:

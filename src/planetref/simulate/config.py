@@ -25,9 +25,23 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from planetref.errors import InputError
+from planetref.simulate.camera_config import (
+    CameraConfig,
+    InitialErrorConfig,
+    JitterComponent,
+    OrbitConfig,
+    StripConfig,
+)
+from planetref.simulate.realism import (
+    MolaConfig,
+    MosaicConfig,
+    SurfaceChangeConfig,
+    TruthMismatchConfig,
+)
 from planetref.tomlfile import read_toml
 
 __all__ = [
+    "DIFFICULTIES",
     "AlbedoConfig",
     "CameraConfig",
     "CraterConfig",
@@ -48,9 +62,11 @@ __all__ = [
     "StripConfig",
     "SunConfig",
     "TerrainConfig",
+    "available_difficulties",
     "available_presets",
     "format_validation_error",
     "load_config",
+    "load_difficulty_dict",
     "load_preset_dict",
     "merge_overrides",
     "validate_config",
@@ -280,124 +296,6 @@ class PhotometryConfig(_Model):
     reference_haze: float = Field(default=0.10, ge=0.0)
 
 
-class CameraConfig(_Model):
-    """HiRIC-like focal plane: line-array CCDs side by side with small overlaps.
-
-    CCD ``k`` (0-based) has its sample-0 edge at ``y = (-W/2 + k*(n_samples - overlap))
-    * pitch`` with ``W = n_ccds*n_samples - (n_ccds-1)*overlap``; odd CCDs sit
-    ``ccd_stagger_mm`` ahead (along-track ``x``), as on staggered butted arrays.
-
-    Attributes:
-        n_ccds: Number of CCDs.
-        n_samples: Samples per CCD.
-        overlap_samples: Samples shared by neighbouring CCDs.
-        n_lines: Lines of each strip.
-        pixel_pitch_mm: Detector pitch (mm).
-        gsd_m: Nadir ground sampling distance at the datum (m); sets the focal length
-            ``f = pitch * altitude / gsd``.
-        ccd_stagger_mm: Along-track offset of the odd CCDs (mm).
-        line_period_s: Line period (s); ``None`` gives square pixels at nadir.
-    """
-
-    n_ccds: int = Field(default=3, ge=1, le=16)
-    n_samples: int = Field(default=2048, ge=8)
-    overlap_samples: int = Field(default=64, ge=0)
-    n_lines: int = Field(default=8000, ge=8)
-    pixel_pitch_mm: float = Field(default=0.010, gt=0.0)
-    gsd_m: float = Field(default=0.5, gt=0.0)
-    ccd_stagger_mm: float = 0.4
-    line_period_s: float | None = Field(default=None, gt=0.0)
-
-    @model_validator(mode="after")
-    def _check_overlap(self) -> CameraConfig:
-        if self.overlap_samples >= self.n_samples:
-            raise ValueError(
-                f"overlap_samples ({self.overlap_samples}) must be smaller than "
-                f"n_samples ({self.n_samples})"
-            )
-        return self
-
-
-class OrbitConfig(_Model):
-    """Circular orbit of the spacecraft.
-
-    Attributes:
-        altitude_m: Altitude above the reference sphere (m).
-        heading_deg: Azimuth of the ground track at the scene centre (degrees from north).
-        body_rotation: Include the rotation of Mars (the ground track then differs from
-            the orbit plane's trace).
-        truth_node_spacing_lines: Lines between orientation nodes of the true camera
-            (dense enough to carry the jitter).
-        initial_node_spacing_lines: Lines between nodes of the initial camera.
-        interpolation_order: Lagrange interpolation order of the nodes.
-    """
-
-    altitude_m: float = Field(default=265_000.0, gt=10_000.0)
-    heading_deg: float = -8.0
-    body_rotation: bool = True
-    truth_node_spacing_lines: int = Field(default=32, ge=1)
-    initial_node_spacing_lines: int = Field(default=512, ge=1)
-    interpolation_order: int = Field(default=4, ge=2, le=8)
-
-
-class StripConfig(_Model):
-    """One line-scan strip (one pass).
-
-    Attributes:
-        id: Identifier (letters, digits, ``-``/``_``), used in file names.
-        along_offset_m: Offset of the strip centre from the site centre along track (m).
-        cross_offset_m: Offset of the ground track across track (m, positive to the
-            left of the track, the +y axis of the orbit frame).
-        heading_deg: Ground-track heading; ``None`` takes the orbit's.
-        pointing_deg: Fixed ``(roll, pitch, yaw)`` of the camera in the orbit frame
-            (degrees), e.g. a roll for an off-nadir strip.
-    """
-
-    id: str = Field(default="strip1", pattern=r"^[A-Za-z0-9_-]{1,32}$")
-    along_offset_m: float = 0.0
-    cross_offset_m: float = 0.0
-    heading_deg: float | None = None
-    pointing_deg: Vec3 = (0.0, 0.0, 0.0)
-
-
-class JitterComponent(_Model):
-    """One sinusoid of attitude jitter in the true orientation (random phase).
-
-    Attributes:
-        axis: ``"roll"``, ``"pitch"`` or ``"yaw"``.
-        amplitude_urad: Amplitude (microradians).
-        frequency_hz: Frequency (Hz).
-    """
-
-    axis: Literal["roll", "pitch", "yaw"]
-    amplitude_urad: float = Field(ge=0.0)
-    frequency_hz: float = Field(gt=0.0)
-
-
-class InitialErrorConfig(_Model):
-    """How the initial (navigation) camera departs from the truth.
-
-    The initial camera has no jitter; its position is the truth plus
-    ``position_bias_m + position_drift_m_per_s * t`` and its attitude the jitter-free
-    truth rotated by ``attitude_bias_urad + attitude_drift_urad_per_s * t`` (``t``
-    seconds from the strip's centre time), in the orbit frame. Its focal length is
-    ``f * (1 + focal_length_error_ppm * 1e-6)``.
-
-    Attributes:
-        position_bias_m: (along, cross, radial) position bias (m).
-        position_drift_m_per_s: (along, cross, radial) position drift (m/s).
-        attitude_bias_urad: (roll, pitch, yaw) attitude bias (µrad).
-        attitude_drift_urad_per_s: (roll, pitch, yaw) attitude drift (µrad/s).
-        focal_length_error_ppm: Relative focal-length error (ppm).
-    """
-
-    position_bias_m: Vec3 = (40.0, -25.0, 15.0)
-    position_drift_m_per_s: Vec3 = (2.0, -1.0, 0.5)
-    attitude_bias_urad: Vec3 = (150.0, -250.0, 300.0)
-    attitude_drift_urad_per_s: Vec3 = (20.0, -15.0, 10.0)
-    focal_length_error_ppm: float = 300.0
-
-
 class SensorConfig(_Model):
     """Detector and electronics.
 
@@ -433,6 +331,8 @@ class ReferenceConfig(_Model):
         dem_pad_m: How far the reference DEM extends beyond the truth DEM (m).
         dem_smoothing_px: Gaussian smoothing sigma of the truth, in reference DEM pixels.
         dem_noise_m: RMS of noise added to the reference DEM (m).
+        mosaic: The ortho as a mosaic of source images (seams, per-source errors).
+        mola: The DEM gridded from altimetry tracks, optionally above an areoid.
     """
 
     crs: str = "IAU_2015:49910"
@@ -450,6 +350,8 @@ class ReferenceConfig(_Model):
     dem_pad_m: float = Field(default=3000.0, ge=0.0)
     dem_smoothing_px: float = Field(default=0.5, ge=0.0)
     dem_noise_m: float = Field(default=1.0, ge=0.0)
+    mosaic: MosaicConfig = MosaicConfig()
+    mola: MolaConfig = MolaConfig()
 
 
 class RenderConfig(_Model):
@@ -461,12 +363,15 @@ class RenderConfig(_Model):
         n_checkpoints: Number of random truth checkpoints written per CCD.
         measure_grid: Pixels per axis of the grid on which initial errors are measured.
         write_rpc: Fit an RPC to each CCD's initial camera and write it (``.RPB``).
+        processes: Worker processes rendering image blocks in parallel (1: in this
+            process; 0: one per CPU). The images do not depend on it.
     """
 
     chunk_pixels: int = Field(default=1 << 18, ge=1024)
     n_checkpoints: int = Field(default=50, ge=0)
     measure_grid: int = Field(default=9, ge=2)
     write_rpc: bool = True
+    processes: int = Field(default=1, ge=0, le=256)
 
 
 class SimulationConfig(_Model):
@@ -487,6 +392,8 @@ class SimulationConfig(_Model):
         sensor: Detector of the line-scan images.
         reference: Reference ortho and DEM.
         render: Rendering controls.
+        truth_mismatch: Departures of the true camera from the estimated model.
+        surface_change: Changes of the ground between the reference and the images.
     """
 
     name: str = "scene"
@@ -503,6 +410,8 @@ class SimulationConfig(_Model):
     sensor: SensorConfig = SensorConfig()
     reference: ReferenceConfig = ReferenceConfig()
     render: RenderConfig = RenderConfig()
+    truth_mismatch: TruthMismatchConfig = TruthMismatchConfig()
+    surface_change: SurfaceChangeConfig = SurfaceChangeConfig()
 
     @model_validator(mode="after")
     def _check_strips(self) -> SimulationConfig:
@@ -521,6 +430,30 @@ def available_presets() -> tuple[str, ...]:
     """Names of the presets shipped in ``planetref/simulate/presets`` (sorted)."""
     folder = resources.files("planetref.simulate") / "presets"
     return tuple(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml")))
+
+
+DIFFICULTIES = ("easy", "moderate", "hard", "extreme")
+"""The difficulty ladder, easiest first (``presets/difficulty/<name>.toml``)."""
+
+
+def available_difficulties() -> tuple[str, ...]:
+    """Names of the difficulty levels, easiest first."""
+    return DIFFICULTIES
+
+
+def load_difficulty_dict(name: str) -> dict[str, Any]:
+    """The overlay table of a difficulty level (merged over a preset).
+
+    Raises:
+        InputError: If no difficulty has that name (the message lists the valid names).
+    """
+    if name not in DIFFICULTIES:
+        raise InputError(
+            f"unknown difficulty {name!r}; valid difficulties: {', '.join(DIFFICULTIES)}",
+            field="difficulty",
+        )
+    folder = resources.files("planetref.simulate") / "presets" / "difficulty"
+    return tomllib.loads((folder / f"{name}.toml").read_text(encoding="utf-8"))
 
 
 def load_preset_dict(name: str) -> dict[str, Any]:
@@ -626,13 +559,18 @@ def load_config(
     overrides: str | PathLike[str] | dict[str, Any] | None = None,
     *,
     seed: int | None = None,
+    difficulty: str | None = None,
 ) -> SimulationConfig:
-    """A preset with optional overrides and seed.
+    """A preset with optional difficulty, overrides and seed.
 
     Args:
-        preset: Preset name (see :func:`available_presets`).
-        overrides: A TOML file (path) or a table merged into the preset.
+        preset: Preset name (see :func:`available_presets`); it sets the size and is
+            written at the ``moderate`` difficulty.
+        overrides: A TOML file (path) or a table merged into the preset (after the
+            difficulty).
         seed: If given, replaces the config's seed.
+        difficulty: A level of :data:`DIFFICULTIES` merged over the preset (the scene's
+            name gets ``-<difficulty>`` appended); None keeps the preset as it is.
 
     Returns:
         The validated, frozen config.
@@ -643,6 +581,9 @@ def load_config(
         MissingFileError: If the override file does not exist.
     """
     data = load_preset_dict(preset)
+    if difficulty is not None:
+        data = merge_overrides(data, load_difficulty_dict(difficulty))
+        data["name"] = f"{data.get('name', preset)}-{difficulty}"
     source = None
     if overrides is not None:
         if isinstance(overrides, dict):

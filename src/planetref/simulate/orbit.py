@@ -29,19 +29,22 @@ Time runs from ``-n_lines/2 * period`` (line 0) and is 0 at the centre line.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planetref.camera.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
 from planetref.camera.linescan import (
+    CcdGeometry,
     InteriorOrientation,
     LineRateTable,
     LineScanCamera,
 )
 from planetref.camera.orbit import MARS_GM_M3_S2, ccd_row
 from planetref.simulate.config import SimulationConfig, StripConfig
+from planetref.simulate.realism import TruthMismatchConfig
 
 __all__ = [
     "MARS_ROTATION_RAD_S",
@@ -199,6 +202,8 @@ class StripCameras:
         facts: ``focal_length_mm``, ``gsd_m``, ``line_period_s``, ``ground_speed_m_s``,
             ``altitude_m``, ``duration_s``.
         jitter: ``(axis, amplitude_urad, frequency_hz, phase_rad)`` of each component.
+        mismatch: The truth's drawn model mismatch (per-CCD placement errors,
+            oscillation phases, true and nominal line periods).
     """
 
     strip: StripConfig
@@ -207,6 +212,7 @@ class StripCameras:
     orbit: CircularOrbit
     facts: dict[str, float]
     jitter: tuple[tuple[str, float, float, float], ...]
+    mismatch: dict[str, Any] = field(default_factory=dict)
 
 
 def _strip_centre(
@@ -235,15 +241,60 @@ def _node_lines(n_lines: int, spacing: int, order: int) -> F64:
     return np.arange(-margin, n_lines + margin + 0.5 * spacing, spacing, dtype=np.float64)
 
 
+def _true_ccds(
+    ccds: tuple[CcdGeometry, ...], cfg: TruthMismatchConfig, rng: np.random.Generator
+) -> tuple[tuple[CcdGeometry, ...], list[dict[str, float]]]:
+    """The CCDs' true placement: nominal ones moved, rotated about their centre, scaled."""
+    out, facts = [], []
+    for c in ccds:
+        dx, dy = rng.standard_normal(2) * cfg.ccd_offset_px
+        rot = float(rng.standard_normal()) * cfg.ccd_rotation_urad * 1e-6
+        scale = float(rng.standard_normal()) * cfg.ccd_scale_ppm * 1e-6
+        facts.append(
+            {
+                "ccd": c.name,
+                "offset_along_px": float(dx),
+                "offset_across_px": float(dy),
+                "rotation_urad": rot * 1e6,
+                "scale_ppm": scale * 1e6,
+            }
+        )
+        if dx == 0.0 and dy == 0.0 and rot == 0.0 and scale == 0.0:
+            out.append(c)
+            continue
+        half = 0.5 * c.n_samples * c.pixel_pitch_mm
+        cx = c.x_mm + half * math.sin(c.angle_rad) + dx * c.pixel_pitch_mm
+        cy = c.y_mm + half * math.cos(c.angle_rad) + dy * c.pixel_pitch_mm
+        angle = c.angle_rad + rot
+        pitch = c.pixel_pitch_mm * (1.0 + scale)
+        h = 0.5 * c.n_samples * pitch
+        out.append(
+            replace(
+                c,
+                pixel_pitch_mm=pitch,
+                x_mm=cx - h * math.sin(angle),
+                y_mm=cy - h * math.cos(angle),
+                angle_rad=angle,
+            )
+        )
+    return tuple(out), facts
+
+
 def build_strip_cameras(
-    cfg: SimulationConfig, strip: StripConfig, rng: np.random.Generator
+    cfg: SimulationConfig,
+    strip: StripConfig,
+    rng: np.random.Generator,
+    mismatch_rng: np.random.Generator | None = None,
 ) -> StripCameras:
     """The truth and initial cameras of a strip.
 
     Args:
-        cfg: The simulation config (camera, orbit, jitter, initial errors).
+        cfg: The simulation config (camera, orbit, jitter, initial errors, truth
+            mismatch).
         strip: The strip.
         rng: Random generator of this strip (jitter phases).
+        mismatch_rng: Random generator of the truth's model mismatch (CCD placement,
+            oscillation phases); a fixed default stream when None.
 
     Returns:
         The strip's cameras and facts.
@@ -257,6 +308,10 @@ def build_strip_cameras(
     period = cam_cfg.line_period_s or cam_cfg.gsd_m / ground_speed
     n_lines = cam_cfg.n_lines
     rates = LineRateTable(((0.0, -0.5 * n_lines * period, period),))
+    mm = cfg.truth_mismatch
+    true_period = period * (1.0 + mm.line_rate_error_ppm * 1e-6)
+    true_rates = LineRateTable(((0.0, -0.5 * n_lines * true_period, true_period),))
+    mrng = mismatch_rng if mismatch_rng is not None else np.random.default_rng(0)
     ccds = ccd_row(
         cam_cfg.n_ccds,
         cam_cfg.n_samples,
@@ -280,8 +335,18 @@ def build_strip_cameras(
             out[:, k] += amp * 1e-6 * np.sin(2 * np.pi * freq * t + ph)
         return out
 
-    def nodes_for(lines: F64, attitude: F64, position_offset: F64) -> F64:
-        t = rates.time(lines)
+    duration = n_lines * period
+    osc_period = mm.oscillation_period_s or duration / 3.0
+    osc_phase = mrng.uniform(0.0, 2.0 * np.pi, 6)
+    osc_amp = np.concatenate(
+        [np.asarray(mm.position_oscillation_m), 1e-6 * np.asarray(mm.attitude_oscillation_urad)]
+    )
+
+    def oscillation(t: F64) -> F64:
+        return osc_amp * np.sin(2.0 * np.pi * t[:, None] / osc_period + osc_phase)
+
+    def nodes_for(lines: F64, attitude: F64, position_offset: F64, rt: LineRateTable) -> F64:
+        t = rt.time(lines)
         frames = orbit.frame(t)
         rot = frames @ pointing @ _rpy(attitude[:, 0], attitude[:, 1], attitude[:, 2])
         rel = np.einsum("ji,mjk->mik", r0, rot)  # R0^T @ R
@@ -292,16 +357,18 @@ def build_strip_cameras(
 
     order = orb.interpolation_order
     t_lines = _node_lines(n_lines, orb.truth_node_spacing_lines, order)
-    t_truth = rates.time(t_lines)
-    truth_nodes = nodes_for(t_lines, jitter_angles(t_truth), np.zeros((len(t_lines), 3)))
+    t_truth = true_rates.time(t_lines)
+    osc = oscillation(t_truth)
+    truth_nodes = nodes_for(t_lines, jitter_angles(t_truth) + osc[:, 3:], osc[:, :3], true_rates)
+    true_ccds, ccd_facts = _true_ccds(ccds, mm, mrng)
     truth = LineScanCamera(
         ellipsoid=MARS_IAU2015_SPHERE,
         frame_rotation=r0,
-        line_rates=rates,
+        line_rates=true_rates,
         node_lines=t_lines,
         nodes=truth_nodes,
         interior=InteriorOrientation(focal_length_mm=focal),
-        ccds=ccds,
+        ccds=true_ccds,
         interpolation_order=order,
         name=f"{strip.id} (truth)",
     )
@@ -313,7 +380,7 @@ def build_strip_cameras(
         np.asarray(e.attitude_bias_urad) + np.asarray(e.attitude_drift_urad_per_s) * t_init
     ) * 1e-6
     pos = np.asarray(e.position_bias_m) + np.asarray(e.position_drift_m_per_s) * t_init
-    init_nodes = nodes_for(i_lines, att, pos)
+    init_nodes = nodes_for(i_lines, att, pos, rates)
     initial = LineScanCamera(
         ellipsoid=MARS_IAU2015_SPHERE,
         frame_rotation=r0,
@@ -337,7 +404,21 @@ def build_strip_cameras(
         "centre_lon_deg": lon,
         "centre_lat_deg": lat,
         "heading_deg": heading,
+        "true_line_period_s": true_period,
+        "oscillation_period_s": osc_period,
     }
     return StripCameras(
-        strip=strip, truth=truth, initial=initial, orbit=orbit, facts=facts, jitter=jitter
+        strip=strip,
+        truth=truth,
+        initial=initial,
+        orbit=orbit,
+        facts=facts,
+        jitter=jitter,
+        mismatch={
+            "ccds": ccd_facts,
+            "oscillation_phase_rad": [float(p) for p in osc_phase],
+            "oscillation_period_s": osc_period,
+            "true_line_period_s": true_period,
+            "nominal_line_period_s": period,
+        },
     )

@@ -21,8 +21,10 @@ sphere, equirectangular, clon 0; map metres are ground metres along meridians an
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,11 +33,14 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 from planetref.raster.dem import MapProjection
 from planetref.simulate.config import ReferenceConfig
 from planetref.simulate.grid import MapGrid
+from planetref.simulate.mosaic import MosaicSource, Seams
 from planetref.simulate.photometry import RadianceModel
 from planetref.simulate.sensor import apply_psf, quantize, to_electrons, with_noise
 
 __all__ = [
     "box_in_crs",
+    "finish_ortho",
+    "ortho_radiance",
     "reference_dem",
     "render_ortho",
     "write_raster",
@@ -62,6 +67,84 @@ def box_in_crs(
     return float(np.min(x)), float(np.min(y)), float(np.max(x)), float(np.max(y))
 
 
+def ortho_radiance(
+    grid: MapGrid,
+    projection: MapProjection,
+    truth_projection: MapProjection,
+    radiance: RadianceModel,
+    cfg: ReferenceConfig,
+    out: F32,
+    *,
+    source: MosaicSource | None = None,
+    seams: Seams | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> None:
+    """Footprint-mean radiance of the ortho pixels of one source, relative to its flat radiance.
+
+    Writes ``L / (L_flat (1 + haze)) * gain`` into ``out`` where the pixel belongs to
+    ``source`` (all pixels without a mosaic). With a source, the pixel at true map
+    point ``p`` shows the surface at ``p - d_s(p)`` (its geometric error).
+
+    Args:
+        grid: Ortho grid in the reference CRS.
+        projection: The reference CRS.
+        truth_projection: The truth grid's CRS (where ``radiance`` is evaluated).
+        radiance: Radiance model of this source's illumination (reference epoch).
+        cfg: Reference configuration (sensor, supersampling).
+        out: float32 array of ``grid.shape`` (written where the source is).
+        source: The mosaic source (None: the plain reference image).
+        seams: The mosaic's seams (with ``source``).
+        progress: Called with the number of rows done after each block.
+    """
+    ss = cfg.ortho_sensor.supersample
+    offs = (np.arange(ss) + 0.5) / ss
+    xc = grid.x0 + np.arange(grid.cols) * grid.res
+    nadir = np.array([0.0, 0.0, 1.0], dtype=np.float32)
+    block = max(1, (1 << 18) // grid.cols)
+    scale = 1.0 / (radiance.flat_radiance() * (1.0 + radiance.haze))
+    if source is not None:
+        scale *= source.gain
+    for a in range(0, grid.rows, block):
+        b = min(grid.rows, a + block)
+        yc = grid.y0 - np.arange(a, b) * grid.res
+        shape = (b - a, grid.cols)
+        if source is not None and seams is not None:
+            cx = np.broadcast_to((xc + 0.5 * grid.res)[None, :], shape)
+            cy = np.broadcast_to((yc - 0.5 * grid.res)[:, None], shape)
+            mine = seams.label(cx, cy) == source.index
+            if not mine.any():
+                if progress is not None:
+                    progress(b - a)
+                continue
+        else:
+            mine = np.ones(shape, dtype=bool)
+        rr, cc = np.nonzero(mine)
+        acc = np.zeros(len(rr), dtype=np.float32)
+        for fy in offs:
+            for fx in offs:
+                x = xc[cc] + fx * grid.res
+                y = yc[rr] - fy * grid.res
+                if source is not None:
+                    dx, dy = source.displacement(x, y)
+                    x, y = x - dx, y - dy
+                lon, lat = projection.map_to_lonlat(x, y)
+                tx, ty = truth_projection.lonlat_to_map(lon, lat)
+                acc += radiance.evaluate(tx, ty, nadir)
+        acc *= np.float32(scale / (ss * ss))
+        out[a + rr, cc] = acc
+        if progress is not None:
+            progress(b - a)
+
+
+def finish_ortho(
+    relative: F32, cfg: ReferenceConfig, rng: np.random.Generator
+) -> NDArray[np.integer]:
+    """PSF, noise and quantisation of the ortho (radiance relative to a flat surface)."""
+    sensor = cfg.ortho_sensor
+    e = with_noise(to_electrons(apply_psf(relative, sensor), 1.0, sensor), sensor, rng)
+    return quantize(e, sensor)
+
+
 def render_ortho(
     grid: MapGrid,
     projection: MapProjection,
@@ -71,7 +154,7 @@ def render_ortho(
     rng: np.random.Generator,
     progress: Callable[[int], None] | None = None,
 ) -> NDArray[np.integer]:
-    """Render the reference ortho on ``grid``.
+    """Render a single-image reference ortho on ``grid`` (no mosaic).
 
     Pixels show the surface at their true positions; the ortho offset is applied to
     the geotransform when writing.
@@ -88,30 +171,9 @@ def render_ortho(
     Returns:
         DN array of ``grid.shape`` (uint8 or uint16).
     """
-    sensor = cfg.ortho_sensor
-    ss = sensor.supersample
-    offs = (np.arange(ss) + 0.5) / ss
-    rad = np.zeros(grid.shape, dtype=np.float32)
-    xc = grid.x0 + np.arange(grid.cols) * grid.res
-    nadir = np.array([0.0, 0.0, 1.0], dtype=np.float32)
-    block = max(1, (1 << 18) // grid.cols)
-    for a in range(0, grid.rows, block):
-        b = min(grid.rows, a + block)
-        yc = grid.y0 - np.arange(a, b) * grid.res
-        acc = np.zeros((b - a, grid.cols), dtype=np.float32)
-        for fy in offs:
-            for fx in offs:
-                x = np.broadcast_to((xc + fx * grid.res)[None, :], acc.shape)
-                y = np.broadcast_to((yc - fy * grid.res)[:, None], acc.shape)
-                lon, lat = projection.map_to_lonlat(x.ravel(), y.ravel())
-                tx, ty = truth_projection.lonlat_to_map(lon, lat)
-                acc += radiance.evaluate(tx, ty, nadir).reshape(acc.shape)
-        rad[a:b] = acc / np.float32(ss * ss)
-        if progress is not None:
-            progress(b - a)
-    flat = radiance.flat_radiance() * (1.0 + radiance.haze)
-    e = with_noise(to_electrons(apply_psf(rad, sensor), flat, sensor), sensor, rng)
-    return quantize(e, sensor)
+    rel = np.zeros(grid.shape, dtype=np.float32)
+    ortho_radiance(grid, projection, truth_projection, radiance, cfg, rel, progress=progress)
+    return finish_ortho(rel, cfg, rng)
 
 
 def reference_dem(
@@ -122,8 +184,13 @@ def reference_dem(
     coarse: F64,
     cfg: ReferenceConfig,
     rng: np.random.Generator,
+    record: dict[str, Any] | None = None,
 ) -> F32:
     """Sample the smoothed coarse truth at the reference DEM's pixel centres.
+
+    With ``cfg.mola.tracks`` the truth is sampled along tracks and gridded
+    (:func:`gridded_tracks`); with ``cfg.mola.areoid`` the heights are given above the
+    areoid-like surface (:func:`areoid_height`).
 
     Args:
         grid: Reference DEM grid (reference CRS).
@@ -133,20 +200,113 @@ def reference_dem(
         coarse: Heights (m) of the truth at the coarse spacing (regional composite).
         cfg: Reference configuration.
         rng: Noise generator.
+        record: If given, receives the tracks' and areoid's parameters.
 
     Returns:
         float32 heights (m) of ``grid.shape``.
     """
     sigma = cfg.dem_smoothing_px * cfg.dem_pixel_m / coarse_grid.res
     smooth = gaussian_filter(coarse, sigma, mode="nearest") if sigma > 0 else coarse
+
+    def truth_at(x: F64, y: F64) -> F64:
+        lon, lat = projection.map_to_lonlat(x, y)
+        tx, ty = truth_projection.lonlat_to_map(lon, lat)
+        r, c = coarse_grid.to_index(tx, ty)
+        return map_coordinates(smooth, [r, c], order=1, mode="nearest")
+
     xx, yy = np.meshgrid(grid.x_centres(), grid.y_centres())
-    lon, lat = projection.map_to_lonlat(xx.ravel(), yy.ravel())
-    tx, ty = truth_projection.lonlat_to_map(lon, lat)
-    r, c = coarse_grid.to_index(tx, ty)
-    h = map_coordinates(smooth, [r, c], order=1, mode="nearest").reshape(grid.shape)
-    if cfg.dem_noise_m > 0:
-        h = h + cfg.dem_noise_m * rng.standard_normal(grid.shape)
+    mola = cfg.mola
+    if mola.tracks:
+        h = gridded_tracks(xx, yy, truth_at, cfg, rng, record)
+    else:
+        h = truth_at(xx.ravel(), yy.ravel()).reshape(grid.shape)
+        if cfg.dem_noise_m > 0:
+            h = h + cfg.dem_noise_m * rng.standard_normal(grid.shape)
+    if mola.areoid:
+        h = h - areoid_height(xx, yy, mola)
+        if record is not None:
+            record["areoid"] = {
+                "offset_m": mola.areoid_offset_m,
+                "tilt_m_per_km": mola.areoid_tilt_m_per_km,
+                "tilt_azimuth_deg": mola.track_azimuth_deg + 90.0,
+                "centre_xy_m": [float(xx.mean()), float(yy.mean())],
+            }
     return h.astype(np.float32)
+
+
+def areoid_height(x: F64, y: F64, mola: Any) -> F64:
+    """Height (m) of the areoid-like surface above the sphere at reference map points.
+
+    ``areoid_offset_m`` plus ``areoid_tilt_m_per_km`` times the distance (km) from the
+    points' mean towards azimuth ``track_azimuth_deg + 90``.
+    """
+    az = math.radians(mola.track_azimuth_deg + 90.0)
+    d = (x - x.mean()) * math.sin(az) + (y - y.mean()) * math.cos(az)
+    return mola.areoid_offset_m + mola.areoid_tilt_m_per_km * d / 1000.0
+
+
+def gridded_tracks(
+    xx: F64,
+    yy: F64,
+    truth_at: Callable[[F64, F64], F64],
+    cfg: ReferenceConfig,
+    rng: np.random.Generator,
+    record: dict[str, Any] | None = None,
+) -> F64:
+    """MOLA-like DEM: shots along tracks, per-track offsets and tilts, linear gridding.
+
+    Args:
+        xx: Map x of the grid's pixel centres (reference CRS), 2-D.
+        yy: Map y, 2-D.
+        truth_at: Heights (m) of the smoothed truth at map points.
+        cfg: Reference configuration (``mola``, ``dem_noise_m`` per shot).
+        rng: Random generator.
+        record: If given, receives the tracks' parameters (``tracks``).
+
+    Returns:
+        Heights (m) of the grid.
+    """
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+    m = cfg.mola
+    az = math.radians(m.track_azimuth_deg)
+    u = np.array([math.sin(az), math.cos(az)])  # along track
+    v = np.array([math.cos(az), -math.sin(az)])  # across track
+    pad = 2.0 * m.track_spacing_m
+    pts = np.stack([xx.ravel(), yy.ravel()], axis=1)
+    a = pts @ u
+    c = pts @ v
+    a0, a1 = a.min() - pad, a.max() + pad
+    c0, c1 = c.min() - pad, c.max() + pad
+    n_tracks = math.ceil((c1 - c0) / m.track_spacing_m) + 1
+    across = c0 + m.track_spacing_m * (np.arange(n_tracks) + rng.uniform(-0.3, 0.3, n_tracks))
+    along = np.arange(a0, a1 + m.shot_spacing_m, m.shot_spacing_m)
+    offsets = rng.normal(0.0, m.track_offset_m, n_tracks)
+    tilts = rng.normal(0.0, m.track_tilt_m, n_tracks)
+    frac = (along - 0.5 * (a0 + a1)) / max(a1 - a0, 1.0)
+    shots_xy, shots_h = [], []
+    for k in range(n_tracks):
+        xy = along[:, None] * u[None, :] + across[k] * v[None, :]
+        h = truth_at(xy[:, 0], xy[:, 1]) + offsets[k] + tilts[k] * frac
+        if cfg.dem_noise_m > 0:
+            h = h + cfg.dem_noise_m * rng.standard_normal(len(h))
+        shots_xy.append(xy)
+        shots_h.append(h)
+    sxy = np.concatenate(shots_xy)
+    sh = np.concatenate(shots_h)
+    lin = LinearNDInterpolator(sxy, sh)(pts)
+    bad = ~np.isfinite(lin)
+    if bad.any():
+        lin[bad] = NearestNDInterpolator(sxy, sh)(pts[bad])
+    if record is not None:
+        record["tracks"] = {
+            "azimuth_deg": m.track_azimuth_deg,
+            "across_m": [float(x) for x in across],
+            "offset_m": [float(x) for x in offsets],
+            "tilt_m": [float(x) for x in tilts],
+            "shot_spacing_m": m.shot_spacing_m,
+        }
+    return lin.reshape(xx.shape)
 
 
 def write_raster(

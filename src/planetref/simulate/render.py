@@ -23,14 +23,21 @@ For every image pixel the renderer follows the model exactly:
    (:mod:`planetref.simulate.sensor`).
 
 Memory is bounded by the block size (``render.chunk_pixels``): each block of lines is
-rendered, processed and written to the GeoTIFF before the next one.
+rendered, processed and written to the GeoTIFF in order. With ``render.processes > 1``
+blocks are rendered by forked worker processes (at most two blocks per worker in
+flight); each block's noise has its own seed, so the image is the same for any number
+of processes.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+import warnings
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -142,6 +149,82 @@ def render_radiance(
     return acc.reshape(nl, ns)
 
 
+@dataclass(frozen=True)
+class _BlockState:
+    camera: LineScanCamera
+    ccd: str
+    terrain: GridTerrain
+    radiance: RadianceModel
+    enu: F64
+    sensor: SensorConfig
+
+
+_WORKER_STATE: _BlockState | None = None
+"""What forked workers render from (set in the parent just before the fork)."""
+
+
+def _render_block(
+    state: _BlockState, a: int, b: int, child: np.random.SeedSequence
+) -> NDArray[np.integer]:
+    """DN of lines ``[a, b)``: radiance with a PSF halo, electrons, noise, quantisation."""
+    n_lines, _ = state.camera.image_size(state.ccd)
+    halo = psf_halo(state.sensor)
+    ra, rb = max(0, a - halo), min(n_lines, b + halo)
+    rad = render_radiance(
+        state.camera,
+        state.ccd,
+        state.terrain,
+        state.radiance,
+        state.enu,
+        ra,
+        rb,
+        state.sensor.supersample,
+    )
+    blurred = apply_psf(rad, state.sensor)[a - ra : a - ra + (b - a)]
+    flat = state.radiance.flat_radiance() * (1.0 + state.radiance.haze)
+    e = with_noise(
+        to_electrons(blurred, flat, state.sensor), state.sensor, np.random.default_rng(child)
+    )
+    return quantize(e, state.sensor)
+
+
+def _worker_block(job: tuple[int, int, np.random.SeedSequence]) -> NDArray[np.integer]:
+    if _WORKER_STATE is None:  # pragma: no cover - only reachable without fork
+        raise RuntimeError("render worker started without state")
+    return _render_block(_WORKER_STATE, *job)
+
+
+def _blocks(
+    state: _BlockState, jobs: list[tuple[int, int, np.random.SeedSequence]], processes: int
+) -> Iterator[tuple[int, int, NDArray[np.integer]]]:
+    """Rendered blocks in order; at most ``2 * processes`` blocks in flight."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    global _WORKER_STATE
+    if processes <= 1 or len(jobs) < 2 or "fork" not in mp.get_all_start_methods():
+        for a, b, child in jobs:
+            yield a, b, _render_block(state, a, b, child)
+        return
+    _WORKER_STATE = state
+    try:
+        with ProcessPoolExecutor(processes, mp_context=mp.get_context("fork")) as pool:
+            pending: deque[tuple[int, int, Any]] = deque()
+            todo = iter(jobs)
+            for job in todo:
+                pending.append((job[0], job[1], pool.submit(_worker_block, job)))
+                if len(pending) >= 2 * processes:
+                    break
+            while pending:
+                a, b, fut = pending.popleft()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.append((nxt[0], nxt[1], pool.submit(_worker_block, nxt)))
+                yield a, b, fut.result()
+    finally:
+        _WORKER_STATE = None
+
+
 def write_image_geotiff(
     path: str | os.PathLike[str], n_lines: int, n_samples: int, dtype: str
 ) -> object:
@@ -178,6 +261,7 @@ def render_ccd(
     chunk_pixels: int,
     noise_seed: np.random.SeedSequence,
     progress: Callable[[int], None] | None = None,
+    processes: int = 1,
 ) -> dict[str, float]:
     """Render one CCD image and write it as a GeoTIFF (no georeference).
 
@@ -192,12 +276,13 @@ def render_ccd(
         chunk_pixels: Target pixels per block (bounds memory).
         noise_seed: Seed sequence of this CCD's noise (one child per block).
         progress: Called with the number of lines done after each block.
+        processes: Worker processes rendering blocks in parallel (forked, sharing the
+            terrain and shading fields copy-on-write); 1 renders in this process. The
+            image does not depend on it.
 
     Returns:
         Statistics: ``mean_dn``, ``saturated_fraction``, ``zero_fraction``.
     """
-    import warnings
-
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.windows import Window
 
@@ -205,27 +290,17 @@ def render_ccd(
     chunk = max(1, chunk_pixels // n_samples)
     if chunk >= 256:
         chunk -= chunk % 256  # whole tile rows
-    halo = psf_halo(sensor)
-    flat = radiance.flat_radiance() * (1.0 + radiance.haze)
     dtype = "uint8" if sensor.bit_depth == 8 else "uint16"
     top = (1 << sensor.bit_depth) - 1
     total, n_sat, n_zero, n_pix = 0.0, 0, 0, 0
     starts = list(range(0, n_lines, chunk))
     children = noise_seed.spawn(len(starts))
+    jobs = [(a, min(n_lines, a + chunk), child) for a, child in zip(starts, children, strict=True)]
+    state = _BlockState(camera, ccd, terrain, radiance, enu, sensor)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with write_image_geotiff(out_path, n_lines, n_samples, dtype) as ds:  # type: ignore[attr-defined]
-            for a, child in zip(starts, children, strict=True):
-                b = min(n_lines, a + chunk)
-                ra, rb = max(0, a - halo), min(n_lines, b + halo)
-                rad = render_radiance(
-                    camera, ccd, terrain, radiance, enu, ra, rb, sensor.supersample
-                )
-                blurred = apply_psf(rad, sensor)[a - ra : a - ra + (b - a)]
-                e = with_noise(
-                    to_electrons(blurred, flat, sensor), sensor, np.random.default_rng(child)
-                )
-                dn = quantize(e, sensor)
+            for a, b, dn in _blocks(state, jobs, processes):
                 ds.write(dn, 1, window=Window(0, a, n_samples, b - a))
                 total += float(dn.sum(dtype=np.float64))
                 n_sat += int(np.count_nonzero(dn == top))

@@ -12,6 +12,8 @@ Layout of a scene directory (all paths in ``scene.toml`` are relative to it)::
     truth/dem.tif                   full-resolution truth DEM (local equirectangular)
     truth/checkpoints.csv           random true pixel <-> ground correspondences
     truth/craters.csv               the crater population
+    truth/reference.json            mosaic sources, seams, MOLA-like tracks, areoid
+    truth/change.json               new craters, dust-devil tracks, dune shift
     truth/errors.json               measured initial errors, self-checks, facts
     truth/config.toml               the full configuration (re-runnable)
     preview.png                     optional overview figure
@@ -58,6 +60,10 @@ _STREAMS = {
     "dem_noise": 10,
     "checkpoints": 11,
     "consistency": 12,
+    "mismatch": 13,
+    "change": 14,
+    "mosaic": 15,
+    "mola": 16,
     "strip": 100,
     "ccd_noise": 200,
 }
@@ -210,6 +216,7 @@ class SceneModel:
         dem: The truth DEM as a terrain.
         enu: Rows east, north, up at the site centre (the shading frame).
         tiles: Sub-DEM texture tiles.
+        change: What changed between the reference and the image epochs.
     """
 
     cfg: SimulationConfig
@@ -225,24 +232,39 @@ class SceneModel:
     dem: Any
     enu: np.ndarray
     tiles: Any
+    change: Any = None
 
-    def radiance_model(self, which: str) -> Any:
+    def radiance_model(
+        self, which: str, *, sun_override: Any = None, haze_override: float | None = None
+    ) -> Any:
         """The radiance model of the ``"target"`` (line-scan) or ``"reference"`` images.
 
         It holds the shading fields (about 10 bytes per truth DEM cell); drop it when done.
+
+        Args:
+            which: ``"target"`` or ``"reference"`` (the reference epoch's ground).
+            sun_override: Another sun (a mosaic source's).
+            haze_override: Another haze level.
         """
         from planetref.simulate.photometry import RadianceModel, ShadingFields, cast_shadow
 
         phot = self.cfg.photometry
         t = self.terrain
+        height = t.height
         if which == "target":
             sun, albedo, haze = phot.target_sun, t.albedo, phot.target_haze
         elif which == "reference":
             sun, albedo, haze = phot.reference_sun, t.albedo_reference, phot.reference_haze
+            if t.height_reference is not None:
+                height = t.height_reference
         else:
             raise InputError(f"unknown radiance model {which!r}; use 'target' or 'reference'")
-        shadow = cast_shadow(t.height, self.grid.res, sun)
-        fields = ShadingFields(self.grid, t.height, albedo, t.texture_amplitude, shadow)
+        if sun_override is not None:
+            sun = sun_override
+        if haze_override is not None:
+            haze = haze_override
+        shadow = cast_shadow(height, self.grid.res, sun)
+        fields = ShadingFields(self.grid, height, albedo, t.texture_amplitude, shadow)
         return RadianceModel(fields, self.tiles, sun, phot, self.cfg.albedo, haze)
 
 
@@ -256,6 +278,7 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
         The scene model.
     """
     from planetref.raster.dem import GridTerrain, MapProjection
+    from planetref.simulate.change import apply_surface_change
     from planetref.simulate.grid import MapGrid, enu_basis, local_crs_wkt
     from planetref.simulate.orbit import build_strip_cameras
     from planetref.simulate.photometry import TextureTiles
@@ -264,7 +287,8 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
 
     seed = cfg.seed
     strips = [
-        build_strip_cameras(cfg, s, stream(seed, "strip", i)) for i, s in enumerate(cfg.strips)
+        build_strip_cameras(cfg, s, stream(seed, "strip", i), stream(seed, "mismatch", i))
+        for i, s in enumerate(cfg.strips)
     ]
     t = cfg.terrain
     local_wkt = local_crs_wkt(cfg.site.lat_deg, cfg.site.lon_deg)
@@ -298,6 +322,7 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
         for k in ("regional", "fractal", "plains", "dunes", "craters", "ridges", "albedo")
     }
     terrain = generate_terrain(cfg, grid, coarse_grid, streams)
+    change = apply_surface_change(cfg, terrain, stream(seed, "change"))
     dem = GridTerrain(terrain.height, grid.transform, local_wkt)
     tiles = TextureTiles(cfg.albedo, res, stream(seed, "texture"))
     return SceneModel(
@@ -314,6 +339,7 @@ def build_scene_model(cfg: SimulationConfig) -> SceneModel:
         dem=dem,
         enu=enu_basis(cfg.site.lat_deg, cfg.site.lon_deg),
         tiles=tiles,
+        change=change,
     )
 
 
@@ -335,7 +361,13 @@ def _build(
         measure_consistency,
         measure_initial_errors,
     )
-    from planetref.simulate.reference import reference_dem, render_ortho, write_raster
+    from planetref.simulate.mosaic import draw_mosaic, sources_to_dict
+    from planetref.simulate.reference import (
+        finish_ortho,
+        ortho_radiance,
+        reference_dem,
+        write_raster,
+    )
     from planetref.simulate.render import render_ccd
 
     timings: dict[str, float] = {}
@@ -392,6 +424,7 @@ def _build(
                     chunk_pixels=cfg.render.chunk_pixels,
                     noise_seed=seed_sequence(seed, "ccd_noise", i, k),
                     progress=bar.update,
+                    processes=cfg.render.processes or (os.cpu_count() or 1),
                 )
                 ccd_specs.append((c.name, img))
             s.initial.to_json(sdir / "camera.json")
@@ -424,24 +457,33 @@ def _build(
     lap("render")
 
     # Reference ortho and DEM ---------------------------------------------------------
-    model = sm.radiance_model("reference")
+    sources, seams = draw_mosaic(
+        cfg.reference.mosaic, cfg.photometry, ortho_grid, stream(seed, "mosaic")
+    )
+    relative = np.zeros(ortho_grid.shape, dtype=np.float32)
     with tqdm(
-        total=ortho_grid.rows,
+        total=ortho_grid.rows * len(sources),
         unit="row",
         desc="reference ortho",
         disable=None if progress else True,
         leave=False,
     ) as bar:
-        ortho = render_ortho(
-            ortho_grid,
-            ref,
-            local,
-            model,
-            cfg.reference,
-            stream(seed, "ortho_noise"),
-            progress=bar.update,
-        )
-    del model
+        for src in sources:
+            model = sm.radiance_model("reference", sun_override=src.sun, haze_override=src.haze)
+            ortho_radiance(
+                ortho_grid,
+                ref,
+                local,
+                model,
+                cfg.reference,
+                relative,
+                source=src,
+                seams=seams,
+                progress=bar.update,
+            )
+            del model
+    ortho = finish_ortho(relative, cfg.reference, stream(seed, "ortho_noise"))
+    del relative
     ref_wkt = ref.crs.to_wkt()
     write_raster(
         root / "reference" / "ortho.tif",
@@ -450,6 +492,8 @@ def _build(
         ref_wkt,
         offset=cfg.reference.ortho_offset_m,
     )
+    ref_record: dict[str, Any] = {"mosaic": sources_to_dict(sources, seams)}
+    ref_record["ortho_offset_m"] = list(cfg.reference.ortho_offset_m)
     ref_dem = reference_dem(
         dem_grid,
         ref,
@@ -457,7 +501,14 @@ def _build(
         sm.coarse_grid,
         terrain.regional_composite,
         cfg.reference,
-        stream(seed, "dem_noise"),
+        stream(seed, "mola" if cfg.reference.mola.tracks else "dem_noise"),
+        ref_record,
+    )
+    (root / "truth" / "reference.json").write_text(
+        json.dumps(ref_record, indent=1, sort_keys=True) + "\n", encoding="utf-8"
+    )
+    (root / "truth" / "change.json").write_text(
+        json.dumps(sm.change.to_dict(), indent=1, sort_keys=True) + "\n", encoding="utf-8"
     )
     write_raster(root / "reference" / "dem.tif", ref_dem, dem_grid, ref_wkt, nodata=float("nan"))
     lap("reference")
@@ -479,6 +530,7 @@ def _build(
                 for a, amp, f, ph in s.jitter
             ],
             "render": render_stats[s.strip.id],
+            "truth_mismatch": s.mismatch,
         }
         if cfg.render.n_checkpoints:
             cp_rows += checkpoints(

@@ -47,6 +47,7 @@ __all__ = [
     "smooth_noise",
     "smooth_noise_at",
     "soft_mask",
+    "stamp_craters",
 ]
 
 F32 = NDArray[np.float32]
@@ -274,7 +275,7 @@ def crater_profile(
     return out
 
 
-def _stamp_craters(
+def stamp_craters(
     height: F32,
     albedo_mod: F32,
     grid: MapGrid,
@@ -408,6 +409,8 @@ class TruthTerrain:
         regional_composite: Regional relief plus the block means of all finer relief
             where the truth grid exists: the truth as seen at the coarse spacing, the
             input of the reference DEM.
+        height_reference: Heights of the reference epoch where the ground changed
+            (:mod:`planetref.simulate.change`); None when it equals ``height``.
     """
 
     grid: MapGrid
@@ -420,6 +423,7 @@ class TruthTerrain:
     craters: CraterPopulation
     regional_grid: MapGrid
     regional_composite: F64
+    height_reference: F32 | None = None
 
 
 def _block_mean_into(coarse: F64, coarse_grid: MapGrid, fine: F32, fine_grid: MapGrid) -> None:
@@ -515,7 +519,7 @@ def generate_terrain(
 
     craters = sample_crater_population(t, grid.bounds, streams["craters"], keep)
     albedo = np.zeros(grid.shape, dtype=np.float32)  # relative crater albedo changes first
-    _stamp_craters(height, albedo, grid, craters, t, cfg.albedo.crater_halo, streams["craters"])
+    stamp_craters(height, albedo, grid, craters, t, cfg.albedo.crater_halo, streams["craters"])
     # Dunes sit on top of everything (sand fills lows and crater floors alike).
     height += _dune_relief(grid, dunes.astype(np.float32), t, streams["dunes"])
 

@@ -1,0 +1,145 @@
+"""Configuration of the simulated camera: focal plane, orbit, strips, jitter, initial errors.
+
+Part of :class:`~planetref.simulate.config.SimulationConfig` (re-exported by
+:mod:`planetref.simulate.config`). Units are in the field names as there; orbit-frame
+vectors are ``(along-track, cross-track, radial)`` and attitude triples ``(roll, pitch,
+yaw)``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = [
+    "CameraConfig",
+    "InitialErrorConfig",
+    "JitterComponent",
+    "OrbitConfig",
+    "StripConfig",
+]
+
+Vec3 = tuple[float, float, float]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class CameraConfig(_Model):
+    """HiRIC-like focal plane: line-array CCDs side by side with small overlaps.
+
+    CCD ``k`` (0-based) has its sample-0 edge at ``y = (-W/2 + k*(n_samples - overlap))
+    * pitch`` with ``W = n_ccds*n_samples - (n_ccds-1)*overlap``; odd CCDs sit
+    ``ccd_stagger_mm`` ahead (along-track ``x``), as on staggered butted arrays.
+
+    Attributes:
+        n_ccds: Number of CCDs.
+        n_samples: Samples per CCD.
+        overlap_samples: Samples shared by neighbouring CCDs.
+        n_lines: Lines of each strip.
+        pixel_pitch_mm: Detector pitch (mm).
+        gsd_m: Nadir ground sampling distance at the datum (m); sets the focal length
+            ``f = pitch * altitude / gsd``.
+        ccd_stagger_mm: Along-track offset of the odd CCDs (mm).
+        line_period_s: Line period (s); ``None`` gives square pixels at nadir.
+    """
+
+    n_ccds: int = Field(default=3, ge=1, le=16)
+    n_samples: int = Field(default=2048, ge=8)
+    overlap_samples: int = Field(default=64, ge=0)
+    n_lines: int = Field(default=8000, ge=8)
+    pixel_pitch_mm: float = Field(default=0.010, gt=0.0)
+    gsd_m: float = Field(default=0.5, gt=0.0)
+    ccd_stagger_mm: float = 0.4
+    line_period_s: float | None = Field(default=None, gt=0.0)
+
+    @model_validator(mode="after")
+    def _check_overlap(self) -> CameraConfig:
+        if self.overlap_samples >= self.n_samples:
+            raise ValueError(
+                f"overlap_samples ({self.overlap_samples}) must be smaller than "
+                f"n_samples ({self.n_samples})"
+            )
+        return self
+
+
+class OrbitConfig(_Model):
+    """Circular orbit of the spacecraft.
+
+    Attributes:
+        altitude_m: Altitude above the reference sphere (m).
+        heading_deg: Azimuth of the ground track at the scene centre (degrees from north).
+        body_rotation: Include the rotation of Mars (the ground track then differs from
+            the orbit plane's trace).
+        truth_node_spacing_lines: Lines between orientation nodes of the true camera
+            (dense enough to carry the jitter).
+        initial_node_spacing_lines: Lines between nodes of the initial camera.
+        interpolation_order: Lagrange interpolation order of the nodes.
+    """
+
+    altitude_m: float = Field(default=265_000.0, gt=10_000.0)
+    heading_deg: float = -8.0
+    body_rotation: bool = True
+    truth_node_spacing_lines: int = Field(default=32, ge=1)
+    initial_node_spacing_lines: int = Field(default=512, ge=1)
+    interpolation_order: int = Field(default=4, ge=2, le=8)
+
+
+class StripConfig(_Model):
+    """One line-scan strip (one pass).
+
+    Attributes:
+        id: Identifier (letters, digits, ``-``/``_``), used in file names.
+        along_offset_m: Offset of the strip centre from the site centre along track (m).
+        cross_offset_m: Offset of the ground track across track (m, positive to the
+            left of the track, the +y axis of the orbit frame).
+        heading_deg: Ground-track heading; ``None`` takes the orbit's.
+        pointing_deg: Fixed ``(roll, pitch, yaw)`` of the camera in the orbit frame
+            (degrees), e.g. a roll for an off-nadir strip.
+    """
+
+    id: str = Field(default="strip1", pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    along_offset_m: float = 0.0
+    cross_offset_m: float = 0.0
+    heading_deg: float | None = None
+    pointing_deg: Vec3 = (0.0, 0.0, 0.0)
+
+
+class JitterComponent(_Model):
+    """One sinusoid of attitude jitter in the true orientation (random phase).
+
+    Attributes:
+        axis: ``"roll"``, ``"pitch"`` or ``"yaw"``.
+        amplitude_urad: Amplitude (microradians).
+        frequency_hz: Frequency (Hz).
+    """
+
+    axis: Literal["roll", "pitch", "yaw"]
+    amplitude_urad: float = Field(ge=0.0)
+    frequency_hz: float = Field(gt=0.0)
+
+
+class InitialErrorConfig(_Model):
+    """How the initial (navigation) camera departs from the truth.
+
+    The initial camera has no jitter; its position is the truth plus
+    ``position_bias_m + position_drift_m_per_s * t`` and its attitude the jitter-free
+    truth rotated by ``attitude_bias_urad + attitude_drift_urad_per_s * t`` (``t``
+    seconds from the strip's centre time), in the orbit frame. Its focal length is
+    ``f * (1 + focal_length_error_ppm * 1e-6)``.
+
+    Attributes:
+        position_bias_m: (along, cross, radial) position bias (m).
+        position_drift_m_per_s: (along, cross, radial) position drift (m/s).
+        attitude_bias_urad: (roll, pitch, yaw) attitude bias (µrad).
+        attitude_drift_urad_per_s: (roll, pitch, yaw) attitude drift (µrad/s).
+        focal_length_error_ppm: Relative focal-length error (ppm).
+    """
+
+    position_bias_m: Vec3 = (40.0, -25.0, 15.0)
+    position_drift_m_per_s: Vec3 = (2.0, -1.0, 0.5)
+    attitude_bias_urad: Vec3 = (150.0, -250.0, 300.0)
+    attitude_drift_urad_per_s: Vec3 = (20.0, -15.0, 10.0)
+    focal_length_error_ppm: float = 300.0

@@ -1,0 +1,174 @@
+"""The reference ortho as a mosaic of source images (CTX-like).
+
+See :class:`~planetref.simulate.realism.MosaicConfig`.
+
+Each source covers a band of the ortho along map x between two meandering seams, has
+its own sun, haze and gain, and its own geometric error ``d_s(p) = offset_s +
+warp_s(p)`` (map metres of the reference CRS): the pixel at true map point ``p`` shows
+the surface at ``p - d_s(p)``, so a feature at ``q`` appears at about ``q + d_s(q)``.
+:meth:`MosaicSource.displacement` evaluates ``d_s``; the parameters are written to
+``truth/reference.json`` (:func:`sources_to_dict`) so any check can recompute it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.simulate.config import PhotometryConfig, SunConfig
+from planetref.simulate.grid import MapGrid
+from planetref.simulate.realism import MosaicConfig
+
+__all__ = ["MosaicSource", "Seams", "draw_mosaic", "sources_to_dict"]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MosaicSource:
+    """One source image of the mosaic.
+
+    Attributes:
+        index: Source number (0 = westmost band).
+        sun: Its sun.
+        haze: Its path radiance relative to a flat mean-albedo surface.
+        gain: Its relative brightness (brightness steps at the seams).
+        offset_m: ``(dx, dy)`` map offset (m).
+        waves: Rows ``(kx, ky, amp_x, amp_y, phase)``: wave vectors (rad/m), amplitudes
+            of the x and y displacement (m) and phase (rad) of the warp's plane waves.
+    """
+
+    index: int
+    sun: SunConfig
+    haze: float
+    gain: float
+    offset_m: tuple[float, float]
+    waves: F64
+
+    def displacement(self, x: F64, y: F64) -> tuple[F64, F64]:
+        """``d_s`` at map points (m): offset plus warp."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        dx = np.full(x.shape, self.offset_m[0])
+        dy = np.full(x.shape, self.offset_m[1])
+        for kx, ky, ax, ay, ph in self.waves:
+            s = np.sin(kx * x + ky * y + ph)
+            dx += ax * s
+            dy += ay * s
+        return dx, dy
+
+
+@dataclass(frozen=True)
+class Seams:
+    """Band boundaries ``x = base_k + a_k sin(2 pi y / wl_k + ph_k)`` (map metres)."""
+
+    base: F64
+    amplitude: F64
+    wavelength: F64
+    phase: F64
+
+    def label(self, x: F64, y: F64) -> NDArray[np.intp]:
+        """Source index at map points."""
+        out = np.zeros(np.shape(x), dtype=np.intp)
+        for b, a, wl, ph in zip(
+            self.base, self.amplitude, self.wavelength, self.phase, strict=True
+        ):
+            out += x > b + a * np.sin(2.0 * np.pi * y / wl + ph)
+        return out
+
+
+def draw_mosaic(
+    cfg: MosaicConfig,
+    photometry: PhotometryConfig,
+    grid: MapGrid,
+    rng: np.random.Generator,
+) -> tuple[list[MosaicSource], Seams]:
+    """Draw the sources and seams of a mosaic covering ``grid`` (see the module docstring).
+
+    With one source and zero spreads the source is the plain reference image.
+    """
+    n = cfg.n_sources
+    g = grid.res
+    xmin, _, xmax, _ = grid.bounds
+    sources = []
+    for k in range(n):
+        d_az, d_el = rng.normal(0.0, cfg.sun_spread_deg, 2) if n > 1 else (0.0, 0.0)
+        ref = photometry.reference_sun
+        sun = SunConfig(
+            azimuth_deg=float((ref.azimuth_deg + d_az) % 360.0),
+            elevation_deg=float(np.clip(ref.elevation_deg + d_el, 5.0, 85.0)),
+        )
+        haze = photometry.reference_haze * (float(rng.uniform(0.5, 1.5)) if n > 1 else 1.0)
+        gain = 1.0 + float(rng.normal(0.0, cfg.gain_spread))
+        off = rng.normal(0.0, cfg.offset_px * g, 2)
+        waves = np.zeros((3, 5))
+        amp = cfg.warp_px * g / math.sqrt(1.5)
+        for j in range(3):
+            wl = cfg.warp_wavelength_m * rng.uniform(1.0, 3.0)
+            th = rng.uniform(0.0, 2.0 * np.pi)
+            k_ = 2.0 * np.pi / wl
+            dirn = rng.uniform(0.0, 2.0 * np.pi)
+            waves[j] = (
+                k_ * math.cos(th),
+                k_ * math.sin(th),
+                amp * math.cos(dirn),
+                amp * math.sin(dirn),
+                rng.uniform(0.0, 2.0 * np.pi),
+            )
+        if cfg.warp_px == 0:
+            waves = np.zeros((0, 5))
+        sources.append(
+            MosaicSource(k, sun, haze, max(gain, 0.2), (float(off[0]), float(off[1])), waves)
+        )
+    width = xmax - xmin
+    base = xmin + width * np.arange(1, n) / n
+    seams = Seams(
+        base=base,
+        amplitude=np.full(n - 1, cfg.seam_wander_m),
+        wavelength=rng.uniform(800.0, 2500.0, n - 1),
+        phase=rng.uniform(0.0, 2.0 * np.pi, n - 1),
+    )
+    return sources, seams
+
+
+def sources_to_dict(sources: list[MosaicSource], seams: Seams) -> dict[str, Any]:
+    """JSON-ready parameters of the mosaic (``truth/reference.json``)."""
+    return {
+        "convention": (
+            "the ortho pixel at true map point p (reference CRS) shows the surface at "
+            "p - d(p), d = offset_m + sum(amp * sin(kx x + ky y + phase)); source index = "
+            "number of seams x = base + amplitude sin(2 pi y / wavelength + phase) west of p"
+        ),
+        "sources": [
+            {
+                "index": s.index,
+                "sun_azimuth_deg": s.sun.azimuth_deg,
+                "sun_elevation_deg": s.sun.elevation_deg,
+                "haze": s.haze,
+                "gain": s.gain,
+                "offset_m": list(s.offset_m),
+                "waves": [
+                    dict(
+                        zip(("kx", "ky", "amp_x_m", "amp_y_m", "phase"), map(float, w), strict=True)
+                    )
+                    for w in s.waves
+                ],
+            }
+            for s in sources
+        ],
+        "seams": [
+            {
+                "base_x_m": float(b),
+                "amplitude_m": float(a),
+                "wavelength_m": float(w),
+                "phase": float(p),
+            }
+            for b, a, w, p in zip(
+                seams.base, seams.amplitude, seams.wavelength, seams.phase, strict=True
+            )
+        ],
+    }
