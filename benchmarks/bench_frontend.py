@@ -63,9 +63,9 @@ def simulate(out: Path) -> Path:
 
 def load(root: Path) -> dict:
     from planetref.camera.linescan import LineScanCamera
+    from planetref.pipeline.scene import load_manifest
     from planetref.raster.dem import GridTerrain
     from planetref.raster.ortho import ReferenceOrtho
-    from planetref.simulate.manifest import load_manifest
 
     man, root = load_manifest(root)
     strip = man.strips[0]
@@ -98,7 +98,7 @@ def truth_error(s: dict, r) -> float:
 
 
 def bench(name: str, s: dict, cfg, weights_dir: Path | None) -> dict:
-    from planetref.frontend.match_tile import match_tile
+    from planetref.frontend.tile import match_tile
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching import get_matcher
     from planetref.raster.image import CcdImage

@@ -39,8 +39,8 @@ def scene_area_km2(scene: Path) -> float:
     """Imaged ground area (km^2): every CCD's pixels times its GSD squared."""
     from planetref.camera.io import load_camera
     from planetref.frontend.geometry import image_gsd_m
+    from planetref.pipeline.scene import load_manifest
     from planetref.raster.dem import GridTerrain
-    from planetref.simulate.manifest import load_manifest
 
     manifest, root = load_manifest(scene)
     dem = GridTerrain.from_geotiff(manifest.resolve(root, manifest.reference.dem))

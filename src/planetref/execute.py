@@ -12,19 +12,16 @@ function over a list of small task descriptions and yields each outcome as it fi
 
 :func:`make_executor` builds one from a spec string (the CLI's ``--scheduler``).
 
-Tasks carry only descriptions (file paths, the tile, the front-end settings, the matcher
-name and options, see :class:`TileSources`), never arrays: each worker process opens the
-rasters, the camera and the DEM and builds the matchers once, and caches them
-(:func:`_worker_context`) for every later tile of the same strip.
+The executors are generic: they know nothing of tiles or matchers. The tile tasks they
+run for the front end (small picklable descriptions, never arrays or matcher instances)
+are in :mod:`planetref.frontend.tasks`.
 """
 
 from __future__ import annotations
 
-import functools
-import json
 import re
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from planetref.errors import InputError
@@ -39,9 +36,7 @@ __all__ = [
     "LocalPoolExecutor",
     "SchedulerError",
     "TaskOutcome",
-    "TileSources",
     "make_executor",
-    "run_tile_task",
 ]
 
 SCHEDULER_HELP = "inprocess (default), pool:N, dask-local:N, or tcp://HOST:PORT[?timeout=SECONDS]"
@@ -53,126 +48,6 @@ MAX_WORKERS = 4096
 
 class SchedulerError(InputError):
     """A ``--scheduler`` that cannot be reached (refused, no answer within the timeout)."""
-
-
-# --------------------------------------------------------------------------- tasks
-
-
-@dataclass(frozen=True)
-class TileSources:
-    """Where a worker finds everything a strip's tiles need (paths and names only).
-
-    Attributes:
-        camera: Camera file of the strip (all its CCDs).
-        images: ``(ccd, path)`` of each CCD image, CCD names as the camera knows them.
-        ref: Reference orthoimage path.
-        dem: Reference DEM (GeoTIFF) path.
-        matcher: Registry name of the matcher.
-        ref_band: Band of the reference orthoimage.
-        dem_band: Band of the DEM.
-        matcher_options: Keyword options of the fine-stage matcher.
-        coarse_options: Keyword options of the coarse-stage matcher; None: the fine
-            matcher serves both stages.
-        weights_dir: Folder of pretrained weights (learned matchers).
-    """
-
-    camera: str
-    images: tuple[tuple[str, str], ...]
-    ref: str
-    dem: str
-    matcher: str
-    ref_band: int = 1
-    dem_band: int = 1
-    matcher_options: Mapping[str, Any] = field(default_factory=dict)
-    coarse_options: Mapping[str, Any] | None = None
-    weights_dir: str | None = None
-
-    def key(self) -> str:
-        """A canonical JSON text of the sources (the worker cache key)."""
-        doc = asdict(self)
-        doc["images"] = [list(p) for p in self.images]
-        return json.dumps(doc, sort_keys=True, default=str)
-
-
-@dataclass
-class _WorkerContext:
-    camera: Any
-    images: dict[str, Any]
-    ref: Any
-    dem: Any
-    fine: Any
-    coarse: Any
-
-
-@functools.lru_cache(maxsize=4)
-def _worker_context(key: str) -> _WorkerContext:
-    """Open a strip's rasters, camera and DEM and build its matchers, once per process."""
-    from planetref.camera.io import load_camera
-    from planetref.matching.registry import get_matcher
-    from planetref.raster.dem import GridTerrain
-    from planetref.raster.image import CcdImage
-    from planetref.raster.ortho import ReferenceOrtho
-
-    doc = json.loads(key)
-    fine = get_matcher(doc["matcher"], weights_dir=doc["weights_dir"], **doc["matcher_options"])
-    coarse = (
-        fine
-        if doc["coarse_options"] is None
-        else get_matcher(doc["matcher"], weights_dir=doc["weights_dir"], **doc["coarse_options"])
-    )
-    return _WorkerContext(
-        camera=load_camera(doc["camera"]),
-        images={ccd: CcdImage(path) for ccd, path in doc["images"]},
-        ref=ReferenceOrtho(doc["ref"], band=int(doc["ref_band"])),
-        dem=GridTerrain.from_geotiff(doc["dem"], band=int(doc["dem_band"])),
-        fine=fine,
-        coarse=coarse,
-    )
-
-
-def run_tile_task(task: Mapping[str, Any]) -> dict[str, Any]:
-    """Match one tile in a worker (the task function of every executor).
-
-    Args:
-        task: ``{"sources": TileSources.key(), "tile": Tile.to_dict(), "config":
-            FrontendConfig.model_dump(), "ratio": float | None, "raise_errors": bool}``.
-
-    Returns:
-        The tile's :meth:`~planetref.frontend.match_tile.TileResult.to_dict`. An exception
-        of the matching itself becomes status ``error`` (as in process) unless
-        ``raise_errors``; failing to open the inputs raises (and the task is retried).
-    """
-    from planetref.frontend.config import FrontendConfig
-    from planetref.frontend.match_tile import TileResult, match_tile
-    from planetref.frontend.tiles import Tile
-
-    ctx = _worker_context(task["sources"])
-    cfg = FrontendConfig.model_validate(task["config"])
-    tile = Tile.from_dict(task["tile"])
-    try:
-        res = match_tile(
-            tile,
-            image=ctx.images[tile.ccd],
-            camera=ctx.camera,
-            ref=ctx.ref,
-            terrain=ctx.dem,
-            matcher=ctx.fine,
-            config=cfg,
-            ratio=task["ratio"],
-            coarse_matcher=ctx.coarse,
-        )
-    except Exception as exc:
-        if task.get("raise_errors"):
-            raise
-        name = str(getattr(ctx.fine, "name", type(ctx.fine).__name__))
-        res = TileResult(
-            tile=tile,
-            matcher=name,
-            status="error",
-            message=f"{type(exc).__name__}: {exc}",
-            geometry=cfg.geometry,
-        )
-    return res.to_dict()
 
 
 # --------------------------------------------------------------------------- executors

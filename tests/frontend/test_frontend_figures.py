@@ -8,8 +8,8 @@ import pytest
 from planetref.control import mcps_from_tiles, read_mcps, write_mcps
 from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
-from planetref.frontend.match_tile import match_strip
 from planetref.frontend.stats import sdu_per_ccd
+from planetref.frontend.strip import match_strip
 from planetref.raster.ortho import ReferenceOrtho
 from planetref.report.figures_matching import (
     MatchPanel,
@@ -83,7 +83,7 @@ def test_figure_inputs_are_checked(tmp_path):
             tmp_path / "d.png",
             ccd_order=["b"],
         )
-    from planetref.frontend.match_tile import TileResult
+    from planetref.frontend.result import TileResult
     from planetref.frontend.tiles import Tile
 
     with pytest.raises(InputError, match="debug"):

@@ -10,13 +10,10 @@ import pytest
 
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.geometry import image_to_ref_pixel
-from planetref.frontend.match_tile import (
-    TileResult,
-    match_strip,
-    match_tile,
-    robust_translation,
-    verify_points,
-)
+from planetref.frontend.result import TileResult
+from planetref.frontend.robust import robust_translation, verify_points
+from planetref.frontend.strip import match_strip
+from planetref.frontend.tile import match_tile
 from planetref.frontend.tiles import plan_tiles
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho

@@ -14,7 +14,8 @@ import pytest
 
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.geometry import image_to_ref_pixel
-from planetref.frontend.match_tile import STATUSES, match_strip
+from planetref.frontend.result import STATUSES
+from planetref.frontend.strip import match_strip
 
 # CCDs of 320 x 640 px at 2.5 m over a 5 m reference (160 x 320 reference px): 2 x 3
 # tiles of 128 reference px per CCD, 18 in all; the initial error is about 107 m
@@ -27,9 +28,9 @@ LEARNED_CCDS = ("ccd2",)
 
 def _load(root):
     from planetref.camera.linescan import LineScanCamera
+    from planetref.pipeline.scene import load_manifest
     from planetref.raster.dem import GridTerrain
     from planetref.raster.ortho import ReferenceOrtho
-    from planetref.simulate.manifest import load_manifest
 
     man, root = load_manifest(root)
     strip = man.strips[0]

@@ -12,8 +12,8 @@ from rasterio.errors import NotGeoreferencedWarning
 
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import InputError
+from planetref.pipeline.scene import load_manifest
 from planetref.raster.dem import GridTerrain
-from planetref.simulate.manifest import load_manifest
 from planetref.simulate.scene import simulate_scene
 
 

@@ -12,24 +12,36 @@ from os import PathLike
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
-from planetref.errors import InputError
+from planetref.settings import Settings, validate_settings
 from planetref.tomlfile import read_toml
 
-__all__ = ["FrontendConfig", "GeometryMode", "RansacModel"]
+try:
+    from planetref.matching.refine import RefineConfig
+except ImportError:  # pragma: no cover - the refinement module is not installed yet
+
+    class RefineConfig(Settings):  # type: ignore[no-redef]
+        """Placeholder until :mod:`planetref.matching.refine` exists: no refinement."""
+
+        method: Literal["none"] = "none"
+
+
+__all__ = ["FrontendConfig", "GeometryMode", "RansacModel", "RefineConfig"]
 
 GeometryMode = Literal["orthorectify", "downsample"]
 RansacModel = Literal["homography", "affine"]
 
 
-class FrontendConfig(BaseModel):
+class FrontendConfig(Settings):
     """Settings of tiling, common geometry, coarse-to-fine matching and verification.
 
     Attributes:
         tile_size_ref_px: Side of a CCD tile, in reference pixels of the fine stage (the
-            tile covers about this many reference pixels on the ground).
-        tile_overlap_ref_px: Overlap of neighbouring tiles, reference pixels.
+            tile covers about this many reference pixels on the ground). Tiles cover
+            every CCD completely; each point belongs to one tile's core.
+        tile_overlap_ref_px: Overlap of neighbouring tiles, reference pixels (matches in
+            the overlap are kept by the tile whose core holds them, once).
         uncertainty_m: A-priori uncertainty of the initial camera on the ground (metres);
             the coarse stage searches a window padded by this much.
         geometry: ``"orthorectify"`` resamples the CCD tile onto the reference grid
@@ -42,9 +54,23 @@ class FrontendConfig(BaseModel):
         coarse_min_matches: Fewest consistent coarse matches to trust the coarse offset.
         coarse_radius_ref_px: Consensus radius of the coarse translation, reference px.
         fine_pad_ref_px: Margin of the fine reference window around the footprint
-            shifted by the coarse offset, reference px.
+            shifted by the coarse offset, reference px. Fine matches whose displacement
+            differs from the coarse offset by more than this plus
+            ``coarse_radius_ref_px`` cannot be right and are dropped (funnel stage
+            ``coarse_gate``).
+        fine_upsample: Resolution of the fine stage: 1 matches on the reference grid
+            (the paper's 5 m); ``k > 1`` on a grid ``k`` times finer (the reference
+            resampled bicubically, the CCD image orthorectified at that pixel size, so
+            the image keeps detail the reference grid would average away). Thresholds
+            stay in reference pixels.
         lattice_step_ref_px: Spacing of the exactly projected lattice that the
             orthorectification interpolates, reference px of the output grid.
+        dense_spacing_ref_px: Grid spacing of the dense mode of area-based and
+            detector-free matchers (NCC, LoFTR), reference px of the fine stage: one
+            match per grid cell. Other matchers ignore it (their keypoint budgets are
+            their own defaults; the front end caps nothing). On hiric-strip, NCC gives
+            about 10-13 k correspondences per CCD at 3 (SDU 57-70 %) and 23-30 k at 2
+            (SDU 64-77 %).
         ransac_model: Model verified per tile with OpenCV USAC_MAGSAC.
         ransac_threshold_ref_px: Inlier threshold, reference px.
         ransac_confidence: RANSAC confidence.
@@ -54,15 +80,18 @@ class FrontendConfig(BaseModel):
             displacement are dropped: over one tile the initial camera's error is close
             to a translation, and a model fitted to wrong matches is not.
         min_inliers: A tile with fewer fine inliers gets status ``too_few_inliers``.
-        max_mcps_per_tile: At most this many MCPs per tile (spread over the tile,
-            highest confidence first); 0 keeps all.
+        refine: Sub-pixel refinement of every verified match on the fine stage
+            (:func:`planetref.matching.refine.refine_matches`), the same for every
+            matcher; ``method = "none"`` (default) leaves the matcher's positions.
+        max_mcps_per_tile: Thin each tile to at most this many MCPs (spread over the
+            tile, highest confidence first), for speed only: NCP and SDU count the
+            verified correspondences before thinning, and a thinned tile says so
+            (``TileResult.thinned``). 0 (default) keeps all.
         min_valid_fraction: A tile whose image or reference window has a smaller
             fraction of valid pixels gets status ``no_overlap``.
         footprint_points_per_edge: Points per tile edge projected to the ground for the
             footprint.
     """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     tile_size_ref_px: int = Field(256, ge=32, le=4096)
     tile_overlap_ref_px: int = Field(16, ge=0)
@@ -73,14 +102,17 @@ class FrontendConfig(BaseModel):
     coarse_min_matches: int = Field(6, ge=3)
     coarse_radius_ref_px: float = Field(6.0, gt=0.0)
     fine_pad_ref_px: int = Field(16, ge=0)
+    fine_upsample: int = Field(1, ge=1, le=8)
     lattice_step_ref_px: int = Field(8, ge=1, le=64)
+    dense_spacing_ref_px: int = Field(2, ge=1, le=64)
     ransac_model: RansacModel = "homography"
     ransac_threshold_ref_px: float = Field(1.0, gt=0.0)
     ransac_confidence: float = Field(0.999, gt=0.0, lt=1.0)
     ransac_max_iters: int = Field(10000, ge=10)
     fine_radius_ref_px: float = Field(3.0, gt=0.0)
     min_inliers: int = Field(8, ge=4)
-    max_mcps_per_tile: int = Field(200, ge=0)
+    refine: RefineConfig = RefineConfig()
+    max_mcps_per_tile: int = Field(0, ge=0)
     min_valid_fraction: float = Field(0.1, ge=0.0, le=1.0)
     footprint_points_per_edge: int = Field(5, ge=2, le=64)
 
@@ -102,18 +134,7 @@ class FrontendConfig(BaseModel):
         Raises:
             InputError: Unknown keys (the message lists the valid ones) or bad values.
         """
-        try:
-            return cls.model_validate(dict(values))
-        except ValidationError as exc:
-            problems = "; ".join(
-                f"{'.'.join(str(p) for p in e['loc']) or 'config'}: {e['msg']}"
-                for e in exc.errors()
-            )
-            raise InputError(
-                f"invalid front-end settings ({problems}); valid keys: "
-                f"{', '.join(cls.model_fields)}",
-                path=source,
-            ) from None
+        return validate_settings(cls, values, source=source)
 
     @classmethod
     def from_toml(cls, path: str | PathLike[str], table: str | None = "frontend") -> FrontendConfig:

@@ -39,6 +39,11 @@ class Tile:
         sample0: First sample.
         n_lines: Number of lines.
         n_samples: Number of samples.
+        core: ``(line0, sample0, line1, sample1)`` (end exclusive) of the part of the tile
+            it owns: tiles of a plan overlap, and each point of the image belongs to the
+            core of exactly one tile (the overlap is split in the middle), so that a
+            correspondence found in two neighbouring tiles is counted once. None: the
+            whole tile.
     """
 
     tile_id: str
@@ -47,6 +52,7 @@ class Tile:
     sample0: int
     n_lines: int
     n_samples: int
+    core: tuple[int, int, int, int] | None = None
 
     @property
     def centre(self) -> tuple[float, float]:
@@ -64,9 +70,15 @@ class Tile:
         with np.errstate(invalid="ignore"):
             return (line >= l0) & (line < l1) & (sample >= s0) & (sample < s1)
 
+    def owns(self, line: NDArray[np.float64], sample: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """True where continuous ``(line, sample)`` lies in the tile's core (see ``core``)."""
+        l0, s0, l1, s1 = self.core or self.bounds
+        with np.errstate(invalid="ignore"):
+            return (line >= l0) & (line < l1) & (sample >= s0) & (sample < s1)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form."""
-        return {
+        doc: dict[str, Any] = {
             "tile_id": self.tile_id,
             "ccd": self.ccd,
             "line0": self.line0,
@@ -74,6 +86,9 @@ class Tile:
             "n_lines": self.n_lines,
             "n_samples": self.n_samples,
         }
+        if self.core is not None:
+            doc["core"] = list(self.core)
+        return doc
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> Tile:
@@ -85,6 +100,7 @@ class Tile:
             int(doc["sample0"]),
             int(doc["n_lines"]),
             int(doc["n_samples"]),
+            None if doc.get("core") is None else tuple(int(v) for v in doc["core"]),  # type: ignore[arg-type]
         )
 
 
@@ -146,6 +162,13 @@ def _starts(n: int, size: int, step: int) -> list[int]:
     return out
 
 
+def _cores(starts: list[int], size: int, n: int) -> list[tuple[int, int]]:
+    """The owned range of each tile: neighbours split their overlap in the middle."""
+    ends = [min(s + size, n) for s in starts]
+    lo = [0] + [(ends[i] + starts[i + 1]) // 2 for i in range(len(starts) - 1)]
+    return list(zip(lo, [*lo[1:], n], strict=True))
+
+
 def plan_tiles(
     camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, config: FrontendConfig
 ) -> TilePlan:
@@ -178,11 +201,23 @@ def plan_tiles(
     overlap = round(config.tile_overlap_ref_px * ratio)
     step = max(1, size - overlap)
     tiles = []
-    for i, l0 in enumerate(_starts(n_lines, size, step)):
-        for j, s0 in enumerate(_starts(n_samples, size, step)):
+    line_starts, sample_starts = _starts(n_lines, size, step), _starts(n_samples, size, step)
+    line_cores, sample_cores = (
+        _cores(line_starts, size, n_lines),
+        _cores(sample_starts, size, n_samples),
+    )
+    for i, l0 in enumerate(line_starts):
+        for j, s0 in enumerate(sample_starts):
+            (cl0, cl1), (cs0, cs1) = line_cores[i], sample_cores[j]
             tiles.append(
                 Tile(
-                    f"{ccd}:r{i:03d}c{j:03d}", ccd, l0, s0, min(size, n_lines), min(size, n_samples)
+                    f"{ccd}:r{i:03d}c{j:03d}",
+                    ccd,
+                    l0,
+                    s0,
+                    min(size, n_lines),
+                    min(size, n_samples),
+                    (cl0, cs0, cl1, cs1),
                 )
             )
     return TilePlan(ccd, (n_lines, n_samples), gsd_img, gsd_ref, tuple(tiles))

@@ -5,7 +5,7 @@ cameras and the reference DEM) overlap on the reference grid, the overlap is cut
 windows of at most ``tie_window_ref_px``; in each window both images are orthorectified
 onto the same reference-grid window (:func:`~planetref.frontend.orthorectify.orthorectify`),
 the two orthos are matched with the run's matcher, the matches verified with RANSAC
-(:func:`~planetref.frontend.match_tile.verify_points`) and a translation consensus, and
+(:func:`~planetref.frontend.robust.verify_points`) and a translation consensus, and
 every inlier is mapped back to raw ``(line, sample)`` in both images
 (:meth:`~planetref.frontend.orthorectify.OrthoTile.to_raw`). Its a-priori ground point is
 the reference DEM under the mean map position of the two keypoints.
@@ -15,12 +15,23 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planetref.errors import PlanetrefError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from planetref.camera.base import Camera, Terrain
+    from planetref.frontend.config import FrontendConfig
+    from planetref.matching.base import Matcher
+    from planetref.pipeline.config import CampaignOptions
+    from planetref.raster.image import CcdImage
+    from planetref.raster.ortho import ReferenceOrtho, RefWindow
+
+    #: One side of a pair: the strip's camera, the CCD image, the CCD name.
+    ImageRef = tuple[Camera, CcdImage, str]
 
 __all__ = ["TiePoints", "find_tie_points"]
 
@@ -62,7 +73,9 @@ class TiePoints:
         return out
 
 
-def _ccd_window(camera: Any, ccd: str, ref: Any, dem: Any, points_per_edge: int) -> Any:
+def _ccd_window(
+    camera: Camera, ccd: str, ref: ReferenceOrtho, dem: Terrain, points_per_edge: int
+) -> RefWindow | None:
     from planetref.frontend.tiles import Tile, tile_footprint
 
     n_lines, n_samples = camera.image_size(ccd)
@@ -73,8 +86,8 @@ def _ccd_window(camera: Any, ccd: str, ref: Any, dem: Any, points_per_edge: int)
 
 
 def _overlap_windows(
-    wa: Any, wb: Any, ref_shape: tuple[int, int], side: int, min_side: int
-) -> list[Any]:
+    wa: RefWindow, wb: RefWindow, ref_shape: tuple[int, int], side: int, min_side: int
+) -> list[RefWindow]:
     """The overlap of two full-resolution windows, clipped to the ortho, cut in windows."""
     from planetref.raster.ortho import RefWindow
 
@@ -93,14 +106,14 @@ def _overlap_windows(
 
 
 def _match_window(
-    window: Any,
-    a: tuple[Any, Any, str],
-    b: tuple[Any, Any, str],
-    ref: Any,
-    dem: Any,
-    matcher: Any,
-    fe: Any,
-    opts: Any,
+    window: RefWindow,
+    a: ImageRef,
+    b: ImageRef,
+    ref: ReferenceOrtho,
+    dem: Terrain,
+    matcher: Matcher,
+    fe: FrontendConfig,
+    opts: CampaignOptions,
 ) -> tuple[F64, F64, F64, F64, F64] | None:
     """Tie points of two CCD images in one window.
 
@@ -109,13 +122,9 @@ def _match_window(
         few verified matches.
     """
     from planetref.frontend.geometry import map_to_ground
-    from planetref.frontend.match_tile import (
-        _inference,
-        _spread_select,
-        robust_translation,
-        verify_points,
-    )
     from planetref.frontend.orthorectify import orthorectify
+    from planetref.frontend.robust import robust_translation, spread_select, verify_points
+    from planetref.frontend.tile import inference_mode
 
     sides = []
     for camera, image, ccd in (a, b):
@@ -124,7 +133,7 @@ def _match_window(
             return None
         sides.append(o)
     oa, ob = sides
-    with _inference():
+    with inference_mode():
         m = matcher.match(oa.image, ob.image, oa.valid, ob.valid)
     kp0 = np.asarray(m.keypoints0, np.float64).reshape(-1, 2)
     kp1 = np.asarray(m.keypoints1, np.float64).reshape(-1, 2)
@@ -157,7 +166,7 @@ def _match_window(
     idx, la, sa, lb, sb = idx[ok], la[ok], sa[ok], lb[ok], sb[ok]
     if len(idx) < opts.tie_min_inliers:
         return None
-    keep = _spread_select(la, sa, conf[idx], opts.tie_max_per_window)
+    keep = spread_select(la, sa, conf[idx], opts.tie_max_per_window)
     idx, la, sa, lb, sb = idx[keep], la[keep], sa[keep], lb[keep], sb[keep]
     ca, ra = window.to_ref_pixel(kp0[idx, 0], kp0[idx, 1])
     cb, rb = window.to_ref_pixel(kp1[idx, 0], kp1[idx, 1])
@@ -170,12 +179,12 @@ def _match_window(
 
 
 def find_tie_points(
-    strips: dict[str, tuple[Any, dict[str, Any]]],
-    ref: Any,
-    dem: Any,
-    matcher: Any,
-    frontend: Any,
-    options: Any,
+    strips: dict[str, tuple[Camera, dict[str, CcdImage]]],
+    ref: ReferenceOrtho,
+    dem: Terrain,
+    matcher: Matcher,
+    frontend: FrontendConfig,
+    options: CampaignOptions,
 ) -> TiePoints:
     """Match tie points between the overlapping CCD images of different strips.
 

@@ -14,11 +14,11 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, field_validator
 
 from planetref.adjust.config import AdjustConfig, validate_config
-from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
+from planetref.settings import Settings, deep_merge, validate_settings
 from planetref.tomlfile import read_toml
 
 __all__ = [
@@ -39,14 +39,13 @@ __all__ = [
 DEFAULT_ADJUST: dict[str, Any] = {"linescan": {"weak_nodes": "smooth"}}
 
 
-#: Matcher options applied unless a config says otherwise. XFeat*'s refinement head
-#: pulls matches towards its 8-px cell centres (measured in planetref.matching.xfeat), a
-#: bias of several metres on the ground, so its matches are re-centred by local NCC.
-DEFAULT_MATCHER_OPTIONS: dict[str, dict[str, Any]] = {"xfeat-star": {"polish": "ncc"}}
+#: Matcher options applied unless a config says otherwise: none, so that every matcher
+#: runs on equal terms with its own defaults. Sub-pixel refinement is one setting for all
+#: matchers (``[frontend.refine]``), no longer a per-matcher special case (XFeat*'s
+#: ``polish = "ncc"`` remains available as a ``[matchers.xfeat-star]`` option).
+DEFAULT_MATCHER_OPTIONS: dict[str, dict[str, Any]] = {}
 
-
-class _Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+_Frozen = Settings
 
 
 class McpOptions(_Frozen):
@@ -128,7 +127,7 @@ class GeorefConfig(_Frozen):
     @classmethod
     def _adjust(cls, v: Any) -> Any:
         if isinstance(v, dict):
-            merged = _merge(DEFAULT_ADJUST, v)
+            merged = deep_merge(DEFAULT_ADJUST, v)
             return validate_config(merged)
         return v
 
@@ -151,13 +150,6 @@ class GeorefConfig(_Frozen):
         return doc
 
 
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def load_config(path: str | os.PathLike[str] | None = None) -> GeorefConfig:
     """Read a georef configuration TOML file (``None``: the defaults).
 
@@ -172,29 +164,5 @@ def load_config(path: str | os.PathLike[str] | None = None) -> GeorefConfig:
 
 
 def config_from_mapping(doc: dict[str, Any], *, source: str | None = None) -> GeorefConfig:
-    """Validate a mapping into a :class:`GeorefConfig` with one-line errors."""
-    try:
-        return GeorefConfig.model_validate(doc)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = ".".join(str(x) for x in err["loc"])
-        valid = ", ".join(_valid_keys(err["loc"]))
-        raise InputError(
-            f"{err['msg']}; valid keys here: {valid}", path=source, field=loc or None
-        ) from None
-    except InputError as exc:
-        raise InputError(str(exc), path=source) from None
-
-
-def _valid_keys(loc: tuple[Any, ...]) -> list[str]:
-    model: Any = GeorefConfig
-    for part in loc[:-1]:
-        field = getattr(model, "model_fields", {}).get(part)
-        if field is None:
-            break
-        ann = field.annotation
-        if isinstance(ann, type) and issubclass(ann, BaseModel):
-            model = ann
-        else:
-            break
-    return sorted(getattr(model, "model_fields", {}))
+    """Validate a mapping into a :class:`GeorefConfig` with one-line errors naming the file."""
+    return validate_settings(GeorefConfig, doc, source=source)

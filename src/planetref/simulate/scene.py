@@ -348,7 +348,7 @@ def _build(
 ) -> SceneResult:
     from tqdm import tqdm
 
-    from planetref.simulate.manifest import (
+    from planetref.pipeline.scene import (
         CcdSpec,
         ReferenceSpec,
         SceneManifest,

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from planetref.errors import InputError, MissingFileError
-from planetref.simulate.manifest import (
+from planetref.pipeline.scene import (
     CcdSpec,
     ReferenceSpec,
     SceneManifest,

@@ -1,0 +1,304 @@
+"""Matching every tile of a strip: tile plans, the journal, and in-process or parallel dispatch.
+
+:func:`match_strip` plans the tiles of each CCD (:mod:`~planetref.frontend.tiles`),
+resumes from the journal (:mod:`~planetref.frontend.journal`), and matches the pending
+tiles here or on a parallel executor (:mod:`planetref.execute`) through the tile tasks of
+:mod:`~planetref.frontend.tasks`. Results are journalled as they arrive and returned in
+plan order whatever the executor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from os import PathLike
+
+from planetref.camera.base import Camera, Terrain
+from planetref.errors import InputError
+from planetref.execute import Executor
+from planetref.frontend.config import FrontendConfig
+from planetref.frontend.journal import DEFAULT_MAX_ATTEMPTS, TileJournal, journal_digest
+from planetref.frontend.result import StripMatches, TileResult, error_result
+from planetref.frontend.tasks import MatcherRecipe, TileSources, TileTask, run_tile_task
+from planetref.frontend.tile import match_tile
+from planetref.frontend.tiles import Tile, TilePlan, plan_tiles
+from planetref.matching.base import Matcher
+from planetref.raster.image import CcdImage
+from planetref.raster.ortho import ReferenceOrtho
+
+__all__ = ["match_strip"]
+
+MatcherLike = Matcher | MatcherRecipe
+
+
+def _name(m: MatcherLike) -> str:
+    return str(getattr(m, "name", type(m).__name__))
+
+
+def match_strip(
+    camera: Camera,
+    images: Mapping[str, CcdImage | str | PathLike[str]],
+    ref: ReferenceOrtho | str | PathLike[str],
+    terrain: Terrain | str | PathLike[str],
+    matcher: MatcherLike,
+    config: FrontendConfig | None = None,
+    *,
+    ccds: Sequence[str] | None = None,
+    journal: str | PathLike[str] | None = None,
+    max_attempts: int = DEFAULT_MAX_ATTEMPTS,
+    progress: bool = True,
+    raise_errors: bool = False,
+    debug_tiles: Sequence[str] = (),
+    coarse_matcher: MatcherLike | None = None,
+    executor: Executor | None = None,
+    sources: TileSources | None = None,
+) -> StripMatches:
+    """Match every tile of every CCD image of a strip against the reference.
+
+    Rasters are only read through windows (one tile at a time), so memory stays bounded
+    by the tile size whatever the image size.
+
+    Args:
+        camera: The initial camera of the strip (all CCDs).
+        images: CCD name -> image reader or path.
+        ref: The reference orthoimage (reader or path).
+        terrain: The reference DEM (a terrain, or a GeoTIFF path read as
+            :class:`~planetref.raster.dem.GridTerrain`).
+        matcher: The fine-stage matcher: an instance, or a
+            :class:`~planetref.frontend.tasks.MatcherRecipe` (built here when a tile is
+            matched in this process; the only form a parallel executor accepts).
+        config: Front-end settings.
+        ccds: CCDs to match (default: every CCD of ``images`` that the camera knows, in
+            the camera's order).
+        journal: A JSON-lines file: tiles already in it are not matched again (resume),
+            except tiles that errored, which are tried again up to ``max_attempts``
+            times in all; each new result is appended (fsynced) when done.
+        max_attempts: Attempts of a tile that errors, over all resumed runs.
+        progress: Show a tqdm progress bar.
+        raise_errors: Re-raise exceptions of a tile instead of recording status ``error``.
+        debug_tiles: Tile ids whose stage images are kept (``result.debug``).
+        coarse_matcher: Matcher of the coarse stage (default: ``matcher``).
+        executor: A :class:`planetref.execute.Executor` for the tiles (default: in this
+            process, one after another). A parallel one sends each worker a
+            :class:`~planetref.frontend.tasks.TileTask`; ``debug_tiles`` are matched here.
+        sources: The strip's file paths; required by a parallel ``executor``.
+
+    Returns:
+        The strip's tile results.
+
+    Raises:
+        InputError: Unknown CCD names, a journal of another matcher/config, or a parallel
+            executor without ``sources`` or with matcher instances.
+    """
+    from tqdm.auto import tqdm
+
+    cfg = config or FrontendConfig()
+    name = _name(matcher)
+    known = tuple(camera.ccd_names)
+    unknown = sorted(set(images) - set(known))
+    if unknown:
+        raise InputError(f"images given for unknown CCDs {unknown}; the camera has {list(known)}")
+    todo_ccds = [c for c in known if c in images] if ccds is None else list(ccds)
+    missing = [c for c in todo_ccds if c not in images]
+    if missing:
+        raise InputError(f"no image for CCDs {missing}")
+    parallel = executor is not None and executor.parallel
+    if parallel:
+        _check_parallel(executor, sources, matcher, coarse_matcher, todo_ccds)
+
+    opened: list[ReferenceOrtho | CcdImage] = []
+    try:
+        if not isinstance(ref, ReferenceOrtho):
+            ref = ReferenceOrtho(ref)
+            opened.append(ref)
+        if isinstance(terrain, str | PathLike):
+            from planetref.raster.dem import GridTerrain
+
+            terrain = GridTerrain.from_geotiff(terrain)
+        readers: dict[str, CcdImage] = {}
+        for c in todo_ccds:
+            src = images[c]
+            if isinstance(src, CcdImage):
+                readers[c] = src
+            else:
+                readers[c] = CcdImage(src)
+                opened.append(readers[c])
+            if readers[c].shape != tuple(camera.image_size(c)):
+                raise InputError(
+                    f"CCD {c!r}: image is {readers[c].shape} (lines, samples) "
+                    f"but the camera says {tuple(camera.image_size(c))}"
+                )
+
+        plans = {c: plan_tiles(camera, c, ref, terrain, cfg) for c in todo_ccds}
+        all_tiles = [t for c in todo_ccds for t in plans[c].tiles]
+        built: dict[str, Matcher] = {}
+
+        def instance(which: str, m: MatcherLike) -> Matcher:
+            if isinstance(m, MatcherRecipe):
+                if which not in built:
+                    built[which] = m.build()
+                return built[which]
+            return m
+
+        def match_here(t: Tile) -> TileResult:
+            try:
+                return match_tile(
+                    t,
+                    image=readers[t.ccd],
+                    camera=camera,
+                    ref=ref,
+                    terrain=terrain,
+                    matcher=instance("fine", matcher),
+                    config=cfg,
+                    ratio=plans[t.ccd].ratio,
+                    debug=t.tile_id in debug_tiles,
+                    coarse_matcher=None
+                    if coarse_matcher is None
+                    else instance("coarse", coarse_matcher),
+                )
+            except Exception as exc:
+                if raise_errors:
+                    raise
+                return error_result(t, name, cfg.geometry, exc)
+
+        jr = (
+            None
+            if journal is None
+            else TileJournal(
+                journal, journal_digest(name, cfg.model_dump()), max_attempts=max_attempts
+            )
+        )
+        results: dict[str, TileResult] = {}
+        if jr is not None:
+            done = jr.open()
+            results.update({t.tile_id: done[t.tile_id] for t in all_tiles if t.tile_id in done})
+        pending = [t for t in all_tiles if t.tile_id not in results]
+
+        def record(r: TileResult) -> None:
+            results[r.tile_id] = r
+            if jr is not None:
+                jr.append(r)
+
+        try:
+            if parallel:
+                _match_parallel(
+                    executor,  # type: ignore[arg-type]
+                    _Dispatch(sources, matcher, coarse_matcher, cfg, plans, raise_errors),  # type: ignore[arg-type]
+                    pending,
+                    match_here,
+                    record,
+                    progress,
+                    set(debug_tiles),
+                )
+            else:
+                bar = tqdm(
+                    pending,
+                    desc=f"matching ({name})",
+                    unit="tile",
+                    disable=None if progress else True,
+                )
+                for t in bar:
+                    record(match_here(t))
+                    bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
+        finally:
+            if jr is not None:
+                jr.close()
+        return StripMatches(name, cfg, plans, [results[t.tile_id] for t in all_tiles])
+    finally:
+        for obj in opened:
+            obj.close()
+
+
+def _check_parallel(
+    executor: Executor,
+    sources: TileSources | None,
+    matcher: MatcherLike,
+    coarse: MatcherLike | None,
+    ccds: Sequence[str],
+) -> None:
+    if not isinstance(sources, TileSources):
+        raise InputError(
+            f"the {executor.name} executor needs sources= (a TileSources with "
+            "the camera, image, reference and DEM paths)"
+        )
+    for m in (matcher, coarse):
+        if m is not None and not isinstance(m, MatcherRecipe):
+            raise InputError(
+                f"the {executor.name} executor builds the matchers in its workers: pass "
+                f"them as MatcherRecipe (name and options), not as an instance of {_name(m)!r}"
+            )
+    lacking = sorted(set(ccds) - {c for c, _ in sources.images})
+    if lacking:
+        raise InputError(f"sources= has no image path for CCDs {lacking}")
+
+
+class _Dispatch:
+    """What every tile task of a strip shares."""
+
+    def __init__(
+        self,
+        sources: TileSources,
+        fine: MatcherRecipe,
+        coarse: MatcherRecipe | None,
+        cfg: FrontendConfig,
+        plans: Mapping[str, TilePlan],
+        raise_errors: bool,
+    ) -> None:
+        self.key = sources.key()
+        self.fine, self.coarse, self.cfg = fine, coarse, cfg
+        self.plans, self.raise_errors = plans, raise_errors
+
+    def task(self, t: Tile) -> TileTask:
+        return TileTask(
+            self.key,
+            self.fine,
+            self.coarse,
+            t,
+            self.cfg,
+            self.plans[t.ccd].ratio,
+            self.raise_errors,
+        )
+
+
+def _match_parallel(
+    executor: Executor,
+    dispatch: _Dispatch,
+    pending: list[Tile],
+    match_here: Callable[[Tile], TileResult],
+    record: Callable[[TileResult], None],
+    progress: bool,
+    debug: set[str],
+) -> None:
+    """The pending tiles on a parallel executor, each recorded (journalled) as it arrives.
+
+    ``debug`` tiles are matched here with ``match_here`` (their stage images do not travel).
+    """
+    from tqdm.auto import tqdm
+
+    remote = [t for t in pending if t.tile_id not in debug]
+    name = dispatch.fine.name
+    bar = tqdm(
+        total=len(pending),
+        desc=f"matching ({name}, {executor.name})",
+        unit="tile",
+        disable=None if progress else True,
+    )
+    n_ok = 0
+    try:
+        for t in pending:
+            if t.tile_id in debug:
+                record(match_here(t))
+                bar.update(1)
+        for out in executor.map_unordered(run_tile_task, [dispatch.task(t) for t in remote]):
+            t = remote[out.index]
+            if out.error is not None:
+                if dispatch.raise_errors:
+                    raise out.error
+                r = error_result(t, name, dispatch.cfg.geometry, out.error)
+            else:
+                r = TileResult.from_dict(out.result)
+            record(r)
+            n_ok += r.status == "ok"
+            bar.update(1)
+            bar.set_postfix(ok=n_ok)
+    finally:
+        bar.close()

@@ -1,0 +1,433 @@
+"""The tile algorithm: coarse-to-fine matching of one CCD tile against the reference orthoimage.
+
+For one tile (:func:`match_tile`):
+
+1. **Footprint**: the tile's border is projected onto the reference grid through the
+   initial camera and the DEM (:func:`~planetref.frontend.tiles.tile_footprint`).
+2. **Coarse stage**: the tile is brought to the reference geometry on a grid coarsened by
+   ``coarse_factor`` and matched against a coarsened reference window padded by the
+   a-priori uncertainty. Each match's displacement (actual minus predicted reference
+   position) votes for the tile's offset; the offset is the median displacement of the
+   largest consistent set (a translation consensus), so a few hundred metres of initial
+   error cost nothing but a wider coarse window.
+3. **Fine stage**: at full reference resolution against the footprint window shifted by
+   the coarse offset and padded by ``fine_pad_ref_px``. The matches are verified with
+   OpenCV USAC_MAGSAC (homography or affine) at ``ransac_threshold_ref_px``, then the
+   inliers must agree on the tile's displacement within ``fine_radius_ref_px``.
+4. **Back to raw**: every inlier's image-side keypoint maps back to raw ``(line, sample)``
+   (exactly, through the DEM and the initial camera, for orthorectified tiles), its
+   reference keypoint to reference map coordinates.
+
+5. **Refinement** (optional, ``refine``): every kept match is refined to sub-pixel
+   precision on the fine-stage images (:func:`planetref.matching.refine.refine_matches`),
+   the same way for every matcher; matches whose refinement diverges are dropped.
+6. **Thinning** (optional, ``max_mcps_per_tile``), for speed only.
+
+The result is a :class:`~planetref.frontend.result.TileResult` with a status (``ok``,
+``too_few_inliers``, ``no_overlap``, ``no_texture``, ``error``), the offsets, the funnel
+(how many correspondences each step kept, and why the others were dropped), timings and
+the kept correspondences.
+
+Offsets are in full-resolution reference pixels, ``(dcol, drow)`` = actual minus
+predicted position of the tile's content on the reference grid.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.camera.base import Camera, Terrain
+from planetref.frontend.config import FrontendConfig
+from planetref.frontend.grid import FineWindow, read_fine
+from planetref.frontend.orthorectify import ImageSide, downsample_tile, orthorectify
+from planetref.frontend.result import StageDebug, TileResult, TileStatus
+from planetref.frontend.robust import robust_translation, spread_select, verify_points
+from planetref.frontend.tiles import Tile, tile_footprint
+from planetref.matching.base import Matcher
+from planetref.raster.image import CcdImage
+from planetref.raster.ortho import ReferenceOrtho, RefWindow
+
+__all__ = ["inference_mode", "match_tile"]
+
+F64 = NDArray[np.float64]
+
+
+def _flat(image: NDArray[np.float32], valid: NDArray[np.bool_]) -> bool:
+    v = image[valid]
+    if v.size < 16:
+        return True
+    lo, hi = np.percentile(v, [0.5, 99.5])
+    return not (hi - lo) > 1e-6 * max(abs(float(lo)), abs(float(hi))) + 1e-30
+
+
+# --------------------------------------------------------------------------- one tile
+
+
+@contextlib.contextmanager
+def _timed(timings: dict[str, float], key: str) -> Iterator[None]:
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+
+
+def inference_mode() -> contextlib.AbstractContextManager[Any]:
+    """``torch.inference_mode()`` when torch is loaded already, else a null context."""
+    # Only when the matcher already brought torch in: importing it here would cost
+    # seconds for matchers that do not need it.
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        return torch.inference_mode()
+    return contextlib.nullcontext()
+
+
+def _image_side(
+    stage_factor: float,
+    window: RefWindow | FineWindow,
+    *,
+    image: CcdImage,
+    camera: Camera,
+    tile: Tile,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    config: FrontendConfig,
+    ratio: float,
+) -> ImageSide:
+    """The CCD side of a stage on ``window``'s grid (``stage_factor`` reference px per pixel)."""
+    if config.geometry == "orthorectify":
+        # The whole image may fill the window: matches outside the tile are dropped when
+        # mapped back, and the real neighbourhood beats a no-data border for matching.
+        # The lattice keeps its ground spacing on a fine grid (its step is in output px).
+        step = config.lattice_step_ref_px * (round(1 / stage_factor) if stage_factor < 1 else 1)
+        return orthorectify(
+            image,
+            camera,
+            tile.ccd,
+            ref,
+            terrain,
+            window,  # type: ignore[arg-type]  # a FineWindow offers the same interface
+            lattice_step=step,
+        )
+    return downsample_tile(image, tile, max(1, round(ratio * stage_factor)), camera, ref, terrain)
+
+
+@dataclass
+class _Stage:
+    kp0: F64
+    kp1: F64
+    conf: F64
+    predicted: F64
+    actual: F64
+
+
+def _match_stage(
+    side: ImageSide,
+    ref_img: NDArray[np.float32],
+    ref_valid: NDArray[np.bool_],
+    ref_window: RefWindow | FineWindow,
+    matcher: Matcher,
+    timings: dict[str, float],
+    key: str,
+) -> _Stage:
+    t0 = time.perf_counter()
+    with inference_mode():
+        m = matcher.match(side.image, ref_img, side.valid, ref_valid)
+    elapsed = time.perf_counter() - t0
+    timings[key] = timings.get(key, 0.0) + elapsed
+    fwd = getattr(matcher, "timings", {}) or {}
+    timings["forward"] = timings.get("forward", 0.0) + float(fwd.get("forward", elapsed))
+    kp0 = np.asarray(m.keypoints0, np.float64).reshape(-1, 2)
+    kp1 = np.asarray(m.keypoints1, np.float64).reshape(-1, 2)
+    conf = np.asarray(m.confidence, np.float64).reshape(-1)
+    pc, pr = side.predicted_ref_pixel(kp0[:, 0], kp0[:, 1])
+    ac, ar = ref_window.to_ref_pixel(kp1[:, 0], kp1[:, 1])
+    return _Stage(kp0, kp1, conf, np.column_stack([pc, pr]), np.column_stack([ac, ar]))
+
+
+def _valid_fraction(valid: NDArray[np.bool_]) -> float:
+    return float(valid.mean()) if valid.size else 0.0
+
+
+def _unmatchable(
+    side: ImageSide,
+    ref_img: NDArray[np.float32],
+    ref_valid: NDArray[np.bool_],
+    share: float,
+    cfg: FrontendConfig,
+) -> tuple[TileStatus, str] | None:
+    """Why a stage's pair cannot be matched (status and message), or None."""
+    f_img, f_ref = _valid_fraction(side.valid), _valid_fraction(ref_valid)
+    if f_img < cfg.min_valid_fraction * share:
+        return (
+            "no_overlap",
+            f"only {100 * f_img:.1f}% of the window has valid tile pixels "
+            "in the reference geometry",
+        )
+    if f_ref < cfg.min_valid_fraction:
+        return ("no_overlap", f"only {100 * f_ref:.1f}% of the reference window has data")
+    if _flat(side.image, side.valid) or _flat(ref_img, ref_valid):
+        return ("no_texture", "the tile or its reference window has no contrast")
+    return None
+
+
+def _area_share(inner: RefWindow, outer: RefWindow, cfg: FrontendConfig) -> float:
+    """Share of ``outer``'s area that ``inner`` (the footprint box) covers."""
+    if cfg.geometry != "orthorectify":
+        return 1.0  # the image side is the raw tile itself
+    a = inner.width * inner.height * inner.factor**2
+    b = outer.width * outer.height * outer.factor**2
+    return min(1.0, a / b) if b else 1.0
+
+
+def _refine(
+    cfg: FrontendConfig,
+    side: ImageSide,
+    fref: NDArray[np.float32],
+    fvalid: NDArray[np.bool_],
+    kp0: F64,
+    kp1: F64,
+) -> tuple[F64, F64, NDArray[np.bool_], dict[str, int]]:
+    """Sub-pixel refinement of the fine-stage matches (reference side moves).
+
+    Returns:
+        ``(kp1, sigma_px, ok, drop_reasons)``.
+    """
+    from planetref.matching.refine import refine_matches
+
+    rr = refine_matches(side.image, fref, kp0, kp1, cfg.refine, valid0=side.valid, valid1=fvalid)
+    reasons: dict[str, int] = {}
+    for r in np.asarray(rr.reason)[~np.asarray(rr.ok, bool)]:
+        reasons[str(r) or "dropped"] = reasons.get(str(r) or "dropped", 0) + 1
+    return (
+        np.asarray(rr.points1, np.float64).reshape(-1, 2),
+        np.asarray(rr.sigma_px, np.float64).reshape(-1),
+        np.asarray(rr.ok, bool).reshape(-1),
+        reasons,
+    )
+
+
+def match_tile(
+    tile: Tile,
+    *,
+    image: CcdImage,
+    camera: Camera,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    matcher: Matcher,
+    config: FrontendConfig | None = None,
+    ratio: float | None = None,
+    debug: bool = False,
+    coarse_matcher: Matcher | None = None,
+) -> TileResult:
+    """Match one CCD tile against the reference, coarse to fine.
+
+    Args:
+        tile: The tile (from :func:`~planetref.frontend.tiles.plan_tiles`).
+        image: Reader of the tile's CCD image.
+        camera: The initial camera.
+        ref: The reference orthoimage.
+        terrain: The reference DEM.
+        matcher: Any :class:`~planetref.matching.base.Matcher`.
+        config: Front-end settings (default: ``FrontendConfig()``).
+        ratio: Image pixels per reference pixel (default: measured at the tile centre);
+            only the ``downsample`` geometry uses it.
+        debug: Keep the stage images and matches in ``result.debug`` (for figures).
+        coarse_matcher: Matcher of the coarse stage (default: ``matcher``), e.g. an
+            area-based matcher with a search radius as large as the uncertainty.
+
+    Returns:
+        The tile's result. Geometric failures become statuses, not exceptions.
+    """
+    cfg = config or FrontendConfig()
+    name = str(getattr(matcher, "name", type(matcher).__name__))
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    res = TileResult(tile=tile, matcher=name, status="ok", geometry=cfg.geometry)
+
+    def finish(status: TileStatus, message: str = "") -> TileResult:
+        res.status = status
+        res.message = message
+        timings["total"] = time.perf_counter() - t_start
+        res.timings = timings
+        return res
+
+    with _timed(timings, "footprint"):
+        fp = tile_footprint(camera, tile, ref, terrain, cfg.footprint_points_per_edge)
+    if fp.window is None:
+        return finish("no_overlap", "no ray of the tile's border meets the DEM")
+    base = fp.window
+    if ratio is None and cfg.geometry == "downsample":
+        from planetref.frontend.geometry import image_gsd_m
+
+        lc, sc = tile.centre
+        ratio = float(np.sqrt(fp.gsd_m[0] * fp.gsd_m[1])) / image_gsd_m(
+            camera, tile.ccd, terrain, lc, sc
+        )
+    ratio = float(ratio or 1.0)
+    pad_unc = fp.pad_px(cfg.uncertainty_m)
+    rows, cols = ref.shape
+    c0, r0, c1, r1 = base.padded(pad_unc).bounds_px
+    if c1 <= 0 or r1 <= 0 or c0 >= cols or r0 >= rows:
+        return finish("no_overlap", "the tile's search window lies outside the reference")
+    side_kw = dict(
+        image=image, camera=camera, tile=tile, ref=ref, terrain=terrain, config=cfg, ratio=ratio
+    )
+
+    # ---- coarse stage
+    # Orthorectified tiles are resampled onto the very window of the reference they are
+    # matched with, so the expected displacement between the two arrays is just the
+    # initial error: area-based matchers with a bounded search work as well as the rest.
+    coarse_offset: F64 | None = None
+    if cfg.coarse:
+        f = cfg.coarse_factor
+        with _timed(timings, "coarse_prepare"):
+            cwin = RefWindow.around(*base.bounds_px, pad_px=pad_unc + cfg.fine_pad_ref_px, factor=f)
+            side = _image_side(f, cwin, **side_kw)
+            cref, cvalid = ref.read(cwin)
+        problem = _unmatchable(side, cref, cvalid, _area_share(base, cwin, cfg), cfg)
+        if problem is not None:
+            return finish(*problem)
+        st = _match_stage(
+            side, cref, cvalid, cwin, coarse_matcher or matcher, timings, "coarse_match"
+        )
+        res.n_coarse_matches = len(st.kp0)
+        disp = st.actual - st.predicted
+        ok = np.all(np.isfinite(disp), axis=1)
+        offset, inl = robust_translation(disp[ok], cfg.coarse_radius_ref_px, st.conf[ok])
+        full_inl = np.zeros(len(disp), bool)
+        full_inl[np.flatnonzero(ok)] = inl
+        res.n_coarse_inliers = int(full_inl.sum())
+        if offset is not None and res.n_coarse_inliers >= cfg.coarse_min_matches:
+            coarse_offset = offset
+            res.coarse_offset_px = (float(offset[0]), float(offset[1]))
+        if debug:
+            res.debug.append(
+                StageDebug("coarse", side.image, side.valid, cref, cvalid, st.kp0, st.kp1, full_inl)
+            )
+
+    # ---- fine stage
+    up = cfg.fine_upsample
+    with _timed(timings, "fine_prepare"):
+        pad = cfg.fine_pad_ref_px if coarse_offset is not None else pad_unc + cfg.fine_pad_ref_px
+        iwin = base.padded(pad)
+        fwin = iwin if coarse_offset is None else iwin.shifted(coarse_offset[0], coarse_offset[1])
+        side = _image_side(1.0 / up, FineWindow(iwin, up) if up > 1 else iwin, **side_kw)
+        fine_ref = FineWindow(fwin, up)
+        fref, fvalid = read_fine(ref, fine_ref)
+    res.search_window = fwin.to_tuple()
+    problem = _unmatchable(side, fref, fvalid, _area_share(base, iwin, cfg), cfg)
+    if problem is not None:
+        return finish(*problem)
+    st = _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
+    res.n_matches = len(st.kp0)
+    res.record("raw", res.n_matches)
+    with _timed(timings, "verify"):
+        # Gate: a predicted position, and (after a coarse consensus) a displacement that
+        # the fine window around the coarse offset can hold at all.
+        ok = np.all(np.isfinite(st.predicted), axis=1)
+        gate = {"no_prediction": int(np.count_nonzero(~ok))}
+        if coarse_offset is not None:
+            reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
+            with np.errstate(invalid="ignore"):
+                far = np.any(np.abs(st.actual - st.predicted - coarse_offset) > reach, axis=1)
+            gate["outside_window"] = int(np.count_nonzero(ok & far))
+            ok &= ~far
+        res.record("coarse_gate", int(ok.sum()), gate)
+        src = st.predicted if cfg.geometry == "orthorectify" else st.kp0
+        inl = np.zeros(len(st.kp0), bool)
+        inl[ok] = verify_points(
+            src[ok],
+            st.actual[ok],
+            cfg.ransac_model,
+            cfg.ransac_threshold_ref_px,
+            cfg.ransac_confidence,
+            cfg.ransac_max_iters,
+        )
+        res.record("ransac", int(inl.sum()), {"outlier": int(ok.sum() - inl.sum())})
+        n_ransac = int(inl.sum())
+        if inl.any():
+            # True matches of one tile share (nearly) one displacement; a homography
+            # fitted to wrong matches does not, whatever its residuals.
+            idx = np.flatnonzero(inl)
+            _, cons = robust_translation(
+                (st.actual - st.predicted)[idx], cfg.fine_radius_ref_px, st.conf[idx]
+            )
+            inl[idx[~cons]] = False
+        res.record("consensus", int(inl.sum()), {"off_translation": n_ransac - int(inl.sum())})
+    res.n_inliers = int(inl.sum())
+    if debug:
+        res.debug.append(
+            StageDebug("fine", side.image, side.valid, fref, fvalid, st.kp0, st.kp1, inl)
+        )
+    if res.n_inliers:
+        disp = (st.actual - st.predicted)[inl]
+        # The mean, not the median: the inliers are verified already, and detectors that
+        # report integer pixel positions make the median jump by whole pixels.
+        off = np.mean(disp, axis=0)
+        mad = np.median(np.abs(disp - np.median(disp, axis=0)), axis=0)
+        res.offset_px = (float(off[0]), float(off[1]))
+        res.offset_mad_px = (float(mad[0]), float(mad[1]))
+    if res.n_inliers < cfg.min_inliers:
+        coarse_note = (
+            ""
+            if not cfg.coarse or coarse_offset is not None
+            else f" (no coarse consensus: {res.n_coarse_inliers} of {res.n_coarse_matches})"
+        )
+        return finish(
+            "too_few_inliers",
+            f"{res.n_inliers} inliers of {res.n_matches} "
+            f"matches, {cfg.min_inliers} needed{coarse_note}",
+        )
+
+    with _timed(timings, "backmap"):
+        idx = np.flatnonzero(inl)
+        line, sample, good = side.to_raw(st.kp0[idx, 0], st.kp0[idx, 1])
+        inside = good & tile.contains(line, sample)
+        # The tile's verification is judged on all its inliers; of those, it keeps the
+        # ones in its core (its neighbour keeps the rest of the overlap).
+        n_inside = int(inside.sum())
+        owned = inside & tile.owns(line, sample)
+        res.record(
+            "backprojection",
+            int(owned.sum()),
+            {
+                "no_raw_position": int(np.count_nonzero(~good)),
+                "outside_tile": int(np.count_nonzero(good & ~inside)),
+                "neighbour_tile": int(np.count_nonzero(inside & ~owned)),
+            },
+        )
+        idx, line, sample = idx[owned], line[owned], sample[owned]
+    kp1 = st.kp1[idx]
+    sigma = np.full(len(idx), np.nan)
+    if cfg.refine.method != "none" and len(idx):
+        with _timed(timings, "refine"):
+            kp1, sigma, rok, reasons = _refine(cfg, side, fref, fvalid, st.kp0[idx], kp1)
+            idx, line, sample, kp1, sigma = idx[rok], line[rok], sample[rok], kp1[rok], sigma[rok]
+        res.record("refine", len(idx), reasons)
+    conf = st.conf[idx]
+    keep = spread_select(line, sample, conf, cfg.max_mcps_per_tile)
+    n_verified = len(idx)
+    res.thinned = len(keep) < n_verified
+    idx, line, sample, conf = idx[keep], line[keep], sample[keep], conf[keep]
+    kp1, sigma = kp1[keep], sigma[keep]
+    res.record("mcp", len(idx), {"thinned": n_verified - len(idx)})
+    ref_col, ref_row = fine_ref.to_ref_pixel(kp1[:, 0], kp1[:, 1])
+    ref_x, ref_y = ref.pixel_to_map(ref_col, ref_row)
+    res.line, res.sample, res.confidence, res.sigma_px = line, sample, conf, sigma
+    res.ref_col, res.ref_row = np.asarray(ref_col, np.float64), np.asarray(ref_row, np.float64)
+    res.ref_x, res.ref_y = np.asarray(ref_x, np.float64), np.asarray(ref_y, np.float64)
+    if n_inside < cfg.min_inliers:
+        return finish(
+            "too_few_inliers",
+            f"{n_inside} inliers map back into the tile, {cfg.min_inliers} needed",
+        )
+    return finish("ok")

@@ -1,0 +1,214 @@
+"""The blocks of a georef report.json: adjustment, true geolocation error, several strips.
+
+:func:`adjustment_block` is the one place that maps reprojection metrics
+(:func:`planetref.metrics.reprojection_metrics`) to the report's ``adjustment`` block,
+whether for a strip alone, a strip of a joint network, the joint network, or several
+strips pooled.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from planetref import __version__
+
+if TYPE_CHECKING:  # pragma: no cover
+    from planetref.adjust.api import AdjustmentResult
+    from planetref.camera.base import Camera
+    from planetref.raster.dem import GridTerrain
+
+__all__ = ["adjustment_block", "camera_view", "check_block", "combined_report", "rmse_px"]
+
+
+def camera_view(result: Any, index: int) -> Any:
+    """The observations of one camera of a joint result, as the residual figure reads it."""
+    from types import SimpleNamespace
+
+    net = result.network
+    on = net.obs_camera == index
+    cid = net.camera_ids[index]
+    sub = SimpleNamespace(
+        camera_ids=(cid,),
+        obs_ccd=net.obs_ccd[on],
+        obs_line=net.obs_line[on],
+        obs_sample=net.obs_sample[on],
+    )
+    return SimpleNamespace(
+        network=sub,
+        cameras={cid: result.cameras[cid]},
+        residual=result.residual[on],
+        status=result.status[on],
+    )
+
+
+def rmse_px(res: Any) -> float | None:
+    """Radial RMSE of ``(N, 2)`` residuals over the finite ones (None when there are none)."""
+    r = np.asarray(res, float).reshape(-1, 2)
+    r = r[np.all(np.isfinite(r), axis=1)]
+    return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else None
+
+
+def adjustment_block(
+    after: dict[str, Any],
+    *,
+    rmse_px_before: float | None,
+    sigma0: float,
+    converged: bool,
+    **extra: Any,
+) -> dict[str, Any]:
+    """The ``adjustment`` block of report.json, from reprojection metrics after adjustment.
+
+    The one place that maps :func:`planetref.metrics.reprojection_metrics` keys to the
+    report's (a strip alone, a strip of a joint network, the joint network, several
+    strips pooled). Per-axis RMSE (``rmse_x_px``, ``rmse_y_px``) is passed on when the
+    metrics have it.
+
+    Args:
+        after: Metrics of the inliers after adjustment.
+        rmse_px_before: RMSE before adjustment (pixels).
+        sigma0: A-posteriori sigma of unit weight.
+        converged: Whether the adjustment converged.
+        **extra: Further entries, appended in order.
+    """
+    block = {"rmse_px_before": rmse_px_before, "rmse_px": after["rmse_px"]}
+    for key in ("rmse_x_px", "rmse_y_px"):
+        if key in after:
+            block[key] = after[key]
+    block |= {
+        "mean_px": after["mean_px"],
+        "max_x_px": after["max_dx_px"],
+        "max_y_px": after["max_dy_px"],
+        "min_x_px": after["min_dx_px"],
+        "min_y_px": after["min_dy_px"],
+        "outlier_ratio_pct": after["outlier_ratio_pct"],
+        "n_total": after["n_total"],
+        "n_inliers": after["n_inliers"],
+        "sigma0": sigma0,
+        "converged": converged,
+    }
+    return block | extra
+
+
+def check_block(
+    result: AdjustmentResult, truth: dict[str, Camera], truth_dem: GridTerrain | None
+) -> dict[str, Any]:
+    """True geolocation error before and after adjustment of one strip (simulated scenes)."""
+    from planetref.metrics import geolocation_error
+
+    ((sid, true_cam),) = truth.items()
+    before, after = [], []
+    for ccd in true_cam.ccd_names:
+        before.append(
+            geolocation_error(result.cameras_initial[sid], true_cam, ccd=ccd, terrain=truth_dem)
+        )
+        after.append(geolocation_error(result.cameras[sid], true_cam, ccd=ccd, terrain=truth_dem))
+
+    def rms(items: list[dict[str, Any]], key: str) -> float:
+        vals = np.array([i[key] for i in items], float)
+        return float(np.sqrt(np.mean(vals**2)))
+
+    return {
+        "geoloc_rmse_m_before": rms(before, "rms_m"),
+        "geoloc_rmse_m": rms(after, "rms_m"),
+        "geoloc_rmse_px_before": rms(before, "rms_px"),
+        "geoloc_rmse_px": rms(after, "rms_px"),
+        "geoloc_max_m": float(max(i["max_m"] for i in after)),
+        "ccds": {
+            c: {"before": b, "after": a}
+            for c, b, a in zip(true_cam.ccd_names, before, after, strict=True)
+        },
+    }
+
+
+def combined_report(
+    matcher: str,
+    scene: str,
+    strips: dict[str, dict[str, Any]],
+    timing: dict[str, float],
+    frontend: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """report.json: one strip's blocks as they are, several strips merged.
+
+    Args:
+        matcher: Matcher name.
+        scene: Scene name.
+        strips: Per-strip blocks.
+        timing: Seconds per step.
+        frontend: The front-end settings that decide what the matching figures mean
+            (refinement, fine-stage resolution, dense spacing, thinning), stated in the
+            ``matching`` block so that tables can say so.
+    """
+    from planetref.metrics import reprojection_metrics
+
+    ccds: dict[str, Any] = {}
+    for sid, s in strips.items():
+        for c, v in s["matching"]["ccds"].items():
+            ccds[c if len(strips) == 1 else f"{sid}/{c}"] = v
+    ncp = sum(s["matching"]["ncp"] for s in strips.values())
+    sdu = float(np.mean([v["sdu_pct"] for v in ccds.values()])) if ccds else 0.0
+    matching = {
+        "ccds": ccds,
+        "ncp": ncp,
+        "sdu_pct": sdu,
+        "tiles_total": sum(s["matching"]["tiles_total"] for s in strips.values()),
+        "tiles_failed": sum(s["matching"]["tiles_failed"] for s in strips.values()),
+        "tiles_thinned": sum(s["matching"].get("tiles_thinned", 0) for s in strips.values()),
+        "tiles_lost": [
+            dict(t, strip=sid) for sid, s in strips.items() for t in s["matching"]["tiles_lost"]
+        ],
+        "funnel": _sum_counts(s["matching"].get("funnel", {}) for s in strips.values()),
+        "drops": _sum_counts(s["matching"].get("drops", {}) for s in strips.values()),
+    }
+    if frontend is not None:
+        matching["settings"] = dict(frontend)
+    if len(strips) == 1:
+        (only,) = strips.values()
+        adjustment = dict(only["adjustment"])
+        check = only["check"]
+    else:
+        res = np.concatenate([s["_residuals"][0] for s in strips.values()])
+        inl = np.concatenate([s["_residuals"][1] for s in strips.values()])
+        adjustment = adjustment_block(
+            reprojection_metrics(res[:, 1], res[:, 0], inl),
+            rmse_px_before=float(
+                np.nanmean([s["adjustment"]["rmse_px_before"] for s in strips.values()])
+            ),
+            sigma0=float(np.nanmean([s["adjustment"]["sigma0"] for s in strips.values()])),
+            converged=all(s["adjustment"]["converged"] for s in strips.values()),
+        )
+        checks = [s["check"] for s in strips.values() if s["check"]]
+        check = (
+            None
+            if not checks
+            else {
+                k: float(np.sqrt(np.mean([c[k] ** 2 for c in checks])))
+                for k in ("geoloc_rmse_m_before", "geoloc_rmse_m", "geoloc_rmse_px")
+            }
+            | {"geoloc_max_m": max(c["geoloc_max_m"] for c in checks)}
+        )
+    strips_out = {
+        sid: {k: v for k, v in s.items() if not k.startswith("_") and k != "files"}
+        for sid, s in strips.items()
+    }
+    return {
+        "matcher": matcher,
+        "scene": scene,
+        "planetref_version": __version__,
+        "matching": matching,
+        "adjustment": adjustment,
+        "check": check,
+        "timing_s": timing,
+        "strips": strips_out,
+    }
+
+
+def _sum_counts(blocks: Iterable[Mapping[str, int]]) -> dict[str, int]:
+    """Counts summed key by key, keys in first-seen order."""
+    out: dict[str, int] = {}
+    for b in blocks:
+        for k, v in b.items():
+            out[k] = out.get(k, 0) + int(v)
+    return out

@@ -1,0 +1,185 @@
+"""The inputs of a georef run, opened and checked before any tile is matched.
+
+Each check fails with one line naming the file: a strip whose CCDs use several camera
+files, a CCD the camera does not know, an image of the wrong size or truncated, a strip
+whose footprint misses the reference.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from planetref.errors import InputError, PlanetrefError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from planetref.camera.base import Camera
+    from planetref.pipeline.scene import SceneManifest, StripSpec
+    from planetref.raster.dem import GridTerrain
+    from planetref.raster.image import CcdImage
+    from planetref.raster.ortho import ReferenceOrtho
+
+__all__ = [
+    "MARS_SEMI_MAJOR_M",
+    "check_body",
+    "check_overlap",
+    "open_reference",
+    "scene_input_files",
+    "scene_path",
+    "strip_cameras",
+    "truth_inputs",
+]
+
+MARS_SEMI_MAJOR_M = 3396190.0
+
+
+def scene_path(scene: str | os.PathLike[str]) -> Path:
+    """The absolute path of ``scene.toml`` (given it or its folder)."""
+    p = Path(scene)
+    return (p / "scene.toml" if p.is_dir() else p).resolve()
+
+
+def scene_input_files(manifest: SceneManifest, root: Path) -> list[Path]:
+    """Every file a scene manifest names (reference, images, cameras, truth): run inputs."""
+    names = [manifest.reference.ortho, manifest.reference.dem]
+    for strip in manifest.strips:
+        for c in strip.ccds:
+            names += [c.image, c.camera]
+    if manifest.truth is not None:
+        names += [manifest.truth.dem, *manifest.truth.cameras.values()]
+    paths = {manifest.resolve(root, n) for n in names}
+    return sorted(Path(p) for p in paths if Path(p).is_file())
+
+
+def check_body(body: Any, raster: Any, what: str, path: Any = None) -> None:
+    """Refuse a reference on another body than ``body`` (e.g. an Earth CRS), in words."""
+    from planetref.errors import CrsError
+
+    crs = getattr(raster, "crs", None)
+    ellipsoid = getattr(crs, "ellipsoid", None)
+    a_ref = getattr(ellipsoid, "semi_major_metre", None)
+    a_cam = float(body.semi_major_m)
+    if a_ref is None or abs(float(a_ref) - a_cam) <= 0.01 * a_cam:
+        return
+    name = (
+        "Mars"
+        if abs(a_cam - MARS_SEMI_MAJOR_M) <= 0.01 * MARS_SEMI_MAJOR_M
+        else f"the cameras' body (a = {a_cam:.0f} m)"
+    )
+    raise CrsError(
+        f"the {what}'s CRS is not a {name} CRS ({crs.name}; ellipsoid "
+        f"{ellipsoid.name}, a = {float(a_ref):.0f} m) but the cameras are on {name}",
+        path=path or getattr(raster, "path", None),
+    )
+
+
+def open_reference(manifest: SceneManifest, root: Path) -> tuple[ReferenceOrtho, GridTerrain]:
+    """The scene's reference orthoimage and DEM, opened."""
+    from planetref.raster.dem import GridTerrain
+    from planetref.raster.ortho import ReferenceOrtho
+
+    ortho_path = manifest.resolve(root, manifest.reference.ortho)
+    dem_path = manifest.resolve(root, manifest.reference.dem)
+    ref = ReferenceOrtho(ortho_path, band=manifest.reference.ortho_band)
+    dem = GridTerrain.from_geotiff(dem_path, band=manifest.reference.dem_band)
+    return ref, dem
+
+
+def strip_cameras(
+    manifest: SceneManifest, root: Path, strip: StripSpec
+) -> tuple[Camera, dict[str, CcdImage]]:
+    """The strip's camera and its CCD images, keyed by the camera's CCD names."""
+    from planetref.camera.io import load_camera
+    from planetref.raster.image import CcdImage
+
+    files = {manifest.resolve(root, c.camera) for c in strip.ccds}
+    if len(files) != 1:
+        raise InputError(
+            f"strip {strip.id}: its CCDs use {len(files)} camera files; georef "
+            "adjusts a strip as one camera, so its CCDs must share one camera "
+            "file (a multi-CCD native camera)"
+        )
+    camera = load_camera(files.pop())
+    images: dict[str, CcdImage] = {}
+    for c in strip.ccds:
+        cam_ccd = c.camera_ccd or c.name
+        if cam_ccd not in camera.ccd_names:
+            if len(camera.ccd_names) == 1:
+                cam_ccd = camera.ccd_names[0]
+            else:
+                raise InputError(
+                    f"strip {strip.id}, CCD {c.name}: the camera has no CCD "
+                    f"{cam_ccd!r} (it has {list(camera.ccd_names)})"
+                )
+        images[cam_ccd] = _checked_image(CcdImage(manifest.resolve(root, c.image)), camera, cam_ccd)
+    return camera, images
+
+
+def _checked_image(image: CcdImage, camera: Camera, ccd: str) -> CcdImage:
+    """Fail early, naming the file, on a CCD image that is truncated or of the wrong size."""
+    n_lines, n_samples = camera.image_size(ccd)
+    shape = getattr(image, "shape", None)
+    if shape is not None and tuple(shape)[:2] != (n_lines, n_samples):
+        raise InputError(
+            f"the image is {shape[0]} x {shape[1]} (lines x samples) but its "
+            f"camera's CCD {ccd} is {n_lines} x {n_samples}",
+            path=image.path,
+        )
+    try:
+        # A truncated GeoTIFF opens fine and fails on its first missing block, so read the
+        # first and last lines now rather than in the middle of a run.
+        for line0 in (0, max(0, n_lines - 8)):
+            image.read(line0, 0, min(8, n_lines), n_samples)
+    except PlanetrefError:
+        raise
+    except Exception as exc:
+        raise InputError(
+            f"cannot read the image ({type(exc).__name__}: {exc})", path=image.path
+        ) from None
+    return image
+
+
+def check_overlap(
+    camera: Camera,
+    images: dict[str, CcdImage],
+    ref: ReferenceOrtho,
+    dem: GridTerrain,
+    strip: str,
+) -> None:
+    """Refuse a strip whose footprint misses the reference ortho entirely."""
+    from planetref.frontend.geometry import image_to_ref_pixel
+
+    check_body(camera.ellipsoid, ref, "reference ortho")
+    check_body(camera.ellipsoid, dem, "reference DEM")
+    for ccd in images:
+        n_lines, n_samples = camera.image_size(ccd)
+        t = np.linspace(0, 1, 5)
+        line = np.concatenate([t * n_lines, t * n_lines])
+        sample = np.concatenate([np.zeros(5), np.full(5, n_samples)])
+        col, row = image_to_ref_pixel(camera, ccd, line, sample, ref, dem)
+        if np.any(np.isfinite(col)) and np.any(ref.contains_pixel(col, row)):
+            return
+    raise InputError(
+        f"strip {strip}: its images do not overlap the reference ortho (or "
+        "their rays miss the reference DEM); check the scene's reference and "
+        "cameras"
+    )
+
+
+def truth_inputs(
+    manifest: SceneManifest, root: Path
+) -> tuple[dict[str, Camera], GridTerrain | None]:
+    """True cameras per strip id and the true DEM of a simulated scene (empty, None otherwise)."""
+    from planetref.camera.io import load_camera
+    from planetref.raster.dem import GridTerrain
+
+    if manifest.truth is None:
+        return {}, None
+    cams = {
+        sid: load_camera(manifest.resolve(root, p)) for sid, p in manifest.truth.cameras.items()
+    }
+    dem = GridTerrain.from_geotiff(manifest.resolve(root, manifest.truth.dem))
+    return cams, dem

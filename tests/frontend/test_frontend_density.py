@@ -1,0 +1,152 @@
+"""Density and funnel: tiles cover each CCD once, nothing caps what metrics count."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from planetref.frontend.config import FrontendConfig
+from planetref.frontend.result import FUNNEL_STAGES
+from planetref.frontend.tile import match_tile
+from planetref.frontend.tiles import plan_tiles
+from planetref.raster.image import CcdImage
+from planetref.raster.ortho import ReferenceOrtho
+
+CFG = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2)
+
+
+@pytest.fixture(scope="module")
+def ref(scene):
+    with ReferenceOrtho(scene.ortho_path) as r:
+        yield r
+
+
+@pytest.mark.parametrize("overlap", [0, 16, 40])
+def test_tile_cores_partition_every_ccd(scene, ref, overlap):
+    cfg = CFG.model_copy(update={"tile_overlap_ref_px": overlap})
+    for ccd in scene.image_paths:
+        plan = plan_tiles(scene.init_cam, ccd, ref, scene.dem, cfg)
+        n_lines, n_samples = plan.image_size
+        owners = np.zeros((n_lines, n_samples), np.int32)
+        covered = np.zeros((n_lines, n_samples), np.int32)
+        for t in plan.tiles:
+            l0, s0, l1, s1 = t.bounds
+            covered[l0:l1, s0:s1] += 1
+            c = t.core
+            assert c is not None and l0 <= c[0] < c[2] <= l1 and s0 <= c[1] < c[3] <= s1
+            owners[c[0] : c[2], c[1] : c[3]] += 1
+        assert (owners == 1).all()  # every pixel belongs to exactly one tile's core
+        assert (covered >= 1).all()  # ... and tiles cover the whole CCD
+        if overlap and len(plan.tiles) > 1:
+            assert covered.max() >= 2
+        # Continuous coordinates on the seams are owned once too.
+        t0 = plan.tiles[0]
+        edge = float(t0.core[2])
+        owned = [int(t.owns(np.array([edge]), np.array([1.5]))[0]) for t in plan.tiles]
+        assert sum(owned) == (1 if edge < n_lines else 0)
+
+
+def test_funnel_counts_every_stage_and_thinning_does_not_change_ncp(scene, ref):
+    from planetref.matching import get_matcher
+
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
+    tile = plan.tiles[0]
+    kw = dict(
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+    )
+    full = match_tile(tile, config=CFG, **kw)
+    assert full.status == "ok" and not full.thinned
+    f = full.funnel
+    assert list(f) == [s for s in FUNNEL_STAGES if s in f]
+    assert list(f) == ["raw", "coarse_gate", "ransac", "consensus", "backprojection", "mcp"]
+    counts = list(f.values())
+    assert all(a >= b for a, b in itertools.pairwise(counts))
+    assert f["raw"] == full.n_matches and f["consensus"] == full.n_inliers
+    assert f["mcp"] == f["backprojection"] == full.n_points == full.ncp
+    # Every drop has a reason, and the reasons add up to the losses.
+    lost = f["raw"] - f["backprojection"]
+    assert sum(full.drops.values()) == lost
+    assert all(k.split(":")[0] in FUNNEL_STAGES for k in full.drops)
+    # Thinning for speed: fewer MCPs written, flagged, the verified count unchanged.
+    n_thin = max(8, full.n_points // 3)
+    thin = match_tile(tile, config=CFG.model_copy(update={"max_mcps_per_tile": n_thin}), **kw)
+    assert thin.thinned and thin.n_points == n_thin < full.n_points
+    assert thin.ncp == full.ncp and thin.funnel["backprojection"] == f["backprojection"]
+    assert thin.drops["mcp:thinned"] == full.n_points - n_thin
+
+
+def test_default_settings_cap_nothing():
+    cfg = FrontendConfig()
+    assert cfg.max_mcps_per_tile == 0 and cfg.refine.method == "none"
+
+
+def test_fine_grid_resamples_the_reference_on_the_corner_convention(ref):
+    from planetref.frontend.grid import FineWindow, read_fine
+    from planetref.raster.ortho import RefWindow
+
+    rows, cols = ref.shape
+    w = RefWindow(cols // 2 - 20, rows // 2 - 15, 40, 30, 1)
+    base, base_valid = ref.read(w)
+    fine, valid = read_fine(ref, FineWindow(w, 3))
+    assert fine.shape == valid.shape == (90, 120)
+    # Fine pixel (1, 1) of each 3 x 3 block has its centre on a reference pixel centre, where
+    # bicubic interpolation returns the sample itself.
+    np.testing.assert_allclose(fine[1::3, 1::3], base, rtol=1e-5, atol=1e-3)
+    assert valid[1::3, 1::3][base_valid].mean() > 0.95
+    fw = FineWindow(w, 3)
+    col, row = fw.to_ref_pixel([1.5, 4.5], [1.5, 1.5])
+    np.testing.assert_allclose(col, [w.col0 + 0.5, w.col0 + 1.5])
+    np.testing.assert_allclose(fw.from_ref_pixel(col, row), [[1.5, 4.5], [1.5, 1.5]])
+    assert read_fine(ref, FineWindow(w, 1))[0].tobytes() == base.tobytes()
+
+
+def test_finer_fine_stage_recovers_the_offset(scene, ref):
+    from test_frontend_match_tile import truth_offset
+
+    from planetref.matching import get_matcher
+
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
+    tile = plan.tiles[0]
+    r = match_tile(
+        tile,
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+        config=CFG.model_copy(update={"fine_upsample": 2}),
+    )
+    assert r.status == "ok" and r.ncp >= 20
+    err = np.abs(np.asarray(r.offset_px) - truth_offset(scene, ref, tile))
+    assert err.max() < 0.5, err
+
+
+def test_refinement_runs_on_every_matcher_s_output(scene, ref):
+    pytest.importorskip("planetref.matching.refine")
+    from test_frontend_match_tile import truth_offset
+
+    from planetref.matching import get_matcher
+
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
+    tile = plan.tiles[0]
+    cfg = FrontendConfig.model_validate({**CFG.model_dump(), "refine": {"method": "lsm"}})
+    r = match_tile(
+        tile,
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=get_matcher("sift"),
+        config=cfg,
+    )
+    assert r.status == "ok" and "refine" in r.funnel
+    assert r.funnel["refine"] <= r.funnel["backprojection"] and r.ncp == r.funnel["refine"]
+    assert np.isfinite(r.sigma_px).mean() > 0.9 and np.nanmedian(r.sigma_px) < 0.5
+    err = np.abs(np.asarray(r.offset_px) - truth_offset(scene, ref, tile))
+    assert err.max() < 0.5, err
