@@ -14,18 +14,9 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
+from planetref.matching.refine import RefineConfig
 from planetref.settings import Settings, validate_settings
 from planetref.tomlfile import read_toml
-
-try:
-    from planetref.matching.refine import RefineConfig
-except ImportError:  # pragma: no cover - the refinement module is not installed yet
-
-    class RefineConfig(Settings):  # type: ignore[no-redef]
-        """Placeholder until :mod:`planetref.matching.refine` exists: no refinement."""
-
-        method: Literal["none"] = "none"
-
 
 __all__ = ["FrontendConfig", "GeometryMode", "RansacModel", "RefineConfig"]
 

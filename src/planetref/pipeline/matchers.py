@@ -72,7 +72,7 @@ def matcher_options(
     options = dict(cfg.matchers.get(name, {}))
     fe = cfg.frontend
     if name != "ncc":
-        if name == "loftr" and _accepts(name, "dense_spacing_px"):
+        if name == "loftr" and _loftr_is_dense():
             options.setdefault("dense_spacing_px", fe.dense_spacing_ref_px * fe.fine_upsample)
         return options, None
     up = fe.fine_upsample
@@ -83,24 +83,18 @@ def matcher_options(
     coarse_radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_factor))) + 4
     coarse_opts = {"spacing": 8, **options}
     coarse_opts["search_radius"] = max(coarse_radius, int(coarse_opts.get("search_radius", 0)))
-    fine_opts = {"search_radius": fine_radius, "spacing": fe.dense_spacing_ref_px * up, **options}
+    dense = fe.dense_spacing_ref_px * up
+    fine_opts = {"search_radius": fine_radius, "dense_spacing_px": dense, **options}
     return fine_opts, coarse_opts
 
 
-def _accepts(name: str, option: str) -> bool:
-    """Whether a registry matcher's constructor takes ``option`` (without building it)."""
+def _loftr_is_dense() -> bool:
+    """Whether this LoFTR takes a ``dense_spacing_px`` option (imports its module only)."""
     import inspect
 
-    from planetref.matching.registry import MATCHERS
+    from planetref.matching.loftr import LoftrMatcher
 
-    spec = MATCHERS.get(name)
-    if spec is None:
-        return False
-    try:
-        params = inspect.signature(spec.factory).parameters
-    except (TypeError, ValueError):
-        return False
-    return option in params
+    return "dense_spacing_px" in inspect.signature(LoftrMatcher).parameters
 
 
 def matcher_recipes(
