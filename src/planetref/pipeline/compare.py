@@ -153,7 +153,7 @@ def _run_compare(
     if not scene_path.is_file():
         raise InputError("scene manifest not found", path=scene_path)
     from planetref.pipeline.georef import scene_input_files
-    from planetref.simulate.manifest import load_manifest
+    from planetref.pipeline.scene import load_manifest
 
     manifest, root = load_manifest(scene_path)
     identity = {"scene": str(scene_path), "config": config_digest(cfg.to_json())}
