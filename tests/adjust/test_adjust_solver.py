@@ -332,7 +332,10 @@ def test_weak_node_error_names_it_or_weights_it():
     keep = net.obs_line < 2000  # the last nodes see nothing
     sub = Network(**{**net._fields(), "obs_check": ~keep})
     with pytest.raises(AdjustmentError, match=r"strip 'strip'.*node 7"):
-        adjust(sub)
+        adjust(sub, {"linescan": {"weak_nodes": "error"}})
+    # The default smooths them: the run goes through with a warning.
+    smooth = adjust(sub)
+    assert any("weak node" in w for w in smooth.warnings)
     res = adjust(sub, {"linescan": {"weak_nodes": "weight"}})
     assert any("weak node" in w for w in res.warnings)
     assert res.summary()["rmse_px"] < 0.5
@@ -365,7 +368,7 @@ def test_no_redundancy_and_unadjustable_cameras():
     with pytest.raises(AdjustmentError, match=r"singular|no redundancy"):
         adjust(net, {"linescan": {"position": {"mode": "free"}, "min_obs_per_node": 0}, **LINEAR})
     with pytest.raises(AdjustmentError, match="too few observations near"):
-        adjust(net, {"linescan": {"position": {"mode": "free"}}})
+        adjust(net, {"linescan": {"position": {"mode": "free"}, "weak_nodes": "error"}})
 
     class NotACamera:
         ccd_names = ("ccd1", "ccd2", "ccd3")
