@@ -88,7 +88,10 @@ def test_read_and_adjust_network(tmp_path):
         first = next(iter(csv.DictReader(fh)))
     assert net.obs_line[0] == pytest.approx(float(first["line"]) - 0.5)
     assert net.obs_sample[0] == pytest.approx(float(first["sample"]) - 0.5)
-    assert np.all(np.isinf(net.point_sigma_m[net.point_kind == "tie"]))
+    # Free points get the documented default a-priori sigma (the datum cannot float).
+    assert np.all(net.point_sigma_m[net.point_kind == "tie"] == 200.0)
+    free = read_network(path, config={"observations": {"tie_apriori_sigma_m": None}})
+    assert np.all(np.isinf(free.network.point_sigma_m[free.network.point_kind == "tie"]))
     assert np.all(net.point_sigma_m[net.point_kind == "mcp"] == 0)
     res = adjust(net, {"linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}}})
     assert res.summary()["rmse_px"] < 0.5

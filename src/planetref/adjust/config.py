@@ -36,11 +36,11 @@ from pydantic import (
 from planetref.errors import InputError
 
 __all__ = [
+    "DEFAULT_TIE_SIGMA_M",
     "AdjustConfig",
     "AngleBlock",
     "AngularAccelerationBlock",
     "AngularRateBlock",
-    "DEFAULT_TIE_SIGMA_M",
     "CsmParameters",
     "DiagnosticsConfig",
     "FocalLengthBlock",
@@ -363,12 +363,20 @@ class VarianceConfig(_Frozen):
         tolerance: Stop when every group's factor ``sigma_g`` is within this of 1.
         min_redundancy: A group with less redundancy than this keeps its a-priori
             sigmas (its factor is not estimable) and is reported as such.
+        min_sigma_px: Image sigmas are not scaled below this (pixels): a group without
+            noise (simulated, or duplicated measures) would otherwise take all weight.
+        min_sigma_m: The same floor for a-priori ground sigmas (metres).
+        max_step: A group's sigmas change by at most this factor (or its inverse) per
+            iteration, which keeps the re-weighted adjustments well conditioned.
     """
 
     enabled: bool = True
     max_iterations: int = Field(10, ge=1)
     tolerance: float = Field(0.02, gt=0.0)
     min_redundancy: float = Field(5.0, ge=0.0)
+    min_sigma_px: float = Field(0.02, gt=0.0)
+    min_sigma_m: float = Field(0.01, gt=0.0)
+    max_step: float = Field(5.0, gt=1.0)
 
 
 class DiagnosticsConfig(_Frozen):

@@ -295,7 +295,7 @@ class Network:
         if isinstance(point_kind, Mapping):
             kind = np.array([point_kind[p] for p in pids], dtype=str)
         else:
-            kind = np.full(len(pids), point_kind, dtype=str)
+            kind = np.array([point_kind] * len(pids), dtype=str)
         return cls(
             cameras=tuple(cameras.values()),
             camera_ids=tuple(cam_ids),
@@ -372,7 +372,7 @@ class Network:
             point_ids=np.array([f"mcp{i}" for i in range(m)], dtype=str),
             point_xyz=np.asarray(xyz, np.float64).reshape(m, 3),
             point_sigma_m=_as_float(gs, (m, 3), "ground_sigma_m"),
-            point_kind=np.full(m, "mcp", dtype=str),
+            point_kind=np.array(["mcp"] * m, dtype=str),
             obs_camera=np.zeros(m, np.intp),
             obs_ccd=ki,
             obs_point=np.arange(m),

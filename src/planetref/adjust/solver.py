@@ -937,6 +937,7 @@ class BundleSolver:
             )
         sigma0 = math.sqrt(vtpv / dof)
         cov = np.zeros((p, p))
+        cofactor = np.zeros((p, p))
         if act.size:
             sa = s_mat[np.ix_(act, act)]
             d = np.sqrt(np.abs(np.diag(sa)))
@@ -950,7 +951,8 @@ class BundleSolver:
                 raise AdjustmentError(
                     "the reduced normal matrix is not positive definite at the solution"
                 ) from None
-            cov[np.ix_(act, act)] = sigma0**2 * inv / d[:, None] / d[None, :]
+            cofactor[np.ix_(act, act)] = inv / d[:, None] / d[None, :]
+            cov = sigma0**2 * cofactor
         sig = np.sqrt(np.diag(cov))
         with np.errstate(divide="ignore", invalid="ignore"):
             corr = cov / sig[:, None] / sig[None, :]
@@ -960,6 +962,7 @@ class BundleSolver:
             "dof": dof,
             "vtpv": vtpv,
             "covariance": cov,
+            "cofactor": cofactor,
             "sigma": sig,
             "correlation": corr,
             "n_unknowns": n_unk,
