@@ -5,6 +5,8 @@ Layout of the output folder::
     report.json            headline numbers, metrics, parameters, rounds, configuration
     report.md              the same for people (the seed's Table 2 per camera and CCD)
     residuals.csv          one row per observation
+    points.csv             one row per point: a-priori and adjusted XYZ, lat/lon/height,
+                           sigmas, shift (metres and a-priori sigmas)
     parameters.csv         one row per parameter (initial, adjusted, sigma)
     covariance.npz         names, covariance and correlation matrices of the parameters
     config.json            the resolved configuration
@@ -40,7 +42,7 @@ from planetref.camera.linescan import LineScanCamera
 from planetref.errors import PlanetrefError
 from planetref.metrics import geolocation_error
 
-__all__ = ["geolocation_metrics", "write_outputs"]
+__all__ = ["POINT_COLUMNS", "geolocation_metrics", "write_outputs", "write_points"]
 
 log = logging.getLogger("planetref.adjust")
 MODE_NAMES = {0: "free", 1: "weighted", 2: "fixed"}
@@ -121,6 +123,7 @@ def write_outputs(
     written: dict[str, Any] = {"cameras": {}, "plots": []}
     geo = geolocation_metrics(result, truth, terrain=terrain) if truth else None
     written["residuals"] = str(_write_residuals(result, out / "residuals.csv"))
+    written["points"] = str(write_points(result, out / "points.csv"))
     written["parameters"] = str(_write_parameters(result, out / "parameters.csv"))
     buf = io.BytesIO()
     np.savez_compressed(
@@ -220,6 +223,85 @@ def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
                 f(r0[i, 0]),
                 result.status[i],
                 int(result.status[i] == "inlier"),
+            ]
+        )
+    return write_text_atomic(path, buf.getvalue())
+
+
+#: Columns of points.csv.
+POINT_COLUMNS = (
+    "point_id",
+    "kind",
+    "used",
+    "apriori_x_m",
+    "apriori_y_m",
+    "apriori_z_m",
+    "x_m",
+    "y_m",
+    "z_m",
+    "apriori_lat_deg",
+    "apriori_lon_deg",
+    "apriori_height_m",
+    "lat_deg",
+    "lon_deg",
+    "height_m",
+    "sigma_frame",
+    "apriori_sigma_1_m",
+    "apriori_sigma_2_m",
+    "apriori_sigma_3_m",
+    "sigma_east_m",
+    "sigma_north_m",
+    "sigma_up_m",
+    "shift_m",
+    "shift_horizontal_m",
+    "shift_up_m",
+    "shift_sigma",
+)
+
+
+def write_points(result: AdjustmentResult, path: Path) -> Path:
+    """Write points.csv: one row per point of the network.
+
+    Columns (:data:`POINT_COLUMNS`): id, kind (``mcp``/``tie``), whether it took part;
+    a-priori (for free points: triangulated) and adjusted body-fixed XYZ (m),
+    planetocentric latitude, east longitude (degrees) and height above the body
+    (metres), a priori and adjusted; the a-priori sigmas used in the final adjustment
+    (after variance component scaling) along ``sigma_frame`` (``xyz`` or ``enu``;
+    empty = free, 0 = fixed); the a-posteriori sigmas along east, north, up; the
+    shift adjusted - a priori (length, horizontal, up, in metres) and its largest
+    component in a-priori sigmas.
+    """
+    t = result.points
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(POINT_COLUMNS)
+
+    def f(v: float, fmt: str = ".4f") -> str:
+        return "" if not math.isfinite(v) else format(float(v), fmt)
+
+    for i in range(len(t["point_id"])):
+        a, x = t["xyz_apriori"][i], t["xyz"][i]
+        sa = t["sigma_apriori"][i]
+        w.writerow(
+            [
+                t["point_id"][i],
+                t["kind"][i],
+                int(t["used"][i]),
+                *(f(v) for v in a),
+                *(f(v) for v in x),
+                f(t["lat_apriori"][i], ".9f"),
+                f(t["lon_apriori"][i], ".9f"),
+                f(t["height_apriori"][i]),
+                f(t["lat"][i], ".9f"),
+                f(t["lon"][i], ".9f"),
+                f(t["height"][i]),
+                "enu" if t["sigma_local"][i] else "xyz",
+                *(f(v) for v in sa),
+                *(f(v) for v in t["sigma_enu"][i]),
+                f(t["shift_m"][i]),
+                f(t["shift_horizontal_m"][i]),
+                f(t["shift_up_m"][i]),
+                f(t["shift_sigma"][i], ".3f"),
             ]
         )
     return write_text_atomic(path, buf.getvalue())
@@ -467,6 +549,13 @@ def _report_dict(
             else 0.0,
             "top": _top_correlations(result),
         },
+        "variance_components": result.variance,
+        "movement": {
+            "points": result.diagnostics.get("point_shifts", {}),
+            "cameras": result.diagnostics.get("camera_shifts", {}),
+        },
+        "correlation_check": result.diagnostics.get("correlations", {}),
+        "self_calibration": result.diagnostics.get("self_calibration", []),
         "rounds": result.rounds,
         "warnings": result.warnings,
         "rpc_fits": rpc,
@@ -493,13 +582,89 @@ def _table2_rows(label: str, m: dict[str, Any], sigma0: float | None) -> list[st
     for when in ("before", "after"):
         s = m[when]
         rows.append(
-            f"| {label} | {when} | {_fmt(s['rmse_px'])} | {_fmt(s['mean_px'])} | "
+            f"| {label} | {when} | {_fmt(s['rmse_px'])} | {_fmt(s['rmse_x_px'])} | "
+            f"{_fmt(s['rmse_y_px'])} | {_fmt(s['mean_px'])} | {_fmt(s['mean_x_px'])} | "
+            f"{_fmt(s['mean_y_px'])} | "
             f"{_fmt(s['max_dx_px'])} | {_fmt(s['min_dx_px'])} | "
             f"{_fmt(s['max_dy_px'])} | {_fmt(s['min_dy_px'])} | "
             f"{_fmt(s['outlier_ratio_pct'], 3)} | {s['n_inliers']}/{s['n_total']} | "
             f"{_fmt(sigma0) if when == 'after' and sigma0 is not None else '-'} |"
         )
     return rows
+
+
+def _stochastic_md(result: AdjustmentResult) -> list[str]:
+    """Variance components, degrees of freedom, movements, self-calibration (markdown)."""
+    var = result.variance
+    lines: list[str] = []
+    dof = var.get("dof", {})
+    if dof:
+        lines += [
+            "",
+            "## Degrees of freedom",
+            "",
+            f"{dof['n_real_equations']} equations of real observations (image measures, "
+            f"MCP ground coordinates) and {dof['n_pseudo_equations']} pseudo-observations "
+            f"({dof['n_camera_priors']} camera priors, {dof['n_smoothing_constraints']} "
+            f"smoothing constraints, the rest tie-point priors) for {dof['n_unknowns']} "
+            f"unknowns: {dof['dof']} degrees of freedom, of which "
+            f"{_fmt(dof['redundancy_real'])} are redundancy of the real observations and "
+            f"{_fmt(dof['redundancy_pseudo'])} of the pseudo-observations (sums of "
+            f"redundancy numbers). sigma0 of the real observations: "
+            f"{_fmt(dof['sigma0_real'])}.",
+        ]
+    if var.get("groups"):
+        lines += [
+            "",
+            f"## Variance components ({'estimated' if var['enabled'] else 'not estimated'}; "
+            f"{var['iterations']} re-weighting iteration(s), converged: {var['converged']})",
+            "",
+            "| group | equations | redundancy | factor | sigma | estimated |",
+            "|---|---|---|---|---|---|",
+        ]
+        for g in var["groups"]:
+            sig = f"{_fmt(g['sigma_px'])} px" if "sigma_px" in g else f"{_fmt(g.get('sigma_m'))} m"
+            why = "yes" if g["estimated"] else f"no: {g['not_estimated_because']}"
+            lines.append(
+                f"| {g['group']} | {g['n_equations']} | {_fmt(g['redundancy'])} | "
+                f"{_fmt(g['factor'])} | {sig} | {why} |"
+            )
+    diag = result.diagnostics
+    if diag.get("point_shifts"):
+        lines += [
+            "",
+            "## Movement of the points (adjusted - a priori; all in points.csv)",
+            "",
+            "| kind | points | mean m | RMS m | max m | mean horizontal m | mean up m |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for k, m in diag["point_shifts"].items():
+            lines.append(
+                f"| {k} | {m['n']} | {_fmt(m['mean_shift_m'])} | {_fmt(m['rms_shift_m'])} | "
+                f"{_fmt(m['max_shift_m'])} | {_fmt(m['mean_horizontal_m'])} | "
+                f"{_fmt(m['mean_up_m'])} |"
+            )
+    if diag.get("camera_shifts"):
+        lines += [
+            "",
+            "## Movement of the camera footprints",
+            "",
+            "| camera | CCD | mean m | max m |",
+            "|---|---|---|---|",
+        ]
+        for cid, per in diag["camera_shifts"].items():
+            for ccd, m in per["ccds"].items():
+                lines.append(f"| {cid} | {ccd} | {_fmt(m['mean_m'])} | {_fmt(m['max_m'])} |")
+    if diag.get("self_calibration"):
+        lines += ["", "## Self-calibration: estimability", ""]
+        lines += [
+            f"* {r['verdict']}; a-priori sigma {_fmt(r['sigma_prior'])}, a-posteriori "
+            f"{_fmt(r['sigma'])}; correlation with the mean node height "
+            f"{_fmt(r['correlation_mean_node_height'])}, multiple correlation "
+            f"{_fmt(r['multiple_correlation'], 5)}; strongest: {r['correlations_text']}"
+            for r in diag["self_calibration"]
+        ]
+    return lines
 
 
 def _report_md(
@@ -521,9 +686,9 @@ def _report_md(
         "",
         "## Reprojection residuals (Table 2)",
         "",
-        "| camera / CCD | | RMSE | mean | max dx | min dx | max dy | min dy | OR % | "
-        "inliers | sigma0 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| camera / CCD | | RMSE | RMSE x | RMSE y | mean | mean x | mean y | max dx | min dx "
+        "| max dy | min dy | OR % | inliers | sigma0 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += _table2_rows("all", result.metrics["all"], result.sigma0)
     for cid, m in result.metrics["cameras"].items():
@@ -562,6 +727,7 @@ def _report_md(
                         f"{_fmt(e['max_m'])} | {_fmt(e['rms_px'])} | "
                         f"{_fmt(e['max_px'])} |"
                     )
+    lines += _stochastic_md(result)
     lines += [
         "",
         "## Rounds",

@@ -612,6 +612,7 @@ def _adjust_strip(
         camera_id=strip.id,
         sigma_px=cfg.mcp.sigma_px,
         check=check,
+        **_mcp_ground_sigmas(table),
     )
     t0 = time.perf_counter()
     result = adjust(network, cfg.adjust)
@@ -636,6 +637,16 @@ def _adjust_strip(
     timing["outputs"] += time.perf_counter() - t0
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+def _mcp_ground_sigmas(table: Any) -> dict[str, Any]:
+    """MCP ground points weighted by their a-priori sigmas (east, north, up) if known."""
+    cols = getattr(table, "columns", {})
+    if "sigma_ground_xy_m" not in cols or "sigma_ground_h_m" not in cols:
+        return {}
+    xy = np.asarray(cols["sigma_ground_xy_m"], float)
+    h = np.asarray(cols["sigma_ground_h_m"], float)
+    return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
 
 
 def _adjust_together(
@@ -689,14 +700,18 @@ def _adjust_together(
     sig_px: list[Any] = []
     check: list[Any] = []
     xyz: dict[str, Any] = {}
-    sig_m: dict[str, float] = {}
+    sig_m: dict[str, Any] = {}
     kind: dict[str, str] = {}
+    local: dict[str, bool] = {}
     for p in preps:
         t = p.table
         pts = [f"{p.id}:mcp{i}" for i in range(len(t))]
         pxyz = t.xyz()
+        gs = _mcp_ground_sigmas(t).get("ground_sigma_m")
         for i, pid in enumerate(pts):
-            xyz[pid], sig_m[pid], kind[pid] = pxyz[i], 0.0, "mcp"
+            xyz[pid], kind[pid] = pxyz[i], "mcp"
+            sig_m[pid] = 0.0 if gs is None else gs[i]
+            local[pid] = gs is not None
         obs_cam += [p.id] * len(t)
         obs_pt += pts
         obs_ccd += list(np.asarray(t["ccd"]).astype(str))
@@ -727,6 +742,7 @@ def _adjust_together(
         obs_ccd=obs_ccd,
         sigma_px=np.concatenate(sig_px),
         check=np.concatenate(check),
+        point_sigma_local=local,
     )
     t0 = time.perf_counter()
     result = adjust(network, cfg.adjust)
