@@ -390,7 +390,8 @@ def ground_sigmas(
     """A-priori sigmas of MCP ground points from the reference's resolution and terrain.
 
     * planimetric (per horizontal axis): ``s_xy = GROUND_SIGMA_XY_REF_PX x GSD`` of the
-      reference orthoimage (its map units taken as metres) (a match is located on its grid to a fraction of a pixel);
+      reference orthoimage (its map units taken as metres): a match is located on its
+      grid to a fraction of a pixel;
     * height: ``s_h = sqrt((res/2 * slope)^2 + (s_xy * slope)^2 + rough^2 + floor^2)``
       with ``res`` the DEM's post spacing, ``slope`` the local gradient (m/m, central
       differences one post either side), ``rough`` the local curvature term
