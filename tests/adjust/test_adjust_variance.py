@@ -244,3 +244,14 @@ def test_points_csv_and_movement_warnings(tmp_path):
     cams = res.diagnostics["camera_shifts"]["strip"]
     assert cams["max_m"] > 30.0  # the perturbation (30/-20/10 m bias) was taken out
     assert any("camera footprint" in w for w in res.warnings) == (cams["max_m"] > 100.0)
+
+
+def test_per_axis_metrics_hand_computed():
+    from planetref.metrics import reprojection_metrics
+
+    m = reprojection_metrics([3.0, -1.0, 50.0], [4.0, 1.0, 0.0], [True, True, False])
+    assert m["rmse_x_px"] == pytest.approx(np.sqrt(5.0))
+    assert m["rmse_y_px"] == pytest.approx(np.sqrt(8.5))
+    assert m["rmse_px"] == pytest.approx(np.sqrt(27.0 / 2.0))
+    assert m["mean_x_px"] == pytest.approx(1.0) and m["mean_y_px"] == pytest.approx(2.5)
+    assert m["outlier_ratio_pct"] == pytest.approx(100.0 / 3.0)
