@@ -32,36 +32,37 @@ def _two_strips(n: int, noise_px: float, ground_sigma_m: float, seed: int):
     )
     rng = np.random.default_rng(seed)
     cams = {"a": a, "b": b}
+    m = 8 * n
+    ccd_a = rng.integers(0, 3, m)
+    ln = rng.uniform(50.0, N_LINES - 50.0, m)
+    sm = rng.uniform(1.0, N_SAMPLES - 1.0, m)
+    xyz = ground_points(a, ccd_a, ln, sm, rng.uniform(-500.0, 500.0, m))
+    ccd_b = np.full(m, -1)
+    lb, sb = np.full(m, np.nan), np.full(m, np.nan)
+    for kb, name in enumerate(b.ccd_names):
+        ip = b.ground_to_image(xyz, ccd=name)
+        with np.errstate(invalid="ignore"):
+            inside = (
+                (ccd_b < 0)
+                & (ip.line > 1.0)
+                & (ip.line < N_LINES - 1.0)
+                & (ip.sample > 1.0)
+                & (ip.sample < N_SAMPLES - 1.0)
+            )
+        ccd_b[inside], lb[inside], sb[inside] = kb, ip.line[inside], ip.sample[inside]
+    keep = np.flatnonzero(ccd_b >= 0)[:n]
+    assert len(keep) == n
     obs_cam, obs_pt, obs_ccd, line, sample = [], [], [], [], []
     xyz_true = {}
-    k = 0
-    while len(xyz_true) < n:
-        m = 4 * n
-        ccd = rng.integers(0, 3, m)
-        ln = rng.uniform(50.0, N_LINES - 50.0, m)
-        sm = rng.uniform(1.0, N_SAMPLES - 1.0, m)
-        xyz = ground_points(a, ccd, ln, sm, rng.uniform(-500.0, 500.0, m))
-        for j in range(m):
-            hit = None
-            for kb, name in enumerate(b.ccd_names):
-                ip = b.ground_to_image(xyz[j : j + 1], ccd=name)
-                lb, sb = float(ip.line[0]), float(ip.sample[0])
-                if 1.0 < lb < N_LINES - 1.0 and 1.0 < sb < N_SAMPLES - 1.0:
-                    hit = (kb, lb, sb)
-                    break
-            if hit is None:
-                continue
-            pid = f"p{k}"
-            k += 1
-            xyz_true[pid] = xyz[j]
-            for cam, kk, lv, sv in (("a", ccd[j], ln[j], sm[j]), ("b", *hit)):
-                obs_cam.append(cam)
-                obs_pt.append(pid)
-                obs_ccd.append(cams[cam].ccd_names[kk])
-                line.append(lv + rng.normal(0.0, noise_px))
-                sample.append(sv + rng.normal(0.0, noise_px))
-            if len(xyz_true) >= n:
-                break
+    for k, j in enumerate(keep):
+        pid = f"p{k}"
+        xyz_true[pid] = xyz[j]
+        for cam, kk, lv, sv in (("a", ccd_a[j], ln[j], sm[j]), ("b", ccd_b[j], lb[j], sb[j])):
+            obs_cam.append(cam)
+            obs_pt.append(pid)
+            obs_ccd.append(cams[cam].ccd_names[kk])
+            line.append(lv + rng.normal(0.0, noise_px))
+            sample.append(sv + rng.normal(0.0, noise_px))
     ids = list(xyz_true)
     pts = np.array([xyz_true[p] for p in ids])
     rot = enu_rotation(pts)
