@@ -232,10 +232,13 @@ def test_points_csv_and_movement_warnings(tmp_path):
         rows = {r["point_id"]: r for r in csv.DictReader(fh)}
     assert len(rows) == n_mcp + n_tie
     t0 = rows["t0"]
-    # The rays put it back on the terrain: ~1 km down, 5 sigma of its 200 m prior.
-    assert float(t0["shift_up_m"]) == pytest.approx(-1000.0, abs=20.0)
-    assert float(t0["shift_sigma"]) == pytest.approx(5.0, abs=0.1)
-    assert float(t0["height_m"]) == pytest.approx(float(t0["apriori_height_m"]) - 1000, abs=20)
+    # The rays (a weak stereo base: two CCDs 1 mm apart along track) pull it most of
+    # the way back down, more than 3 sigma of its 200 m prior.
+    up = float(t0["shift_up_m"])
+    assert -1000.0 < up < -700.0
+    assert float(t0["shift_sigma"]) > 3.0
+    assert float(t0["shift_m"]) == pytest.approx(abs(up), rel=0.02)
+    assert float(t0["height_m"]) == pytest.approx(float(t0["apriori_height_m"]) + up, abs=0.5)
     assert float(rows["m0"]["shift_m"]) == 0.0
     assert any("moved more than 3 sigma" in w and "t0" in w for w in res.warnings)
     # The others barely move: their a-priori coordinates are the truth.
