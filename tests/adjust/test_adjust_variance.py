@@ -87,6 +87,7 @@ def test_redundancy_numbers_sum_to_the_degrees_of_freedom():
     groups = {g["group"]: g for g in res.variance["groups"]}
     img = sum(g["redundancy"] for g in groups.values() if g["kind"] == "image")
     assert img < 0.05 * groups["ground mcp"]["redundancy"]
+    assert "confounded" in groups["ground mcp"]["note"]
 
 
 def test_variance_components_recover_image_and_ground_noise():
@@ -118,6 +119,7 @@ def test_variance_components_recover_image_and_ground_noise():
     assert est_px == pytest.approx(noise_px, rel=0.15)
     assert est_m == pytest.approx(ground_m, rel=0.15)
     assert groups["ground mcp planimetric"]["estimated"]
+    assert not groups["ground mcp planimetric"]["note"]  # two views: separable
     assert res.variance["converged"]
     assert res.summary()["sigma0_real"] == pytest.approx(1.0, abs=0.05)
 

@@ -87,6 +87,8 @@ def _stochastic_md(result: AdjustmentResult) -> list[str]:
         for g in var["groups"]:
             sig = f"{_fmt(g['sigma_px'])} px" if "sigma_px" in g else f"{_fmt(g.get('sigma_m'))} m"
             why = "yes" if g["estimated"] else f"no: {g['not_estimated_because']}"
+            if g.get("note"):
+                why += f" ({g['note']})"
             lines.append(
                 f"| {g['group']} | {g['n_equations']} | {_fmt(g['redundancy'])} | "
                 f"{_fmt(g['factor'])} | {sig} | {why} |"

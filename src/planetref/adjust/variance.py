@@ -295,6 +295,34 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     return out
 
 
+def _single_view_notes(
+    solver: BundleSolver, obs: NDArray[np.intp], groups: list[_Group]
+) -> dict[str, str]:
+    """Groups whose split is the a-priori ratio: single-view weighted MCPs.
+
+    A weighted MCP seen in one image only has one discrepancy (image measure against
+    reference ground) shared by its image and its ground equations: only the sum of
+    their variances is estimable, and the iteration keeps the a-priori ratio of the two.
+    """
+    net = solver.net
+    pt = net.obs_point[obs]
+    views = np.bincount(pt, minlength=net.n_points)
+    weighted = ~solver.point_fixed & np.any(
+        np.isfinite(solver.point_sigma) & (solver.point_sigma > 0), axis=1
+    )
+    single = weighted & (views == 1)
+    out = {}
+    text = (
+        "single-view weighted MCPs: image and ground noise are confounded; their split "
+        "is the a-priori ratio, only the sum is estimated"
+    )
+    for g in groups:
+        pts = net.obs_point[g.obs] if g.kind == "image" else g.points
+        if g.kind != "prior" and pts.size and np.mean(single[pts]) > 0.5:
+            out[g.name] = text
+    return out
+
+
 def _group_stats(g: _Group, red: Redundancy) -> tuple[float, float, int]:
     """``(v^T P v, redundancy, number of equations)`` of a group."""
     if g.kind == "image":
@@ -389,6 +417,7 @@ def variance_components(
     """
     groups = _groups(solver, obs)
     scale = {g.name: 1.0 for g in groups}
+    confounded = _single_view_notes(solver, obs, groups)
     solver.loss, solver.threshold = "linear", np.inf
     iterations = 0
     converged = False
@@ -474,6 +503,7 @@ def variance_components(
         c, xyz, stats = c_new, xyz_new, stats_new
     for row in table:
         row["sigma_scale"] = scale[row["group"]]
+        row["note"] = confounded.get(row["group"], "")
     for g, row in zip(groups, table, strict=True):
         if g.kind == "image":
             sig = solver.obs_sigma[g.obs]
