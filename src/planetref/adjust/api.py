@@ -292,7 +292,11 @@ def _adjust(
     ]
     initial_cams = list(net.cameras)
     m_all = net.n_obs
-    free_pt = np.all(np.isinf(net.point_sigma_m), axis=1)
+    # Points whose coordinates the rays must determine: free ones, and tie points under
+    # their (loose) a-priori sigma; they need min_tie_observations rays.
+    free_pt = np.all(np.isinf(net.point_sigma_m), axis=1) | (
+        (np.asarray(net.point_kind) == "tie") & ~np.all(net.point_sigma_m == 0, axis=1)
+    )
     candidates = ~net.obs_check
     xyz0 = net.point_xyz.copy()
     missing = np.flatnonzero(~np.all(np.isfinite(xyz0), axis=1))
@@ -359,7 +363,11 @@ def _adjust(
     # Weighted MCPs: their residuals (metrics, outlier rule) are those of the reference
     # ground point through the adjusted camera, as with fixed MCPs; the adjusted point
     # may absorb its image residual (one view) and would flatter the RMSE.
-    ref_pt = (np.asarray(net.point_kind) == "mcp") & ~solver.point_fixed & ~free_pt
+    ref_pt = (
+        (np.asarray(net.point_kind) == "mcp")
+        & ~solver.point_fixed
+        & ~np.all(np.isinf(net.point_sigma_m), axis=1)
+    )
 
     def _reference(xyz_now: F64) -> F64:
         return np.where(ref_pt[:, None], xyz_start, xyz_now)

@@ -326,8 +326,9 @@ class ObservationConfig(_Frozen):
             default :data:`DEFAULT_TIE_SIGMA_M`); a network file's own sigmas win; ``None``
             leaves them free (the datum then rests on the camera priors alone and may
             float).
-        min_tie_observations: A free tie point needs at least this many observations
-            (2); points with fewer are left out of the adjustment (status ``unusable``).
+        min_tie_observations: A tie point (free, or under its a-priori sigma) needs at
+            least this many observations (2); points with fewer are left out of the
+            adjustment (status ``unusable``).
     """
 
     sigma_px: float = Field(1.0, gt=0.0)
