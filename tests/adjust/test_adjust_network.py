@@ -227,6 +227,18 @@ def test_cli_writes_outputs(tmp_path):
         rows = list(csv.DictReader(fh))
     assert len(rows) == 260 and {"dx_px", "dy_px", "inlier", "ccd"} <= set(rows[0])
     assert "Table 2" in (out / "report.md").read_text()
+    assert "rmse_x_px" in adj and "rmse_y_px" in adj
+    with open(out / "points.csv") as fh:
+        pts = list(csv.DictReader(fh))
+    assert len(pts) == 230 and {"shift_m", "sigma_up_m", "lat_deg"} <= set(pts[0])
+    assert report["config"]["observations"]["tie_apriori_sigma_m"] == 200.0
+    # --tie-sigma free and --no-vce reach the configuration.
+    out2 = tmp_path / "out2"
+    r = run_cli(path, "--out", out2, "--no-rpc", "--no-plots", "--tie-sigma", "free", "--no-vce")
+    assert r.exit_code == 0, r.output
+    rep2 = json.loads((out2 / "report.json").read_text())
+    assert rep2["config"]["observations"]["tie_apriori_sigma_m"] is None
+    assert rep2["variance_components"]["enabled"] is False
     # A non-empty --out is refused without --overwrite.
     # (The planetref click group turns these errors into one-line messages.)
     r = CliRunner().invoke(adjust_command, [str(path), "--out", str(out)], obj={})
