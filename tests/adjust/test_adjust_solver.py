@@ -140,6 +140,8 @@ def test_agrees_with_scipy_least_squares(ground_sigma):
     net, _, _ = mcp_problem(120 if ground_sigma else 300, seed=6, ground_sigma_m=ground_sigma)
     cfg = {
         **LINEAR,
+        # The same weights as scipy gets: no variance component re-weighting.
+        "variance": {"enabled": False},
         "solver": {"loss": "linear", "ftol": 1e-15, "xtol": 1e-10},
         "linescan": {
             "position": {"mode": "weighted", "sigma_m": 100.0},
