@@ -147,7 +147,8 @@ def report_md(
         "",
         "Residuals are projected - observed; dx = sample, dy = line, pixels. "
         "'before' uses the initial cameras on the same (final) inliers; the outlier "
-        "ratio is that of the final k x RMSE classification.",
+        "ratio is that of the final k x RMSE classification. MCPs whose ground is weighted "
+        "are judged by their reference ground point through the adjusted camera.",
         "",
         "## Reprojection residuals (Table 2)",
         "",
