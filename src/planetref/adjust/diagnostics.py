@@ -139,10 +139,14 @@ def point_summary(
     beyond = used & np.isfinite(ns) & (ns > cfg.point_shift_sigmas)
     if np.any(beyond):
         j = int(np.flatnonzero(beyond)[np.argmax(ns[beyond])])
+        sa = table["sigma_apriori"][used]
+        n_axes = int(np.count_nonzero(np.isfinite(sa) & (sa > 0)))
+        chance = n_axes * math.erfc(cfg.point_shift_sigmas / math.sqrt(2.0))
         warnings.append(
             f"{int(beyond.sum())} weighted point(s) moved more than "
             f"{cfg.point_shift_sigmas:g} sigma from their a-priori coordinates (largest: "
-            f"{table['point_id'][j]} by {ns[j]:.3g} sigma, {table['shift_m'][j]:.4g} m)"
+            f"{table['point_id'][j]} by {ns[j]:.3g} sigma, {table['shift_m'][j]:.4g} m; "
+            f"Gaussian errors would give at most ~{chance:.3g} by chance)"
         )
     return out, warnings
 
