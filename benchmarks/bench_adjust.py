@@ -115,6 +115,8 @@ CONFIG = {
     },
     "solver": {"loss": "linear"},
     "outliers": {"enabled": False},
+    # The solver alone: the same weights as scipy gets (no variance components).
+    "variance": {"enabled": False},
 }
 
 

@@ -220,3 +220,40 @@ def test_errors(tmp_path, ref_and_dem):
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
     with pytest.raises((InputError, UnsupportedFormatError)):
         read_mcps(tmp_path / "bad.csv")
+
+
+def test_ground_sigmas_from_gsd_slope_and_round_trip(ref_and_dem, tmp_path):
+    """Planimetric: half the 5 m GSD; height: slope terms of a planar DEM, curvature 0."""
+    from planetref.control import GROUND_SIGMA_H_FLOOR_M, ground_sigmas
+
+    ref, dem = ref_and_dem
+    x, y = _points(ref)
+    s_xy, s_h = ground_sigmas(ref, dem, x, y)
+    assert np.allclose(s_xy, 2.5)
+    # h = 10 row + col - 2000 on 50-unit posts: gradient (0.02, -0.2) per map unit.
+    slope = np.hypot(0.02, 0.2)
+    res = dem.sampling_m
+    expected = np.sqrt((0.5 * res * slope) ** 2 + (2.5 * slope) ** 2 + GROUND_SIGMA_H_FLOOR_M**2)
+    assert np.allclose(s_h, expected, rtol=1e-6)
+    # A flat DEM gives the floor; a constant terrain (no posts) too.
+    flat = GridTerrain(np.zeros((30, 30)), dem.transform, CRS)
+    assert np.allclose(ground_sigmas(ref, flat, x, y)[1], GROUND_SIGMA_H_FLOOR_M)
+    # The MCP table carries them and they survive Parquet and CSV.
+    t = mcps_from_matches(
+        ccd="ccd1",
+        tile_id="t0",
+        line=np.arange(len(x)) * 10.0 + 0.5,
+        sample=np.full(len(x), 5.5),
+        ref_x=x,
+        ref_y=y,
+        confidence=np.ones(len(x)),
+        matcher="sift",
+        ref=ref,
+        dem=dem,
+    )
+    assert np.allclose(t["sigma_ground_h_m"], expected)
+    for name in ("m.parquet", "m.csv"):
+        write_mcps(t, tmp_path / name, gpkg=False)
+        back = read_mcps(tmp_path / name)
+        assert np.allclose(back["sigma_ground_xy_m"], 2.5)
+        assert np.allclose(back["sigma_ground_h_m"], expected)

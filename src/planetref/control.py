@@ -20,6 +20,7 @@ never sees a half-written file.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from os import PathLike
@@ -34,11 +35,14 @@ from planetref.errors import InputError, MissingFileError, UnsupportedFormatErro
 
 __all__ = [
     "MCP_COLUMNS",
+    "OPTIONAL_COLUMNS",
     "McpCounts",
     "McpTable",
+    "ground_sigmas",
     "mcps_from_matches",
     "mcps_from_tiles",
     "read_mcps",
+    "reference_gsd_m",
     "write_mcps",
 ]
 
@@ -60,6 +64,18 @@ MCP_COLUMNS: tuple[str, ...] = (
     "matcher",
 )
 """Columns of an MCP table, in file order."""
+
+OPTIONAL_COLUMNS: tuple[str, ...] = ("sigma_ground_xy_m", "sigma_ground_h_m", "sigma_image_px")
+"""Columns a table may carry after :data:`MCP_COLUMNS`: the a-priori sigmas of the
+MCP's ground point (planimetric, metres, per horizontal axis; height, metres; see
+:func:`ground_sigmas`) and, if the front end refined the match, its image precision
+(pixels)."""
+
+#: Planimetric a-priori sigma of an MCP, in reference pixels (GSD units): the match is
+#: located on the reference grid to a fraction of its pixel.
+GROUND_SIGMA_XY_REF_PX = 0.5
+#: Floor of the height sigma (metres): the DEM's own vertical error where it is flat.
+GROUND_SIGMA_H_FLOOR_M = 1.0
 
 _STR = frozenset({"ccd", "tile_id", "matcher"})
 _INT = frozenset({"mcp_id"})
@@ -130,11 +146,12 @@ class McpTable:
         missing = [c for c in MCP_COLUMNS if c not in self.columns]
         if missing:
             raise InputError(f"MCP table lacks columns {missing}")
-        extra = sorted(set(self.columns) - set(MCP_COLUMNS))
+        extra = sorted(set(self.columns) - set(MCP_COLUMNS) - set(OPTIONAL_COLUMNS))
         if extra:
             raise InputError(f"unknown MCP table columns {extra}")
         n = len(np.asarray(self.columns["mcp_id"]).ravel())
-        cols = {c: _as_column(c, self.columns[c], n) for c in MCP_COLUMNS}
+        names = [*MCP_COLUMNS, *(c for c in OPTIONAL_COLUMNS if c in self.columns)]
+        cols = {c: _as_column(c, self.columns[c], n) for c in names}
         lengths = {c: len(v) for c, v in cols.items()}
         if len(set(lengths.values())) != 1:
             raise InputError(f"MCP table columns differ in length: {lengths}")
@@ -165,7 +182,11 @@ class McpTable:
         tables = list(tables)
         if not tables:
             return cls.empty()
-        cols = {c: np.concatenate([t.columns[c] for t in tables]) for c in MCP_COLUMNS}
+        names = [
+            *MCP_COLUMNS,
+            *(c for c in OPTIONAL_COLUMNS if all(c in t.columns for t in tables)),
+        ]
+        cols = {c: np.concatenate([t.columns[c] for t in tables]) for c in names}
         cols["mcp_id"] = np.arange(len(cols["mcp_id"]), dtype=np.int64)
         counts = None
         if all(t.counts is not None for t in tables):
@@ -184,7 +205,8 @@ class McpTable:
         import pyarrow as pa
 
         arrays = []
-        for c in MCP_COLUMNS:
+        names = list(self.columns)
+        for c in names:
             v = self.columns[c]
             if c in _STR:
                 arrays.append(pa.array([str(x) for x in v], type=pa.string()))
@@ -197,9 +219,7 @@ class McpTable:
             meta[_CRS_KEY] = self.crs_wkt.encode()
         if self.counts is not None:
             meta[_COUNTS_KEY] = json.dumps(self.counts.to_dict()).encode()
-        return pa.Table.from_arrays(arrays, names=list(MCP_COLUMNS)).replace_schema_metadata(
-            meta or None
-        )
+        return pa.Table.from_arrays(arrays, names=names).replace_schema_metadata(meta or None)
 
     @classmethod
     def from_arrow(cls, table: Any, crs_wkt: str | None = None) -> McpTable:
@@ -212,7 +232,7 @@ class McpTable:
         crs = meta.get(_CRS_KEY)
         counts = meta.get(_COUNTS_KEY)
         cols = {}
-        for c in MCP_COLUMNS:
+        for c in [*MCP_COLUMNS, *(c for c in OPTIONAL_COLUMNS if c in names)]:
             col = table.column(c)
             if c in _STR:
                 cols[c] = np.array(
@@ -342,6 +362,7 @@ def mcps_from_matches(
         keep &= ~dup
     counts.kept = int(keep.sum())
     out = {k: v[keep] for k, v in cols.items()}
+    s_xy, s_h = ground_sigmas(ref, dem, out["ref_x"], out["ref_y"])
     out.update(
         mcp_id=np.arange(counts.kept, dtype=np.int64),
         lon_deg=lon[keep],
@@ -351,8 +372,65 @@ def mcps_from_matches(
         y_m=xyz[keep, 1],
         z_m=xyz[keep, 2],
         matcher=np.array([matcher] * counts.kept, dtype=object),
+        sigma_ground_xy_m=s_xy,
+        sigma_ground_h_m=s_h,
     )
     return McpTable(out, ref.crs.to_wkt(), counts)
+
+
+def reference_gsd_m(ref: Any) -> float:
+    """Pixel size of the reference orthoimage (metres; its CRS is in metres)."""
+    t = ref.transform
+    return float(min(math.hypot(t.a, t.d), math.hypot(t.b, t.e)))
+
+
+def ground_sigmas(
+    ref: Any, dem: Any, ref_x: ArrayLike, ref_y: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A-priori sigmas of MCP ground points from the reference's resolution and terrain.
+
+    * planimetric (per horizontal axis): ``s_xy = GROUND_SIGMA_XY_REF_PX x GSD`` of the
+      reference orthoimage (its map units taken as metres): a match is located on its
+      grid to a fraction of a pixel;
+    * height: ``s_h = sqrt((res/2 * slope)^2 + (s_xy * slope)^2 + rough^2 + floor^2)``
+      with ``res`` the DEM's post spacing, ``slope`` the local gradient (m/m, central
+      differences one post either side), ``rough`` the local curvature term
+      ``(|h(+x) + h(-x) - 2h| + |h(+y) + h(-y) - 2h|) / 4`` (what bilinear interpolation
+      between posts misses) and ``floor = GROUND_SIGMA_H_FLOOR_M``. A terrain without
+      posts (a constant height) gives the floor.
+
+    Args:
+        ref: The reference orthoimage (``transform`` in metres).
+        dem: The reference DEM (a :class:`~planetref.raster.dem.GridTerrain`; a terrain
+            without ``sampling_m`` gives the floor).
+        ref_x: Map x of the points.
+        ref_y: Map y.
+
+    Returns:
+        ``(sigma_xy_m, sigma_h_m)`` per point.
+    """
+    x = np.asarray(ref_x, np.float64).ravel()
+    y = np.asarray(ref_y, np.float64).ravel()
+    s_xy = np.full(x.shape, GROUND_SIGMA_XY_REF_PX * reference_gsd_m(ref))
+    s_h = np.full(x.shape, GROUND_SIGMA_H_FLOOR_M)
+    res = getattr(dem, "sampling_m", None)
+    if not x.size or res is None:
+        return s_xy, s_h
+    from planetref.frontend.geometry import map_to_ground
+
+    res = float(res)
+
+    def h(xx: NDArray[np.float64], yy: NDArray[np.float64]) -> NDArray[np.float64]:
+        return map_to_ground(ref, dem, xx, yy)[3]
+
+    h0, hxp, hxm = h(x, y), h(x + res, y), h(x - res, y)
+    hyp, hym = h(x, y + res), h(x, y - res)
+    with np.errstate(invalid="ignore"):
+        slope = np.hypot((hxp - hxm) / (2 * res), (hyp - hym) / (2 * res))
+        rough = 0.25 * (np.abs(hxp + hxm - 2 * h0) + np.abs(hyp + hym - 2 * h0))
+        var = (0.5 * res * slope) ** 2 + (s_xy * slope) ** 2 + rough**2
+    var = np.where(np.isfinite(var), var, 0.0)
+    return s_xy, np.sqrt(var + GROUND_SIGMA_H_FLOOR_M**2)
 
 
 def mcps_from_tiles(
@@ -431,7 +509,7 @@ def _write_gpkg(table: McpTable, path: Path) -> None:
 
     if not table.crs_wkt:
         raise InputError("a GeoPackage needs the reference CRS; the table has none")
-    names = [c for c in MCP_COLUMNS]
+    names = list(table.columns)
     values = [table.columns[c] for c in names]
     with atomic_path(path, create=False) as tmp:  # GDAL creates the GeoPackage itself
         write(
@@ -515,7 +593,7 @@ def read_mcps(path: str | PathLike[str], *, crs: object = None) -> McpTable:
 
             types = {
                 c: (pa.string() if c in _STR else pa.int64() if c in _INT else pa.float64())
-                for c in MCP_COLUMNS
+                for c in (*MCP_COLUMNS, *OPTIONAL_COLUMNS)
             }
             opts = pacsv.ConvertOptions(column_types=types, strings_can_be_null=False)
             return McpTable.from_arrow(pacsv.read_csv(p, convert_options=opts), crs_wkt)
@@ -527,7 +605,8 @@ def read_mcps(path: str | PathLike[str], *, crs: object = None) -> McpTable:
             missing = [c for c in MCP_COLUMNS if c not in cols]
             if missing:
                 raise InputError(f"MCP layer lacks columns {missing}", path=p)
-            return McpTable({c: cols[c] for c in MCP_COLUMNS}, meta.get("crs") or crs_wkt)
+            keep = [*MCP_COLUMNS, *(c for c in OPTIONAL_COLUMNS if c in cols)]
+            return McpTable({c: cols[c] for c in keep}, meta.get("crs") or crs_wkt)
     except (OSError, ValueError, RuntimeError) as exc:
         if isinstance(exc, InputError):
             raise

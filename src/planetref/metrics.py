@@ -5,7 +5,9 @@ Adjustment metrics (the seed's Table 2)
 Residuals are ``projected - observed`` in pixels with ``dx`` the sample residual and
 ``dy`` the line residual.
 
-* ``RMSE = sqrt(mean(dx^2 + dy^2))`` over the inliers,
+* ``RMSE = sqrt(mean(dx^2 + dy^2))`` over the inliers (radial), and per axis
+  ``RMSE_x = sqrt(mean(dx^2))``, ``RMSE_y = sqrt(mean(dy^2))`` with the signed means
+  ``mean(dx)``, ``mean(dy)`` (the paper's Table 2 in x and y),
 * mean residual length ``mean(sqrt(dx^2 + dy^2))`` over the inliers,
 * max and min of the signed residuals in x (sample) and y (line), over the inliers,
 * outlier ratio ``OR = (N_total - N_inliers) / N_total`` in percent.
@@ -44,9 +46,12 @@ def reprojection_metrics(
         inlier: Inlier flags, ``(N,)`` (default: every finite residual).
 
     Returns:
-        ``{"rmse_px", "mean_px", "max_dx_px", "min_dx_px", "max_dy_px", "min_dy_px",
-        "outlier_ratio_pct", "n_total", "n_inliers"}``; statistics of an empty inlier
-        set are NaN.
+        ``{"rmse_px", "rmse_x_px", "rmse_y_px", "mean_x_px", "mean_y_px", "mean_px",
+        "max_dx_px", "min_dx_px", "max_dy_px", "min_dy_px", "outlier_ratio_pct",
+        "n_total", "n_inliers"}``: radial RMSE, per-axis RMSE and signed means (x =
+        sample, y = line), mean length, signed extremes; the outlier ratio is
+        ``(N_total - N_inliers) / N_total`` over the observations that entered the
+        adjustment (the paper's OR). Statistics of an empty inlier set are NaN.
 
     Raises:
         InputError: When the arrays do not have the same length.
@@ -66,6 +71,10 @@ def reprojection_metrics(
     length = np.hypot(xi, yi)
     return {
         "rmse_px": float(math.sqrt(np.mean(xi**2 + yi**2))) if n_in else nan,
+        "rmse_x_px": float(math.sqrt(np.mean(xi**2))) if n_in else nan,
+        "rmse_y_px": float(math.sqrt(np.mean(yi**2))) if n_in else nan,
+        "mean_x_px": float(np.mean(xi)) if n_in else nan,
+        "mean_y_px": float(np.mean(yi)) if n_in else nan,
         "mean_px": float(np.mean(length)) if n_in else nan,
         "max_dx_px": float(np.max(xi)) if n_in else nan,
         "min_dx_px": float(np.min(xi)) if n_in else nan,

@@ -88,7 +88,10 @@ def test_read_and_adjust_network(tmp_path):
         first = next(iter(csv.DictReader(fh)))
     assert net.obs_line[0] == pytest.approx(float(first["line"]) - 0.5)
     assert net.obs_sample[0] == pytest.approx(float(first["sample"]) - 0.5)
-    assert np.all(np.isinf(net.point_sigma_m[net.point_kind == "tie"]))
+    # Free points get the documented default a-priori sigma (the datum cannot float).
+    assert np.all(net.point_sigma_m[net.point_kind == "tie"] == 200.0)
+    free = read_network(path, config={"observations": {"tie_apriori_sigma_m": None}})
+    assert np.all(np.isinf(free.network.point_sigma_m[free.network.point_kind == "tie"]))
     assert np.all(net.point_sigma_m[net.point_kind == "mcp"] == 0)
     res = adjust(net, {"linescan": {"position": {"mode": "weighted", "sigma_m": 100.0}}})
     assert res.summary()["rmse_px"] < 0.5
@@ -224,6 +227,18 @@ def test_cli_writes_outputs(tmp_path):
         rows = list(csv.DictReader(fh))
     assert len(rows) == 260 and {"dx_px", "dy_px", "inlier", "ccd"} <= set(rows[0])
     assert "Table 2" in (out / "report.md").read_text()
+    assert "rmse_x_px" in adj and "rmse_y_px" in adj
+    with open(out / "points.csv") as fh:
+        pts = list(csv.DictReader(fh))
+    assert len(pts) == 230 and {"shift_m", "sigma_up_m", "lat_deg"} <= set(pts[0])
+    assert report["config"]["observations"]["tie_apriori_sigma_m"] == 200.0
+    # --tie-sigma free and --no-vce reach the configuration.
+    out2 = tmp_path / "out2"
+    r = run_cli(path, "--out", out2, "--no-rpc", "--no-plots", "--tie-sigma", "free", "--no-vce")
+    assert r.exit_code == 0, r.output
+    rep2 = json.loads((out2 / "report.json").read_text())
+    assert rep2["config"]["observations"]["tie_apriori_sigma_m"] is None
+    assert rep2["variance_components"]["enabled"] is False
     # A non-empty --out is refused without --overwrite.
     # (The planetref click group turns these errors into one-line messages.)
     r = CliRunner().invoke(adjust_command, [str(path), "--out", str(out)], obj={})

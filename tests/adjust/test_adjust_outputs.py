@@ -67,7 +67,9 @@ def test_outputs_with_truth_rpc_and_plots(tmp_path):
     assert not list(tmp_path.rglob("*.tmp"))
 
 
+@pytest.mark.slow
 def test_real_ctx_network_adjusts_below_a_pixel(tmp_path):
+    """Defaults: tie points at 200 m a priori (the datum cannot float), VCE on."""
     data = shared_data()
     pytest.importorskip("planetref.camera.csm", reason="the CSM camera module is missing")
     from planetref.adjust.network import read_network
@@ -83,12 +85,19 @@ def test_real_ctx_network_adjusts_below_a_pixel(tmp_path):
         f"{time.perf_counter() - t0:.1f} s"
     )
     assert s["rmse_px_before_all"] > 3.0
-    assert s["rmse_px"] < 0.35
+    # ISIS jigsaw reached 0.45 px on these measures with points held at 200 m; free
+    # points (the old default) gave 0.23 px by letting them rise 4 km.
+    assert s["rmse_px"] <= 0.45
     assert s["outlier_ratio_pct"] < 2.0
     assert res.converged
+    assert 0.8 < s["sigma0_real"] < 1.25
+    moved = res.diagnostics["point_shifts"]["tie"]
+    print(f"points moved {moved['mean_shift_m']:.1f} m on average (max {moved['max_shift_m']:.0f})")
+    assert moved["mean_shift_m"] <= 100.0
     for cid, m in res.metrics["cameras"].items():
-        assert m["after"]["rmse_px"] < 0.35, cid
-    write_outputs(res, tmp_path, rpc=False, plots=False)
+        assert m["after"]["rmse_px"] < 0.5, cid
+    written = write_outputs(res, tmp_path, rpc=False, plots=False)
+    assert (tmp_path / "points.csv").is_file() and written["points"]
     isds = sorted((tmp_path / "cameras").glob("*.isd.json"))
     assert len(isds) == 3
     # The written ISDs carry the correction: reading one back reprojects identically.

@@ -140,6 +140,8 @@ def test_agrees_with_scipy_least_squares(ground_sigma):
     net, _, _ = mcp_problem(120 if ground_sigma else 300, seed=6, ground_sigma_m=ground_sigma)
     cfg = {
         **LINEAR,
+        # The same weights as scipy gets: no variance component re-weighting.
+        "variance": {"enabled": False},
         "solver": {"loss": "linear", "ftol": 1e-15, "xtol": 1e-10},
         "linescan": {
             "position": {"mode": "weighted", "sigma_m": 100.0},
@@ -332,7 +334,10 @@ def test_weak_node_error_names_it_or_weights_it():
     keep = net.obs_line < 2000  # the last nodes see nothing
     sub = Network(**{**net._fields(), "obs_check": ~keep})
     with pytest.raises(AdjustmentError, match=r"strip 'strip'.*node 7"):
-        adjust(sub)
+        adjust(sub, {"linescan": {"weak_nodes": "error"}})
+    # The default smooths them: the run goes through with a warning.
+    smooth = adjust(sub)
+    assert any("weak node" in w for w in smooth.warnings)
     res = adjust(sub, {"linescan": {"weak_nodes": "weight"}})
     assert any("weak node" in w for w in res.warnings)
     assert res.summary()["rmse_px"] < 0.5
@@ -365,7 +370,7 @@ def test_no_redundancy_and_unadjustable_cameras():
     with pytest.raises(AdjustmentError, match=r"singular|no redundancy"):
         adjust(net, {"linescan": {"position": {"mode": "free"}, "min_obs_per_node": 0}, **LINEAR})
     with pytest.raises(AdjustmentError, match="too few observations near"):
-        adjust(net, {"linescan": {"position": {"mode": "free"}}})
+        adjust(net, {"linescan": {"position": {"mode": "free"}, "weak_nodes": "error"}})
 
     class NotACamera:
         ccd_names = ("ccd1", "ccd2", "ccd3")

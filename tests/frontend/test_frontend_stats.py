@@ -71,3 +71,74 @@ def test_ncp_counts():
     sdu = sdu_per_ccd(table, {"a": (640, 640), "b": (640, 640)})
     assert sdu["a"] == pytest.approx(100 * (2 / 1024 + 2 / 4096 + 2 / 16384) / 3)
     assert sdu["b"] == pytest.approx(100 * 21 / 49152)
+
+
+def _tile(ccd, funnel=None, n_matches=0, n_inliers=0, n_points=0):
+    from types import SimpleNamespace
+
+    t = SimpleNamespace(
+        tile=SimpleNamespace(ccd=ccd),
+        n_matches=n_matches,
+        n_inliers=n_inliers,
+        line=np.zeros(n_points),
+    )
+    if funnel is not None:
+        t.funnel = funnel
+    return t
+
+
+def test_funnel_ncp_before_thinning_and_rejections_by_stage():
+    from planetref.frontend.stats import full_funnel, funnel_table, ncp_verified
+
+    a = _tile(
+        "c1",
+        {
+            "raw": 1000,
+            "coarse_gate": 900,
+            "ransac": 600,
+            "consensus": 540,
+            "backprojection": 530,
+            "mcp": 200,
+        },
+    )
+    b = _tile(
+        "c1",
+        {
+            "raw": 500,
+            "ransac": 400,
+            "consensus": 400,
+            "backprojection": 390,
+            "refine": 380,
+            "mcp": 380,
+        },
+    )
+    c = _tile("c2", n_matches=300, n_inliers=250, n_points=250)  # no funnel: old result
+    # NCP is the last verification stage, before the cap of 200 (tile a).
+    assert ncp_verified(a) == 530
+    assert ncp_verified(b) == 380
+    assert ncp_verified(c) == 250
+    ft = funnel_table([a, b, c])
+    c1 = ft["ccds"]["c1"]
+    assert c1["stages"] == {
+        "raw": 1500,
+        "coarse_gate": 900,
+        "ransac": 1000,
+        "consensus": 940,
+        "backprojection": 920,
+        "refine": 380,
+        "mcp": 580,
+    }
+    # RANSAC rejected 300 of a's 900 (after the gate) and 100 of b's 500 (raw).
+    assert c1["rejected"]["ransac"] == 400
+    assert c1["rejected_pct"]["ransac"] == pytest.approx(100 * 400 / 1400)
+    assert c1["rejected"]["mcp"] == 330  # a's thinning (530 -> 200), b's none
+    assert c1["ncp_verified"] == 910 and c1["n_mcp"] == 580 and c1["thinned"] == 330
+    assert ft["total"]["ncp_verified"] == 1160
+    rows = full_funnel(ft["total"], n_entered=830, n_inliers=800)
+    assert rows[-1] == {
+        "stage": "adjustment",
+        "count": 800,
+        "rejected": 30,
+        "rejected_pct": pytest.approx(100 * 30 / 830),
+    }
+    assert [r["stage"] for r in rows][:2] == ["raw", "coarse_gate"]

@@ -21,10 +21,18 @@ from numpy.typing import NDArray
 
 from planetref.adjust._blas import single_threaded_blas
 from planetref.adjust.config import AdjustConfig, validate_config
+from planetref.adjust.diagnostics import (
+    camera_shifts,
+    correlation_warnings,
+    point_summary,
+    point_table,
+    self_calibration,
+)
 from planetref.adjust.models import AdjustableCamera, parameterize
 from planetref.adjust.outliers import classify_inliers, robust_scale, supported
 from planetref.adjust.problem import Network
 from planetref.adjust.solver import BundleSolver, LmReport
+from planetref.adjust.variance import VceResult, variance_components
 from planetref.camera.geodesy import ray_ellipsoid_intersection, xyz_to_lonlat
 from planetref.errors import AdjustmentError
 from planetref.metrics import reprojection_metrics
@@ -33,9 +41,6 @@ __all__ = ["AdjustmentResult", "adjust", "rays", "triangulate"]
 
 log = logging.getLogger("planetref.adjust")
 F64 = NDArray[np.float64]
-
-#: Above this |correlation| between two parameters the result carries a warning.
-NEAR_SINGULAR_CORRELATION = 0.99999
 
 #: Observation status codes of :attr:`AdjustmentResult.status`.
 STATUSES = ("inlier", "outlier", "unusable", "check")
@@ -69,6 +74,14 @@ class AdjustmentResult:
         dof: Degrees of freedom (redundancy).
         metrics: Reprojection metrics before/after, overall, per camera and per CCD,
             and of the check observations (see :func:`adjust`).
+        variance: Variance components per observation group, their iterations, and the
+            degrees of freedom split into real observations (image measures, MCP
+            ground coordinates) and pseudo-observations (camera priors, smoothing
+            constraints, tie-point priors).
+        points: Per point columns (a-priori and adjusted coordinates, sigmas, shifts;
+            see :func:`~planetref.adjust.diagnostics.point_table`).
+        diagnostics: Point and camera movements, strong correlations and the
+            estimability of the self-calibration parameters.
         rounds: Per outlier round: inliers, RMSE, LM iterations, cost.
         converged: The last LM run converged and the inlier set is stable.
         warnings: Messages about auto-weighted groups, unusable points, instability.
@@ -96,6 +109,9 @@ class AdjustmentResult:
     sigma0: float
     dof: int
     metrics: dict[str, Any]
+    variance: dict[str, Any] = field(default_factory=dict)
+    points: dict[str, Any] = field(default_factory=dict)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
     rounds: list[dict[str, Any]] = field(default_factory=list)
     converged: bool = False
     warnings: list[str] = field(default_factory=list)
@@ -110,8 +126,11 @@ class AdjustmentResult:
         """The headline numbers (the ``adjustment`` block of report.json)."""
         after = self.metrics["all"]["after"]
         before = self.metrics["all"]["before"]
+        dof = self.variance.get("dof", {})
         return {
             "rmse_px_before": before["rmse_px"],
+            "rmse_x_px": after["rmse_x_px"],
+            "rmse_y_px": after["rmse_y_px"],
             "rmse_px_before_all": self.metrics["all"]["before_all"]["rmse_px"],
             "rmse_px": after["rmse_px"],
             "mean_px_before": before["mean_px"],
@@ -122,7 +141,11 @@ class AdjustmentResult:
             "n_unusable": int(np.count_nonzero(self.status == "unusable")),
             "n_check": int(np.count_nonzero(self.status == "check")),
             "sigma0": self.sigma0,
+            "sigma0_real": dof.get("sigma0_real"),
             "dof": self.dof,
+            "redundancy_real": dof.get("redundancy_real"),
+            "redundancy_pseudo": dof.get("redundancy_pseudo"),
+            "n_pseudo_equations": dof.get("n_pseudo_equations"),
             "rounds": len(self.rounds),
             "converged": self.converged,
             "seconds": self.seconds,
@@ -269,7 +292,11 @@ def _adjust(
     ]
     initial_cams = list(net.cameras)
     m_all = net.n_obs
-    free_pt = np.all(np.isinf(net.point_sigma_m), axis=1)
+    # Points whose coordinates the rays must determine: free ones, and tie points under
+    # their (loose) a-priori sigma; they need min_tie_observations rays.
+    free_pt = np.all(np.isinf(net.point_sigma_m), axis=1) | (
+        (np.asarray(net.point_kind) == "tie") & ~np.all(net.point_sigma_m == 0, axis=1)
+    )
     candidates = ~net.obs_check
     xyz0 = net.point_xyz.copy()
     missing = np.flatnonzero(~np.all(np.isfinite(xyz0), axis=1))
@@ -333,6 +360,19 @@ def _adjust(
             warn(msg)
     solver.refresh_modes()
 
+    # Weighted MCPs: their residuals (metrics, outlier rule) are those of the reference
+    # ground point through the adjusted camera, as with fixed MCPs; the adjusted point
+    # may absorb its image residual (one view) and would flatter the RMSE.
+    ref_pt = (
+        (np.asarray(net.point_kind) == "mcp")
+        & ~solver.point_fixed
+        & ~np.all(np.isinf(net.point_sigma_m), axis=1)
+    )
+
+    def _reference(xyz_now: F64) -> F64:
+        return np.where(ref_pt[:, None], xyz_start, xyz_now)
+
+    on_ref = ref_pt[net.obs_point]
     inlier = usable.copy()
     c = solver.x0.copy()
     xyz = xyz_start
@@ -355,9 +395,9 @@ def _adjust(
         # the others (rejected so far) need projecting.
         residual = np.full((m_all, 2), np.nan)
         residual[lin.obs] = np.where(lin.valid[:, None], lin.r, np.nan)
-        sel = np.flatnonzero(usable & ~inlier)
+        sel = np.flatnonzero(usable & ~(inlier & ~on_ref))
         if sel.size:
-            line, samp, _ = solver.project(c, xyz, sel)
+            line, samp, _ = solver.project(c, _reference(xyz), sel)
             residual[sel] = np.stack([line - net.obs_line[sel], samp - net.obs_sample[sel]], 1)
         length = np.hypot(residual[:, 0], residual[:, 1])
         _, rmse = classify_inliers(length, usable, inlier, cfg.outliers.k_rmse)
@@ -385,6 +425,21 @@ def _adjust(
             f"result is that of the last round"
         )
     inlier = last_used
+    # Variance components on the final inliers (plain least squares), then the residuals
+    # of the final solution.
+    c, xyz, stats, vce = variance_components(
+        solver, c, xyz, np.flatnonzero(inlier), xyz_start, stats, cfg.variance, progress
+    )
+    if cfg.variance.enabled:
+        if not vce.converged:
+            warn(
+                f"variance components did not converge in {vce.iterations} iteration(s); "
+                f"the factors of the last one: "
+                + ", ".join(f"{g['group']} {g['factor']:.3g}" for g in vce.groups if g["estimated"])
+            )
+        sel = np.flatnonzero(usable)
+        line, samp, _ = solver.project(c, _reference(xyz), sel)
+        residual[sel] = np.stack([line - net.obs_line[sel], samp - net.obs_sample[sel]], 1)
     # Observations of free points that lost their support cannot be re-tested fairly.
     status = np.full(m_all, "outlier", dtype="<U8")
     status[inlier] = "inlier"
@@ -400,14 +455,13 @@ def _adjust(
             cs = chk[has]
             line, samp, _ = solver.project(c, xyz, cs)
             residual[cs] = np.stack([line - net.obs_line[cs], samp - net.obs_sample[cs]], 1)
-    corr = np.abs(np.triu(np.asarray(stats["correlation"]), 1))
-    if corr.size and corr.max() > NEAR_SINGULAR_CORRELATION:
-        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
-        warn(
-            f"nearly singular: {solver.names[i]} and {solver.names[j]} correlate at "
-            f"{corr[i, j]:.7f}; the observations hardly separate them (a datum defect?): "
-            f"fix or weight one of them"
-        )
+    xyz_final = np.where(np.isfinite(xyz0), xyz, np.nan)
+    diag = _diagnostics(
+        net, solver, cfg, (c, stats), vce, (xyz0, xyz_final), initial_cams, cams_after
+    )
+    for w in diag.pop("_warnings"):
+        warn(w)
+    points = diag.pop("_points")
     metrics = _metrics(net, res0, residual, status, inlier, usable)
     if chk.size:
         metrics["check"] = _check_metrics(net, initial_cams, cams_after, chk, res0, residual, xyz0)
@@ -426,19 +480,65 @@ def _adjust(
         covariance=np.asarray(stats["covariance"]),
         correlation=np.asarray(stats["correlation"]),
         point_xyz_initial=xyz0,
-        point_xyz=np.where(np.isfinite(xyz0), xyz, np.nan),
+        point_xyz=xyz_final,
         residual_initial=res0,
         residual=residual,
         status=status,
         sigma0=float(stats["sigma0"]),
         dof=int(stats["dof"]),
         metrics=metrics,
+        variance={
+            "enabled": cfg.variance.enabled,
+            "iterations": vce.iterations,
+            "converged": vce.converged,
+            "groups": vce.groups,
+            "dof": vce.dof_split() | {"dof": int(stats["dof"]), "n_unknowns": stats["n_unknowns"]},
+        },
+        points=points,
+        diagnostics=diag,
         rounds=rounds,
         converged=stable,
         warnings=warnings,
         seconds=time.perf_counter() - t0,
     )
     return result
+
+
+def _diagnostics(
+    net: Network,
+    solver: BundleSolver,
+    cfg: AdjustConfig,
+    solution: tuple[F64, dict[str, Any]],
+    vce: VceResult,
+    points: tuple[F64, F64],
+    cams0: list[Any],
+    cams1: list[Any],
+) -> dict[str, Any]:
+    """Movements, strong correlations and self-calibration estimability (with warnings)."""
+    dc = cfg.diagnostics
+    c, stats = solution
+    xyz0, xyz = points
+    red = vce.redundancy
+    cof = {int(j): red.point_cofactor[k] for k, j in enumerate(red.unknown)}
+    table = point_table(
+        net, xyz0, xyz, solver.point_sigma, solver.point_frame, cof, float(stats["sigma0"])
+    )
+    used = np.zeros(net.n_points, bool)
+    used[net.obs_point[red.obs]] = True
+    moved, w_pts = point_summary(table, used, dc)
+    shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc)
+    corr_info, w_corr = correlation_warnings(solver.names, stats["correlation"], dc)
+    calib, w_cal = self_calibration(
+        solver.names, solver.mode, solver.sigma, solver.x0, c, stats["covariance"], dc
+    )
+    return {
+        "point_shifts": moved,
+        "camera_shifts": shifts,
+        "correlations": corr_info,
+        "self_calibration": calib,
+        "_points": table | {"used": used},
+        "_warnings": w_pts + w_cam + w_corr + w_cal,
+    }
 
 
 def _set_threshold(

@@ -36,11 +36,13 @@ from pydantic import (
 from planetref.errors import InputError
 
 __all__ = [
+    "DEFAULT_TIE_SIGMA_M",
     "AdjustConfig",
     "AngleBlock",
     "AngularAccelerationBlock",
     "AngularRateBlock",
     "CsmParameters",
+    "DiagnosticsConfig",
     "FocalLengthBlock",
     "InteriorBlock",
     "LengthBlock",
@@ -49,6 +51,7 @@ __all__ = [
     "ObservationConfig",
     "OutlierConfig",
     "SolverConfig",
+    "VarianceConfig",
     "VelocityBlock",
     "parse_quantity",
     "validate_config",
@@ -249,9 +252,10 @@ class LineScanParameters(_Frozen):
             correction of a weak node continue the corrections of its neighbours
             towards the strip's centre (zero second difference, within
             ``weak_node_smooth_sigma_m`` / ``weak_node_smooth_sigma_rad``) and logs a
-            warning. ``smooth`` suits nodes beyond the observed lines: their initial
-            values are as wrong as the rest of the trajectory, so pulling them back to
-            those values would bend the adjusted trajectory near the image ends.
+            warning. ``smooth`` (the default) suits nodes beyond the observed lines:
+            their initial values are as wrong as the rest of the trajectory, so pulling
+            them back to those values would bend the adjusted trajectory near the image
+            ends.
         weak_node_position_sigma_m: Sigma for weak nodes' positions (metres).
         weak_node_attitude_sigma_rad: Sigma for weak nodes' attitudes (radians).
         weak_node_smooth_sigma_m: Sigma of the second difference of position
@@ -263,7 +267,7 @@ class LineScanParameters(_Frozen):
     attitude: AngleBlock = AngleBlock(mode="free")
     interior: InteriorBlock = InteriorBlock()
     min_obs_per_node: int = Field(3, ge=0)
-    weak_nodes: Literal["error", "weight", "smooth"] = "error"
+    weak_nodes: Literal["error", "weight", "smooth"] = "smooth"
     weak_node_position_sigma_m: Metres = 100.0
     weak_node_attitude_sigma_rad: Radians = 1e-4
     weak_node_smooth_sigma_m: Metres = 0.1
@@ -301,6 +305,12 @@ class CsmParameters(_Frozen):
     fd_ground_step_m: float = Field(1.0, gt=0.0)
 
 
+#: Default a-priori sigma of tie-point coordinates (metres per axis), as ISIS jigsaw
+#: is commonly run: loose enough for any orbital camera's initial error, tight enough
+#: that the network's datum cannot float (points rising kilometres to absorb a bias).
+DEFAULT_TIE_SIGMA_M = 200.0
+
+
 class ObservationConfig(_Frozen):
     """Default weights of observations and ground points.
 
@@ -308,18 +318,23 @@ class ObservationConfig(_Frozen):
         sigma_px: Standard deviation of an image measure (pixels), for observations
             that carry none.
         mcp_ground: How the ground point of an MCP enters: ``fixed`` (taken as known) or
-            ``weighted`` by ``mcp_ground_sigma_m`` (e.g. the reference GSD).
+            ``weighted`` by ``mcp_ground_sigma_m`` (e.g. the reference GSD). MCP runs of
+            the pipeline weight every MCP by its own a-priori sigmas (ortho GSD, DEM
+            resolution and slope) whatever this says.
         mcp_ground_sigma_m: Ground sigma of weighted MCPs (metres, per axis).
-        tie_apriori_sigma_m: A-priori sigma of tie-point coordinates (metres, per axis);
-            ``None`` leaves them free.
-        min_tie_observations: A free tie point needs at least this many observations
-            (2); points with fewer are left out of the adjustment (status ``unusable``).
+        tie_apriori_sigma_m: A-priori sigma of tie-point coordinates (metres, per axis;
+            default :data:`DEFAULT_TIE_SIGMA_M`); a network file's own sigmas win; ``None``
+            leaves them free (the datum then rests on the camera priors alone and may
+            float).
+        min_tie_observations: A tie point (free, or under its a-priori sigma) needs at
+            least this many observations (2); points with fewer are left out of the
+            adjustment (status ``unusable``).
     """
 
     sigma_px: float = Field(1.0, gt=0.0)
     mcp_ground: Literal["fixed", "weighted"] = "fixed"
     mcp_ground_sigma_m: Metres = None
-    tie_apriori_sigma_m: Metres = None
+    tie_apriori_sigma_m: Metres = DEFAULT_TIE_SIGMA_M
     min_tie_observations: int = Field(2, ge=2)
 
     @model_validator(mode="after")
@@ -331,6 +346,59 @@ class ObservationConfig(_Frozen):
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
         return self
+
+
+class VarianceConfig(_Frozen):
+    """Variance component estimation (VCE) of the observation groups.
+
+    Groups: the image measures of MCPs and of tie points, per camera and CCD; the
+    a-priori ground coordinates of weighted MCPs, planimetric and height apart. Each
+    group's sigmas are scaled by ``sqrt(v^T P v / r)`` of the group (``r`` its
+    redundancy, the sum of its redundancy numbers) and the adjustment is repeated until
+    every factor is within ``tolerance`` of 1 (Foerstner's iteration), so that the final
+    sigma0 is ~1 and the covariances mean what they say.
+
+    Attributes:
+        enabled: Estimate the variance components.
+        max_iterations: Most re-weighting iterations.
+        tolerance: Stop when every group's factor ``sigma_g`` is within this of 1.
+        min_redundancy: A group with less redundancy than this keeps its a-priori
+            sigmas (its factor is not estimable) and is reported as such.
+        min_sigma_px: Image sigmas are not scaled below this (pixels): a group without
+            noise (simulated, or duplicated measures) would otherwise take all weight.
+        min_sigma_m: The same floor for a-priori ground sigmas (metres).
+        max_step: A group's sigmas change by at most this factor (or its inverse) per
+            iteration, which keeps the re-weighted adjustments well conditioned.
+    """
+
+    enabled: bool = True
+    max_iterations: int = Field(10, ge=1)
+    tolerance: float = Field(0.02, gt=0.0)
+    min_redundancy: float = Field(5.0, ge=0.0)
+    min_sigma_px: float = Field(0.02, gt=0.0)
+    min_sigma_m: float = Field(0.01, gt=0.0)
+    max_step: float = Field(5.0, gt=1.0)
+
+
+class DiagnosticsConfig(_Frozen):
+    """Thresholds of the warnings about the datum and the estimability.
+
+    Attributes:
+        point_shift_sigmas: Warn when a weighted point moves more than this many of its
+            a-priori sigmas.
+        camera_shift_m: Warn when a camera's ground footprint moves more than this
+            (metres, largest over a grid of its image).
+        max_correlation: Warn when two parameters correlate above this (absolute).
+        separable_sigma_ratio: A self-calibration parameter is reported *not separable*
+            when its a-posteriori sigma is more than this fraction of its a-priori
+            sigma (the observations hardly improved on the prior) or when it correlates
+            above ``max_correlation`` with another parameter.
+    """
+
+    point_shift_sigmas: float = Field(3.0, gt=0.0)
+    camera_shift_m: float = Field(100.0, gt=0.0)
+    max_correlation: float = Field(0.99, gt=0.0, le=1.0)
+    separable_sigma_ratio: float = Field(0.5, gt=0.0, le=1.0)
 
 
 class SolverConfig(_Frozen):
@@ -397,6 +465,8 @@ class AdjustConfig(_Frozen):
         observations: Default weights of observations and ground points.
         solver: Levenberg-Marquardt settings.
         outliers: The outlier rule.
+        variance: Variance component estimation.
+        diagnostics: Thresholds of the datum and estimability warnings.
     """
 
     linescan: LineScanParameters = LineScanParameters()
@@ -405,6 +475,8 @@ class AdjustConfig(_Frozen):
     observations: ObservationConfig = ObservationConfig()
     solver: SolverConfig = SolverConfig()
     outliers: OutlierConfig = OutlierConfig()
+    variance: VarianceConfig = VarianceConfig()
+    diagnostics: DiagnosticsConfig = DiagnosticsConfig()
 
 
 def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:

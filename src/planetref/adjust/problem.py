@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
-__all__ = ["Network", "PointKind"]
+__all__ = ["Network", "PointKind", "enu_rotation"]
 
 PointKind = str  # "mcp" or "tie" (informative: how a point is reported)
 F64 = NDArray[np.float64]
@@ -64,6 +64,10 @@ class Network:
         obs_sigma_px: Sigma of ``(line, sample)`` in pixels, ``(M, 2)``.
         obs_check: True for held-out check observations, ``(M,)``.
         obs_ids: Observation ids, ``(M,)`` strings.
+        point_sigma_local: Per point, ``(P,)``: True when its three sigmas are along the
+            local east, north and up (radial) directions at the point instead of the
+            body-fixed X, Y, Z axes (MCPs: planimetric sigmas from the ortho, height
+            sigma from the DEM).
     """
 
     cameras: tuple[Camera, ...]
@@ -80,6 +84,7 @@ class Network:
     obs_sigma_px: F64
     obs_check: NDArray[np.bool_]
     obs_ids: NDArray[np.str_]
+    point_sigma_local: NDArray[np.bool_] | bool = False
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -135,7 +140,9 @@ class Network:
             if np.size(self.obs_ids)
             else np.array([str(i) for i in range(m)], dtype=str)
         )
+        local = np.array(np.broadcast_to(np.asarray(self.point_sigma_local, bool), (n_pts,)))
         for name, value in (
+            ("point_sigma_local", local),
             ("cameras", cams),
             ("camera_ids", ids),
             ("point_ids", pids),
@@ -185,6 +192,20 @@ class Network:
             [labels[c][k] for c, k in zip(self.obs_camera, self.obs_ccd, strict=True)], dtype=str
         )
 
+    def point_frame_matrices(self) -> F64:
+        """Rotations from body-fixed XYZ to each point's sigma frame, ``(P, 3, 3)``.
+
+        Identity for points with XYZ sigmas; rows east, north, up (radial) for points
+        with local sigmas (up is the geocentric radial direction; it differs from the
+        ellipsoid normal by a fraction of a degree, nothing for a sigma).
+        """
+        n = self.n_points
+        out = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+        loc = np.flatnonzero(self.point_sigma_local & np.all(np.isfinite(self.point_xyz), axis=1))
+        if loc.size:
+            out[loc] = enu_rotation(self.point_xyz[loc])
+        return out
+
     def replace_points(self, point_xyz: F64) -> Network:
         """A copy with other a priori point coordinates."""
         return Network(**{**self._fields(), "point_xyz": point_xyz})
@@ -209,6 +230,7 @@ class Network:
         sigma_px: ArrayLike = 1.0,
         check: ArrayLike = False,
         obs_ids: Sequence[str] | None = None,
+        point_sigma_local: bool | Mapping[str, bool] = False,
     ) -> Network:
         """Build a network from string ids (e.g. rows of a measures table).
 
@@ -225,6 +247,8 @@ class Network:
             sigma_px: Sigma of each observation (pixels), scalar, ``(M,)`` or ``(M, 2)``.
             check: Held-out check flags.
             obs_ids: Observation ids (default: row numbers).
+            point_sigma_local: Sigmas along east, north, up (see the class doc), for all
+                points or point id -> flag.
 
         Raises:
             InputError: Unknown camera, point or CCD names.
@@ -264,10 +288,14 @@ class Network:
             ).reshape(-1, 3)
         else:
             sig = np.broadcast_to(np.asarray(point_sigma_m, np.float64), (len(pids), 3))
+        if isinstance(point_sigma_local, Mapping):
+            local = np.array([bool(point_sigma_local.get(p, False)) for p in pids], dtype=bool)
+        else:
+            local = np.full(len(pids), bool(point_sigma_local))
         if isinstance(point_kind, Mapping):
             kind = np.array([point_kind[p] for p in pids], dtype=str)
         else:
-            kind = np.full(len(pids), point_kind, dtype=str)
+            kind = np.array([point_kind] * len(pids), dtype=str)
         return cls(
             cameras=tuple(cameras.values()),
             camera_ids=tuple(cam_ids),
@@ -285,6 +313,7 @@ class Network:
             obs_ids=np.array(
                 obs_ids if obs_ids is not None else [str(i) for i in range(m)], dtype=str
             ),
+            point_sigma_local=local,
         )
 
     @classmethod
@@ -300,6 +329,7 @@ class Network:
         ground_sigma_m: ArrayLike = 0.0,
         sigma_px: ArrayLike = 1.0,
         check: ArrayLike = False,
+        ground_sigma_local: bool = False,
     ) -> Network:
         """A network of matched control points of one camera (one point per observation).
 
@@ -313,6 +343,9 @@ class Network:
             camera_id: Id of the camera.
             ground_sigma_m: 0 (known ground, default), or a sigma in metres: one for all,
                 ``(M,)`` per point, or ``(M, 3)`` per point and axis.
+            ground_sigma_local: The ``(M, 3)`` sigmas are along east, north, up (e.g.
+                ``(sigma_ground_xy_m, sigma_ground_xy_m, sigma_ground_h_m)`` of the MCP
+                table) instead of X, Y, Z.
             sigma_px: Sigma of each measure (pixels).
             check: Held-out check flags.
         """
@@ -339,7 +372,7 @@ class Network:
             point_ids=np.array([f"mcp{i}" for i in range(m)], dtype=str),
             point_xyz=np.asarray(xyz, np.float64).reshape(m, 3),
             point_sigma_m=_as_float(gs, (m, 3), "ground_sigma_m"),
-            point_kind=np.full(m, "mcp", dtype=str),
+            point_kind=np.array(["mcp"] * m, dtype=str),
             obs_camera=np.zeros(m, np.intp),
             obs_ccd=ki,
             obs_point=np.arange(m),
@@ -348,4 +381,24 @@ class Network:
             obs_sigma_px=np.asarray(sigma_px, np.float64),
             obs_check=np.asarray(check, bool),
             obs_ids=np.array([str(i) for i in range(m)], dtype=str),
+            point_sigma_local=bool(ground_sigma_local),
         )
+
+
+def enu_rotation(xyz: F64) -> F64:
+    """Rows east, north, up (geocentric radial) at body-fixed points, ``(n, 3, 3)``.
+
+    Args:
+        xyz: Body-fixed points (metres), ``(n, 3)``, not at the body's centre.
+
+    Returns:
+        Rotation matrices ``R`` with ``R @ d`` the east, north, up components of ``d``.
+    """
+    p = np.asarray(xyz, np.float64).reshape(-1, 3)
+    up = p / np.linalg.norm(p, axis=1, keepdims=True)
+    east = np.cross(np.array([0.0, 0.0, 1.0]), up)
+    norm = np.linalg.norm(east, axis=1, keepdims=True)
+    # At a pole east is undefined: any horizontal direction will do.
+    east = np.where(norm > 1e-12, east / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0])
+    north = np.cross(up, east)
+    return np.stack([east, north, up], axis=1)

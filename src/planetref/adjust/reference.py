@@ -72,7 +72,7 @@ class ScipyProblem:
         self.cam_map = np.full(s.n_params + 1, -1, np.intp)
         self.cam_map[s.active] = np.arange(self.n_cam)
         self.weighted_c = np.flatnonzero(s.mode == 1)
-        self.weighted_p = self.unknown[np.any(s.point_prior_w[self.unknown] > 0, axis=1)]
+        self.weighted_p = self.unknown[np.any(s.point_prior_axis_w[self.unknown] > 0, axis=1)]
         self.xyz_fixed = np.nan_to_num(network.point_xyz)
         self._cache: tuple[bytes, tuple[F64, scipy.sparse.csr_matrix]] | None = None
 
@@ -143,11 +143,18 @@ class ScipyProblem:
             n_rows += wc.size
         wp = self.weighted_p
         if wp.size:
-            w = np.sqrt(s.point_prior_w[wp])
-            extra.append(((xyz[wp] - self.xyz_fixed[wp]) * w).ravel())
+            # Whitening L = diag(1/sigma) R of each point (L^T L = its weight matrix).
+            w = np.sqrt(s.point_prior_axis_w[wp])[:, :, None] * s.point_frame[wp]
+            dxp = xyz[wp] - self.xyz_fixed[wp]
+            extra.append(np.einsum("pij,pj->pi", w, dxp).ravel())
             umap = np.searchsorted(self.unknown, wp)
-            rows.append(n_rows + np.arange(3 * wp.size))
-            cols.append((self.n_cam + 3 * umap[:, None] + np.arange(3)).ravel())
+            base = n_rows + 3 * np.arange(wp.size)
+            rows.append(np.repeat(base[:, None] + np.arange(3), 3, axis=1).ravel())
+            cols.append(
+                np.broadcast_to(
+                    (self.n_cam + 3 * umap[:, None] + np.arange(3))[:, None, :], (wp.size, 3, 3)
+                ).ravel()
+            )
             vals.append(w.ravel())
             n_rows += 3 * wp.size
         full = np.concatenate([res, *extra])

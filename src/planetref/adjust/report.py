@@ -5,6 +5,8 @@ Layout of the output folder::
     report.json            headline numbers, metrics, parameters, rounds, configuration
     report.md              the same for people (the seed's Table 2 per camera and CCD)
     residuals.csv          one row per observation
+    points.csv             one row per point: a-priori and adjusted XYZ, lat/lon/height,
+                           sigmas, shift (metres and a-priori sigmas)
     parameters.csv         one row per parameter (initial, adjusted, sigma)
     covariance.npz         names, covariance and correlation matrices of the parameters
     config.json            the resolved configuration
@@ -34,16 +36,16 @@ import numpy as np
 
 from planetref.adjust.api import AdjustmentResult
 from planetref.adjust.network import safe_name
+from planetref.adjust.report_md import MODE_NAMES, report_md, top_correlations
 from planetref.atomic import json_safe, write_bytes_atomic, write_text_atomic
 from planetref.camera.geodesy import xyz_to_lonlat
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import PlanetrefError
 from planetref.metrics import geolocation_error
 
-__all__ = ["geolocation_metrics", "write_outputs"]
+__all__ = ["POINT_COLUMNS", "geolocation_metrics", "write_outputs", "write_points"]
 
 log = logging.getLogger("planetref.adjust")
-MODE_NAMES = {0: "free", 1: "weighted", 2: "fixed"}
 #: A refitted RPC is reported as a warning when its check RMS (pixels) exceeds both this
 #: and ``RPC_WARN_FRACTION`` of the adjustment's RMSE: only then does using the RPC
 #: instead of the rigorous camera add noticeably (> 12 % in quadrature) to the error.
@@ -121,6 +123,7 @@ def write_outputs(
     written: dict[str, Any] = {"cameras": {}, "plots": []}
     geo = geolocation_metrics(result, truth, terrain=terrain) if truth else None
     written["residuals"] = str(_write_residuals(result, out / "residuals.csv"))
+    written["points"] = str(write_points(result, out / "points.csv"))
     written["parameters"] = str(_write_parameters(result, out / "parameters.csv"))
     buf = io.BytesIO()
     np.savez_compressed(
@@ -166,7 +169,7 @@ def write_outputs(
         )
     )
     written["report_md"] = str(
-        write_text_atomic(out / "report.md", _report_md(result, geo, rpc_reports, notes))
+        write_text_atomic(out / "report.md", report_md(result, geo, rpc_reports, notes))
     )
     return written
 
@@ -220,6 +223,85 @@ def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
                 f(r0[i, 0]),
                 result.status[i],
                 int(result.status[i] == "inlier"),
+            ]
+        )
+    return write_text_atomic(path, buf.getvalue())
+
+
+#: Columns of points.csv.
+POINT_COLUMNS = (
+    "point_id",
+    "kind",
+    "used",
+    "apriori_x_m",
+    "apriori_y_m",
+    "apriori_z_m",
+    "x_m",
+    "y_m",
+    "z_m",
+    "apriori_lat_deg",
+    "apriori_lon_deg",
+    "apriori_height_m",
+    "lat_deg",
+    "lon_deg",
+    "height_m",
+    "sigma_frame",
+    "apriori_sigma_1_m",
+    "apriori_sigma_2_m",
+    "apriori_sigma_3_m",
+    "sigma_east_m",
+    "sigma_north_m",
+    "sigma_up_m",
+    "shift_m",
+    "shift_horizontal_m",
+    "shift_up_m",
+    "shift_sigma",
+)
+
+
+def write_points(result: AdjustmentResult, path: Path) -> Path:
+    """Write points.csv: one row per point of the network.
+
+    Columns (:data:`POINT_COLUMNS`): id, kind (``mcp``/``tie``), whether it took part;
+    a-priori (for free points: triangulated) and adjusted body-fixed XYZ (m),
+    planetocentric latitude, east longitude (degrees) and height above the body
+    (metres), a priori and adjusted; the a-priori sigmas used in the final adjustment
+    (after variance component scaling) along ``sigma_frame`` (``xyz`` or ``enu``;
+    empty = free, 0 = fixed); the a-posteriori sigmas along east, north, up; the
+    shift adjusted - a priori (length, horizontal, up, in metres) and its largest
+    component in a-priori sigmas.
+    """
+    t = result.points
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(POINT_COLUMNS)
+
+    def f(v: float, fmt: str = ".4f") -> str:
+        return "" if not math.isfinite(v) else format(float(v), fmt)
+
+    for i in range(len(t["point_id"])):
+        a, x = t["xyz_apriori"][i], t["xyz"][i]
+        sa = t["sigma_apriori"][i]
+        w.writerow(
+            [
+                t["point_id"][i],
+                t["kind"][i],
+                int(t["used"][i]),
+                *(f(v) for v in a),
+                *(f(v) for v in x),
+                f(t["lat_apriori"][i], ".9f"),
+                f(t["lon_apriori"][i], ".9f"),
+                f(t["height_apriori"][i]),
+                f(t["lat"][i], ".9f"),
+                f(t["lon"][i], ".9f"),
+                f(t["height"][i]),
+                "enu" if t["sigma_local"][i] else "xyz",
+                *(f(v) for v in sa),
+                *(f(v) for v in t["sigma_enu"][i]),
+                f(t["shift_m"][i]),
+                f(t["shift_horizontal_m"][i]),
+                f(t["shift_up_m"][i]),
+                f(t["shift_sigma"][i], ".3f"),
             ]
         )
     return write_text_atomic(path, buf.getvalue())
@@ -411,22 +493,6 @@ def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:
     return paths
 
 
-def _top_correlations(result: AdjustmentResult, n: int = 20) -> list[list[Any]]:
-    c = np.abs(np.triu(result.correlation, 1))
-    if not c.size:
-        return []
-    flat = np.argsort(c, axis=None)[::-1][:n]
-    out = []
-    for f in flat:
-        i, j = np.unravel_index(f, c.shape)
-        if c[i, j] <= 0:
-            break
-        out.append(
-            [result.parameter_names[i], result.parameter_names[j], float(result.correlation[i, j])]
-        )
-    return out
-
-
 def _report_dict(
     result: AdjustmentResult,
     geo: dict[str, Any] | None,
@@ -465,8 +531,15 @@ def _report_dict(
             "max_abs": float(np.max(np.abs(np.triu(result.correlation, 1))))
             if result.correlation.size > 1
             else 0.0,
-            "top": _top_correlations(result),
+            "top": top_correlations(result),
         },
+        "variance_components": result.variance,
+        "movement": {
+            "points": result.diagnostics.get("point_shifts", {}),
+            "cameras": result.diagnostics.get("camera_shifts", {}),
+        },
+        "correlation_check": result.diagnostics.get("correlations", {}),
+        "self_calibration": result.diagnostics.get("self_calibration", []),
         "rounds": result.rounds,
         "warnings": result.warnings,
         "rpc_fits": rpc,
@@ -478,143 +551,3 @@ def _report_dict(
     if extra:
         report.update(extra)
     return report
-
-
-def _fmt(v: Any, digits: int = 4) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    if isinstance(v, int | np.integer):
-        return str(int(v))
-    return f"{v:.{digits}g}"
-
-
-def _table2_rows(label: str, m: dict[str, Any], sigma0: float | None) -> list[str]:
-    rows = []
-    for when in ("before", "after"):
-        s = m[when]
-        rows.append(
-            f"| {label} | {when} | {_fmt(s['rmse_px'])} | {_fmt(s['mean_px'])} | "
-            f"{_fmt(s['max_dx_px'])} | {_fmt(s['min_dx_px'])} | "
-            f"{_fmt(s['max_dy_px'])} | {_fmt(s['min_dy_px'])} | "
-            f"{_fmt(s['outlier_ratio_pct'], 3)} | {s['n_inliers']}/{s['n_total']} | "
-            f"{_fmt(sigma0) if when == 'after' and sigma0 is not None else '-'} |"
-        )
-    return rows
-
-
-def _report_md(
-    result: AdjustmentResult, geo: dict[str, Any] | None, rpc: dict[str, Any], notes: list[str]
-) -> str:
-    s = result.summary()
-    lines = [
-        "# Bundle adjustment report",
-        "",
-        f"RMSE {_fmt(s['rmse_px_before'])} px -> **{_fmt(s['rmse_px'])} px**; "
-        f"outlier ratio {_fmt(s['outlier_ratio_pct'], 3)} % "
-        f"({s['n_inliers']} of {s['n_total']} observations are inliers); "
-        f"sigma0 {_fmt(s['sigma0'])}, {s['dof']} degrees of freedom; "
-        f"{s['rounds']} round(s); converged: {s['converged']}.",
-        "",
-        "Residuals are projected - observed; dx = sample, dy = line, pixels. "
-        "'before' uses the initial cameras on the same (final) inliers; the outlier "
-        "ratio is that of the final k x RMSE classification.",
-        "",
-        "## Reprojection residuals (Table 2)",
-        "",
-        "| camera / CCD | | RMSE | mean | max dx | min dx | max dy | min dy | OR % | "
-        "inliers | sigma0 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    lines += _table2_rows("all", result.metrics["all"], result.sigma0)
-    for cid, m in result.metrics["cameras"].items():
-        lines += _table2_rows(cid, m, None)
-        for ccd, mc in m.get("ccds", {}).items():
-            lines += _table2_rows(f"{cid} / {ccd}", mc, None)
-    chk = result.metrics.get("check")
-    if chk:
-        lines += [
-            "",
-            "## Check observations (held out)",
-            "",
-            "| | RMS px | max px | RMS m | max m | n |",
-            "|---|---|---|---|---|---|",
-        ]
-        for when in ("before", "after"):
-            c = chk[when]
-            lines.append(
-                f"| {when} | {_fmt(c['rms_px'])} | {_fmt(c['max_px'])} | "
-                f"{_fmt(c['rms_m'])} | {_fmt(c['max_m'])} | {c['n']} |"
-            )
-    if geo:
-        lines += [
-            "",
-            "## Geolocation error against the true cameras",
-            "",
-            "| camera / CCD | | RMS m | max m | RMS px | max px |",
-            "|---|---|---|---|---|---|",
-        ]
-        for cid, per in geo.items():
-            for ccd, g in per.items():
-                for when in ("before", "after"):
-                    e = g[when]
-                    lines.append(
-                        f"| {cid} / {ccd} | {when} | {_fmt(e['rms_m'])} | "
-                        f"{_fmt(e['max_m'])} | {_fmt(e['rms_px'])} | "
-                        f"{_fmt(e['max_px'])} |"
-                    )
-    lines += [
-        "",
-        "## Rounds",
-        "",
-        "| round | observations | RMSE px | iterations | evaluations | converged |",
-        "|---|---|---|---|---|---|",
-    ]
-    for r in result.rounds:
-        lines.append(
-            f"| {r['round']} | {r['n_observations']} | {_fmt(r['rmse_px'])} | "
-            f"{r['iterations']} | {r['evaluations']} | {r['converged']} |"
-        )
-    act = np.flatnonzero(result.parameter_mode != 2)
-    lines += [
-        "",
-        f"## Parameters ({act.size} adjusted of {len(result.parameter_names)}; "
-        f"all in parameters.csv)",
-        "",
-        "| parameter | unit | mode | correction | sigma |",
-        "|---|---|---|---|---|",
-    ]
-    for i in act[:60]:
-        lines.append(
-            f"| {result.parameter_names[i]} | {result.parameter_units[i]} | "
-            f"{MODE_NAMES[int(result.parameter_mode[i])]} | "
-            f"{_fmt(result.x[i] - result.x0[i])} | {_fmt(result.sigma[i])} |"
-        )
-    if act.size > 60:
-        lines.append(f"| ... {act.size - 60} more | | | | |")
-    top = _top_correlations(result, 10)
-    if top:
-        lines += [
-            "",
-            "## Strongest correlations",
-            "",
-            "| parameter | parameter | r |",
-            "|---|---|---|",
-        ]
-        lines += [f"| {a} | {b} | {r:.4f} |" for a, b, r in top]
-    if rpc:
-        lines += [
-            "",
-            "## Refitted RPCs",
-            "",
-            "| camera | CCD | fit RMS px | check RMS px |",
-            "|---|---|---|---|",
-        ]
-        for cid, per in rpc.items():
-            for ccd, rep in per.items():
-                lines.append(
-                    f"| {cid} | {ccd} | {_fmt(rep.get('fit_rms_px'))} | "
-                    f"{_fmt(rep.get('check_rms_px'))} |"
-                )
-    if result.warnings or notes:
-        lines += ["", "## Warnings", ""] + [f"* {w}" for w in [*result.warnings, *notes]]
-    return "\n".join(lines) + "\n"

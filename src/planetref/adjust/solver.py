@@ -208,9 +208,10 @@ class BundleSolver:
                 f"some axes only is not supported"
             )
         self.point_fixed = fixed_pt
-        with np.errstate(divide="ignore"):
-            self.point_prior_w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / sig**2, 0.0)
-        self.obs_w0 = 1.0 / network.obs_sigma_px**2  # (M, 2), line then sample
+        #: Rotation from body-fixed XYZ to the frame of each point's sigmas, (P, 3, 3).
+        self.point_frame = network.point_frame_matrices()
+        self.set_point_sigma(sig)
+        self.set_obs_sigma(network.obs_sigma_px)
         self.line_guess = network.obs_line.copy()
         self.rate_guess = np.full(network.n_obs, np.nan)
         self.loss = config.loss
@@ -222,6 +223,27 @@ class BundleSolver:
         self._structure_cache: tuple[NDArray[np.intp], _Structure] | None = None
 
     # ------------------------------------------------------------------ setup
+    def set_point_sigma(self, sigma_m: F64) -> None:
+        """Set the a-priori sigmas of the points, ``(P, 3)`` in each point's sigma frame.
+
+        0 and inf (fixed and free) must stay where they were: only the weights of
+        weighted points change (variance component estimation).
+        """
+        sig = np.asarray(sigma_m, np.float64)
+        self.point_sigma = sig.copy()
+        with np.errstate(divide="ignore"):
+            w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / sig**2, 0.0)
+        #: Per-axis weights in the sigma frame, (P, 3).
+        self.point_prior_axis_w = w
+        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, (P, 3, 3).
+        self.point_prior_w = np.einsum("pki,pk,pkj->pij", self.point_frame, w, self.point_frame)
+
+    def set_obs_sigma(self, sigma_px: F64) -> None:
+        """Set the sigmas of the image measures, ``(M, 2)`` pixels (line, sample)."""
+        self.obs_sigma = np.array(sigma_px, np.float64)
+        self.obs_w0 = 1.0 / self.obs_sigma**2  # (M, 2), line then sample
+        self._structure_cache = None
+
     def refresh_modes(self) -> None:
         """Re-read modes and sigmas from the models (after weak groups were weighted)."""
         self.mode = (
@@ -434,7 +456,7 @@ class BundleSolver:
         cost += self._prior_cost(c)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
-            cost += 0.5 * float(np.sum(self.point_prior_w[unknown] * dx * dx))
+            cost += 0.5 * _quadratic(self.point_prior_w[unknown], dx)
         inv = np.empty(n_tie, np.intp)
         sel = tie_pos >= 0
         inv[tie_pos[sel]] = np.flatnonzero(sel)
@@ -561,8 +583,8 @@ class BundleSolver:
             )
             gpts = unknown[ch.pts]
             pw = self.point_prior_w[gpts]
-            v[:, [0, 1, 2], [0, 1, 2]] += pw
-            gx += pw * (xyz[gpts] - xyz0[gpts])
+            v += pw
+            gx += np.einsum("pij,pj->pi", pw, xyz[gpts] - xyz0[gpts])
             d_x = v[:, [0, 1, 2], [0, 1, 2]].copy()
             if lam:
                 v[:, [0, 1, 2], [0, 1, 2]] += lam * d_x
@@ -902,8 +924,8 @@ class BundleSolver:
         n_prior = int(np.count_nonzero(self.prior_w)) + len(self.con_w)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
-            vtpv += float(np.sum(self.point_prior_w[unknown] * dx * dx))
-            n_prior += int(np.count_nonzero(self.point_prior_w[unknown]))
+            vtpv += _quadratic(self.point_prior_w[unknown], dx)
+            n_prior += int(np.count_nonzero(self.point_prior_axis_w[unknown]))
         n_obs = 2 * int(np.count_nonzero(lin.valid))
         n_unk = len(act) + 3 * len(unknown)
         dof = n_obs + n_prior - n_unk
@@ -915,6 +937,7 @@ class BundleSolver:
             )
         sigma0 = math.sqrt(vtpv / dof)
         cov = np.zeros((p, p))
+        cofactor = np.zeros((p, p))
         if act.size:
             sa = s_mat[np.ix_(act, act)]
             d = np.sqrt(np.abs(np.diag(sa)))
@@ -928,7 +951,8 @@ class BundleSolver:
                 raise AdjustmentError(
                     "the reduced normal matrix is not positive definite at the solution"
                 ) from None
-            cov[np.ix_(act, act)] = sigma0**2 * inv / d[:, None] / d[None, :]
+            cofactor[np.ix_(act, act)] = inv / d[:, None] / d[None, :]
+            cov = sigma0**2 * cofactor
         sig = np.sqrt(np.diag(cov))
         with np.errstate(divide="ignore", invalid="ignore"):
             corr = cov / sig[:, None] / sig[None, :]
@@ -938,11 +962,17 @@ class BundleSolver:
             "dof": dof,
             "vtpv": vtpv,
             "covariance": cov,
+            "cofactor": cofactor,
             "sigma": sig,
             "correlation": corr,
             "n_unknowns": n_unk,
             "n_equations": n_obs + n_prior,
         }
+
+
+def _quadratic(w: F64, dx: F64) -> float:
+    """``sum_p dx_p^T W_p dx_p`` of per-point 3x3 weights."""
+    return float(np.einsum("pi,pij,pj->", dx, w, dx))
 
 
 def _camera_gradient(lin: _Linearization, solver: BundleSolver, c: F64) -> F64:

@@ -156,6 +156,14 @@ def _toml_safe(obj: Any) -> Any:
     "--sigma-px", type=float, default=None, help="Sigma of measures without their own (pixels)."
 )
 @click.option("--no-outliers", is_flag=True, help="Do not apply the 3 x RMSE rule.")
+@click.option(
+    "--tie-sigma",
+    default=None,
+    metavar="SIGMA|free",
+    help="A-priori sigma of tie points without their own (metres or e.g. '0.5 km'; "
+    "default 200 m); 'free' leaves them free (the datum may float).",
+)
+@click.option("--no-vce", is_flag=True, help="Keep the a-priori sigmas (no variance components).")
 @click.option("--max-iterations", type=int, default=None, help="LM iterations per round.")
 @click.option(
     "--set",
@@ -177,6 +185,8 @@ def adjust_command(
     loss: str | None,
     sigma_px: float | None,
     no_outliers: bool,
+    tie_sigma: str | None,
+    no_vce: bool,
     max_iterations: int | None,
     assignments: tuple[str, ...],
     no_rpc: bool,
@@ -207,6 +217,15 @@ def adjust_command(
         cfg.setdefault("observations", {})["sigma_px"] = sigma_px
     if no_outliers:
         cfg.setdefault("outliers", {})["enabled"] = False
+    if tie_sigma is not None:
+        value: Any = None if tie_sigma.strip().lower() == "free" else tie_sigma.strip()
+        try:
+            value = float(value) if value is not None else None
+        except ValueError:
+            pass  # a string with a unit, validated by the configuration
+        cfg.setdefault("observations", {})["tie_apriori_sigma_m"] = value
+    if no_vce:
+        cfg.setdefault("variance", {})["enabled"] = False
     if max_iterations is not None:
         cfg.setdefault("solver", {})["max_iterations"] = max_iterations
     for a in assignments:

@@ -31,12 +31,12 @@ __all__ = [
     "load_config",
 ]
 
-#: The adjustment every matcher is judged by unless a config says otherwise: node
-#: positions weighted (100 m), attitudes free, interior orientation fixed, weak nodes
-#: (few MCPs near them: beyond the image ends or under failed tiles) continuing their
-#: neighbours' corrections instead of failing the run, Huber loss for the first round
-#: then the seed's 3 x RMSE rule.
-DEFAULT_ADJUST: dict[str, Any] = {"linescan": {"weak_nodes": "smooth"}}
+#: Overrides of the adjustment's own defaults for georef runs: none. Every matcher is
+#: judged by :class:`~planetref.adjust.config.AdjustConfig`'s defaults (node positions
+#: weighted at 100 m, attitudes free, interior fixed, weak nodes smoothed, Huber loss for
+#: the first round then the seed's 3 x RMSE rule, variance components estimated), the
+#: same as ``planetref adjust``.
+DEFAULT_ADJUST: dict[str, Any] = {}
 
 
 #: Matcher options applied unless a config says otherwise: none, so that every matcher

@@ -36,6 +36,7 @@ from planetref.pipeline.georef_report import (
     check_block,
     combined_report,
     rmse_px,
+    variance_block,
 )
 from planetref.pipeline.inputs import (
     check_body,
@@ -420,6 +421,7 @@ def _adjust_strip(job: StripJob, prep: _StripMcps) -> dict[str, Any]:
         camera_id=prep.id,
         sigma_px=cfg.mcp.sigma_px,
         check=prep.check,
+        **_mcp_ground_sigmas(table),
     )
     t0 = time.perf_counter()
     result = adjust(network, cfg.adjust)
@@ -439,6 +441,7 @@ def _adjust_strip(job: StripJob, prep: _StripMcps) -> dict[str, Any]:
         rmse_px_before=s["rmse_px_before"],
         sigma0=s["sigma0"],
         converged=s["converged"],
+        **variance_block(result),
         check_mcps=result.metrics.get("check"),
         ccds={ccd: m["after"] for ccd, m in result.metrics.get("ccds", {}).items()},
     )
@@ -450,6 +453,16 @@ def _adjust_strip(job: StripJob, prep: _StripMcps) -> dict[str, Any]:
     job.timing["outputs"] += time.perf_counter() - t0
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+def _mcp_ground_sigmas(table: Any) -> dict[str, Any]:
+    """MCP ground points weighted by their a-priori sigmas (east, north, up) if known."""
+    cols = getattr(table, "columns", {})
+    if "sigma_ground_xy_m" not in cols or "sigma_ground_h_m" not in cols:
+        return {}
+    xy = np.asarray(cols["sigma_ground_xy_m"], float)
+    h = np.asarray(cols["sigma_ground_h_m"], float)
+    return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
 
 
 def _adjust_together(
@@ -537,6 +550,7 @@ def _adjust_together(
             rmse_px_before=s["rmse_px_before"],
             sigma0=s["sigma0"],
             converged=s["converged"],
+            **variance_block(result),
             check_mcps=result.metrics.get("check"),
             ccds={ccd: m["after"] for ccd, m in result.metrics.get("ccds", {}).items()},
             n_tie_points=len(ties),
@@ -563,12 +577,16 @@ def _joint_network(preps: list[_StripMcps], ties: TiePoints, cfg: GeorefConfig) 
     xyz: dict[str, NDArray[np.float64]] = {}
     sig_m: dict[str, float] = {}
     kind: dict[str, str] = {}
+    local: dict[str, bool] = {}
     for p in preps:
         t = p.table
         pts = [f"{p.id}:mcp{i}" for i in range(len(t))]
         pxyz = t.xyz()
+        gs = _mcp_ground_sigmas(t).get("ground_sigma_m")
         for i, pid in enumerate(pts):
-            xyz[pid], sig_m[pid], kind[pid] = pxyz[i], 0.0, "mcp"
+            xyz[pid], kind[pid] = pxyz[i], "mcp"
+            sig_m[pid] = 0.0 if gs is None else gs[i]
+            local[pid] = gs is not None
         obs_cam += [p.id] * len(t)
         obs_pt += pts
         obs_ccd += list(np.asarray(t["ccd"]).astype(str))
@@ -599,4 +617,5 @@ def _joint_network(preps: list[_StripMcps], ties: TiePoints, cfg: GeorefConfig) 
         obs_ccd=obs_ccd,
         sigma_px=np.concatenate(sig_px),
         check=np.concatenate(check),
+        point_sigma_local=local,
     )

@@ -77,8 +77,11 @@ def adjustment_block(
     for key in ("rmse_x_px", "rmse_y_px"):
         if key in after:
             block[key] = after[key]
+    block["mean_px"] = after["mean_px"]
+    for key in ("mean_x_px", "mean_y_px"):
+        if key in after:
+            block[key] = after[key]
     block |= {
-        "mean_px": after["mean_px"],
         "max_x_px": after["max_dx_px"],
         "max_y_px": after["max_dy_px"],
         "min_x_px": after["min_dx_px"],
@@ -90,6 +93,16 @@ def adjustment_block(
         "converged": converged,
     }
     return block | extra
+
+
+def variance_block(result: AdjustmentResult) -> dict[str, Any]:
+    """sigma0 of the real observations, degrees of freedom and variance components."""
+    variance = getattr(result, "variance", None) or {}
+    return {
+        "sigma0_real": result.summary().get("sigma0_real"),
+        "dof": variance.get("dof"),
+        "variance_components": variance.get("groups"),
+    }
 
 
 def check_block(

@@ -1,0 +1,339 @@
+"""What the adjustment moved and what it could not determine.
+
+* **Points**: a-priori and adjusted coordinates of every point, their a-priori and
+  a-posteriori sigmas and the shift (metres, and in a-priori sigmas for weighted
+  points); a warning when weighted points move beyond ``point_shift_sigmas``.
+* **Cameras**: how far each camera's ground footprint moved (a grid of its image
+  intersected with the height of its points, initial against adjusted camera); a
+  warning beyond ``camera_shift_m``.
+* **Correlations**: a warning when any two parameters correlate beyond
+  ``max_correlation``.
+* **Self-calibration**: for every interior-orientation parameter (``x0``, ``y0``,
+  ``f``, CCD placement, CSM focal length) that was estimated, its a-priori and
+  a-posteriori sigma, its strongest correlations (with single parameters, with the
+  camera's mean node height, and its multiple correlation with all other
+  parameters) and a verdict in words: *separable* or *not separable* and why.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.adjust.config import DiagnosticsConfig
+from planetref.adjust.problem import Network
+from planetref.camera.geodesy import xyz_to_lonlat
+
+__all__ = [
+    "SELF_CALIBRATION",
+    "camera_shifts",
+    "correlation_warnings",
+    "point_table",
+    "self_calibration",
+]
+
+F64 = NDArray[np.float64]
+
+#: Parameter names (after ``camera_id:``) that are interior orientation / self-calibration.
+SELF_CALIBRATION = re.compile(r"(^|[.\]:])(x0|y0|f|focal_m|focal|placement\w*|ccd_\w+)$|interior")
+
+#: Multiple correlation above which a free self-calibration parameter is not separable.
+_MULTIPLE_CORRELATION = 0.999
+
+
+def point_table(
+    net: Network,
+    xyz0: F64,
+    xyz: F64,
+    sigma_prior: F64,
+    frame: F64,
+    cofactor: dict[int, F64],
+    sigma0: float,
+) -> dict[str, Any]:
+    """Per point: a-priori and adjusted coordinates, sigmas and shifts.
+
+    Args:
+        net: The network (ids, kinds, the first camera's ellipsoid).
+        xyz0: A-priori (or triangulated) XYZ, ``(P, 3)``.
+        xyz: Adjusted XYZ, ``(P, 3)``.
+        sigma_prior: A-priori sigmas used in the final adjustment (after variance
+            component scaling), in each point's sigma frame, ``(P, 3)``.
+        frame: Rotations XYZ -> sigma frame, ``(P, 3, 3)``.
+        cofactor: Point index -> 3x3 cofactor block (XYZ) of the unknown points.
+        sigma0: A-posteriori sigma of unit weight.
+
+    Returns:
+        Column name -> array (see :func:`planetref.adjust.report.write_points`).
+    """
+    from planetref.adjust.problem import enu_rotation
+
+    ell = net.cameras[0].ellipsoid
+    n = net.n_points
+    ok0 = np.all(np.isfinite(xyz0), axis=1)
+    lon0, lat0, h0 = (np.full(n, np.nan) for _ in range(3))
+    lon1, lat1, h1 = (np.full(n, np.nan) for _ in range(3))
+    if np.any(ok0):
+        lon0[ok0], lat0[ok0], h0[ok0] = xyz_to_lonlat(xyz0[ok0], ell)
+        lon1[ok0], lat1[ok0], h1[ok0] = xyz_to_lonlat(xyz[ok0], ell)
+    d = xyz - xyz0
+    enu = np.full((n, 3, 3), np.nan)
+    enu[ok0] = enu_rotation(xyz0[ok0])
+    d_enu = np.einsum("pij,pj->pi", enu, d)
+    post = np.zeros((n, 3))
+    for j, q in cofactor.items():
+        if ok0[j]:
+            post[j] = sigma0 * np.sqrt(np.maximum(np.diag(enu[j] @ q @ enu[j].T), 0.0))
+    d_frame = np.einsum("pij,pj->pi", frame, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.where(
+            np.isfinite(sigma_prior) & (sigma_prior > 0), np.abs(d_frame) / sigma_prior, np.nan
+        )
+    shift_sigma = np.max(np.where(np.isnan(norm), -np.inf, norm), axis=1)
+    shift_sigma[~np.isfinite(shift_sigma)] = np.nan
+    return {
+        "point_id": np.asarray(net.point_ids),
+        "kind": np.asarray(net.point_kind),
+        "xyz_apriori": xyz0,
+        "xyz": xyz,
+        "lat_apriori": lat0,
+        "lon_apriori": lon0,
+        "height_apriori": h0,
+        "lat": lat1,
+        "lon": lon1,
+        "height": h1,
+        "sigma_apriori": sigma_prior,
+        "sigma_local": np.asarray(net.point_sigma_local),
+        "sigma_enu": post,
+        "shift_m": np.linalg.norm(d, axis=1),
+        "shift_horizontal_m": np.hypot(d_enu[:, 0], d_enu[:, 1]),
+        "shift_up_m": d_enu[:, 2],
+        "shift_sigma": shift_sigma,
+    }
+
+
+def point_summary(
+    table: dict[str, Any], used: NDArray[np.bool_], cfg: DiagnosticsConfig
+) -> tuple[dict[str, Any], list[str]]:
+    """Movement statistics of the points per kind and the warning lines."""
+    out: dict[str, Any] = {}
+    warnings: list[str] = []
+    kind = table["kind"]
+    for k in sorted(set(kind[used])):
+        m = used & (kind == k) & np.isfinite(table["shift_m"])
+        s = table["shift_m"][m]
+        if not s.size:
+            continue
+        out[k] = {
+            "n": int(s.size),
+            "mean_shift_m": float(np.mean(s)),
+            "rms_shift_m": float(np.sqrt(np.mean(s**2))),
+            "max_shift_m": float(np.max(s)),
+            "mean_up_m": float(np.mean(table["shift_up_m"][m])),
+            "mean_horizontal_m": float(np.mean(table["shift_horizontal_m"][m])),
+        }
+    ns = table["shift_sigma"]
+    beyond = used & np.isfinite(ns) & (ns > cfg.point_shift_sigmas)
+    if np.any(beyond):
+        j = int(np.flatnonzero(beyond)[np.argmax(ns[beyond])])
+        sa = table["sigma_apriori"][used]
+        n_axes = int(np.count_nonzero(np.isfinite(sa) & (sa > 0)))
+        chance = n_axes * math.erfc(cfg.point_shift_sigmas / math.sqrt(2.0))
+        warnings.append(
+            f"{int(beyond.sum())} weighted point(s) moved more than "
+            f"{cfg.point_shift_sigmas:g} sigma from their a-priori coordinates (largest: "
+            f"{table['point_id'][j]} by {ns[j]:.3g} sigma, {table['shift_m'][j]:.4g} m; "
+            f"Gaussian errors would give at most ~{chance:.3g} by chance)"
+        )
+    return out, warnings
+
+
+def camera_shifts(
+    net: Network,
+    cams0: list[Any],
+    cams1: list[Any],
+    xyz: F64,
+    cfg: DiagnosticsConfig,
+    grid: int = 5,
+) -> tuple[dict[str, Any], list[str]]:
+    """How far each camera's ground footprint moved (per CCD, metres).
+
+    A ``grid x grid`` set of pixels of each CCD image is intersected with the sphere at
+    the median height of the camera's points by the initial and the adjusted camera.
+
+    Returns:
+        ``({camera_id: {ccd: {"mean_m", "max_m"}, "max_m": ...}}, warnings)``.
+    """
+    out: dict[str, Any] = {}
+    moved: list[str] = []
+    for ci, cid in enumerate(net.camera_ids):
+        c0, c1 = cams0[ci], cams1[ci]
+        pts = np.unique(net.obs_point[net.obs_camera == ci])
+        p = xyz[pts]
+        p = p[np.all(np.isfinite(p), axis=1)]
+        h = float(np.median(xyz_to_lonlat(p, c0.ellipsoid)[2])) if len(p) else 0.0
+        per: dict[str, Any] = {}
+        for ccd in c0.ccd_names:
+            nl, ns = c0.image_size(ccd)
+            ll, ss = np.meshgrid(
+                np.linspace(0.5, nl - 0.5, grid), np.linspace(0.5, ns - 0.5, grid), indexing="ij"
+            )
+            g0 = c0.image_to_ground(ll.ravel(), ss.ravel(), h, ccd=ccd, on_miss="nan")
+            g1 = c1.image_to_ground(ll.ravel(), ss.ravel(), h, ccd=ccd, on_miss="nan")
+            dist = np.linalg.norm(g1 - g0, axis=1)
+            dist = dist[np.isfinite(dist)]
+            per[ccd] = {
+                "mean_m": float(np.mean(dist)) if dist.size else math.nan,
+                "max_m": float(np.max(dist)) if dist.size else math.nan,
+            }
+        mx = max((v["max_m"] for v in per.values()), default=math.nan)
+        out[cid] = {"ccds": per, "max_m": mx, "height_m": h}
+        if mx > cfg.camera_shift_m:
+            moved.append(f"{cid} {mx:.4g} m")
+    warnings = []
+    if moved:
+        warnings.append(
+            f"{len(moved)} camera footprint(s) moved more than {cfg.camera_shift_m:g} m: "
+            + ", ".join(moved)
+        )
+    return out, warnings
+
+
+def correlation_warnings(
+    names: list[str], corr: F64, cfg: DiagnosticsConfig
+) -> tuple[dict[str, Any], list[str]]:
+    """Pairs of parameters correlating beyond the threshold (count, largest)."""
+    c = np.abs(np.triu(np.asarray(corr), 1))
+    if not c.size:
+        return {"n_pairs_above": 0, "threshold": cfg.max_correlation}, []
+    above = np.argwhere(c > cfg.max_correlation)
+    info: dict[str, Any] = {"n_pairs_above": len(above), "threshold": cfg.max_correlation}
+    if not len(above):
+        return info, []
+    i, j = np.unravel_index(int(np.argmax(c)), c.shape)
+    info["largest"] = [names[i], names[j], float(corr[i, j])]
+    return info, [
+        f"{len(above)} parameter pair(s) correlate above {cfg.max_correlation:g} (largest: "
+        f"{names[i]} and {names[j]} at {corr[i, j]:.6f}): the observations hardly separate "
+        f"them; fix or weight one of them"
+    ]
+
+
+def _mean_height_direction(names: list[str], x0: F64, camera: str) -> F64 | None:
+    """Weights of a camera's node positions forming its mean radial node height."""
+    w = np.zeros(len(names))
+    found = 0
+    pat = re.compile(rf"^{re.escape(camera)}:node(\d+)\.([XYZ])$")
+    nodes: dict[str, dict[str, int]] = {}
+    for i, n in enumerate(names):
+        m = pat.match(n)
+        if m:
+            nodes.setdefault(m.group(1), {})[m.group(2)] = i
+    for idx in nodes.values():
+        if len(idx) != 3:
+            continue
+        ii = [idx["X"], idx["Y"], idx["Z"]]
+        p = x0[ii]
+        w[ii] = p / np.linalg.norm(p)
+        found += 1
+    return w / found if found else None
+
+
+def self_calibration(
+    names: list[str],
+    mode: NDArray[np.int8],
+    sigma_prior: F64,
+    x0: F64,
+    x: F64,
+    cov: F64,
+    cfg: DiagnosticsConfig,
+) -> tuple[list[dict[str, Any]], list[str]]:
+    """Estimability of the interior-orientation parameters that were adjusted.
+
+    Args:
+        names: ``camera:name`` of every parameter.
+        mode: 0 free, 1 weighted, 2 fixed.
+        sigma_prior: A-priori sigmas (weighted parameters).
+        x0: Initial values.
+        x: Adjusted values.
+        cov: A-posteriori covariance.
+        cfg: Thresholds.
+
+    Returns:
+        ``(rows, warnings)``: one row per parameter with ``separable`` and ``verdict``
+        (a sentence).
+    """
+    rows: list[dict[str, Any]] = []
+    warnings: list[str] = []
+    act = np.flatnonzero(mode != 2)
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cov / sig[:, None] / sig[None, :]
+    corr[~np.isfinite(corr)] = 0.0
+    # Multiple correlation of each active parameter with all the others.
+    mult = np.full(len(names), np.nan)
+    if act.size > 1:
+        ca = corr[np.ix_(act, act)]
+        try:
+            inv = np.linalg.inv(ca)
+            mult[act] = np.sqrt(np.clip(1.0 - 1.0 / np.diag(inv), 0.0, 1.0))
+        except np.linalg.LinAlgError:
+            mult[act] = 1.0
+    for i in act:
+        cam, _, local = names[i].partition(":")
+        if not SELF_CALIBRATION.search(local):
+            continue
+        others = np.array([k for k in act if k != i], np.intp)
+        top = others[np.argsort(-np.abs(corr[i, others]))[:3]] if others.size else others
+        hw = _mean_height_direction(names, x0, cam)
+        r_height = math.nan
+        if hw is not None:
+            var_h = float(hw @ cov @ hw)
+            if var_h > 0 and sig[i] > 0:
+                r_height = float((cov[i] @ hw) / math.sqrt(var_h) / sig[i])
+        prior = float(sigma_prior[i]) if mode[i] == 1 else math.inf
+        ratio = sig[i] / prior if math.isfinite(prior) else math.nan
+        reasons = []
+        if math.isfinite(ratio) and ratio > cfg.separable_sigma_ratio:
+            reasons.append(
+                f"its a-posteriori sigma is {100 * ratio:.0f} % of the a-priori one (the "
+                f"observations add little to the prior)"
+            )
+        if top.size and abs(corr[i, top[0]]) > cfg.max_correlation:
+            reasons.append(f"it correlates at {corr[i, top[0]]:.4f} with {names[top[0]]}")
+        if math.isfinite(r_height) and abs(r_height) > cfg.max_correlation:
+            reasons.append(f"it correlates at {r_height:.4f} with the mean node height")
+        if mode[i] == 0 and mult[i] > _MULTIPLE_CORRELATION:
+            reasons.append(f"its multiple correlation with the other parameters is {mult[i]:.5f}")
+        separable = not reasons
+        corr_txt = ", ".join(f"{names[k]} {corr[i, k]:+.3f}" for k in top)
+        verdict = (
+            f"{names[i]}: separable (sigma {sig[i]:.3g}, correction {x[i] - x0[i]:+.4g})"
+            if separable
+            else f"{names[i]}: NOT separable: {'; '.join(reasons)}; its correction "
+            f"{x[i] - x0[i]:+.4g} is not a measurement of the parameter"
+        )
+        rows.append(
+            {
+                "name": names[i],
+                "mode": {0: "free", 1: "weighted"}[int(mode[i])],
+                "initial": float(x0[i]),
+                "adjusted": float(x[i]),
+                "correction": float(x[i] - x0[i]),
+                "sigma_prior": prior,
+                "sigma": float(sig[i]),
+                "sigma_ratio": ratio,
+                "correlation_mean_node_height": r_height,
+                "multiple_correlation": float(mult[i]),
+                "top_correlations": [[names[k], float(corr[i, k])] for k in top],
+                "correlations_text": corr_txt,
+                "separable": separable,
+                "verdict": verdict,
+            }
+        )
+        if not separable:
+            warnings.append(verdict)
+    return rows, warnings
