@@ -4,17 +4,16 @@ import math
 import numpy as np
 import pytest
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
 from planetref.camera.linescan import (
     InteriorOrientation,
     LineRateTable,
     LineScanCamera,
-    _lagrange,
-    rotation_matrix,
-    rotation_matrix_derivatives,
 )
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
+from planetref.geometry.lagrange import lagrange_window as _lagrange
+from planetref.geometry.rotations import rotation_matrix, rotation_matrix_derivatives
 
 
 def make_camera(perturbed=True, n_nodes=6, n_lines=1000, n_samples=512, order=4, seed=0):

@@ -59,11 +59,11 @@ from planetref.camera.csm.interpolation import _hermite, _lagrange, _natural_spl
 from planetref.camera.csm.isd import J2000, MIN_EPHEMERIS_NODES, CsmCorrection, CsmIsd
 from planetref.camera.csm.orientation import _AleOrientations, _euler_matrix, _qmatrix
 from planetref.camera.csm.reader import read_isd
-from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.errors import (
     GeometryError,
     InputError,
 )
+from planetref.geometry.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.geometry.terrain import intersect_terrain
 
 __all__ = ["CsmLineScanCamera"]
