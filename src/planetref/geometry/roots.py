@@ -10,8 +10,9 @@ solved at once; each has its own root. Two steps:
    given, otherwise a secant step through the last two iterates; any step that is not
    finite or leaves the bracket is replaced by the bracket's midpoint (bisection), and
    the bracket shrinks with the sign of the residual at each iterate, so the iteration
-   cannot diverge. It stops per point when the last step is below ``xtol`` (or the
-   residual is exactly zero) and accepts a root only when ``|f(x)| <= ftol``.
+   cannot diverge. It stops per point when the last step or the bracket is below
+   ``xtol`` (or the residual is exactly zero) and accepts a root only when
+   ``|f(x)| <= ftol`` there.
 
 Residual functions take the trial values of the points still iterating and their row
 indices (into the full set of points) and return the residuals (and slopes):
@@ -156,12 +157,8 @@ def refine_bracketed(
         # A non-finite step ends the iteration (e.g. a residual that is not defined).
         done |= ~np.isfinite(step) & ~out
         x[ia] = np.where(done & np.isfinite(step), new, np.where(done, xa, new))
-        active[ia[done]] = False
-        if residual_with_slope is None:
-            # Secant steps shorten by the bisection too; stop when the bracket is tiny.
-            small = (hi[ia] - lo[ia]) < xtol
-            x[ia[small]] = np.where(np.isfinite(x[ia[small]]), x[ia[small]], lo[ia[small]])
-            active[ia[small]] = False
+        # A bracket narrower than xtol also ends the iteration (e.g. at a jump).
+        active[ia[done | ((hi[ia] - lo[ia]) < xtol)]] = False
     ok = np.isfinite(x)
     if np.any(ok):
         io = np.flatnonzero(ok)

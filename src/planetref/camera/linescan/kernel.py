@@ -203,11 +203,15 @@ class LineScanKernel:
         if not full or cf.jacobian is None or deo_dt is None:
             return KernelState(off, samp, cf.w)
         jac = cf.jacobian  # (m, 6, 3): d(u, v, w)/d(P; phi, omega, kappa)
-        fw = -f * inv_w
-        dxq = fw[:, None] * (jac[:, :, 0] - xn[:, None] * jac[:, :, 2])  # (m, 6)
-        dyq = fw[:, None] * (jac[:, :, 1] - yn[:, None] * jac[:, :, 2])
-        doff = (dxq * ca - dyq * sa) / pitch
-        dsmp = (dxq * sa + dyq * ca) / pitch
+        # d(x, y)/dq = -f/W (d(U, V)/dq - (U, V)/W dW/dq); the CCD's rotation and pitch
+        # are folded into two per-point factors.
+        fw = -f * inv_w / pitch
+        c_ca, c_sa = (fw * ca)[:, None], (fw * sa)[:, None]
+        jz = jac[:, :, 2]
+        dxq = jac[:, :, 0] - xn[:, None] * jz  # (m, 6), times -f/W: d x / dq
+        dyq = jac[:, :, 1] - yn[:, None] * jz
+        doff = dxq * c_ca - dyq * c_sa
+        dsmp = dxq * c_sa + dyq * c_ca
         raw = np.empty((len(line), 2, N_RAW))
         raw[:, 0, 9:12] = doff[:, :3]
         raw[:, 1, 9:12] = dsmp[:, :3]
