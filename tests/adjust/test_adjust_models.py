@@ -166,7 +166,8 @@ def test_ccd_placement_parameters_and_finite_differences(cam):
         xyz = ground_points(cam, np.full(m, ccd), line, sample, rng.uniform(-2000, 2000, m))
         ev = par.evaluate(par.x0, xyz, ccd, line)
         d = dense(par, ev)
-        for j, h in zip(range(6 * n + 3 + 3 * ccd, 6 * n + 6 + 3 * ccd), (1e-4, 1e-4, 1e-6)):
+        base = 6 * n + 3 + 3 * ccd
+        for j, h in zip(range(base, base + 3), (1e-4, 1e-4, 1e-6), strict=True):
             xp, xm = par.x0.copy(), par.x0.copy()
             xp[j] += h
             xm[j] -= h
