@@ -98,7 +98,7 @@ def _rpy(roll: F64, pitch: F64, yaw: F64) -> F64:
 
 
 def angles_from_rotation(m: F64) -> F64:
-    """Inverse of :func:`planetref.camera.linescan.rotation_matrix`.
+    """Inverse of :func:`planetref.geometry.rotations.rotation_matrix`.
 
     Args:
         m: Rotations ``R_phi(Y) @ R_omega(X) @ R_kappa(Z)``, shape ``(..., 3, 3)``.
