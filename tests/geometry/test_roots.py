@@ -55,3 +55,14 @@ def test_refine_needs_exactly_one_residual():
     br = bracket_first_sign_change(f, np.linspace(-10, 10, 5), len(R))
     with pytest.raises(ValueError):
         refine_bracketed(br)
+
+
+def test_stop_at_ftol_accepts_a_noisy_residual():
+    # Rounding noise of 1e-10 around the root: steps never fall below xtol = 1e-15, so
+    # only the residual test ends the iteration; the root is still within 1e-9.
+    def noisy(x, rows):
+        return (x - 0.3) + 1e-10 * np.sin(1e12 * x)
+
+    br = bracket_first_sign_change(noisy, np.linspace(-1.0, 1.0, 5), 1)
+    x = refine_bracketed(br, residual=noisy, xtol=1e-15, ftol=1e-9, stop_at_ftol=True)
+    assert abs(x[0] - 0.3) < 2e-9

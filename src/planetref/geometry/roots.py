@@ -103,6 +103,7 @@ def refine_bracketed(
     xtol: float = 1e-8,
     ftol: float = 1e-6,
     max_iter: int = 60,
+    stop_at_ftol: bool = False,
 ) -> F64:
     """Safeguarded Newton (or secant) iterations inside brackets.
 
@@ -115,6 +116,8 @@ def refine_bracketed(
         ftol: Accept a root only where ``|f| <= ftol`` at the returned value (units of
             the residual), so iterations that stalled at a bracket end are rejected.
         max_iter: Iteration limit per point.
+        stop_at_ftol: Also stop a point as soon as ``|f| <= ftol`` (for residuals with
+            rounding noise near ``ftol``, where steps below ``xtol`` may never come).
 
     Returns:
         The roots, ``(m,)``; NaN where none was bracketed, none converged, or the final
@@ -154,6 +157,11 @@ def refine_bracketed(
         hi[ia] = np.where(same, hi_a, xa)
         x_prev[ia], f_prev[ia] = xa, f
         done = (np.abs(step) < xtol) | (f == 0)
+        if stop_at_ftol:
+            hit = np.abs(f) <= ftol
+            done |= hit
+            step = np.where(hit, 0.0, step)
+            new = np.where(hit, xa, new)
         # A non-finite step ends the iteration (e.g. a residual that is not defined).
         done |= ~np.isfinite(step) & ~out
         x[ia] = np.where(done & np.isfinite(step), new, np.where(done, xa, new))
