@@ -38,8 +38,8 @@ import time
 import numpy as np
 
 from planetref.adjust import Network, adjust
-from planetref.camera.geodesy import ray_ellipsoid_intersection
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+from planetref.geometry.geodesy import ray_ellipsoid_intersection
 
 
 def peak_rss_mb() -> float:

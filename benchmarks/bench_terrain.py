@@ -15,8 +15,8 @@ import time
 import numpy as np
 from scipy import ndimage
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
 from planetref.raster.dem import GridTerrain
 
 LAT, LON = 20.0, 74.0

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from affine import Affine
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, lonlat_to_xyz
 from planetref.control import (
     MCP_COLUMNS,
     McpTable,
@@ -18,6 +17,7 @@ from planetref.control import (
 from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
 from planetref.frontend.match_tile import TileResult
 from planetref.frontend.tiles import Tile
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, lonlat_to_xyz
 from planetref.raster.dem import GridTerrain
 from planetref.raster.ortho import ReferenceOrtho
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from planetref.adjust import Network
-from planetref.camera.geodesy import ray_ellipsoid_intersection
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+from planetref.geometry.geodesy import ray_ellipsoid_intersection
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 

@@ -1,10 +1,20 @@
 import numpy as np
 import pytest
-from adjust_synth import N_LINES, N_SAMPLES, ground_points, perturb, shared_data, true_strip
+from adjust_synth import (
+    N_LINES,
+    N_SAMPLES,
+    ground_points,
+    mcp_problem,
+    perturb,
+    shared_data,
+    true_strip,
+)
 
+from planetref.adjust import adjust
 from planetref.adjust.config import CsmParameters, LineScanParameters
 from planetref.adjust.models import CsmParameterization, LineScanParameterization
 from planetref.camera.linescan import InteriorOrientation
+from planetref.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -134,3 +144,75 @@ def test_csm_parameterization_on_a_real_isd():
     full = np.zeros(16)
     full[[6, 7, 8, 9, 10, 11]] = x
     assert par.build(x).correction == CsmCorrection.from_array(full)
+
+
+PLACEMENT = {"mode": "weighted", "sigma_offset_mm": 0.05, "sigma_angle_rad": 1e-2}
+
+
+def test_ccd_placement_parameters_and_finite_differences(cam):
+    cfg = LineScanParameters(ccd_placement={**PLACEMENT, "reference_ccd": "ccd2"})
+    par = LineScanParameterization("s", cam, cfg)
+    n = cam.n_nodes
+    assert len(par.x0) == 6 * n + 3 + 9
+    assert par.names[6 * n + 3] == "ccd[ccd1].x_mm" and par.units[-1] == "rad"
+    # The reference CCD is held; the others are weighted with the configured sigmas.
+    assert par.mode[6 * n + 6 : 6 * n + 9].tolist() == [2, 2, 2]
+    assert par.sigma[6 * n + 3] == 0.05 and par.sigma[-1] == 1e-2
+    assert par.pattern_columns.shape[1] == 6 * 4 + 6
+    rng = np.random.default_rng(7)
+    m = 60
+    line, sample = rng.uniform(0, N_LINES, m), rng.uniform(0, N_SAMPLES, m)
+    for ccd in (0, 2):
+        xyz = ground_points(cam, np.full(m, ccd), line, sample, rng.uniform(-2000, 2000, m))
+        ev = par.evaluate(par.x0, xyz, ccd, line)
+        d = dense(par, ev)
+        base = 6 * n + 3 + 3 * ccd
+        for j, h in zip(range(base, base + 3), (1e-4, 1e-4, 1e-6), strict=True):
+            xp, xm = par.x0.copy(), par.x0.copy()
+            xp[j] += h
+            xm[j] -= h
+            a = par.build(xp).ground_to_image(xyz, ccd=cam.ccds[ccd].name)
+            b = par.build(xm).ground_to_image(xyz, ccd=cam.ccds[ccd].name)
+            fd = np.stack([a.line - b.line, a.sample - b.sample], axis=1) / (2 * h)
+            assert np.abs(fd).max() > 1e-3, par.names[j]  # the parameter matters
+            assert np.abs(fd - d[:, :, j]).max() < 1e-5 * np.abs(fd).max(), par.names[j]
+        # Placements of the other CCDs do not touch this CCD's observations.
+        other = [j for j in range(6 * n + 3, len(par.x0)) if (j - 6 * n - 3) // 3 != ccd]
+        assert np.all(d[:, :, other] == 0.0)
+    with pytest.raises(InputError, match="reference_ccd"):
+        LineScanParameterization(
+            "s", cam, LineScanParameters(ccd_placement={**PLACEMENT, "reference_ccd": "x"})
+        )
+
+
+def test_ccd_placement_recovered_by_the_adjustment():
+    true = true_strip()
+    cfg = LineScanParameters(ccd_placement={**PLACEMENT, "reference_ccd": "ccd2"})
+    par = LineScanParameterization("s", true, cfg)
+    x_true = par.x0.copy()
+    n = true.n_nodes
+    shift = np.array([[0.004, -0.006, 1e-3], [0.0, 0.0, 0.0], [-0.003, 0.005, -1.5e-3]])
+    x_true[6 * n + 3 :] += shift.ravel()
+    moved = par.build(x_true)
+    net, _, _ = mcp_problem(1500, seed=4, true=moved, init=true, noise_px=0.1)
+    res = adjust(
+        net,
+        {
+            "linescan": {
+                "position": {"mode": "fixed"},
+                "attitude": {"mode": "fixed"},
+                "ccd_placement": {**PLACEMENT, "reference_ccd": "ccd2"},
+            },
+            "solver": {"loss": "linear"},
+            "outliers": {"enabled": False},
+        },
+    )
+    est = res.x[6 * n + 3 :].reshape(3, 3) - par.x0[6 * n + 3 :].reshape(3, 3)
+    sig = res.sigma[6 * n + 3 :].reshape(3, 3)
+    # Recovered to within 4 sigma, and the sigmas are far below the shifts.
+    for i in (0, 2):
+        assert np.all(np.abs(est[i] - shift[i]) < 4 * sig[i])
+        assert np.all(sig[i] < 0.1 * np.abs(shift[i]))
+    assert np.all(est[1] == 0.0)
+    ip = res.cameras["strip"].ground_to_image(net.point_xyz[:5], ccd="ccd3")
+    assert np.all(np.isfinite(ip.line))

@@ -29,8 +29,8 @@ from planetref.camera.csm import (
     write_isd,
 )
 from planetref.camera.csm.distortion import _apply_distortion, _remove_distortion
-from planetref.camera.geodesy import Ellipsoid, xyz_to_lonlat
 from planetref.errors import GeometryError, InputError, MissingFileError, UnsupportedFormatError
+from planetref.geometry.geodesy import Ellipsoid, xyz_to_lonlat
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 ISD_DIRS = ("data/csm", "data/ale", "data/ctx_syrtis")

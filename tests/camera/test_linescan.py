@@ -4,17 +4,16 @@ import math
 import numpy as np
 import pytest
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
 from planetref.camera.linescan import (
     InteriorOrientation,
     LineRateTable,
     LineScanCamera,
-    _lagrange,
-    rotation_matrix,
-    rotation_matrix_derivatives,
 )
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, xyz_to_lonlat
+from planetref.geometry.lagrange import lagrange_window as _lagrange
+from planetref.geometry.rotations import rotation_matrix, rotation_matrix_derivatives
 
 
 def make_camera(perturbed=True, n_nodes=6, n_lines=1000, n_samples=512, order=4, seed=0):
@@ -313,3 +312,29 @@ def test_image_to_dem_round_trip(cam):
     # Relief moves the ground point along the ray: compare with the flat intersection.
     flat = cam.image_to_ground(line, sample, 0.0, ccd="ccd1")
     assert np.linalg.norm(flat - xyz, axis=1).max() > 1.0
+
+
+@pytest.mark.parametrize("ccd", ["ccd1", "ccd3"])
+def test_ccd_placement_partials_match_finite_differences(cam, ccd):
+    from dataclasses import replace
+
+    line, sample = random_pixels(cam, ccd, 40, seed=8)
+    xyz = cam.image_to_ground(line, sample, -500.0, ccd=ccd)
+    part = cam.image_partials(xyz, ccd=ccd)
+    i = cam.ccd_names.index(ccd)
+    for j, (name, h) in enumerate((("x_mm", 1e-4), ("y_mm", 1e-4), ("angle_rad", 1e-6))):
+
+        def moved(delta, name=name):
+            ccds = list(cam.ccds)
+            ccds[i] = replace(ccds[i], **{name: getattr(ccds[i], name) + delta})
+            ip = cam.replace(ccds=tuple(ccds)).ground_to_image(xyz, ccd=ccd, line_guess=line)
+            return np.stack([ip.line, ip.sample], axis=1)
+
+        fd = (moved(h) - moved(-h)) / (2 * h)
+        assert np.abs(fd).max() > 1.0  # pixels per mm or per radian: not a vacuous check
+        assert np.abs(fd - part.d_ccd[:, :, j]).max() < 1e-5 * np.abs(fd).max(), name
+    # A focal-plane shift along the array moves the sample by -1/pitch per mm when the
+    # array is unrotated, and the line not at all to first order.
+    c = cam.ccd(ccd)
+    if c.angle_rad == 0.0:
+        np.testing.assert_allclose(part.d_ccd[:, 1, 1], -1.0 / c.pixel_pitch_mm, rtol=1e-9)

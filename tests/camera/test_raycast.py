@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from planetref.camera.base import ConstantHeight
-from planetref.camera.geodesy import (
+from planetref.camera.raycast import intersect_terrain
+from planetref.errors import GeometryError, InputError
+from planetref.geometry.geodesy import (
     MARS_IAU2015_ELLIPSOID,
     MARS_IAU2015_SPHERE,
     Ellipsoid,
@@ -14,8 +16,6 @@ from planetref.camera.geodesy import (
     ray_ellipsoid_intersection,
     xyz_to_lonlat,
 )
-from planetref.camera.raycast import intersect_terrain
-from planetref.errors import GeometryError, InputError
 
 
 class WavyTerrain:

@@ -14,14 +14,6 @@ from affine import Affine
 from rasterio.transform import RPCTransformer
 
 from planetref.camera.base import Camera, ConstantHeight
-from planetref.camera.geodesy import (
-    EARTH_WGS84,
-    MARS_IAU2015_ELLIPSOID,
-    MARS_IAU2015_SPHERE,
-    lonlat_to_xyz,
-    ray_ellipsoid_intersection,
-    xyz_to_lonlat,
-)
 from planetref.camera.rpc import (
     EARTH_BODY,
     MARS_BODY,
@@ -38,6 +30,14 @@ from planetref.camera.rpc import (
     write_rpc_txt,
 )
 from planetref.errors import GeometryError, InputError, MissingFileError, UnsupportedFormatError
+from planetref.geometry.geodesy import (
+    EARTH_WGS84,
+    MARS_IAU2015_ELLIPSOID,
+    MARS_IAU2015_SPHERE,
+    lonlat_to_xyz,
+    ray_ellipsoid_intersection,
+    xyz_to_lonlat,
+)
 
 # Rasters written here without georeferencing are expected; the warning is noise.
 pytestmark = pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")

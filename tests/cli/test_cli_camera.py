@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from planetref.camera.geodesy import xyz_to_lonlat
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.cli import main
+from planetref.geometry.geodesy import xyz_to_lonlat
 
 
 @pytest.fixture

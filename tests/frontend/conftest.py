@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, lonlat_to_xyz
 from planetref.camera.linescan import LineScanCamera
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, lonlat_to_xyz
 from planetref.raster.dem import GridTerrain
 
 CRS = "IAU_2015:49910"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from planetref.camera.base import Terrain
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, CrsGround, lonlat_to_xyz
 from planetref.errors import InputError, MissingFileError
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, CrsGround, lonlat_to_xyz
 from planetref.geometry.terrain import intersect_terrain
 from planetref.raster.dem import GridTerrain, MapProjection
 from planetref.raster.dem_holes import DemHoles

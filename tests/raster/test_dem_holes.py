@@ -17,9 +17,9 @@ import pytest
 import rasterio
 from affine import Affine
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.errors import InputError
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE
 from planetref.raster.dem import GridTerrain
 from planetref.raster.dem_holes import DemHoles, fill_dem_holes
 

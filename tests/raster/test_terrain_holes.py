@@ -12,14 +12,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planetref.camera.geodesy import (
+from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
+from planetref.camera.rpc import RpcCamera, fit_rpc
+from planetref.frontend.geometry import rays_to_ground
+from planetref.geometry.geodesy import (
     MARS_IAU2015_SPHERE,
     ray_ellipsoid_intersection,
     xyz_to_lonlat,
 )
-from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
-from planetref.camera.rpc import RpcCamera, fit_rpc
-from planetref.frontend.geometry import rays_to_ground
 from planetref.geometry.terrain import first_crossing, intersect_terrain
 from planetref.raster.dem import GridTerrain
 

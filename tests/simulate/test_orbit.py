@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from planetref.camera.linescan import rotation_matrix
+from planetref.geometry.rotations import rotation_matrix
 from planetref.raster.dem import GridTerrain
 from planetref.simulate.config import SimulationConfig
 from planetref.simulate.grid import MapGrid, local_crs_wkt

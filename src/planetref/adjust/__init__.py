@@ -16,7 +16,6 @@ from planetref.adjust.models import (
     Evaluation,
     LineScanParameterization,
     parameterize,
-    register_parameterization,
 )
 from planetref.adjust.network import NetworkFile, read_network
 from planetref.adjust.problem import Network
@@ -34,7 +33,6 @@ __all__ = [
     "adjust",
     "parameterize",
     "read_network",
-    "register_parameterization",
     "triangulate",
     "validate_config",
     "write_outputs",

@@ -33,8 +33,8 @@ from planetref.adjust.outliers import classify_inliers, robust_scale, supported
 from planetref.adjust.problem import Network
 from planetref.adjust.solver import BundleSolver, LmReport
 from planetref.adjust.variance import VceResult, variance_components
-from planetref.camera.geodesy import ray_ellipsoid_intersection, xyz_to_lonlat
 from planetref.errors import AdjustmentError
+from planetref.geometry.geodesy import ray_ellipsoid_intersection, xyz_to_lonlat
 from planetref.metrics import reprojection_metrics
 
 __all__ = ["AdjustmentResult", "adjust", "rays", "triangulate"]

@@ -41,6 +41,7 @@ __all__ = [
     "AngleBlock",
     "AngularAccelerationBlock",
     "AngularRateBlock",
+    "CcdPlacementBlock",
     "CsmParameters",
     "DiagnosticsConfig",
     "FocalLengthBlock",
@@ -236,6 +237,28 @@ class InteriorBlock(_Block):
     sigma_focal_length_mm: Millimetres = None
 
 
+class CcdPlacementBlock(_Block):
+    """Each CCD's placement in the focal plane (``x_mm``, ``y_mm``, ``angle_rad``).
+
+    Estimated per CCD (self-calibration of a multi-CCD focal plane). A placement moves a
+    CCD's image as the attitudes and the principal point move all of them, so it is
+    only separable from those with a-priori sigmas (``weighted``) or with a reference
+    CCD held fixed.
+
+    Attributes:
+        mode: ``fixed`` (default: the camera file's placement), ``free`` or ``weighted``.
+        sigma_offset_mm: A-priori sigma of ``x_mm`` and ``y_mm`` (mm).
+        sigma_angle_rad: A-priori sigma of ``angle_rad`` (radians).
+        reference_ccd: Name of a CCD whose placement stays fixed (the focal-plane
+            datum), or ``None``.
+    """
+
+    mode: Mode = "fixed"
+    sigma_offset_mm: Millimetres = None
+    sigma_angle_rad: Radians = None
+    reference_ccd: str | None = None
+
+
 class LineScanParameters(_Frozen):
     """Unknowns of a native line-scan strip (:class:`~planetref.camera.linescan.LineScanCamera`).
 
@@ -243,6 +266,7 @@ class LineScanParameters(_Frozen):
         position: The ``X, Y, Z`` of every orientation node (metres).
         attitude: The ``phi, omega, kappa`` of every node (radians).
         interior: Interior orientation.
+        ccd_placement: Per-CCD placement in the focal plane (fixed by default).
         min_obs_per_node: A node that is not fixed needs at least this many observations
             near it (between its two neighbouring nodes); see ``weak_nodes``.
         weak_nodes: What to do with nodes below ``min_obs_per_node``: ``error`` raises an
@@ -266,6 +290,7 @@ class LineScanParameters(_Frozen):
     position: LengthBlock = LengthBlock(mode="weighted", sigma_m=100.0)
     attitude: AngleBlock = AngleBlock(mode="free")
     interior: InteriorBlock = InteriorBlock()
+    ccd_placement: CcdPlacementBlock = CcdPlacementBlock()
     min_obs_per_node: int = Field(3, ge=0)
     weak_nodes: Literal["error", "weight", "smooth"] = "smooth"
     weak_node_position_sigma_m: Metres = 100.0

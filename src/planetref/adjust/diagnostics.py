@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import DiagnosticsConfig
 from planetref.adjust.problem import Network
-from planetref.camera.geodesy import xyz_to_lonlat
+from planetref.geometry.geodesy import xyz_to_lonlat
 
 __all__ = [
     "SELF_CALIBRATION",

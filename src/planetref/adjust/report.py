@@ -38,9 +38,9 @@ from planetref.adjust.api import AdjustmentResult
 from planetref.adjust.network import safe_name
 from planetref.adjust.report_md import MODE_NAMES, report_md, top_correlations
 from planetref.atomic import json_safe, write_bytes_atomic, write_text_atomic
-from planetref.camera.geodesy import xyz_to_lonlat
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import PlanetrefError
+from planetref.geometry.geodesy import xyz_to_lonlat
 from planetref.metrics import geolocation_error
 
 __all__ = ["POINT_COLUMNS", "geolocation_metrics", "write_outputs", "write_points"]

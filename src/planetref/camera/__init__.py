@@ -1,1 +1,1 @@
-"""Camera models and geodesy: native line scan, USGS CSM ISDs and RPCs."""
+"""Camera models: native line scan, USGS CSM ISDs and RPCs."""

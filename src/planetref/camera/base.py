@@ -16,7 +16,7 @@ holes) and are re-exported here.
 
 Ground coordinates
 ------------------
-Body-fixed XYZ in metres (see :mod:`planetref.camera.geodesy`), or longitude/latitude
+Body-fixed XYZ in metres (see :mod:`planetref.geometry.geodesy`), or longitude/latitude
 (degrees, planetocentric unless a camera's body says otherwise) and height above the
 camera's ellipsoid.
 """
@@ -29,7 +29,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.geodesy import Ellipsoid, LatitudeKind
+from planetref.geometry.geodesy import Ellipsoid, LatitudeKind
 from planetref.geometry.terrain import ConstantHeight, OnMiss, Terrain
 
 __all__ = [

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
 from planetref.camera.linescan import (
     CcdGeometry,
     InteriorOrientation,
@@ -21,6 +20,7 @@ from planetref.camera.linescan import (
     LineScanCamera,
 )
 from planetref.errors import InputError
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
 
 __all__ = ["MARS_GM_M3_S2", "OrbitGeometry", "ccd_row", "orbit_camera"]
 

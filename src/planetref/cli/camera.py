@@ -16,8 +16,8 @@ import click
 import numpy as np
 
 from planetref.atomic import json_safe
-from planetref.camera.geodesy import lonlat_to_xyz, xyz_to_lonlat
 from planetref.errors import GeometryError, InputError
+from planetref.geometry.geodesy import lonlat_to_xyz, xyz_to_lonlat
 
 __all__ = ["EXTRAPOLATION_MARGIN", "HEIGHT_LIMIT_FRACTION", "camera_group"]
 

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planetref.camera.base import Camera, Terrain
-from planetref.camera.geodesy import lonlat_to_xyz
+from planetref.geometry.geodesy import lonlat_to_xyz
 from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = [

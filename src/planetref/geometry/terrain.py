@@ -54,8 +54,8 @@ from typing import Literal, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.geodesy import Ellipsoid, ray_ellipsoid_intersection, xyz_to_lonlat
 from planetref.errors import GeometryError, InputError
+from planetref.geometry.geodesy import Ellipsoid, ray_ellipsoid_intersection, xyz_to_lonlat
 
 __all__ = [
     "TOP_MARGIN_M",

@@ -80,7 +80,7 @@ def orthorectify_ccd(
     import rasterio
     from rasterio.transform import from_origin
 
-    from planetref.camera.geodesy import CrsGround
+    from planetref.geometry.geodesy import CrsGround
 
     ground = CrsGround(crs)
     x0, y0, x1, y1 = _footprint(camera, ccd, terrain, ground)

@@ -46,8 +46,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from planetref.camera.geodesy import Ellipsoid
 from planetref.errors import InputError, MissingFileError
+from planetref.geometry.geodesy import Ellipsoid
 from planetref.simulate.config import format_validation_error
 from planetref.tomlfile import read_toml
 
@@ -90,7 +90,7 @@ class BodySpec(_Model):
     semi_minor_m: float = Field(default=3396190.0, gt=0)
 
     def ellipsoid(self) -> Ellipsoid:
-        """The body as an :class:`~planetref.camera.geodesy.Ellipsoid`."""
+        """The body as an :class:`~planetref.geometry.geodesy.Ellipsoid`."""
         return Ellipsoid(self.semi_major_m, self.semi_minor_m, self.name)
 
 

@@ -19,7 +19,7 @@ Conventions
 * Rays meet the DEM through :func:`planetref.geometry.terrain.intersect_terrain`, whose
   rule at holes (unknown terrain) every camera shares.
 * Longitudes/latitudes are planetocentric degrees, east-positive (see
-  :mod:`planetref.camera.geodesy`); XYZ are body-fixed metres.
+  :mod:`planetref.geometry.geodesy`); XYZ are body-fixed metres.
 """
 
 from __future__ import annotations
@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.geodesy import (
+from planetref.errors import CrsError, InputError, MissingFileError, UnsupportedFormatError
+from planetref.geometry.geodesy import (
     Ellipsoid,
     ray_ellipsoid_intersection,
 )
-from planetref.errors import CrsError, InputError, MissingFileError, UnsupportedFormatError
 from planetref.geometry.terrain import TOP_MARGIN_M, intersect_terrain
 from planetref.raster.dem_holes import DemHoles, fill_dem_holes
 from planetref.raster.mapproj import MapProjection

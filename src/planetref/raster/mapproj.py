@@ -4,7 +4,7 @@
 lon/lat (degrees) or body-fixed XYZ (metres). Equirectangular CRSs on a sphere (such as
 ``IAU_2015:49910`` and the simulator's local maps) use closed formulas, checked against
 PROJ when the object is built; any other CRS goes through
-:class:`~planetref.camera.geodesy.CrsGround`.
+:class:`~planetref.geometry.geodesy.CrsGround`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.geodesy import (
+from planetref.geometry.geodesy import (
     CrsGround,
     Ellipsoid,
     lonlat_to_xyz,
@@ -92,7 +92,7 @@ class MapProjection:
 
     Equirectangular CRSs on a sphere (such as ``IAU_2015:49910`` and the simulator's
     local maps) are converted with closed formulas (checked against PROJ when the object
-    is built); any other CRS goes through :class:`~planetref.camera.geodesy.CrsGround`.
+    is built); any other CRS goes through :class:`~planetref.geometry.geodesy.CrsGround`.
 
     Args:
         crs: Anything ``pyproj.CRS.from_user_input`` accepts (not geocentric).

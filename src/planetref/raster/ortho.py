@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.geodesy import CrsGround
 from planetref.errors import CrsError, InputError
+from planetref.geometry.geodesy import CrsGround
 from planetref.raster.image import BandReader, masked_block_mean
 
 __all__ = ["RefWindow", "ReferenceOrtho"]

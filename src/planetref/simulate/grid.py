@@ -20,8 +20,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, Ellipsoid
 from planetref.errors import InputError
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, Ellipsoid
 
 __all__ = ["MapGrid", "cubic_resample", "enu_basis", "local_crs", "local_crs_wkt"]
 

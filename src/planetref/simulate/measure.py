@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.camera.geodesy import xyz_to_lonlat
 from planetref.camera.linescan import LineScanCamera
+from planetref.geometry.geodesy import xyz_to_lonlat
 from planetref.raster.dem import GridTerrain
 
 __all__ = ["checkpoints", "measure_consistency", "measure_initial_errors", "pixel_grid"]

@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.camera.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
 from planetref.camera.linescan import (
     CcdGeometry,
     InteriorOrientation,
@@ -43,6 +42,7 @@ from planetref.camera.linescan import (
     LineScanCamera,
 )
 from planetref.camera.orbit import MARS_GM_M3_S2, ccd_row
+from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
 from planetref.simulate.config import SimulationConfig, StripConfig
 from planetref.simulate.realism import TruthMismatchConfig
 
@@ -98,7 +98,7 @@ def _rpy(roll: F64, pitch: F64, yaw: F64) -> F64:
 
 
 def angles_from_rotation(m: F64) -> F64:
-    """Inverse of :func:`planetref.camera.linescan.rotation_matrix`.
+    """Inverse of :func:`planetref.geometry.rotations.rotation_matrix`.
 
     Args:
         m: Rotations ``R_phi(Y) @ R_omega(X) @ R_kappa(Z)``, shape ``(..., 3, 3)``.

@@ -59,11 +59,12 @@ from planetref.camera.csm.interpolation import _hermite, _lagrange, _natural_spl
 from planetref.camera.csm.isd import J2000, MIN_EPHEMERIS_NODES, CsmCorrection, CsmIsd
 from planetref.camera.csm.orientation import _AleOrientations, _euler_matrix, _qmatrix
 from planetref.camera.csm.reader import read_isd
-from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.errors import (
     GeometryError,
     InputError,
 )
+from planetref.geometry.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
+from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
 from planetref.geometry.terrain import intersect_terrain
 
 __all__ = ["CsmLineScanCamera"]
@@ -607,36 +608,29 @@ class CsmLineScanCamera:
     def _bracket_lines(
         self, xyz: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """Fallback: scan lines for a sign change of the offset, then Illinois steps."""
+        """Fallback: scan lines for a sign change of the offset, then refine it.
+
+        The grid spans half an image before and after the image (65 lines); the root
+        is refined by safeguarded secant steps (:mod:`planetref.geometry.roots`) and
+        accepted where the offset is below ``_G2I_TOLERANCE_PX``.
+        """
         nl = float(self._isd.image_lines)
-        grid = np.linspace(-0.5 * nl, 1.5 * nl, 65)
-        m = len(xyz)
-        g = np.stack([self._detector_offset(np.full(m, gl), xyz)[0] for gl in grid], axis=1)
-        with np.errstate(invalid="ignore"):
-            change = np.sign(g[:, :-1]) * np.sign(g[:, 1:]) <= 0
-        change &= np.isfinite(g[:, :-1]) & np.isfinite(g[:, 1:])
-        has = np.any(change, axis=1)
-        k = np.argmax(change, axis=1)
-        a, b = grid[k], grid[k + 1]
-        fa, fb = g[np.arange(m), k], g[np.arange(m), k + 1]
-        line = np.full(m, np.nan)
-        ok = np.zeros(m, dtype=bool)
-        for _ in range(200):
-            act = np.flatnonzero(has & ~ok)
-            if act.size == 0:
-                break
-            with np.errstate(invalid="ignore", divide="ignore"):
-                c = b[act] - fb[act] * (b[act] - a[act]) / (fb[act] - fa[act])
-            c = np.where(np.isfinite(c), c, 0.5 * (a[act] + b[act]))
-            fc = self._detector_offset(c, xyz[act])[0]
-            line[act] = c
-            ok[act] = np.abs(fc) < _G2I_TOLERANCE_PX
-            same = np.sign(fc) == np.sign(fb[act])
-            # Illinois: halve the kept end's value when the same end is replaced twice.
-            fa[act] = np.where(same, fa[act] * 0.5, fb[act])
-            a[act] = np.where(same, a[act], b[act])
-            b[act], fb[act] = c, fc
-        return line, ok
+
+        def residual(x: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.float64]:
+            return self._detector_offset(x, xyz[rows])[0]
+
+        bracket = bracket_first_sign_change(
+            residual, np.linspace(-0.5 * nl, 1.5 * nl, 65), len(xyz)
+        )
+        line = refine_bracketed(
+            bracket,
+            residual=residual,
+            xtol=1e-12,
+            ftol=_G2I_TOLERANCE_PX,
+            max_iter=200,
+            stop_at_ftol=True,
+        )
+        return line, np.isfinite(line)
 
     def ground_to_image(self, xyz: ArrayLike, *, ccd: str | None = None) -> ImagePoints:
         """Project body-fixed points into the image (usgscsm's ``groundToImage``).

@@ -18,15 +18,15 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from planetref.camera.geodesy import (
+from planetref.camera.rpc.model import _fmt, _parse_number
+from planetref.errors import (
+    InputError,
+)
+from planetref.geometry.geodesy import (
     EARTH_WGS84,
     MARS_IAU2015_SPHERE,
     Ellipsoid,
     LatitudeKind,
-)
-from planetref.camera.rpc.model import _fmt, _parse_number
-from planetref.errors import (
-    InputError,
 )
 
 __all__ = ["EARTH_BODY", "MARS_BODY", "RpcBody"]

@@ -16,18 +16,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
-from planetref.camera.geodesy import (
-    Ellipsoid,
-    LatitudeKind,
-    lonlat_to_xyz,
-    xyz_to_lonlat,
-)
 from planetref.camera.rpc.body import EARTH_BODY, RpcBody
 from planetref.camera.rpc.formats import _read
 from planetref.camera.rpc.model import Rpc
 from planetref.errors import (
     GeometryError,
     InputError,
+)
+from planetref.geometry.geodesy import (
+    Ellipsoid,
+    LatitudeKind,
+    lonlat_to_xyz,
+    xyz_to_lonlat,
 )
 from planetref.geometry.terrain import first_crossing
 

@@ -16,15 +16,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.blas import single_threaded_blas
-from planetref.camera.geodesy import (
-    lonlat_to_xyz,
-    wrap_longitude,
-    xyz_to_lonlat,
-)
 from planetref.camera.rpc.model import _N_TERMS, Rpc, _terms
 from planetref.errors import (
     GeometryError,
     InputError,
+)
+from planetref.geometry.geodesy import (
+    lonlat_to_xyz,
+    wrap_longitude,
+    xyz_to_lonlat,
 )
 
 __all__ = ["FitReport", "fit_rpc"]

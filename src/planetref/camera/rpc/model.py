@@ -37,11 +37,11 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.geodesy import (
-    wrap_longitude,
-)
 from planetref.errors import (
     InputError,
+)
+from planetref.geometry.geodesy import (
+    wrap_longitude,
 )
 
 __all__ = ["Rpc"]

@@ -44,8 +44,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from planetref.atomic import write_json_atomic
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
-from planetref.camera.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
+from planetref.camera.linescan.kernel import RAW_COLUMNS, LineScanKernel
 from planetref.errors import GeometryError, InputError
+from planetref.geometry.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
+from planetref.geometry.rotations import rotation_matrix
 
 __all__ = [
     "FORMAT_NAME",
@@ -55,8 +57,6 @@ __all__ = [
     "InteriorOrientation",
     "LineRateTable",
     "LineScanCamera",
-    "rotation_matrix",
-    "rotation_matrix_derivatives",
 ]
 
 FORMAT_NAME = "planetref-linescan"
@@ -201,102 +201,6 @@ class CcdGeometry:
         s = np.asarray(sample, dtype=np.float64) * self.pixel_pitch_mm
         return (self.x_mm + s * math.sin(self.angle_rad), self.y_mm + s * math.cos(self.angle_rad))
 
-    def detector(self, x_mm: ArrayLike, y_mm: ArrayLike) -> tuple[F64, F64]:
-        """Focal-plane point -> ``(sample, offset)``.
-
-        ``offset`` is the distance from the array's centre line, in pixels, positive
-        towards +x when the array is unrotated; it is zero for points on the array.
-        """
-        dx = np.asarray(x_mm, dtype=np.float64) - self.x_mm
-        dy = np.asarray(y_mm, dtype=np.float64) - self.y_mm
-        sa, ca = math.sin(self.angle_rad), math.cos(self.angle_rad)
-        p = self.pixel_pitch_mm
-        return (dx * sa + dy * ca) / p, (dx * ca - dy * sa) / p
-
-
-# -------------------------------------------------------------------- rotations
-def _axis_rotations(phi: F64, omega: F64, kappa: F64) -> tuple[F64, F64, F64]:
-    shape = np.shape(phi)
-    rp = np.zeros((*shape, 3, 3))
-    cp, sp = np.cos(phi), np.sin(phi)
-    rp[..., 0, 0], rp[..., 0, 2], rp[..., 1, 1] = cp, -sp, 1.0
-    rp[..., 2, 0], rp[..., 2, 2] = sp, cp
-    ro = np.zeros((*shape, 3, 3))
-    co, so = np.cos(omega), np.sin(omega)
-    ro[..., 0, 0], ro[..., 1, 1], ro[..., 1, 2] = 1.0, co, -so
-    ro[..., 2, 1], ro[..., 2, 2] = so, co
-    rk = np.zeros((*shape, 3, 3))
-    ck, sk = np.cos(kappa), np.sin(kappa)
-    rk[..., 0, 0], rk[..., 0, 1], rk[..., 1, 0] = ck, -sk, sk
-    rk[..., 1, 1], rk[..., 2, 2] = ck, 1.0
-    return rp, ro, rk
-
-
-def rotation_matrix(phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike) -> F64:
-    """``R_phi(Y) @ R_omega(X) @ R_kappa(Z)`` (angles in radians), shape ``(..., 3, 3)``.
-
-    ``R_phi = [[cos, 0, -sin], [0, 1, 0], [sin, 0, cos]]``,
-    ``R_omega = [[1, 0, 0], [0, cos, -sin], [0, sin, cos]]``,
-    ``R_kappa = [[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]]``.
-    """
-    rp, ro, rk = _axis_rotations(*(np.asarray(a, dtype=np.float64) for a in (phi, omega, kappa)))
-    return rp @ ro @ rk
-
-
-def rotation_matrix_derivatives(
-    phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike
-) -> tuple[F64, F64, F64, F64]:
-    """The rotation and its derivatives w.r.t. phi, omega and kappa (per radian)."""
-    phi, omega, kappa = (np.asarray(a, dtype=np.float64) for a in (phi, omega, kappa))
-    rp, ro, rk = _axis_rotations(phi, omega, kappa)
-    # d/da of a rotation about one axis is the generator applied to it.
-    drp = np.zeros_like(rp)
-    cp, sp = np.cos(phi), np.sin(phi)
-    drp[..., 0, 0], drp[..., 0, 2], drp[..., 2, 0], drp[..., 2, 2] = -sp, -cp, cp, -sp
-    dro = np.zeros_like(ro)
-    co, so = np.cos(omega), np.sin(omega)
-    dro[..., 1, 1], dro[..., 1, 2], dro[..., 2, 1], dro[..., 2, 2] = -so, -co, co, -so
-    drk = np.zeros_like(rk)
-    ck, sk = np.cos(kappa), np.sin(kappa)
-    drk[..., 0, 0], drk[..., 0, 1], drk[..., 1, 0], drk[..., 1, 1] = -sk, -ck, ck, -sk
-    r = rp @ ro @ rk
-    return r, drp @ ro @ rk, rp @ dro @ rk, rp @ ro @ drk
-
-
-# ----------------------------------------------------------------- Lagrange
-def _lagrange(times: F64, t: F64, order: int) -> tuple[NDArray[np.intp], F64, F64]:
-    """Window start, weights and weight derivatives (per second) for times ``t``."""
-    n = len(times)
-    k = min(order, n)
-    i = np.searchsorted(times, t, side="right") - 1
-    start = np.clip(i - k // 2 + 1, 0, n - k)
-    idx = start[:, None] + np.arange(k)[None, :]
-    tn = times[idx]  # (M, k)
-    dt = t[:, None] - tn
-    w = np.ones_like(tn)
-    dw = np.zeros_like(tn)
-    for j in range(k):
-        denom = np.ones(len(t))
-        for m in range(k):
-            if m != j:
-                denom = denom * (tn[:, j] - tn[:, m])
-        prod = np.ones(len(t))
-        for m in range(k):
-            if m != j:
-                prod = prod * dt[:, m]
-        w[:, j] = prod / denom
-        deriv = np.zeros(len(t))
-        for i2 in range(k):
-            if i2 == j:
-                continue
-            p2 = np.ones(len(t))
-            for m in range(k):
-                if m not in (j, i2):
-                    p2 = p2 * dt[:, m]
-            deriv = deriv + p2
-        dw[:, j] = deriv / denom
-    return idx, w, dw
-
 
 # ----------------------------------------------------------------- partials
 @dataclass(frozen=True)
@@ -315,6 +219,8 @@ class ImagePartials:
         d_interior: ``d(line, sample) / d(x0, y0, f)`` (per millimetre), ``(M, 2, 3)``.
         d_ground: ``d(line, sample) / d(X, Y, Z)`` of the ground point (per metre),
             ``(M, 2, 3)``.
+        d_ccd: ``d(line, sample) / d(x_mm, y_mm, angle_rad)`` of the CCD's placement in
+            the focal plane (per millimetre, per radian), ``(M, 2, 3)``.
     """
 
     line: F64
@@ -323,6 +229,7 @@ class ImagePartials:
     d_nodes: F64
     d_interior: F64
     d_ground: F64
+    d_ccd: F64
 
     def dense_nodes(self, n_nodes: int) -> F64:
         """The node partials scattered into a dense ``(M, 2, n_nodes * 6)`` array."""
@@ -335,17 +242,6 @@ class ImagePartials:
 
 
 # ------------------------------------------------------------------- camera
-@dataclass(frozen=True)
-class _Collinearity:
-    """Intermediate quantities of projecting points with the EO of given lines."""
-
-    sample: F64
-    offset: F64
-    uvw: F64
-    rot: F64
-    d: F64  # P - S
-
-
 @dataclass(frozen=True, eq=False)
 class LineScanCamera:
     """The rigorous line-scan camera (orientation image model); see the module doc.
@@ -373,7 +269,8 @@ class LineScanCamera:
     interpolation_order: int = 4
     latitude_kind: LatitudeKind = "planetocentric"
     name: str = ""
-    _node_times: F64 = field(init=False, repr=False)
+    _kernel: LineScanKernel = field(init=False, repr=False)
+    _poly: F64 = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         r0 = np.array(self.frame_rotation, dtype=np.float64)
@@ -412,7 +309,9 @@ class LineScanCamera:
         object.__setattr__(self, "nodes", nodes)
         object.__setattr__(self, "ccds", tuple(self.ccds))
         object.__setattr__(self, "interpolation_order", int(self.interpolation_order))
-        object.__setattr__(self, "_node_times", times)
+        kernel = LineScanKernel(self.line_rates, lines, int(self.interpolation_order), r0)
+        object.__setattr__(self, "_kernel", kernel)
+        object.__setattr__(self, "_poly", kernel.eo_poly(nodes))
 
     # ------------------------------------------------------------ basics
     @property
@@ -444,13 +343,10 @@ class LineScanCamera:
         return replace(self, **changes)
 
     # ------------------------------------------------------------ exterior orientation
-    def _eo(self, line: F64) -> tuple[NDArray[np.intp], F64, F64, F64, F64]:
-        t = self.line_rates.time(line)
-        idx, w, dw = _lagrange(self._node_times, t, self.interpolation_order)
-        win = self.nodes[idx]  # (M, k, 6)
-        eo = np.einsum("mk,mkp->mp", w, win)
-        deo_dt = np.einsum("mk,mkp->mp", dw, win)
-        return idx, w, dw, eo, deo_dt
+    @property
+    def kernel(self) -> LineScanKernel:
+        """The projection kernel of this camera (time model, node windows, ``R0``)."""
+        return self._kernel
 
     def exterior(self, line: ArrayLike) -> tuple[F64, F64]:
         """Exterior orientation at continuous line coordinates.
@@ -460,7 +356,7 @@ class LineScanCamera:
             camera -> body-fixed (``(M, 3, 3)``).
         """
         line = np.atleast_1d(np.asarray(line, dtype=np.float64))
-        _, _, _, eo, _ = self._eo(line)
+        eo = self._kernel.exterior(self._poly, line)
         return eo[:, :3], self.frame_rotation @ rotation_matrix(eo[:, 3], eo[:, 4], eo[:, 5])
 
     def look_rays(
@@ -529,45 +425,18 @@ class LineScanCamera:
         return intersect_terrain(origin, direction, terrain, on_miss=on_miss)
 
     # ------------------------------------------------------------ ground -> image
-    def _collinearity(self, xyz: F64, line: F64, c: CcdGeometry) -> _Collinearity:
-        s, rot = self.exterior(line)
-        d = xyz - s
-        uvw = np.einsum("mji,mj->mi", rot, d)  # R^T d
-        io = self.interior
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = io.x0_mm - io.focal_length_mm * uvw[:, 0] / uvw[:, 2]
-            y = io.y0_mm - io.focal_length_mm * uvw[:, 1] / uvw[:, 2]
-        sample, offset = c.detector(x, y)
-        return _Collinearity(sample, offset, uvw, rot, d)
-
-    def _offset_and_rate(self, xyz: F64, line: F64, c: CcdGeometry) -> tuple[F64, F64, F64]:
-        """Detector offset (px), its derivative per line, and the sample, at ``line``."""
-        _idx, _w, _dw, eo, deo_dt = self._eo(line)
-        col = self._collinearity(xyz, line, c)
-        dpix = self._d_detector_d_eo(col, eo, c)  # (M, 2, 6)
-        rate = np.einsum("mp,mp->m", dpix[:, 1], deo_dt) * self.line_rates.period(line)
-        return col.offset, rate, col.sample
-
-    def _d_detector_d_eo(self, col: _Collinearity, eo: F64, c: CcdGeometry) -> F64:
-        """d(sample, offset)/d(X, Y, Z, phi, omega, kappa) of the interpolated EO."""
-        _, dr_p, dr_o, dr_k = rotation_matrix_derivatives(eo[:, 3], eo[:, 4], eo[:, 5])
-        r0 = self.frame_rotation
-        duvw = np.empty((len(eo), 3, 6))
-        duvw[:, :, :3] = -np.transpose(col.rot, (0, 2, 1))  # d(R^T (P-S))/dS
-        for j, dr in enumerate((dr_p, dr_o, dr_k)):
-            duvw[:, :, 3 + j] = np.einsum("mji,mj->mi", r0 @ dr, col.d)
-        dxy = self._d_xy_d_uvw(col.uvw) @ duvw  # (M, 2, 6)
-        return _detector_jac(c, len(eo)) @ dxy
-
-    def _d_xy_d_uvw(self, uvw: F64) -> F64:
-        f = self.interior.focal_length_mm
-        u, v, w = uvw[:, 0], uvw[:, 1], uvw[:, 2]
-        j = np.zeros((len(uvw), 2, 3))
-        j[:, 0, 0] = -f / w
-        j[:, 0, 2] = f * u / w**2
-        j[:, 1, 1] = -f / w
-        j[:, 1, 2] = f * v / w**2
-        return j
+    def _lines(self, p: F64, c: CcdGeometry, line_guess: ArrayLike | None) -> F64:
+        """Starting lines: the guesses, or a bracketed search in chunks of 65536."""
+        m = len(p)
+        if line_guess is not None:
+            return np.array(np.broadcast_to(np.asarray(line_guess, np.float64), (m,)))
+        io = self.interior.as_array()
+        line = np.full(m, np.nan)
+        chunk = 65536
+        for a in range(0, m, chunk):
+            b = min(a + chunk, m)
+            line[a:b] = self._kernel.search_lines(self._poly, io, c, p[a:b])
+        return line
 
     def ground_to_image(
         self, xyz: ArrayLike, *, ccd: str | None = None, line_guess: ArrayLike | None = None
@@ -575,12 +444,14 @@ class LineScanCamera:
         """Project body-fixed points into a CCD image.
 
         The line is found by solving ``offset(line) = 0`` (the point lies in the plane
-        of the CCD's line of sight at that line's time) with a bracketed Newton
-        iteration, vectorised over points, to ``1e-8`` line. Outside the image the
-        solution is still computed where it exists within the orientation nodes' span
-        (extrapolating the EO up to one node spacing beyond the first and last node);
-        ``in_image`` tells. Points behind the camera or whose line cannot be found come
-        back with ``valid=False`` and NaN coordinates.
+        of the CCD's line of sight at that line's time; see
+        :mod:`planetref.camera.linescan.kernel`): a bracketed, safeguarded Newton
+        search over the node span, vectorised over points, then chord steps to
+        ``1e-6`` line and a final Newton step (exact to ~1e-10 line). Outside the
+        image the solution is still computed where it exists within the orientation
+        nodes' span (extrapolating the EO up to one node spacing beyond the first and
+        last node); ``in_image`` tells. Points behind the camera or whose line cannot
+        be found come back with ``valid=False`` and NaN coordinates.
 
         Args:
             xyz: Body-fixed points in metres, shape ``(M, 3)`` or ``(3,)``.
@@ -595,88 +466,15 @@ class LineScanCamera:
         if p.shape[-1] != 3:
             raise InputError(f"xyz must have shape (M, 3), got {np.shape(xyz)}")
         c = self.ccd(ccd)
-        m = len(p)
-        line = np.full(m, np.nan)
-        chunk = 65536
-        for a in range(0, m, chunk):
-            b = min(a + chunk, m)
-            guess = (
-                None
-                if line_guess is None
-                else np.broadcast_to(np.asarray(line_guess, np.float64), (m,))[a:b]
-            )
-            line[a:b] = self._solve_line(p[a:b], c, guess)
-        ok = np.isfinite(line)
-        sample = np.full(m, np.nan)
-        if np.any(ok):
-            col = self._collinearity(p[ok], line[ok], c)
-            sample[ok] = col.sample
-            behind = col.uvw[:, 2] >= 0
-            if np.any(behind):
-                idx = np.flatnonzero(ok)[behind]
-                line[idx] = np.nan
-                sample[idx] = np.nan
-                ok[idx] = False
+        start = self._lines(p, c, line_guess)
+        line, sample, ok, _ = self._kernel.project(
+            self._poly, self.interior.as_array(), c, p, start.copy(), None
+        )
+        ok &= np.isfinite(start)
+        line[~ok] = np.nan
+        sample[~ok] = np.nan
         in_image = ok & (line >= 0) & (line < c.n_lines) & (sample >= 0) & (sample < c.n_samples)
         return ImagePoints(line=line, sample=sample, valid=ok, in_image=in_image)
-
-    def _solve_line(self, p: F64, c: CcdGeometry, guess: F64 | None) -> F64:
-        m = len(p)
-        lo_line = self.node_lines[0] - (self.node_lines[1] - self.node_lines[0])
-        hi_line = self.node_lines[-1] + (self.node_lines[-1] - self.node_lines[-2])
-        if guess is None:
-            # Bracket: the offset changes sign once as the point passes under the CCD.
-            cand = np.linspace(lo_line, hi_line, 33)
-            off = np.stack([self._collinearity(p, np.full(m, lc), c).offset for lc in cand], 1)
-            sgn = np.sign(off)
-            change = (
-                (sgn[:, :-1] * sgn[:, 1:] <= 0) & np.isfinite(off[:, :-1]) & np.isfinite(off[:, 1:])
-            )
-            has = change.any(axis=1)
-            j = np.argmax(change, axis=1)
-            rows = np.arange(m)
-            lo = np.where(has, cand[j], np.nan)
-            hi = np.where(has, cand[np.minimum(j + 1, len(cand) - 1)], np.nan)
-            f_lo, f_hi = off[rows, j], off[rows, np.minimum(j + 1, len(cand) - 1)]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                frac = np.where(f_hi != f_lo, f_lo / (f_lo - f_hi), 0.5)
-            line = lo + np.clip(frac, 0, 1) * (hi - lo)
-        else:
-            line = np.array(guess, dtype=np.float64)
-            lo = np.full(m, lo_line)
-            hi = np.full(m, hi_line)
-        active = np.isfinite(line)
-        for _ in range(30):
-            if not np.any(active):
-                break
-            ia = np.flatnonzero(active)
-            off, rate, _ = self._offset_and_rate(p[ia], line[ia], c)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = -off / rate
-            new = line[ia] + step
-            # Keep Newton inside the bracket; fall back to bisection when it leaves.
-            if guess is None:
-                lo_a, hi_a = lo[ia], hi[ia]
-                bad = ~np.isfinite(new) | (new < lo_a) | (new > hi_a)
-                new = np.where(bad, 0.5 * (lo_a + hi_a), new)
-                # Shrink the bracket with the sign of the offset at the current line.
-                off_lo = self._collinearity(p[ia], lo_a, c).offset
-                same = np.sign(off) == np.sign(off_lo)
-                lo[ia] = np.where(same, line[ia], lo_a)
-                hi[ia] = np.where(same, hi_a, line[ia])
-            else:
-                new = np.clip(new, lo[ia], hi[ia])
-            line[ia] = new
-            done = np.abs(step) < 1e-8
-            done |= ~np.isfinite(step)
-            active[ia[done]] = False
-        # A final residual check rejects iterations that stalled at a bracket end.
-        ok = np.isfinite(line)
-        if np.any(ok):
-            off = self._collinearity(p[ok], line[ok], c).offset
-            bad = ~(np.abs(off) < 1e-6)
-            line[np.flatnonzero(ok)[bad]] = np.nan
-        return line
 
     # ------------------------------------------------------------ partials
     def image_partials(
@@ -688,7 +486,8 @@ class LineScanCamera:
         :meth:`ground_to_image`; by the implicit-function theorem
         ``dline/dq = -(d offset/dq) / (d offset/dline)`` and
         ``dsample/dq = d sample/dq + (d sample/dline) dline/dq`` for every parameter
-        ``q`` (node EO, interior orientation, ground coordinates).
+        ``q`` (node EO, interior orientation, ground coordinates, CCD placement), as
+        computed by the one projection kernel (:mod:`planetref.camera.linescan.kernel`).
 
         Args:
             xyz: Ground points in metres, ``(M, 3)``.
@@ -700,48 +499,27 @@ class LineScanCamera:
         """
         p = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
         c = self.ccd(ccd)
-        ip = self.ground_to_image(p, ccd=c.name, line_guess=line_guess)
-        line = np.where(ip.valid, ip.line, self.node_lines[0])
-        idx, w, _dw, eo, deo_dt = self._eo(line)
-        col = self._collinearity(p, line, c)
-        jac_det = _detector_jac(c, len(p))  # d(sample, offset)/d(x, y)
-        d_eo = self._d_detector_d_eo(col, eo, c)  # (M, 2, 6): rows sample, offset
-        period = self.line_rates.period(line)
-        d_dline = np.einsum("mrp,mp->mr", d_eo, deo_dt) * period[:, None]  # (M, 2)
-        # Ground point: d(uvw)/dP = R^T.
-        d_ground_raw = jac_det @ (
-            self._d_xy_d_uvw(col.uvw) @ np.transpose(col.rot, (0, 2, 1))
-        )  # (M, 2, 3)
-        # Interior orientation: x = x0 - f U/W, y = y0 - f V/W.
-        dxy_dio = np.zeros((len(p), 2, 3))
-        dxy_dio[:, 0, 0] = 1.0
-        dxy_dio[:, 1, 1] = 1.0
-        dxy_dio[:, 0, 2] = -col.uvw[:, 0] / col.uvw[:, 2]
-        dxy_dio[:, 1, 2] = -col.uvw[:, 1] / col.uvw[:, 2]
-        d_io_raw = jac_det @ dxy_dio
-        # Node parameters through the Lagrange weights.
-        d_nodes_raw = d_eo[:, :, None, :] * w[:, None, :, None]  # (M, 2, k, 6)
-
-        def implicit(raw: F64) -> F64:
-            # raw[:, 0] = d sample/dq, raw[:, 1] = d offset/dq at fixed line.
-            dl = -raw[:, 1] / _bcast(d_dline[:, 1], raw[:, 1])
-            ds = raw[:, 0] + _bcast(d_dline[:, 0], raw[:, 0]) * dl
-            return np.stack([dl, ds], axis=1)
-
-        out_nodes = implicit(d_nodes_raw)
-        out_io = implicit(d_io_raw)
-        out_ground = implicit(d_ground_raw)
-        bad = ~ip.valid
-        for arr in (out_nodes, out_io, out_ground):
-            arr[bad] = np.nan
-        return ImagePartials(
-            line=ip.line,
-            sample=ip.sample,
-            node_index=idx,
-            d_nodes=out_nodes,
-            d_interior=out_io,
-            d_ground=out_ground,
+        start = self._lines(p, c, line_guess)
+        kern = self._kernel
+        proj = kern.project_with_partials(
+            self._poly, self.interior.as_array(), c, p, start.copy(), None
         )
+        ok = proj.valid & np.isfinite(start)
+        cols = RAW_COLUMNS
+        d_nodes = kern.node_partials(proj)
+        out = (
+            d_nodes,
+            proj.partials[:, :, cols["interior"]],
+            proj.partials[:, :, cols["ground"]],
+            proj.partials[:, :, cols["ccd"]],
+        )
+        line, sample = proj.line, proj.sample
+        bad = ~ok
+        line[bad] = np.nan
+        sample[bad] = np.nan
+        for arr in out:
+            arr[bad] = np.nan
+        return ImagePartials(line, sample, kern.windows.window_nodes(proj.start), *out)
 
     # ------------------------------------------------------------ files
     def to_dict(self) -> dict[str, Any]:
@@ -789,34 +567,17 @@ class LineScanCamera:
         Raises:
             InputError: Naming ``path`` and the offending field.
         """
-        from planetref.camera._linescan_schema import parse_document
+        from planetref.camera.linescan.schema import parse_document
 
         return parse_document(doc, path=path, factory=cls)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike[str]) -> LineScanCamera:
         """Read a native JSON camera file."""
-        from planetref.camera._linescan_schema import load_json
+        from planetref.camera.linescan.schema import load_json
 
         return cls.from_dict(load_json(path), path=path)
 
     def to_json(self, path: str | os.PathLike[str]) -> Path:
         """Write the native JSON camera file atomically (temporary file, then rename)."""
         return write_json_atomic(path, self.to_dict())
-
-
-def _detector_jac(c: CcdGeometry, m: int) -> F64:
-    """d(sample, offset)/d(x, y) of a CCD (constant), broadcast to ``(m, 2, 2)``."""
-    sa, ca, p = math.sin(c.angle_rad), math.cos(c.angle_rad), c.pixel_pitch_mm
-    return np.broadcast_to(np.array([[sa, ca], [ca, -sa]]) / p, (m, 2, 2))
-
-
-def _bcast(a: F64, like: F64) -> F64:
-    return a.reshape(a.shape + (1,) * (like.ndim - 1))
-
-
-def evenly_spaced_nodes(n_lines: int, n_nodes: int, margin_lines: float = 0.0) -> F64:
-    """Node lines spread evenly over ``[-margin, n_lines + margin]``."""
-    if n_nodes < 2:
-        raise InputError(f"at least 2 nodes are needed, got {n_nodes}")
-    return np.linspace(-margin_lines, n_lines + margin_lines, n_nodes)

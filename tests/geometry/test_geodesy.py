@@ -2,7 +2,8 @@ import numpy as np
 import pyproj
 import pytest
 
-from planetref.camera.geodesy import (
+from planetref.errors import CrsError, InputError
+from planetref.geometry.geodesy import (
     EARTH_WGS84,
     MARS_IAU2015_ELLIPSOID,
     MARS_IAU2015_SPHERE,
@@ -13,7 +14,6 @@ from planetref.camera.geodesy import (
     wrap_longitude,
     xyz_to_lonlat,
 )
-from planetref.errors import CrsError, InputError
 
 
 @pytest.fixture

@@ -24,6 +24,8 @@ class _Model(BaseModel):
 
 
 class BodyDoc(_Model):
+    """The ``body`` object: the reference ellipsoid."""
+
     name: str = ""
     semi_major_m: FiniteFloat = Field(gt=0)
     semi_minor_m: FiniteFloat = Field(gt=0)
@@ -31,18 +33,24 @@ class BodyDoc(_Model):
 
 
 class OrientationDoc(_Model):
+    """The ``orientation`` object: node lines, node EOPs and the Lagrange order."""
+
     interpolation_order: int = Field(default=4, ge=2, le=16)
     node_lines: list[FiniteFloat] = Field(min_length=2)
     nodes: list[Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]]
 
 
 class InteriorDoc(_Model):
+    """The ``interior`` object: focal length and principal point (mm)."""
+
     focal_length_mm: FiniteFloat = Field(gt=0)
     x0_mm: FiniteFloat = 0.0
     y0_mm: FiniteFloat = 0.0
 
 
 class CcdDoc(_Model):
+    """One entry of ``ccds``: a CCD's size and placement in the focal plane."""
+
     name: str = Field(min_length=1)
     n_lines: int = Field(gt=0)
     n_samples: int = Field(gt=0)
@@ -53,6 +61,8 @@ class CcdDoc(_Model):
 
 
 class CameraDoc(_Model):
+    """The whole camera document."""
+
     format: Literal["planetref-linescan"]
     version: int
     name: str = ""
@@ -109,8 +119,8 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
     """Validate a decoded native camera document and build the camera with ``factory``."""
     import numpy as np
 
-    from planetref.camera.geodesy import Ellipsoid
-    from planetref.camera.linescan import CcdGeometry, InteriorOrientation, LineRateTable
+    from planetref.camera.linescan.model import CcdGeometry, InteriorOrientation, LineRateTable
+    from planetref.geometry.geodesy import Ellipsoid
 
     if not isinstance(doc, dict) or doc.get("format") != "planetref-linescan":
         raise UnsupportedFormatError(
