@@ -420,7 +420,7 @@ class LineScanCamera:
                     f"at height {terrain.height_m} m"
                 )
             return xyz
-        from planetref.camera.raycast import intersect_terrain
+        from planetref.geometry.terrain import intersect_terrain
 
         return intersect_terrain(origin, direction, terrain, on_miss=on_miss)
 

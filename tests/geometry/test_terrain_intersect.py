@@ -1,4 +1,4 @@
-"""Tests of planetref.camera.raycast.intersect_terrain on synthetic terrains."""
+"""Tests of planetref.geometry.terrain.intersect_terrain on synthetic terrains."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from planetref.camera.base import ConstantHeight
-from planetref.camera.raycast import intersect_terrain
+from planetref.geometry.terrain import intersect_terrain
 from planetref.errors import GeometryError, InputError
 from planetref.geometry.geodesy import (
     MARS_IAU2015_ELLIPSOID,
