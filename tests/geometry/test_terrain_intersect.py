@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from planetref.camera.base import ConstantHeight
-from planetref.geometry.terrain import intersect_terrain
 from planetref.errors import GeometryError, InputError
 from planetref.geometry.geodesy import (
     MARS_IAU2015_ELLIPSOID,
@@ -16,6 +15,7 @@ from planetref.geometry.geodesy import (
     ray_ellipsoid_intersection,
     xyz_to_lonlat,
 )
+from planetref.geometry.terrain import intersect_terrain
 
 
 class WavyTerrain:
