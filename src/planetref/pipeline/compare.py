@@ -87,7 +87,8 @@ def resolve_matchers(
         if present:
             run.append(n)
         else:
-            skipped[n] = "weights missing: " + ", ".join(str(m) for m in missing)
+            fix = f"planetref weights download {n}" + (" --unverified" if n == "loftr" else "")
+            skipped[n] = "weights missing: " + ", ".join(str(m) for m in missing) + f" (run: {fix})"
     return run, skipped
 
 
