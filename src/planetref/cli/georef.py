@@ -39,6 +39,19 @@ def _common(f: Any) -> Any:
         help="Replace a different earlier run in --out (never other files).",
     )(f)
     f = click.option(
+        "--threads",
+        type=click.IntRange(min=1),
+        default=None,
+        help="Threads of torch, OpenCV and BLAS in all [default: the cores available]; "
+        "each pool/dask-local worker gets threads / workers.",
+    )(f)
+    f = click.option(
+        "--device",
+        default="cpu",
+        show_default=True,
+        help="Torch device of the learned matchers (cpu, cuda, cuda:1...).",
+    )(f)
+    f = click.option(
         "--scheduler",
         default=None,
         metavar="SPEC",
@@ -47,6 +60,25 @@ def _common(f: Any) -> Any:
         "dask-local:N, or tcp://HOST:PORT.",
     )(f)
     return f
+
+
+def _runtime(
+    config_path: str | None, threads: int | None, device: str, scheduler: str | None
+) -> Any:
+    """Apply the thread budget and load the config, with ``device`` on the learned matchers."""
+    from planetref.matching.registry import MATCHERS
+    from planetref.pipeline.config import load_config
+    from planetref.threads import ThreadBudget, apply_thread_budget, scheduler_workers
+
+    apply_thread_budget(ThreadBudget.resolve(threads, scheduler_workers(scheduler)))
+    cfg = load_config(config_path)
+    if device == "cpu":
+        return cfg  # the default: the run's identity stays what it was
+    opts = {k: dict(v) for k, v in cfg.matchers.items()}
+    for name, spec in MATCHERS.items():
+        if spec.weights:
+            opts.setdefault(name, {})["device"] = device
+    return cfg.model_copy(update={"matchers": opts})
 
 
 def _quiet(ctx: click.Context) -> bool:
@@ -74,16 +106,17 @@ def georef_command(
     weights_dir: str | None,
     overwrite: bool,
     scheduler: str | None,
+    threads: int | None,
+    device: str,
 ) -> None:
     """Georeference SCENE (scene.toml or its folder) with one matcher.
 
     Tiling, matching, MCPs, bundle adjustment, metrics, report, adjusted cameras and
     orthoimages. Prints the report's headline as JSON.
     """
-    from planetref.pipeline.config import load_config
     from planetref.pipeline.georef import run_georef
 
-    cfg = load_config(config_path)
+    cfg = _runtime(config_path, threads, device, scheduler)
     outcome = run_georef(
         scene,
         matcher,
@@ -126,12 +159,13 @@ def compare_command(
     weights_dir: str | None,
     overwrite: bool,
     scheduler: str | None,
+    threads: int | None,
+    device: str,
 ) -> None:
     """Run georef on SCENE once per matcher and tabulate the results side by side."""
     from planetref.pipeline.compare import run_compare
-    from planetref.pipeline.config import load_config
 
-    cfg = load_config(config_path)
+    cfg = _runtime(config_path, threads, device, scheduler)
     outcome = run_compare(
         scene,
         matchers,
@@ -188,11 +222,12 @@ def demo_command(
     weights_dir: str | None,
     overwrite: bool,
     scheduler: str | None,
+    threads: int | None,
+    device: str,
 ) -> None:
     """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
     from planetref.cli.simulate import simulate_run
     from planetref.pipeline.compare import run_compare
-    from planetref.pipeline.config import load_config
     from planetref.simulate.config import load_config as load_sim_config
 
     quiet = _quiet(ctx)
@@ -212,7 +247,7 @@ def demo_command(
         )
     elif not quiet:
         click.echo(f"using the cached scene {scene_dir}", err=True)
-    cfg = load_config(config_path)
+    cfg = _runtime(config_path, threads, device, scheduler)
     outcome = run_compare(
         scene_dir,
         matchers,

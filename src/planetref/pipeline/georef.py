@@ -55,6 +55,7 @@ from planetref.pipeline.matchers import (
     matcher_weight_files,
 )
 from planetref.pipeline.rundir import RunDir, config_digest
+from planetref.threads import single_threaded_blas
 
 _scene_path = scene_path  # the name compare.py imports
 
@@ -257,12 +258,15 @@ def run_georef(
             campaign = None
             if cfg.campaign.adjust_together and len(manifest.strips) > 1:
                 preps = [_strip_mcps(job.for_strip(s)) for s in manifest.strips]
-                strips, campaign = _adjust_together(job, preps)
+                with single_threaded_blas():  # RPC refits, reports, orthoimages
+                    strips, campaign = _adjust_together(job, preps)
             else:
                 strips = {}
                 for s in manifest.strips:
                     sj = job.for_strip(s)
-                    strips[s.id] = _adjust_strip(sj, _strip_mcps(sj))
+                    prep = _strip_mcps(sj)
+                    with single_threaded_blas():  # RPC refits, reports, orthoimages
+                        strips[s.id] = _adjust_strip(sj, prep)
             job.timing["total"] = time.perf_counter() - t_start
             fe = cfg.frontend
             settings = {
