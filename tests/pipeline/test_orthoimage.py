@@ -24,8 +24,8 @@ from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
 from planetref.simulate.manifest import load_manifest
 
-# The lattice settings of the previous implementation (exact projection every 8 pixels).
-OLD = OrthoSettings(lattice_step=8, max_error_px=None)
+# Every output pixel projected exactly (the reference the lattice is measured against).
+EXACT = OrthoSettings(lattice_step=1, max_error_px=None)
 
 
 @pytest.fixture(scope="module")
@@ -75,20 +75,25 @@ def test_lattice_refines_when_error_bound_is_exceeded(ccd1):
     assert proj.steps_used == [16]
 
 
-def test_orthoimage_new_vs_old_and_resume(ccd1, tmp_path):
+def test_orthoimage_lattice_vs_exact_and_resume(ccd1, tmp_path):
     cam, ccd, dem, crs, image, gsd = ccd1
     new = orthorectify_ccd(image, cam, ccd, dem, crs, tmp_path / "new.tif", gsd_m=gsd)
-    old = orthorectify_ccd(image, cam, ccd, dem, crs, tmp_path / "old.tif", gsd_m=gsd, settings=OLD)
+    old = orthorectify_ccd(
+        image, cam, ccd, dem, crs, tmp_path / "exact.tif", gsd_m=gsd, settings=EXACT
+    )
     with rasterio.open(new) as a, rasterio.open(old) as b:
         va, vb = a.read(1), b.read(1)
         assert a.transform == b.transform
     both = np.isfinite(va) & np.isfinite(vb)
     assert both.mean() > 0.5
-    # Same nodata footprint except at most a few edge pixels.
-    assert np.count_nonzero(np.isfinite(va) != np.isfinite(vb)) <= 0.001 * va.size
+    assert np.count_nonzero(np.isfinite(va) != np.isfinite(vb)) == 0
     lo, hi = np.nanpercentile(vb, [1, 99])
     max_diff = float(np.abs(va - vb)[both].max())
-    # Measured: 8.8 DN max on a 1-99 % range of ~20500 DN (0.04 %).
+    # Measured: 8.8 DN max (0.04 % of the 1-99 % range of ~20500 DN), 1.8 DN at the
+    # 99.9th percentile; OpenCV's bilinear sampling of the raw image quantises positions
+    # to 1/32 px, so a 0.001 px change of a coordinate can move a value by up to ~1/32
+    # of the local gradient. (The previous implementation, 3663937: 931 DN max, in its
+    # last output rows, where its lattice was clipped to the image edge.)
     assert max_diff < 1e-3 * (hi - lo)
 
     # Resume: the same inputs keep the file; a changed camera rewrites it.
