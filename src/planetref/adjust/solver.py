@@ -194,6 +194,9 @@ class BundleSolver:
             blk = np.where(pc >= 0, pc + self.offsets[i], p)
             cols[self.pat_offsets[i] : self.pat_offsets[i + 1], : pc.shape[1]] = blk
         self.cols = cols
+        self._active_cache: dict[
+            tuple[int, int], tuple[NDArray[np.intp] | None, NDArray[np.intp]]
+        ] = {}
         self.x0 = np.concatenate([m.x0 for m in models]) if p else np.zeros(0)
         self.names = [f"{m.camera_id}:{n}" for m in models for n in m.names]
         self.units = [u for m in models for u in m.units]
@@ -486,18 +489,34 @@ class BundleSolver:
 
         Runs are contiguous (observations sorted by line), so every product works on
         views; the few observations whose window differs from their neighbours' simply
-        form short runs of their own.
+        form short runs of their own. Only a pattern's active columns enter the products
+        (fixed parameters map to the sink index and would only add zeros to discarded
+        entries): with most parameters fixed that is a fraction of the flops.
         """
         m = len(gp)
-        dw = d * we[:, :, None]
         cut = np.concatenate([[0], np.flatnonzero(np.diff(gp)) + 1, [m]])
         for a, b in itertools.pairwise(cut):
-            cols = self.cols[gp[a], :qm]
-            blk = np.tensordot(d[a:b], dw[a:b], axes=([0, 1], [0, 1]))
+            loc, cols = self._active_columns(int(gp[a]), qm)
+            if len(cols) == 0:
+                continue
+            da = d[a:b] if loc is None else d[a:b][:, :, loc]
+            blk = np.tensordot(da, da * we[a:b, :, None], axes=([0, 1], [0, 1]))
             n_cc[np.ix_(cols, cols)] += blk
-            # Columns within a pattern are distinct (padding maps to the sink index,
-            # whose value is discarded), so a fancy-index add is exact.
-            g_c[cols] += np.tensordot(d[a:b], wr[a:b], axes=([0, 1], [0, 1]))
+            # Columns within a pattern are distinct, so a fancy-index add is exact.
+            g_c[cols] += np.tensordot(da, wr[a:b], axes=([0, 1], [0, 1]))
+
+    def _active_columns(
+        self, pattern: int, qm: int
+    ) -> tuple[NDArray[np.intp] | None, NDArray[np.intp]]:
+        """Local indices (None: all) and global columns of a pattern's free parameters."""
+        cache = self._active_cache
+        key = (pattern, qm)
+        if key not in cache:
+            cols = self.cols[pattern, :qm]
+            free = cols != self.n_params
+            loc = None if free.all() else np.flatnonzero(free)
+            cache[key] = (loc, cols if loc is None else cols[loc])
+        return cache[key]
 
     # ------------------------------------------------------------------ Schur
     def _tie_structure(
