@@ -46,10 +46,26 @@ def _grid(cam, ccd, dem, crs, gsd) -> OrthoGrid:
     return OrthoGrid(ground, x0, y1, gsd, math.ceil((x1 - x0) / gsd), math.ceil((y1 - y0) / gsd))
 
 
-def test_lattice_interpolation_error_below_0_05_px(ccd1):
+def _rough(cam):
+    """The camera with independent attitude errors per node (~2 px), as an adjustment leaves.
+
+    The Lagrange windows of such nodes switch with kinks in the line direction, which
+    bilinear interpolation over a sparse lattice would miss (0.29 px at 64 rows on the
+    adjusted hiric-strip camera).
+    """
+    rng = np.random.default_rng(1)
+    noise = np.zeros_like(cam.nodes)
+    noise[:, 3:] = rng.normal(0.0, 4e-6, (len(cam.nodes), 3))
+    return cam.replace(nodes=cam.nodes + noise)
+
+
+@pytest.mark.parametrize("kind", ["smooth", "rough"])
+def test_lattice_interpolation_error_below_0_05_px(ccd1, kind):
     cam, ccd, dem, crs, _, gsd = ccd1
+    cam = cam if kind == "smooth" else _rough(cam)
     grid = _grid(cam, ccd, dem, crs, gsd)
     proj = LatticeProjector(cam, ccd, dem, grid, OrthoSettings())
+    n_lines, n_samples = cam.image_size(ccd)
     errs = []
     for r0 in range(0, grid.height, 256):
         r1 = min(grid.height, r0 + 256)
@@ -58,11 +74,16 @@ def test_lattice_interpolation_error_below_0_05_px(ccd1):
         sel = np.s_[::2, ::2]
         le, se = proj.exact(rr[sel].ravel(), cc[sel].ravel())
         d = np.maximum(np.abs(le - line[sel].ravel()), np.abs(se - sample[sel].ravel()))
-        assert np.isfinite(d).sum() > 0.5 * d.size
-        errs.append(np.nanmax(d))
-    # The lattice stayed sparse (64 output pixels) and the error is far below 0.05 px
-    # (measured 0.001 px on this scene, 0.0035 px on hiric-strip).
-    assert min(proj.steps_used) == 64
+        ins = (le > 0) & (le < n_lines) & (se > 0) & (se < n_samples)
+        assert np.isfinite(d[ins]).all() and ins.sum() > 0.3 * d.size
+        errs.append(np.max(d[ins]))
+    if kind == "smooth":
+        # The lattice stays sparse (64 output pixels): 0.001 px here, 0.0035 on hiric-strip.
+        assert set(proj.steps_used) == {(64, 64)}
+    else:
+        # Refined along rows only where the kinks are.
+        assert min(r for r, _ in proj.steps_used) < 64
+        assert max(c for _, c in proj.steps_used) == 64
     assert max(errs) < 0.05
 
 
@@ -72,7 +93,7 @@ def test_lattice_refines_when_error_bound_is_exceeded(ccd1):
     strict = OrthoSettings(lattice_step=64, min_lattice_step=16, max_error_px=1e-9)
     proj = LatticeProjector(cam, ccd, dem, grid, strict)
     proj.block(0, 256)
-    assert proj.steps_used == [16]
+    assert proj.steps_used == [(16, 16)]
 
 
 def test_orthoimage_lattice_vs_exact_and_resume(ccd1, tmp_path):

@@ -136,19 +136,25 @@ def _interpolate(lat: F64, wr: F64, wc: F64) -> F64:
     return out
 
 
-def _error_bound(lat: F64) -> float:
-    """Bound on the bilinear interpolation error from the lattice's second differences."""
-    e = 0.0
+def _error_bounds(lat: F64, inside: NDArray[np.bool_]) -> tuple[float, float]:
+    """Bounds on the bilinear interpolation error along rows and along columns.
+
+    A quarter of the largest second difference of the lattice in each direction (a
+    curvature contributes an eighth, a kink up to a quarter). Only triples of lattice
+    points inside the image count: outside it nothing is sampled, and the camera's
+    extrapolation there may bend more than it does over the image.
+    """
+    out = []
     with np.errstate(invalid="ignore"):
-        if lat.shape[0] >= 3:
-            d = np.abs(lat[2:] - 2 * lat[1:-1] + lat[:-2])
-            if np.isfinite(d).any():
-                e += float(np.nanmax(d))
-        if lat.shape[1] >= 3:
-            d = np.abs(lat[:, 2:] - 2 * lat[:, 1:-1] + lat[:, :-2])
-            if np.isfinite(d).any():
-                e += float(np.nanmax(d))
-    return e / 4.0
+        for a in (lat, lat.T):
+            e = 0.0
+            if a.shape[0] >= 3:
+                m = inside.T if a is not lat else inside
+                d = np.abs(a[2:] - 2 * a[1:-1] + a[:-2])[m[2:] & m[1:-1] & m[:-2]]
+                if np.isfinite(d).any():
+                    e = float(np.nanmax(d)) / 4.0
+            out.append(e)
+    return out[0], out[1]
 
 
 class LatticeProjector:
@@ -169,7 +175,7 @@ class LatticeProjector:
         self.settings = settings
         self._prev: tuple[F64, F64, F64] | None = None  # rows, cols, lines of the last lattice
         self.n_projected = 0
-        self.steps_used: list[int] = []
+        self.steps_used: list[tuple[int, int]] = []  # (rows, columns) per block
 
     def exact(self, rows: F64, cols: F64, line_guess: F64 | None = None) -> tuple[F64, F64]:
         """Exact projection at continuous output pixel positions (flat arrays)."""
@@ -199,50 +205,76 @@ class LatticeProjector:
     def block(self, r0: int, r1: int) -> tuple[F64, F64]:
         """Dense ``(line, sample)`` of the pixel centres of output rows ``r0:r1``.
 
+        The lattice steps along rows and along columns are refined separately (a line-scan
+        camera's mapping bends mostly with time, i.e. along one direction): a direction
+        whose error bound exceeds half of ``max_error_px`` is halved (the larger first).
+
         Returns:
             Two ``(r1 - r0, width)`` float64 arrays, NaN where the projection fails.
         """
         s = self.settings
         width = self.grid.width
-        step = max(1, int(s.lattice_step))
+        n_lines, n_samples = self.camera.image_size(self.ccd)
+        top = max(1, int(s.lattice_step))
+        floor = max(1, int(s.min_lattice_step))
+        # Start from twice the previous block's steps: one pass where the bending is the
+        # same, and the lattice coarsens again where it relaxes.
+        step_r, step_c = (
+            (min(top, 2 * self.steps_used[-1][0]), min(top, 2 * self.steps_used[-1][1]))
+            if self.steps_used
+            else (top, top)
+        )
         guess_fn = self._guess
         centres_r = np.arange(r0, r1) + 0.5
         centres_c = np.arange(width) + 0.5
         while True:
-            n_r = -(-(r1 - r0) // step) + 1
-            n_c = -(-width // step) + 1
-            rows = r0 + step * np.arange(n_r, dtype=np.float64)
-            cols = step * np.arange(n_c, dtype=np.float64)
+            n_r = -(-(r1 - r0) // step_r) + 1
+            n_c = -(-width // step_c) + 1
+            rows = r0 + step_r * np.arange(n_r, dtype=np.float64)
+            cols = step_c * np.arange(n_c, dtype=np.float64)
             rr, cc = np.meshgrid(rows, cols, indexing="ij")
             guess = guess_fn(rows, cols)
             if guess is not None and not np.all(np.isfinite(guess)):
                 fill = np.nanmedian(guess) if np.isfinite(guess).any() else np.nan
-                guess = np.where(np.isfinite(guess), guess, fill)
-                if not np.isfinite(fill):
-                    guess = None
+                guess = None if not np.isfinite(fill) else np.where(np.isfinite(guess), guess, fill)
             line, sample = self.exact(rr.ravel(), cc.ravel(), guess)
             lat_l, lat_s = line.reshape(rr.shape), sample.reshape(rr.shape)
-            wr = _weights((centres_r - r0) / step, n_r)
-            wc = _weights(centres_c / step, n_c)
-            refine = (
-                s.max_error_px is not None
-                and step > s.min_lattice_step
-                and max(_error_bound(lat_l), _error_bound(lat_s)) > s.max_error_px
-            )
-            if not refine:
+            if s.max_error_px is None:
                 break
-            coarse = (rows, cols, lat_l)
-
-            def guess_fn(rows_f: F64, cols_f: F64, coarse: tuple[F64, F64, F64] = coarse) -> F64:
-                crow, ccol, cl = coarse
-                w_r = _weights((rows_f - crow[0]) / (crow[1] - crow[0]), len(crow))
-                w_c = _weights(cols_f / (ccol[1] - ccol[0]), len(ccol))
-                return _interpolate(cl, w_r, w_c).ravel()
-
-            step = max(s.min_lattice_step, step // 2)
+            with np.errstate(invalid="ignore"):
+                inside = (
+                    (lat_l > -step_r)
+                    & (lat_l < n_lines + step_r)
+                    & (lat_s > -step_c)
+                    & (lat_s < n_samples + step_c)
+                )
+            el_r, el_c = _error_bounds(lat_l, inside)
+            es_r, es_c = _error_bounds(lat_s, inside)
+            e_r, e_c = max(el_r, es_r), max(el_c, es_c)
+            half = 0.5 * s.max_error_px
+            if e_r > half and step_r > floor and (e_r >= e_c or step_c <= floor or e_c <= half):
+                step_r = max(floor, step_r // 2)
+            elif e_c > half and step_c > floor:
+                step_c = max(floor, step_c // 2)
+            else:
+                break
+            guess_fn = self._coarse_guess(rows, cols, lat_l)
         self._prev = (rows, cols, lat_l)
-        self.steps_used.append(step)
+        self.steps_used.append((step_r, step_c))
+        wr = _weights((centres_r - r0) / step_r, n_r)
+        wc = _weights(centres_c / step_c, n_c)
         return _interpolate(lat_l, wr, wc), _interpolate(lat_s, wr, wc)
+
+    @staticmethod
+    def _coarse_guess(rows: F64, cols: F64, lines: F64) -> Any:
+        """Starting lines for a finer lattice: the coarse one, interpolated."""
+
+        def guess(rows_f: F64, cols_f: F64) -> F64:
+            w_r = _weights((rows_f - rows[0]) / (rows[1] - rows[0]), len(rows))
+            w_c = _weights((cols_f - cols[0]) / (cols[1] - cols[0]), len(cols))
+            return _interpolate(lines, w_r, w_c).ravel()
+
+        return guess
 
 
 def _compression() -> dict[str, Any]:
