@@ -34,7 +34,7 @@ def test_apply_sets_torch_opencv_blas_and_worker_environment(monkeypatch):
     import cv2
     import torch
 
-    from planetref.adjust._blas import _openblas
+    from planetref.blas import _openblas
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         if var in os.environ:  # restored by monkeypatch after the test

@@ -12,7 +12,7 @@ threads fighting torch's. The policy here:
   a single-threaded BLAS (:func:`single_threaded_blas`).
 
 BLAS threads are limited through threadpoolctl when it is installed, otherwise through
-OpenBLAS's own entry points (see :mod:`planetref.adjust._blas`); OpenMP-based libraries
+OpenBLAS's own entry points (see :mod:`planetref.blas`); OpenMP-based libraries
 read ``OMP_NUM_THREADS``, which is set for child processes started afterwards.
 """
 
@@ -22,7 +22,7 @@ import contextlib
 import os
 from dataclasses import dataclass
 
-from planetref.adjust._blas import single_threaded_blas
+from planetref.blas import single_threaded_blas
 from planetref.errors import InputError
 
 __all__ = [
@@ -96,7 +96,7 @@ def _limit_blas(n: int) -> None:
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:
-        from planetref.adjust import _blas
+        from planetref import blas as _blas
 
         for _getter, setter in _blas._openblas():
             with contextlib.suppress(OSError, ValueError):

@@ -81,9 +81,8 @@ def test_lattice_interpolation_error_below_0_05_px(ccd1, kind):
         # The lattice stays sparse (64 output pixels): 0.001 px here, 0.0035 on hiric-strip.
         assert set(proj.steps_used) == {(64, 64)}
     else:
-        # Refined along rows only where the kinks are.
+        # Refined where the kinks are.
         assert min(r for r, _ in proj.steps_used) < 64
-        assert max(c for _, c in proj.steps_used) == 64
     assert max(errs) < 0.05
 
 
