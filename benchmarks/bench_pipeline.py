@@ -74,6 +74,9 @@ def _old_orthorectify(rev: str) -> Any:
         text=True,
         check=True,
     ).stdout
+    # Modules moved since: the old code's maths is unchanged, only its imports follow.
+    for old, new in (("planetref.camera.geodesy", "planetref.geometry.geodesy"),):
+        src = src.replace(old, new)
     mod = types.ModuleType("old_orthoimage")
     exec(compile(src, f"{rev}:orthoimage.py", "exec"), mod.__dict__)
     return mod.orthorectify_ccd
@@ -87,10 +90,10 @@ def ortho_old_vs_new(scene: Path, rev: str, out: Path) -> dict[str, Any]:
     from planetref.camera.io import load_camera
     from planetref.frontend.geometry import image_gsd_m
     from planetref.pipeline.orthoimage import orthorectify_ccd
+    from planetref.pipeline.scene import load_manifest
     from planetref.raster.dem import GridTerrain
     from planetref.raster.image import CcdImage
     from planetref.raster.ortho import ReferenceOrtho
-    from planetref.simulate.manifest import load_manifest
 
     old_fn = _old_orthorectify(rev)
     manifest, root = load_manifest(scene)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import rasterio
 
-from planetref.camera.geodesy import CrsGround
 from planetref.camera.io import load_camera
 from planetref.frontend.geometry import image_gsd_m
+from planetref.geometry.geodesy import CrsGround
 from planetref.pipeline.orthoimage import (
     LatticeProjector,
     OrthoGrid,
@@ -19,10 +19,10 @@ from planetref.pipeline.orthoimage import (
     _footprint,
     orthorectify_ccd,
 )
+from planetref.pipeline.scene import load_manifest
 from planetref.raster.dem import GridTerrain
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
-from planetref.simulate.manifest import load_manifest
 
 # Every output pixel projected exactly (the reference the lattice is measured against).
 EXACT = OrthoSettings(lattice_step=1, max_error_px=None)

@@ -75,7 +75,7 @@ class OrthoGrid:
     """A north-up output grid: pixel ``(r, c)`` covers map ``[x0 + c g, x0 + (c+1) g)`` in x.
 
     Attributes:
-        ground: The :class:`~planetref.camera.geodesy.CrsGround` of the output CRS.
+        ground: The :class:`~planetref.geometry.geodesy.CrsGround` of the output CRS.
         x0: Map x of the left edge.
         y1: Map y of the top edge.
         gsd_m: Pixel size (CRS units, metres).
