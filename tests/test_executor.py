@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
@@ -46,12 +47,34 @@ def _journal(path):
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+def _assert_close(a, b, path="report"):
+    """Nested report blocks equal, floats to 1e-9 relative / 1e-8 absolute."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), path
+        for k in a:
+            _assert_close(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_close(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-8, nan_ok=True), path
+    else:
+        assert a == b, path
+
+
 def _assert_same_mcps(a, b):
     ta, tb = pq.read_table(a), pq.read_table(b)
     assert ta.column_names == tb.column_names
     assert ta.num_rows == tb.num_rows > 0
     for name in ta.column_names:
-        assert ta.column(name).to_pylist() == tb.column(name).to_pylist(), name
+        va, vb = ta.column(name).to_pylist(), tb.column(name).to_pylist()
+        if va and isinstance(va[0], float):
+            # Line searches warm-started from the previous call differ in the last bits
+            # (~1e-11 px) with the order tiles run in; nothing planetref reports does.
+            np.testing.assert_allclose(va, vb, rtol=0, atol=1e-8, err_msg=name)
+        else:
+            assert va == vb, name
 
 
 def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inprocess_run, dask_local):
@@ -59,9 +82,9 @@ def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inproce
     a, b = inprocess_run.run_dir, out.run_dir
     _assert_same_mcps(a / "strip1" / "mcps.parquet", b / "strip1" / "mcps.parquet")
     ra, rb = inprocess_run.report, out.report
-    assert ra["adjustment"] == rb["adjustment"]
-    assert ra["check"] == rb["check"]
-    assert ra["matching"] == rb["matching"]
+    _assert_close(ra["adjustment"], rb["adjustment"])
+    _assert_close(ra["check"], rb["check"])
+    _assert_close(ra["matching"], rb["matching"])
     # Every tile journalled once, in whatever order the workers finished.
     ja, jb = _journal(a / "strip1" / "tiles.jsonl"), _journal(b / "strip1" / "tiles.jsonl")
     assert sorted(d["result"]["tile"]["tile_id"] for d in ja) == sorted(
@@ -88,7 +111,7 @@ def test_killed_run_resumes_without_recomputing(scene, tmp_path, inprocess_run, 
     _assert_same_mcps(
         inprocess_run.run_dir / "strip1" / "mcps.parquet", run / "strip1" / "mcps.parquet"
     )
-    assert out.report["adjustment"] == inprocess_run.report["adjustment"]
+    _assert_close(out.report["adjustment"], inprocess_run.report["adjustment"])
 
 
 def _fail_on_negative(x: int) -> int:

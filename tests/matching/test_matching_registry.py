@@ -72,7 +72,7 @@ def test_available_matchers_with_shared_weights(shared_weights):
     assert verified["disk-lightglue"] and verified["xfeat-star"]
 
 
-def test_available_matchers_empty_dir(tmp_path):
+def test_available_matchers_empty_dir(tmp_path, no_weight_packages):
     for a in available_matchers(tmp_path):
         assert a.present == (MATCHERS[a.name].weights == ())
 

@@ -62,7 +62,7 @@ def test_resolution_does_not_touch_torch_hub(tmp_path, clean_env):
     assert torch.hub.get_dir() == before
 
 
-def test_missing_file_message_names_dir_file_sha_and_url(tmp_path, clean_env):
+def test_missing_file_message_names_dir_file_sha_and_url(tmp_path, clean_env, no_weight_packages):
     with pytest.raises(WeightsError) as err:
         W.resolve_weight("xfeat.pt", tmp_path)
     msg = str(err.value)

