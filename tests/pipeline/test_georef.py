@@ -12,7 +12,7 @@ import torch
 from click.testing import CliRunner
 
 from planetref.cli import main
-from planetref.errors import InputError
+from planetref.errors import AdjustmentError, InputError
 from planetref.matching.registry import available_matchers
 from planetref.pipeline.config import config_from_mapping
 from planetref.pipeline.georef import run_georef
@@ -49,7 +49,26 @@ def _present(weights_dir):
 
 
 # Fast matchers always; the learned ones where their weights are present.
-MATCHERS = ["sift", "ncc", "disk-lightglue", "aliked-lightglue", "xfeat-star"]
+MATCHERS = [
+    "sift",
+    "ncc",
+    "disk-lightglue",
+    "aliked-lightglue",
+    # Known gap (strict: the test fails as soon as it passes): xfeat-star's verified matches
+    # stop at line 577 of 640 and the last 7 are all in ccd1, so the kappa of the last
+    # node (line 640) and of the margin nodes smoothed from it is not determined
+    # (1-sigma 0.09-0.3 rad); the adjustment refuses it as singular. Treating such nodes as
+    # weak gets it to ~7 m, still over 5 m: the front end loses xfeat-star's points at the
+    # strip end (back-projection, RANSAC) and must be fixed first.
+    pytest.param(
+        "xfeat-star",
+        marks=pytest.mark.xfail(
+            strict=True,
+            raises=AdjustmentError,
+            reason="xfeat-star MCPs do not reach the strip end: kappa of the end nodes free",
+        ),
+    ),
+]
 
 
 @pytest.mark.parametrize("matcher", MATCHERS)
