@@ -81,7 +81,15 @@ def _truth_offset(s, r):
         ("sift", {}, None, 18, 0.5),
         ("ncc", {"search_radius": 40, "spacing": 8}, None, 18, 0.5),
         pytest.param("disk-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
-        pytest.param("aliked-lightglue", {}, LEARNED_CCDS, 4, 0.5, marks=pytest.mark.shared),
+        # slow: DISK covers learned sparse matchers in the default run (kept under 10 min)
+        pytest.param(
+            "aliked-lightglue",
+            {},
+            LEARNED_CCDS,
+            4,
+            0.5,
+            marks=[pytest.mark.shared, pytest.mark.slow],
+        ),
         # XFeat's keypoints sit on whole pixels (see planetref.matching.xfeat): re-centred by
         # local NCC they meet the same bound; raw, their worst tile is ~0.5 px off.
         pytest.param(
