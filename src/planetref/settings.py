@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from planetref.errors import InputError
 
-__all__ = ["Settings", "deep_merge", "describe_validation_error", "validate_settings"]
+__all__ = ["Settings", "deep_merge", "describe_validation_error", "model_at", "validate_settings"]
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -53,7 +53,7 @@ def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, An
     return out
 
 
-def _model_at(loc: tuple[Any, ...], root: type[BaseModel]) -> type[BaseModel] | None:
+def model_at(loc: tuple[Any, ...], root: type[BaseModel]) -> type[BaseModel] | None:
     """The model class holding the field at ``loc`` (None when it is not a model field)."""
     model: type[BaseModel] = root
     for part in loc[:-1]:
@@ -91,7 +91,7 @@ def describe_validation_error(exc: ValidationError, root: type[BaseModel]) -> tu
         loc = tuple(p for p in err.get("loc", ()) if not str(p).startswith("function-"))
         where = ".".join(str(p) for p in loc)
         first = first or where
-        model = _model_at(loc, root) if loc else root
+        model = model_at(loc, root) if loc else root
         valid = ", ".join(model.model_fields) if model is not None else ""
         if err.get("type") == "extra_forbidden":
             parts.append(f"unknown key '{where}' (valid keys: {valid})")

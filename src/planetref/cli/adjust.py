@@ -9,7 +9,6 @@ The resolved configuration is written next to the outputs (config.json, config.t
 
 from __future__ import annotations
 
-import copy
 import json
 import tomllib
 from pathlib import Path
@@ -18,6 +17,7 @@ from typing import Any
 import click
 
 from planetref.errors import InputError
+from planetref.settings import deep_merge
 
 __all__ = ["adjust_command"]
 
@@ -33,16 +33,6 @@ SOLVE_BLOCKS: dict[str, tuple[str, str]] = {
     "node-attitude": ("linescan", "attitude"),
     "interior": ("linescan", "interior"),
 }
-
-
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
 
 
 def _load_config_file(path: Path) -> dict[str, Any]:
@@ -90,7 +80,7 @@ def _apply_solve(cfg: dict[str, Any], names: str) -> None:
         )
     from planetref.adjust.config import AdjustConfig
 
-    current = _merge(AdjustConfig().model_dump(), cfg)
+    current = deep_merge(AdjustConfig().model_dump(), cfg)
     families = {SOLVE_BLOCKS[n][0] for n in chosen}
     for name, (section, block) in SOLVE_BLOCKS.items():
         if section not in families:
@@ -208,7 +198,7 @@ def adjust_command(
         dict(doc.get("adjustment", {})) if isinstance(doc.get("adjustment"), dict) else {}
     )
     if config_file is not None:
-        cfg = _merge(cfg, _load_config_file(config_file))
+        cfg = deep_merge(cfg, _load_config_file(config_file))
     if solve is not None:
         _apply_solve(cfg, solve)
     if loss is not None:

@@ -16,7 +16,6 @@ cross-track and radial axes.
 
 from __future__ import annotations
 
-import copy
 import tomllib
 from importlib import resources
 from os import PathLike
@@ -25,6 +24,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from planetref.errors import InputError
+from planetref.settings import deep_merge, model_at
 from planetref.simulate.camera_config import (
     CameraConfig,
     InitialErrorConfig,
@@ -479,40 +479,7 @@ def merge_overrides(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     Tables merge key by key; any other value (numbers, strings, arrays, arrays of
     tables) replaces the base value.
     """
-    out = copy.deepcopy(base)
-    for key, value in overrides.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge_overrides(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
-def _model_at(loc: tuple[Any, ...], root: type[BaseModel]) -> type[BaseModel] | None:
-    """The model class that holds the field at ``loc`` (for error messages)."""
-    import typing
-
-    model: type[BaseModel] = root
-    for part in loc[:-1]:
-        if isinstance(part, int):
-            continue
-        field = model.model_fields.get(str(part))
-        if field is None:
-            return None
-        ann = field.annotation
-        candidates = [ann, *typing.get_args(ann)]
-        nxt = None
-        for cand in candidates:
-            for c in [cand, *typing.get_args(cand)]:
-                if isinstance(c, type) and issubclass(c, BaseModel):
-                    nxt = c
-                    break
-            if nxt is not None:
-                break
-        if nxt is None:
-            return None
-        model = nxt
-    return model
+    return deep_merge(base, overrides)
 
 
 def format_validation_error(exc: ValidationError, root: type[BaseModel]) -> str:
@@ -527,12 +494,12 @@ def format_validation_error(exc: ValidationError, root: type[BaseModel]) -> str:
         loc = tuple(err.get("loc", ()))
         where = ".".join(str(p) for p in loc) or "<root>"
         if err.get("type") == "extra_forbidden":
-            model = _model_at(loc, root)
+            model = model_at(loc, root)
             valid = ", ".join(model.model_fields) if model is not None else "?"
             lines.append(f"unknown key '{where}' (valid keys here: {valid})")
         else:
             msg = err.get("msg", "invalid value")
-            model = _model_at(loc, root) if loc else None
+            model = model_at(loc, root) if loc else None
             hint = ""
             if model is not None and loc and str(loc[-1]) not in model.model_fields:
                 hint = f" (valid keys here: {', '.join(model.model_fields)})"
