@@ -8,7 +8,7 @@ reads a ``NETWORK.toml`` control network; :func:`write_outputs` writes the adjus
 cameras, residual table, report.json/report.md and residual plots. See docs/adjust.md.
 """
 
-from planetref.adjust.api import AdjustmentResult, adjust, triangulate
+from planetref.adjust.api import adjust
 from planetref.adjust.config import AdjustConfig, validate_config
 from planetref.adjust.models import (
     AdjustableCamera,
@@ -19,7 +19,9 @@ from planetref.adjust.models import (
 )
 from planetref.adjust.network import NetworkFile, read_network
 from planetref.adjust.problem import Network
+from planetref.adjust.rays import triangulate
 from planetref.adjust.report import write_outputs
+from planetref.adjust.result import AdjustmentResult
 
 __all__ = [
     "AdjustConfig",

@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from planetref.adjust.api import AdjustmentResult
 from planetref.adjust.network import safe_name
 from planetref.adjust.report_md import MODE_NAMES, report_md, top_correlations
+from planetref.adjust.result import AdjustmentResult
 from planetref.atomic import json_safe, write_bytes_atomic, write_text_atomic
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import PlanetrefError

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from planetref.adjust.api import AdjustmentResult
+from planetref.adjust.result import AdjustmentResult
 
 __all__ = ["MODE_NAMES", "report_md", "top_correlations"]
 

@@ -16,7 +16,7 @@ import numpy as np
 from planetref import __version__
 
 if TYPE_CHECKING:  # pragma: no cover
-    from planetref.adjust.api import AdjustmentResult
+    from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
     from planetref.raster.dem import GridTerrain
 

@@ -165,7 +165,7 @@ def figure_residual_vectors(
     the title says whether neighbouring residuals correlate (:func:`residual_pattern`).
 
     Args:
-        result: An :class:`~planetref.adjust.api.AdjustmentResult` of one camera (or any
+        result: An :class:`~planetref.adjust.result.AdjustmentResult` of one camera (or any
             object with ``network``, ``cameras``, ``residual`` and ``status``).
         image_sizes: CCD name -> ``(n_lines, n_samples)``, left to right.
         path: Output PNG.

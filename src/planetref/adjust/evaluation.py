@@ -1,0 +1,164 @@
+"""What :func:`~planetref.adjust.api.adjust` reports besides the solution.
+
+Reprojection metrics before/after (overall, per camera and per CCD), the held-out check
+observations in pixels and metres, one line per outlier round, and the diagnostics
+(point and camera movements, strong correlations, self-calibration estimability).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.adjust.config import AdjustConfig
+from planetref.adjust.diagnostics import (
+    camera_shifts,
+    correlation_warnings,
+    point_summary,
+    point_table,
+    self_calibration,
+)
+from planetref.adjust.problem import Network
+from planetref.adjust.rays import ground_error_m
+from planetref.adjust.solver import BundleSolver, LmReport
+from planetref.adjust.variance import VceResult
+from planetref.metrics import reprojection_metrics
+
+__all__ = ["check_metrics", "diagnostics", "reprojection_blocks", "round_summary"]
+
+F64 = NDArray[np.float64]
+
+
+def diagnostics(
+    net: Network,
+    solver: BundleSolver,
+    cfg: AdjustConfig,
+    solution: tuple[F64, dict[str, Any]],
+    vce: VceResult,
+    points: tuple[F64, F64],
+    cams0: list[Any],
+    cams1: list[Any],
+) -> dict[str, Any]:
+    """Movements, strong correlations and self-calibration estimability (with warnings)."""
+    dc = cfg.diagnostics
+    c, stats = solution
+    xyz0, xyz = points
+    red = vce.redundancy
+    cof = {int(j): red.point_cofactor[k] for k, j in enumerate(red.unknown)}
+    table = point_table(
+        net, xyz0, xyz, solver.point_sigma, solver.point_frame, cof, float(stats["sigma0"])
+    )
+    used = np.zeros(net.n_points, bool)
+    used[net.obs_point[red.obs]] = True
+    moved, w_pts = point_summary(table, used, dc)
+    shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc)
+    corr_info, w_corr = correlation_warnings(solver.names, stats["correlation"], dc)
+    calib, w_cal = self_calibration(
+        solver.names, solver.mode, solver.sigma, solver.x0, c, stats["covariance"], dc
+    )
+    return {
+        "point_shifts": moved,
+        "camera_shifts": shifts,
+        "correlations": corr_info,
+        "self_calibration": calib,
+        "_points": table | {"used": used},
+        "_warnings": w_pts + w_cam + w_corr + w_cal,
+    }
+
+
+def round_summary(
+    rnd: int, inlier: NDArray[np.bool_], rmse: float, rep: LmReport
+) -> dict[str, Any]:
+    """One row of :attr:`~planetref.adjust.result.AdjustmentResult.rounds`."""
+    return {
+        "round": rnd + 1,
+        "n_observations": int(np.count_nonzero(inlier)),
+        "rmse_px": rmse,
+        "iterations": rep.iterations,
+        "evaluations": rep.evaluations,
+        "cost_initial": rep.cost_initial,
+        "cost_final": rep.cost_final,
+        "converged": rep.converged,
+        "reason": rep.reason,
+        "seconds": rep.seconds,
+    }
+
+
+def reprojection_blocks(
+    net: Network,
+    res0: F64,
+    res: F64,
+    inlier: NDArray[np.bool_],
+    usable: NDArray[np.bool_],
+) -> dict[str, Any]:
+    """Reprojection metrics before/after, overall, per camera and per CCD.
+
+    Args:
+        net: The network.
+        res0: Initial ``(line, sample)`` residuals (px), ``(M, 2)``.
+        res: Final residuals (px), ``(M, 2)``.
+        inlier: Final inliers.
+        usable: Observations that could be used at all.
+
+    Returns:
+        ``{"all": ..., "cameras": {id: ...}, "ccds": {name: ...}}``, each with
+        ``"before"``, ``"before_all"`` and ``"after"``
+        (:func:`~planetref.metrics.reprojection_metrics`); check observations excluded.
+    """
+    adjusted = ~net.obs_check
+
+    def block(sel: NDArray[np.bool_]) -> dict[str, Any]:
+        idx = np.flatnonzero(sel & adjusted)
+        return {
+            "before": reprojection_metrics(res0[idx, 1], res0[idx, 0], inlier[idx]),
+            "before_all": reprojection_metrics(res0[idx, 1], res0[idx, 0], usable[idx]),
+            "after": reprojection_metrics(res[idx, 1], res[idx, 0], inlier[idx]),
+        }
+
+    out: dict[str, Any] = {"all": block(np.ones(net.n_obs, bool)), "cameras": {}, "ccds": {}}
+    single = len(net.camera_ids) == 1
+    for ci, cid in enumerate(net.camera_ids):
+        on = net.obs_camera == ci
+        entry = block(on)
+        names = net.cameras[ci].ccd_names
+        if len(names) > 1:
+            entry["ccds"] = {n: block(on & (net.obs_ccd == k)) for k, n in enumerate(names)}
+            for n, m in entry["ccds"].items():
+                out["ccds"][n if single else f"{cid}/{n}"] = m
+        out["cameras"][cid] = entry
+    return out
+
+
+def check_metrics(
+    net: Network,
+    cams0: list[Any],
+    cams1: list[Any],
+    chk: NDArray[np.intp],
+    res0: F64,
+    res1: F64,
+    xyz: F64,
+) -> dict[str, Any]:
+    """RMS and max of the check observations in pixels and metres, before and after.
+
+    Metres are the distance between each check observation's ray (at its point's
+    height) and the point.
+    """
+
+    def stats(res: F64, cams: list[Any]) -> dict[str, float | int]:
+        r = res[chk]
+        length = np.hypot(r[:, 0], r[:, 1])
+        ok = np.isfinite(length)
+        metres = ground_error_m(net, cams, chk, xyz)
+        okm = np.isfinite(metres)
+        nan = float("nan")
+        return {
+            "rms_px": float(np.sqrt(np.mean(length[ok] ** 2))) if ok.any() else nan,
+            "max_px": float(np.max(length[ok])) if ok.any() else nan,
+            "rms_m": float(np.sqrt(np.mean(metres[okm] ** 2))) if okm.any() else nan,
+            "max_m": float(np.max(metres[okm])) if okm.any() else nan,
+            "n": int(np.count_nonzero(ok)),
+        }
+
+    return {"before": stats(res0, cams0), "after": stats(res1, cams1)}
