@@ -655,7 +655,7 @@ def test_platform_flag_selects_lagrange_order(tmp_path):
     d = make_isd()
     d["platform_flag"] = 0
     cam = CsmLineScanCamera.from_file(_write(tmp_path, d))
-    assert cam._order == 4 and cam.isd.platform_flag == 0
+    assert cam._ephemeris.order == 4 and cam.isd.platform_flag == 0
     ip = cam.ground_to_image(cam.image_to_ground([3.5, 12.5], [2.0, 14.0]))
     np.testing.assert_allclose(ip.line, [3.5, 12.5], atol=1e-6)
 

@@ -3,6 +3,7 @@
 Modules: :mod:`~planetref.camera.csm.isd` (typed ISD, writer),
 :mod:`~planetref.camera.csm.reader` (parsing), :mod:`~planetref.camera.csm.orientation`
 (quaternions), :mod:`~planetref.camera.csm.interpolation` (ephemeris interpolation),
+:mod:`~planetref.camera.csm.ephemeris` (the resampled position, pointing and time tables),
 :mod:`~planetref.camera.csm.distortion` (lens distortion),
 :mod:`~planetref.camera.csm.camera` (:class:`CsmLineScanCamera`),
 :mod:`~planetref.camera.csm.export` (native line-scan cameras written as ISDs).

@@ -4,20 +4,8 @@
 protocol on a :class:`~planetref.camera.csm.isd.CsmIsd`, reproducing usgscsm's
 arithmetic so that both give the same numbers:
 
-* **Positions**: the ISD's positions/velocities (km, km/s, J2000) are resampled to
-  ``max(n, 25)`` evenly spaced epochs by a cubic Hermite fit that uses the velocities
-  (a natural cubic spline when there are none), rotated to body-fixed with
-  ``body_rotation`` (velocity including the ``-omega x r`` term), and interpolated by
-  8th-order Lagrange (4th with platform flag 0; the order drops near the ends, down to
-  linear in the first and last intervals, exactly as usgscsm does).
-* **Pointing**: ``instrument_pointing`` (scalar-first quaternions J2000 -> sensor, with
-  ``constant_rotation`` on the left) is inverted, composed with ``body_rotation`` on the
-  union of both time grids, resampled evenly by SLERP and interpolated by Lagrange on
-  the quaternion components (then normalised), as usgscsm does; the quaternion
-  arithmetic follows Eigen's (ALE's) to the last bit that matters.
-* **Time**: ``t(line) = t0_k + rate_k * (line - line_k + 0.5)`` seconds relative to
-  ``center_ephemeris_time`` from the ``line_scan_rate`` rows ``[line_k, t0_k, rate_k]``
-  (usgscsm's ``getImageTime``).
+* **Positions, pointing, time**: sampled and interpolated as usgscsm does by
+  :class:`~planetref.camera.csm.ephemeris.CsmEphemeris`.
 * **Focal plane**: samples map to focal-plane mm through ``focal2pixel_samples`` /
   ``focal2pixel_lines`` (inverted), ``detector_center``, ``starting_detector_*`` and
   ``detector_*_summing``; the detector line is the focal-plane position of image line 0
@@ -55,14 +43,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.csm.distortion import _apply_distortion, _remove_distortion
-from planetref.camera.csm.interpolation import _hermite, _lagrange, _natural_spline
-from planetref.camera.csm.isd import J2000, MIN_EPHEMERIS_NODES, CsmCorrection, CsmIsd
-from planetref.camera.csm.orientation import _AleOrientations, _euler_matrix, _qmatrix
+from planetref.camera.csm.ephemeris import CsmEphemeris
+from planetref.camera.csm.isd import CsmCorrection, CsmIsd
+from planetref.camera.csm.orientation import _euler_matrix
 from planetref.camera.csm.reader import read_isd
-from planetref.errors import (
-    GeometryError,
-    InputError,
-)
+from planetref.errors import GeometryError, InputError
 from planetref.geometry.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
 from planetref.geometry.terrain import intersect_terrain
@@ -111,7 +96,8 @@ class CsmLineScanCamera:
             isd.extra.get("name_target", "") or "",
         )
         self._ccd = isd.name_sensor or "ccd"
-        self._build_tables()
+        self._ephemeris = CsmEphemeris.from_isd(isd)
+        self._build_focal_plane()
         self._correction = CsmCorrection()
         self._zdir = 1.0
         self._zdir = self._boresight_sign()
@@ -162,96 +148,22 @@ class CsmLineScanCamera:
             correction_scales=(self.half_time_s, self.flying_height_m, self.half_swath_m),
         )
 
-    def _build_tables(self) -> None:
-        isd = self._isd
-        center = isd.center_ephemeris_time
-        body = _AleOrientations.from_isd(isd.body_rotation)
-        body_frame = isd.body_frame
-        # Positions: resample evenly to >= 25 epochs (Hermite with the velocities),
-        # rotate to body-fixed with the omega x r velocity term, km -> m.
-        ip = isd.instrument_position
-        times = np.asarray(ip.times)
-        n = max(len(times), MIN_EPHEMERIS_NODES)
-        step = (times[-1] - times[0]) / (n - 1)
-        grid = times[0] + step * np.arange(n)
-        vel_in = ip.velocities_km_s
-        if vel_in is not None and np.any(vel_in != 0):
-            pos, vel = _hermite(times, np.asarray(ip.positions_km), np.asarray(vel_in), grid)
-        else:
-            pos = _natural_spline(times, np.asarray(ip.positions_km), grid)
-            vel = (
-                np.zeros_like(pos)
-                if vel_in is None
-                else _natural_spline(times, np.asarray(vel_in), grid)
-            )
-        if ip.reference_frame == J2000 or ip.reference_frame != body_frame:
-            pos, vel = body.rotate_states(grid, pos, vel)
-        self._t0_ephem = float(times[0] - center)
-        self._dt_ephem = float(step)
-        self._positions = pos * 1000.0
-        self._velocities = vel * 1000.0
-        # Pointing: sensor -> body on the union of the time grids, resampled by SLERP.
-        pointing = _AleOrientations.from_isd(isd.instrument_pointing)
-        if (
-            isd.instrument_pointing.reference_frame == J2000
-            or isd.instrument_pointing.reference_frame != body_frame
-        ):
-            sensor_to_body = body.compose(pointing.inverse())
-        else:
-            sensor_to_body = pointing.inverse()
-        qt = sensor_to_body.times
-        qstep = (qt[-1] - qt[0]) / (len(qt) - 1) if len(qt) > 1 else 1.0
-        qgrid = qt[0] + qstep * np.arange(max(len(qt), 2))
-        q = sensor_to_body.interpolate(qgrid)
-        q = q / np.linalg.norm(q, axis=1, keepdims=True)
-        self._t0_quat = float(qt[0] - center)
-        self._dt_quat = float(qstep)
-        # usgscsm stores [x, y, z, w]; Lagrange runs on the components in any order.
-        self._quats = q
-        self._order = 8 if isd.platform_flag else 4
-        self._quat_order = 4 if (len(q) * 4 < 6 and self._order == 8) else self._order
-        # Line -> time table.
-        self._rate_lines = np.asarray(isd.line_scan_rate[:, 0])
-        self._rate_times = np.asarray(isd.line_scan_rate[:, 1])
-        self._rate_rates = np.asarray(isd.line_scan_rate[:, 2])
-        # Focal plane (mm) -> detector (pixels) and its inverse.
-        il, is_ = isd.focal2pixel_lines, isd.focal2pixel_samples
+    def _build_focal_plane(self) -> None:
+        """Focal plane (mm) -> detector (pixels) and its inverse."""
+        il, is_ = self._isd.focal2pixel_lines, self._isd.focal2pixel_samples
         self._itrans_l = np.asarray(il)
         self._itrans_s = np.asarray(is_)
         det = il[1] * is_[2] - il[2] * is_[1]
         self._p = np.array([[is_[2], -il[2]], [-is_[1], il[1]]]) / det
 
     def _warn_time_coverage(self) -> None:
-        """Warn when lines are timed outside the ephemeris or the time table jumps.
-
-        usgscsm silently extrapolates there (linearly, from the last interval), which is
-        only good for a few lines.
-        """
-        isd = self._isd
-        rate = np.asarray(isd.line_scan_rate)
-        problems = []
-        ends = rate[:-1, 1] + rate[:-1, 2] * (rate[1:, 0] - rate[:-1, 0])
-        for k in np.flatnonzero(np.abs(rate[1:, 1] - ends) > 2.0 * rate[1:, 2]):
-            problems.append(
-                f"line_scan_rate row {k + 1} starts at {rate[k + 1, 1]:+.3f} s "
-                f"but row {k} ends at {ends[k]:+.3f} s"
-            )
-        t0, t1 = self.image_time([0.0, float(isd.image_lines)])
-        lo = max(self._t0_ephem, self._t0_quat)
-        hi = min(
-            self._t0_ephem + self._dt_ephem * (len(self._positions) - 1),
-            self._t0_quat + self._dt_quat * (len(self._quats) - 1),
-        )
-        slack = 2.0 * float(np.max(rate[:, 2]))
-        if t0 < lo - slack or t1 > hi + slack:
-            problems.append(
-                f"the image spans {t0:+.3f}..{t1:+.3f} s but the ephemeris "
-                f"covers only {lo:+.3f}..{hi:+.3f} s (relative to "
-                "center_ephemeris_time): usgscsm extrapolates"
-            )
+        """Warn when lines are timed outside the ephemeris or the time table jumps."""
+        problems = self._ephemeris.coverage_problems(self._isd.image_lines)
         if problems:
             warnings.warn(
-                f"{isd.path or 'CSM ISD'}: " + "; ".join(problems), UserWarning, stacklevel=4
+                f"{self._isd.path or 'CSM ISD'}: " + "; ".join(problems),
+                UserWarning,
+                stacklevel=4,
             )
 
     def _boresight_sign(self) -> float:
@@ -277,12 +189,7 @@ class CsmLineScanCamera:
         self.gsd_m = float(np.linalg.norm(pts[1] - pts[0]) / math.sqrt(2.0))
         self.flying_height_m = float(np.linalg.norm(origin[0] - pts[0]))
         self.half_swath_m = self.gsd_m * ns / 2.0
-        full = (
-            self._rate_times[-1]
-            - self._rate_times[0]
-            + self._rate_rates[-1] * (nl - self._rate_lines[-1])
-        )
-        self.half_time_s = float(full / 2.0)
+        self.half_time_s = self._ephemeris.duration(nl) / 2.0
 
     def _usgscsm_intersect(
         self, origin: NDArray[np.float64], look: NDArray[np.float64]
@@ -338,9 +245,7 @@ class CsmLineScanCamera:
         Returns:
             Times in seconds, shape ``(M,)``.
         """
-        lines = _as_1d(line, "line")
-        k = np.clip(np.searchsorted(self._rate_lines, lines, side="right") - 1, 0, None)
-        return self._rate_times[k] + self._rate_rates[k] * (lines - self._rate_lines[k] + 0.5)
+        return self._ephemeris.image_time(_as_1d(line, "line"))
 
     # -- exterior orientation: the one place where a correction acts -----------------
 
@@ -353,16 +258,15 @@ class CsmLineScanCamera:
         look vector of a sensor-frame direction ``u`` is ``R @ u``.
         """
         corr = self._correction
-        pos = _lagrange(self._positions, self._t0_ephem, self._dt_ephem, t, self._order)
-        vel = None
-        if need_velocity or corr.has_position:
-            vel = _lagrange(self._velocities, self._t0_ephem, self._dt_ephem, t, self._order)
+        eph = self._ephemeris
+        pos = eph.position(t)
+        vel = eph.velocity(t) if need_velocity or corr.has_position else None
         if corr.has_position and vel is not None:
             radial = pos / np.linalg.norm(pos, axis=1, keepdims=True)
             cross = np.cross(pos, vel)
             cross /= np.linalg.norm(cross, axis=1, keepdims=True)
             in_track = np.cross(cross, radial)
-            a_time = (t - self._t0_ephem)[:, None]
+            a_time = (t - eph.t0_position)[:, None]
             rates = (
                 np.array([corr.in_track_rate_m, corr.cross_track_rate_m, corr.radial_rate_m])
                 / self.half_time_s
@@ -371,9 +275,7 @@ class CsmLineScanCamera:
             d = biases[None, :] + rates[None, :] * a_time
             vel = vel + in_track * rates[0] + cross * rates[1] + radial * rates[2]
             pos = pos + in_track * d[:, :1] + cross * d[:, 1:2] + radial * d[:, 2:3]
-        q = _lagrange(self._quats, self._t0_quat, self._dt_quat, t, self._quat_order)
-        q = q / np.linalg.norm(q, axis=1, keepdims=True)
-        rot = _qmatrix(q)
+        rot = eph.rotation(t)
         if corr.has_attitude:
             rot = rot @ self._attitude_correction(t)
         return pos, vel, rot
@@ -381,7 +283,7 @@ class CsmLineScanCamera:
     def _attitude_correction(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         """Port of usgscsm's ``calculateAttitudeCorrection`` at times ``t``, shape ``(M, 3, 3)``."""
         c = self._correction
-        n = (np.asarray(t, dtype=np.float64) - self._t0_quat) / self.half_time_s
+        n = (np.asarray(t, dtype=np.float64) - self._ephemeris.t0_pointing) / self.half_time_s
         n2 = n * n
         omega = (c.omega_m + c.omega_rate_m * n + c.omega_accel_m * n2) / self.flying_height_m
         phi = (c.phi_m + c.phi_rate_m * n + c.phi_accel_m * n2) / self.flying_height_m
