@@ -76,7 +76,7 @@ def test_unknown_key_lists_valid_keys(tmp_path: Path) -> None:
     assert "density_per_km2" in str(err.value) and "sfd_slope" in str(err.value)
     with pytest.raises(InputError) as err:
         load_config("tiny", {"colour": 1})
-    assert "valid keys here" in str(err.value) and "photometry" in str(err.value)
+    assert "valid keys: " in str(err.value) and "photometry" in str(err.value)
 
 
 def test_bad_values_and_files(tmp_path: Path) -> None:

@@ -24,16 +24,9 @@ import math
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import (
-    BaseModel,
-    BeforeValidator,
-    ConfigDict,
-    Field,
-    ValidationError,
-    model_validator,
-)
+from pydantic import BeforeValidator, Field, model_validator
 
-from planetref.errors import InputError
+from planetref.settings import Settings, validate_settings
 
 __all__ = [
     "DEFAULT_TIE_SIGMA_M",
@@ -131,11 +124,7 @@ RadiansPerSecond = Annotated[float | None, _unit("rad/s")]
 RadiansPerSecond2 = Annotated[float | None, _unit("rad/s2")]
 
 
-class _Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-
-class _Block(_Frozen):
+class _Block(Settings):
     """Common checks: a weighted block needs a positive finite sigma."""
 
     mode: Mode = "free"
@@ -259,7 +248,7 @@ class CcdPlacementBlock(_Block):
     reference_ccd: str | None = None
 
 
-class LineScanParameters(_Frozen):
+class LineScanParameters(Settings):
     """Unknowns of a native line-scan strip (:class:`~planetref.camera.linescan.LineScanCamera`).
 
     Attributes:
@@ -299,7 +288,7 @@ class LineScanParameters(_Frozen):
     weak_node_smooth_sigma_rad: Radians = 1e-7
 
 
-class CsmParameters(_Frozen):
+class CsmParameters(Settings):
     """Per-image corrections of CSM/ALE line-scan cameras (usgscsm's adjustable parameters).
 
     Position: offset and linear drift along the in-track, cross-track and radial axes.
@@ -336,7 +325,7 @@ class CsmParameters(_Frozen):
 DEFAULT_TIE_SIGMA_M = 200.0
 
 
-class ObservationConfig(_Frozen):
+class ObservationConfig(Settings):
     """Default weights of observations and ground points.
 
     Attributes:
@@ -373,7 +362,7 @@ class ObservationConfig(_Frozen):
         return self
 
 
-class VarianceConfig(_Frozen):
+class VarianceConfig(Settings):
     """Variance component estimation (VCE) of the observation groups.
 
     Groups: the image measures of MCPs and of tie points, per camera and CCD; the
@@ -405,7 +394,7 @@ class VarianceConfig(_Frozen):
     max_step: float = Field(5.0, gt=1.0)
 
 
-class DiagnosticsConfig(_Frozen):
+class DiagnosticsConfig(Settings):
     """Thresholds of the warnings about the datum and the estimability.
 
     Attributes:
@@ -426,7 +415,7 @@ class DiagnosticsConfig(_Frozen):
     separable_sigma_ratio: float = Field(0.5, gt=0.0, le=1.0)
 
 
-class SolverConfig(_Frozen):
+class SolverConfig(Settings):
     """Levenberg-Marquardt settings.
 
     Attributes:
@@ -466,7 +455,7 @@ class SolverConfig(_Frozen):
     min_rcond: float = Field(1e-14, gt=0.0, lt=1.0)
 
 
-class OutlierConfig(_Frozen):
+class OutlierConfig(Settings):
     """The seed's outlier rule: inlier if the reprojection error is below k x RMSE.
 
     Attributes:
@@ -480,7 +469,7 @@ class OutlierConfig(_Frozen):
     max_rounds: int = Field(20, ge=1)
 
 
-class AdjustConfig(_Frozen):
+class AdjustConfig(Settings):
     """Everything the adjustment can be told.
 
     Attributes:
@@ -519,14 +508,4 @@ def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:
     """
     if isinstance(data, AdjustConfig):
         return data
-    try:
-        return AdjustConfig.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"]) or None
-        raise InputError(
-            f"{err['msg']} (input: {err.get('input')!r}); "
-            f"{exc.error_count()} error(s) in the adjustment configuration",
-            path=source,
-            field=loc,
-        ) from None
+    return validate_settings(AdjustConfig, data, source=source, what="adjustment configuration")

@@ -43,10 +43,11 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from planetref.errors import InputError
 from planetref.matching.correlation import INVALID, quadratic_peaks, zncc_surfaces
+from planetref.settings import Settings
 
 __all__ = ["RefineConfig", "RefineResult", "refine_matches"]
 
@@ -62,7 +63,7 @@ MAX_AFFINE = 0.5
 MIN_LOGDET = -40.0
 
 
-class RefineConfig(BaseModel):
+class RefineConfig(Settings):
     """Settings of :func:`refine_matches`.
 
     Attributes:
@@ -82,8 +83,6 @@ class RefineConfig(BaseModel):
             tests/matching/test_refine.py). Pixels within ``ceil(2 * smooth_px)`` of an
             invalid pixel become invalid.
     """
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
     method: Literal["none", "lsm", "ncc"] = "none"
     half_window: int = Field(10, ge=2, le=64)

@@ -14,16 +14,14 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
-from planetref.adjust.config import AdjustConfig, validate_config
+from planetref.adjust.config import AdjustConfig
 from planetref.frontend.config import FrontendConfig
-from planetref.settings import Settings, deep_merge, validate_settings
+from planetref.settings import Settings, validate_settings
 from planetref.tomlfile import read_toml
 
 __all__ = [
-    "DEFAULT_ADJUST",
-    "DEFAULT_MATCHER_OPTIONS",
     "CampaignOptions",
     "GeorefConfig",
     "McpOptions",
@@ -31,24 +29,8 @@ __all__ = [
     "load_config",
 ]
 
-#: Overrides of the adjustment's own defaults for georef runs: none. Every matcher is
-#: judged by :class:`~planetref.adjust.config.AdjustConfig`'s defaults (node positions
-#: weighted at 100 m, attitudes free, interior fixed, weak nodes smoothed, Huber loss for
-#: the first round then the seed's 3 x RMSE rule, variance components estimated), the
-#: same as ``planetref adjust``.
-DEFAULT_ADJUST: dict[str, Any] = {}
 
-
-#: Matcher options applied unless a config says otherwise: none, so that every matcher
-#: runs on equal terms with its own defaults. Sub-pixel refinement is one setting for all
-#: matchers (``[frontend.refine]``), no longer a per-matcher special case (XFeat*'s
-#: ``polish = "ncc"`` remains available as a ``[matchers.xfeat-star]`` option).
-DEFAULT_MATCHER_OPTIONS: dict[str, dict[str, Any]] = {}
-
-_Frozen = Settings
-
-
-class McpOptions(_Frozen):
+class McpOptions(Settings):
     """How matched control points enter the adjustment.
 
     Attributes:
@@ -65,7 +47,7 @@ class McpOptions(_Frozen):
     min_mcps: int = Field(12, ge=1)
 
 
-class OrthoOptions(_Frozen):
+class OrthoOptions(Settings):
     """The orthoimage of each CCD through the adjusted camera and the reference DEM.
 
     Attributes:
@@ -77,7 +59,7 @@ class OrthoOptions(_Frozen):
     gsd_m: float | None = Field(None, gt=0.0)
 
 
-class CampaignOptions(_Frozen):
+class CampaignOptions(Settings):
     """How the strips of a scene (a campaign) are adjusted.
 
     With ``adjust_together`` false (the default) every strip is adjusted on its own with
@@ -111,32 +93,22 @@ class CampaignOptions(_Frozen):
     tie_min_overlap_ref_px: int = Field(24, ge=8)
 
 
-class GeorefConfig(_Frozen):
-    """Everything a georef run can be told (see the module doc)."""
+class GeorefConfig(Settings):
+    """Everything a georef run can be told (see the module doc).
+
+    Nothing is overridden for georef runs: every matcher is judged by
+    :class:`~planetref.adjust.config.AdjustConfig`'s defaults (the same as ``planetref
+    adjust``) and runs with its own default options unless ``[matchers.<name>]`` says
+    otherwise, so that all matchers run on equal terms. Sub-pixel refinement is one
+    setting for all matchers (``[frontend.refine]``).
+    """
 
     frontend: FrontendConfig = FrontendConfig()
-    adjust: AdjustConfig = Field(default_factory=lambda: validate_config(DEFAULT_ADJUST))
+    adjust: AdjustConfig = AdjustConfig()
     mcp: McpOptions = McpOptions()
     ortho: OrthoOptions = OrthoOptions()
     campaign: CampaignOptions = CampaignOptions()
-    matchers: dict[str, dict[str, Any]] = Field(
-        default_factory=lambda: {k: dict(v) for k, v in DEFAULT_MATCHER_OPTIONS.items()}
-    )
-
-    @field_validator("adjust", mode="before")
-    @classmethod
-    def _adjust(cls, v: Any) -> Any:
-        if isinstance(v, dict):
-            merged = deep_merge(DEFAULT_ADJUST, v)
-            return validate_config(merged)
-        return v
-
-    @field_validator("matchers", mode="before")
-    @classmethod
-    def _matchers(cls, v: Any) -> Any:
-        if isinstance(v, dict):
-            return {**{k: dict(o) for k, o in DEFAULT_MATCHER_OPTIONS.items()}, **v}
-        return v
+    matchers: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The resolved configuration as plain JSON types.

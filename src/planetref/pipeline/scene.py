@@ -44,11 +44,11 @@ import os
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
 from planetref.errors import InputError, MissingFileError
 from planetref.geometry.geodesy import Ellipsoid
-from planetref.simulate.config import format_validation_error
+from planetref.settings import Settings, validate_settings
 from planetref.tomlfile import read_toml
 
 __all__ = [
@@ -72,8 +72,7 @@ MANIFEST_NAME = "scene.toml"
 _ID = r"^[A-Za-z0-9_.-]{1,64}$"
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+_Model = Settings
 
 
 class BodySpec(_Model):
@@ -260,12 +259,7 @@ def load_manifest(
         raise InputError(
             f"expected format = {MANIFEST_FORMAT!r}, got {fmt!r}", path=p, field="format"
         )
-    try:
-        manifest = SceneManifest.model_validate(data)
-    except ValidationError as exc:
-        raise InputError(
-            f"invalid scene manifest: {format_validation_error(exc, SceneManifest)}", path=p
-        ) from None
+    manifest = validate_settings(SceneManifest, data, source=str(p), what="scene manifest")
     root = p.parent
     if check_files:
         for rel in manifest.paths():

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from planetref.settings import Settings
 
 __all__ = [
     "CameraConfig",
@@ -23,8 +25,7 @@ __all__ = [
 Vec3 = tuple[float, float, float]
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+_Model = Settings
 
 
 class CameraConfig(_Model):

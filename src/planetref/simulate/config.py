@@ -21,10 +21,10 @@ from importlib import resources
 from os import PathLike
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
 from planetref.errors import InputError
-from planetref.settings import deep_merge, model_at
+from planetref.settings import Settings, deep_merge, validate_settings
 from planetref.simulate.camera_config import (
     CameraConfig,
     InitialErrorConfig,
@@ -64,7 +64,6 @@ __all__ = [
     "TerrainConfig",
     "available_difficulties",
     "available_presets",
-    "format_validation_error",
     "load_config",
     "load_difficulty_dict",
     "load_preset_dict",
@@ -75,8 +74,7 @@ __all__ = [
 Vec3 = tuple[float, float, float]
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+_Model = Settings
 
 
 class SunConfig(_Model):
@@ -482,31 +480,6 @@ def merge_overrides(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     return deep_merge(base, overrides)
 
 
-def format_validation_error(exc: ValidationError, root: type[BaseModel]) -> str:
-    """One line naming every error of ``exc``; unknown keys come with the valid keys.
-
-    Args:
-        exc: The pydantic error.
-        root: The model that was validated (to find the table of each location).
-    """
-    lines = []
-    for err in exc.errors():
-        loc = tuple(err.get("loc", ()))
-        where = ".".join(str(p) for p in loc) or "<root>"
-        if err.get("type") == "extra_forbidden":
-            model = model_at(loc, root)
-            valid = ", ".join(model.model_fields) if model is not None else "?"
-            lines.append(f"unknown key '{where}' (valid keys here: {valid})")
-        else:
-            msg = err.get("msg", "invalid value")
-            model = model_at(loc, root) if loc else None
-            hint = ""
-            if model is not None and loc and str(loc[-1]) not in model.model_fields:
-                hint = f" (valid keys here: {', '.join(model.model_fields)})"
-            lines.append(f"'{where}': {msg}{hint}")
-    return "; ".join(lines)
-
-
 def validate_config(data: dict[str, Any], *, source: str | None = None) -> SimulationConfig:
     """Validate a raw table into a :class:`SimulationConfig`.
 
@@ -514,11 +487,7 @@ def validate_config(data: dict[str, Any], *, source: str | None = None) -> Simul
         InputError: Naming every bad key or value; for unknown keys the message lists
             the valid keys of the table in which they appear.
     """
-    try:
-        return SimulationConfig.model_validate(data)
-    except ValidationError as exc:
-        msg = format_validation_error(exc, SimulationConfig)
-        raise InputError(f"invalid simulation config: {msg}", path=source) from None
+    return validate_settings(SimulationConfig, data, source=source, what="simulation config")
 
 
 def load_config(

@@ -21,7 +21,9 @@ Units are in the field names as in :mod:`planetref.simulate.config`.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from planetref.settings import Settings
 
 __all__ = [
     "MolaConfig",
@@ -33,8 +35,7 @@ __all__ = [
 Vec3 = tuple[float, float, float]
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+_Model = Settings
 
 
 class TruthMismatchConfig(_Model):

@@ -12,15 +12,15 @@ import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, field_validator
 
 from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+from planetref.settings import Settings, validation_problems
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", strict=False)
+_Model = Settings
 
 
 class BodyDoc(_Model):
@@ -103,18 +103,6 @@ def load_json(path: str | os.PathLike[str]) -> Any:
         ) from None
 
 
-def _first_error(exc: ValidationError) -> tuple[str, str]:
-    err = exc.errors()[0]
-    loc = ".".join(str(x) for x in err["loc"])
-    msg = err["msg"]
-    if "input" in err and err["type"] not in ("missing",):
-        val = repr(err["input"])
-        if len(val) > 60:
-            val = val[:57] + "..."
-        msg = f"{msg} (got {val})"
-    return loc, msg
-
-
 def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: Any) -> Any:
     """Validate a decoded native camera document and build the camera with ``factory``."""
     import numpy as np
@@ -129,8 +117,8 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
     try:
         m = CameraDoc.model_validate(doc)
     except ValidationError as exc:
-        loc, msg = _first_error(exc)
-        raise InputError(msg, path=path, field=loc) from None
+        first = validation_problems(exc, CameraDoc)[0]
+        raise InputError(first.text, path=path, field=first.key) from None
     if len(m.orientation.node_lines) != len(m.orientation.nodes):
         raise InputError(
             f"{len(m.orientation.node_lines)} node lines but {len(m.orientation.nodes)} nodes",
