@@ -15,7 +15,7 @@ from planetref.control import (
     write_mcps,
 )
 from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
-from planetref.frontend.match_tile import TileResult
+from planetref.frontend.result import TileResult
 from planetref.frontend.tiles import Tile
 from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, lonlat_to_xyz
 from planetref.raster.dem import GridTerrain

@@ -439,8 +439,8 @@ def mcps_from_tiles(
     """MCPs from the front end's tile results (only tiles with status ``ok``).
 
     Args:
-        results: :class:`~planetref.frontend.match_tile.TileResult` objects (or a
-            :class:`~planetref.frontend.match_tile.StripMatches`' ``tiles``).
+        results: :class:`~planetref.frontend.result.TileResult` objects (or a
+            :class:`~planetref.frontend.result.StripMatches`' ``tiles``).
         ref: The reference orthoimage.
         dem: The reference DEM.
         duplicate_radius_px: See :func:`mcps_from_matches`.

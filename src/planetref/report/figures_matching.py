@@ -96,7 +96,7 @@ class TileRow:
 
 
 def panels_from_tile(result: Any) -> list[MatchPanel]:
-    """Panels of a :class:`~planetref.frontend.match_tile.TileResult` matched with ``debug``.
+    """Panels of a :class:`~planetref.frontend.result.TileResult` matched with ``debug``.
 
     Raises:
         InputError: If the result holds no stage images (match it with ``debug=True``).
@@ -180,7 +180,7 @@ def draw_tile_selection(
     Args:
         tiles: The strip's tile results.
         rematch: Matches one tile result's tile again with ``debug=True`` and returns the
-            new :class:`~planetref.frontend.match_tile.TileResult`.
+            new :class:`~planetref.frontend.result.TileResult`.
         path: Output PNG.
         title: Figure title.
 
