@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from planetref import __version__
 from planetref.errors import MatchingError
@@ -54,20 +53,18 @@ from planetref.pipeline.matchers import (
     matcher_recipes,
     matcher_weight_files,
 )
+from planetref.pipeline.networks import StripMcps, joint_network, mcp_ground_sigmas
 from planetref.pipeline.rundir import RunDir, config_digest
 from planetref.threads import single_threaded_blas
 
 _scene_path = scene_path  # the name compare.py imports
 
 if TYPE_CHECKING:  # pragma: no cover
-    from planetref.adjust.problem import Network
     from planetref.camera.base import Camera
-    from planetref.control import McpTable
     from planetref.execute import Executor
     from planetref.frontend.result import StripMatches
     from planetref.frontend.tasks import MatcherRecipe
     from planetref.matching.base import Matcher
-    from planetref.pipeline.campaign import TiePoints
     from planetref.pipeline.scene import SceneManifest, StripSpec
     from planetref.raster.dem import GridTerrain
     from planetref.raster.image import CcdImage
@@ -290,19 +287,6 @@ def run_georef(
     return GeorefOutcome(report=report, run_dir=run.path, files=files)
 
 
-@dataclass
-class _StripMcps:
-    """A strip after matching: its camera, images, MCPs and check flags."""
-
-    id: str
-    camera: Camera
-    images: dict[str, CcdImage]
-    sizes: dict[str, tuple[int, int]]
-    table: McpTable
-    check: NDArray[np.bool_]
-    out: dict[str, Any]
-
-
 def _match(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> StripMatches:
     """Match a strip's tiles, in process or on the job's parallel executor."""
     from planetref.frontend.strip import match_strip
@@ -338,7 +322,7 @@ def _match(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> StripM
     )
 
 
-def _strip_mcps(job: StripJob) -> _StripMcps:
+def _strip_mcps(job: StripJob) -> StripMcps:
     """Match a strip's tiles, write its MCPs and draw its check points."""
     from planetref.control import mcps_from_tiles, write_mcps
     from planetref.frontend.stats import sdu_per_ccd
@@ -406,10 +390,10 @@ def _strip_mcps(job: StripJob) -> _StripMcps:
     n_check = round(cfg.mcp.check_fraction * n)
     if n_check and n - n_check >= cfg.mcp.min_mcps:
         check[rng.choice(n, n_check, replace=False)] = True
-    return _StripMcps(strip.id, camera, images, sizes, table, check, out)
+    return StripMcps(strip.id, camera, images, sizes, table, check, out)
 
 
-def _adjust_strip(job: StripJob, prep: _StripMcps) -> dict[str, Any]:
+def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     """Adjust one strip on its own with its MCPs and write its outputs."""
     from planetref.adjust.api import adjust
     from planetref.adjust.problem import Network
@@ -425,7 +409,7 @@ def _adjust_strip(job: StripJob, prep: _StripMcps) -> dict[str, Any]:
         camera_id=prep.id,
         sigma_px=cfg.mcp.sigma_px,
         check=prep.check,
-        **_mcp_ground_sigmas(table),
+        **mcp_ground_sigmas(table),
     )
     t0 = time.perf_counter()
     result = adjust(network, cfg.adjust)
@@ -459,18 +443,8 @@ def _adjust_strip(job: StripJob, prep: _StripMcps) -> dict[str, Any]:
     return out
 
 
-def _mcp_ground_sigmas(table: Any) -> dict[str, Any]:
-    """MCP ground points weighted by their a-priori sigmas (east, north, up) if known."""
-    cols = getattr(table, "columns", {})
-    if "sigma_ground_xy_m" not in cols or "sigma_ground_h_m" not in cols:
-        return {}
-    xy = np.asarray(cols["sigma_ground_xy_m"], float)
-    h = np.asarray(cols["sigma_ground_h_m"], float)
-    return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
-
-
 def _adjust_together(
-    job: StripJob, preps: list[_StripMcps]
+    job: StripJob, preps: list[StripMcps]
 ) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """Adjust every strip in one network: all MCPs plus tie points between strips.
 
@@ -504,7 +478,7 @@ def _adjust_together(
     )
     timing["tie_points"] = time.perf_counter() - t0
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
-    network = _joint_network(preps, ties, cfg)
+    network = joint_network(preps, ties, cfg)
     t0 = time.perf_counter()
     result = adjust(network, cfg.adjust)
     timing["adjustment"] += time.perf_counter() - t0
@@ -564,62 +538,3 @@ def _adjust_together(
         "files": {k: v for k, v in joint_files.items() if k != "cameras"},
     }
     return strips, campaign
-
-
-def _joint_network(preps: list[_StripMcps], ties: TiePoints, cfg: GeorefConfig) -> Network:
-    """One network of every strip's camera, all MCPs and the tie points between strips."""
-    from planetref.adjust.problem import Network
-
-    opts = cfg.campaign
-    obs_cam: list[str] = []
-    obs_pt: list[str] = []
-    obs_ccd: list[str] = []
-    line: list[NDArray[np.float64]] = []
-    sample: list[NDArray[np.float64]] = []
-    sig_px: list[NDArray[np.float64]] = []
-    check: list[NDArray[np.bool_]] = []
-    xyz: dict[str, NDArray[np.float64]] = {}
-    sig_m: dict[str, float] = {}
-    kind: dict[str, str] = {}
-    local: dict[str, bool] = {}
-    for p in preps:
-        t = p.table
-        pts = [f"{p.id}:mcp{i}" for i in range(len(t))]
-        pxyz = t.xyz()
-        gs = _mcp_ground_sigmas(t).get("ground_sigma_m")
-        for i, pid in enumerate(pts):
-            xyz[pid], kind[pid] = pxyz[i], "mcp"
-            sig_m[pid] = 0.0 if gs is None else gs[i]
-            local[pid] = gs is not None
-        obs_cam += [p.id] * len(t)
-        obs_pt += pts
-        obs_ccd += list(np.asarray(t["ccd"]).astype(str))
-        line.append(np.asarray(t["line"], float))
-        sample.append(np.asarray(t["sample"], float))
-        sig_px.append(np.full(len(t), cfg.mcp.sigma_px))
-        check.append(p.check)
-    tie_sigma = np.inf if opts.tie_sigma_m is None else float(opts.tie_sigma_m)
-    for i, pid in enumerate(ties.point_ids):
-        xyz[pid], sig_m[pid], kind[pid] = ties.xyz[i], tie_sigma, "tie"
-        for k in range(2):
-            obs_cam.append(str(ties.strip[i, k]))
-            obs_pt.append(pid)
-            obs_ccd.append(str(ties.ccd[i, k]))
-        line.append(ties.line[i])
-        sample.append(ties.sample[i])
-        sig_px.append(np.full(2, opts.tie_sigma_px))
-        check.append(np.zeros(2, bool))
-    return Network.from_records(
-        {p.id: p.camera for p in preps},
-        obs_camera=obs_cam,
-        obs_point=obs_pt,
-        line=np.concatenate(line),
-        sample=np.concatenate(sample),
-        point_xyz=xyz,
-        point_sigma_m=sig_m,
-        point_kind=kind,
-        obs_ccd=obs_ccd,
-        sigma_px=np.concatenate(sig_px),
-        check=np.concatenate(check),
-        point_sigma_local=local,
-    )
