@@ -87,7 +87,7 @@ def test_image_to_ground_and_back(camera_file):
 @pytest.mark.parametrize(
     "content, needle",
     [
-        ('{"format": "planetref-linescan", "version": 1', "malformed JSON"),
+        ('{"format": "planetref-linescan", "version": 1', "not valid JSON"),
         ('{"a": 1}', "neither a planetref line-scan camera nor a CSM"),
         ("hello", "unrecognised camera file"),
     ],

@@ -7,13 +7,13 @@ GeoTIFF metadata, ``.RPB`` files or ``_RPC.TXT`` files.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
 
 from planetref.camera.base import Camera
-from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+from planetref.errors import MissingFileError, UnsupportedFormatError
+from planetref.jsonfile import read_json
 
 __all__ = ["detect_camera_format", "load_camera"]
 
@@ -36,7 +36,7 @@ def detect_camera_format(path: str | os.PathLike[str]) -> str:
         return "rpc"
     text = head.decode("utf-8", errors="replace").lstrip()
     if text.startswith("{"):
-        doc = _load_json(p)
+        doc = read_json(p, "camera file")
         if isinstance(doc, dict):
             if doc.get("format") == "planetref-linescan":
                 return "linescan"
@@ -59,17 +59,6 @@ def detect_camera_format(path: str | os.PathLike[str]) -> str:
         ".RPB or _RPC.TXT)",
         path=p,
     )
-
-
-def _load_json(p: Path) -> Any:
-    try:
-        return json.loads(p.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(
-            f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}", path=p
-        ) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the file ({exc})", path=p) from None
 
 
 def load_camera(path: str | os.PathLike[str], **options: Any) -> Camera:

@@ -30,9 +30,9 @@ from planetref.camera.csm.isd import (
 )
 from planetref.errors import (
     InputError,
-    MissingFileError,
     UnsupportedFormatError,
 )
+from planetref.jsonfile import read_json
 
 __all__ = ["read_isd"]
 
@@ -418,18 +418,7 @@ def read_isd(path: str | os.PathLike[str]) -> CsmIsd:
             file and the field).
     """
     p = Path(path)
-    if not p.is_file():
-        raise MissingFileError("ISD file not found", path=p)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the ISD ({exc})", path=p) from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(
-            f"not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})", path=p
-        ) from None
+    data = read_json(p, "ISD")
     try:
         return _isd_from_dict(data, str(p))
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:

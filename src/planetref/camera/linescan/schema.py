@@ -7,14 +7,13 @@ one-line :class:`~planetref.errors.InputError` naming the file and the field.
 
 from __future__ import annotations
 
-import json
 import os
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationError, field_validator
 
-from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+from planetref.errors import InputError, UnsupportedFormatError
+from planetref.jsonfile import read_json
 from planetref.settings import Settings, validation_problems
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -87,20 +86,8 @@ class CameraDoc(_Model):
 
 
 def load_json(path: str | os.PathLike[str]) -> Any:
-    """Read a JSON file with one-line errors for missing, unreadable or malformed files."""
-    p = Path(path)
-    if not p.exists():
-        raise MissingFileError("no such file", path=p)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the file ({exc})", path=p) from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(
-            f"malformed JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}", path=p
-        ) from None
+    """Read a camera JSON file with one-line errors (:func:`planetref.jsonfile.read_json`)."""
+    return read_json(path, "camera file")
 
 
 def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: Any) -> Any:
