@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
+from planetref.frontend.stats import FUNNEL_STAGES
 from planetref.frontend.tiles import Tile, TilePlan
 
 __all__ = [
@@ -35,16 +36,6 @@ __all__ = [
 TileStatus = Literal["ok", "too_few_inliers", "no_overlap", "no_texture", "error"]
 STATUSES: tuple[str, ...] = ("ok", "too_few_inliers", "no_overlap", "no_texture", "error")
 
-#: The stages of the per-tile funnel, in order (see :attr:`TileResult.funnel`).
-FUNNEL_STAGES: tuple[str, ...] = (
-    "raw",
-    "coarse_gate",
-    "ransac",
-    "consensus",
-    "backprojection",
-    "refine",
-    "mcp",
-)
 
 F64 = NDArray[np.float64]
 _ARRAYS = ("line", "sample", "ref_col", "ref_row", "ref_x", "ref_y", "confidence", "sigma_px")

@@ -34,8 +34,8 @@ from planetref.pipeline.georef_report import (
     camera_view,
     check_block,
     combined_report,
+    result_block,
     rmse_px,
-    variance_block,
 )
 from planetref.pipeline.inputs import (
     check_body,
@@ -423,16 +423,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         terrain=job.truth_dem if job.truth_dem is not None else job.dem,
     )
     out["files"]["adjustment"] = adj_files
-    s = result.summary()
-    out["adjustment"] = adjustment_block(
-        result.metrics["all"]["after"],
-        rmse_px_before=s["rmse_px_before"],
-        sigma0=s["sigma0"],
-        converged=s["converged"],
-        **variance_block(result),
-        check_mcps=result.metrics.get("check"),
-        ccds={ccd: m["after"] for ccd, m in result.metrics.get("ccds", {}).items()},
-    )
+    out["adjustment"] = result_block(result)
     out["check"] = check_block(result, truth, job.truth_dem) if truth else None
     out["warnings"] = list(result.warnings)
     if cfg.ortho.enabled:
@@ -515,7 +506,6 @@ def _adjust_together(
         figure_residuals(run, p.id, camera_view(result, ci), p.sizes)
         strips[p.id] = out
     timing["outputs"] += time.perf_counter() - t0
-    s = result.summary()
     campaign = {
         "adjust_together": True,
         "n_tie_points": len(ties),
@@ -523,14 +513,8 @@ def _adjust_together(
         "tie_points_per_strip_pair": ties.per_strip_pair(),
         "tie_points_per_image_pair": dict(ties.pairs),
         "tie_sigma_m": opts.tie_sigma_m,
-        "adjustment": adjustment_block(
-            result.metrics["all"]["after"],
-            rmse_px_before=s["rmse_px_before"],
-            sigma0=s["sigma0"],
-            converged=s["converged"],
-            **variance_block(result),
-            check_mcps=result.metrics.get("check"),
-            ccds={ccd: m["after"] for ccd, m in result.metrics.get("ccds", {}).items()},
+        "adjustment": result_block(
+            result,
             n_tie_points=len(ties),
             tie_rmse_px=None if not len(ties) else rmse_px(result.residual[is_tie & result.inlier]),
             tie_rmse_px_before=None if not len(ties) else rmse_px(result.residual_initial[is_tie]),

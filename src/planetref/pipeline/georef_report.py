@@ -95,6 +95,25 @@ def adjustment_block(
     return block | extra
 
 
+def result_block(result: AdjustmentResult, **extra: Any) -> dict[str, Any]:
+    """The ``adjustment`` block of a whole adjustment (a strip alone or a joint network).
+
+    Its headline metrics, variance components, check MCPs and per-CCD metrics, then
+    ``extra`` (see :func:`adjustment_block`).
+    """
+    s = result.summary()
+    return adjustment_block(
+        result.metrics["all"]["after"],
+        rmse_px_before=s["rmse_px_before"],
+        sigma0=s["sigma0"],
+        converged=s["converged"],
+        **variance_block(result),
+        check_mcps=result.metrics.get("check"),
+        ccds={ccd: m["after"] for ccd, m in result.metrics.get("ccds", {}).items()},
+        **extra,
+    )
+
+
 def variance_block(result: AdjustmentResult) -> dict[str, Any]:
     """sigma0 of the real observations, degrees of freedom and variance components."""
     variance = getattr(result, "variance", None) or {}
