@@ -1,0 +1,241 @@
+"""Linearisation of the observations: residuals, weights and normal equations per pattern.
+
+One pass over the observations of an LM run (:class:`LinearizationMixin`, mixed into
+:class:`~planetref.adjust.solver.BundleSolver`): the models evaluate residuals and
+partials in chunks of one (camera, CCD) group; the normal equations of the camera
+parameters are accumulated per *pattern* (observations that depend on the same
+parameters) with dense BLAS products over the pattern's active columns only, so
+nothing of size ``M x n_params`` is ever formed; the partials of observations on
+unknown points are kept (tie arrays) for the Schur complement
+(:mod:`planetref.adjust.schur`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.adjust.robust import robust_rho
+
+__all__ = ["LinearizationMixin"]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class _Linearization:
+    cost: float
+    r: F64  # (M, 2) residuals (line, sample)
+    valid: NDArray[np.bool_]
+    line: F64  # projected lines
+    sample: F64
+    s: F64  # squared normalised residuals
+    weight: F64  # (M, 2) effective weights (robust x 1/sigma^2)
+    n_cc: F64  # (P+1, P+1) sum A^T W A
+    g_c: F64  # (P+1,) sum A^T W r
+    a_t: F64  # (Mt, 2, q) camera partials of observations on unknown points
+    b_t: F64  # (Mt, 2, 3)
+    gpat_t: NDArray[np.intp]
+    weight_t: F64  # (Mt, 2) weights in the order of a_t
+    r_t: F64  # (Mt, 2) residuals in the order of a_t (0 where invalid)
+    rate: F64  # (M,) the models' line-rate hints (NaN if none)
+    obs: NDArray[np.intp]  # network observation index of each row
+
+
+@dataclass
+class _Layout:
+    """The observations of one LM run in a contiguous order.
+
+    Every (camera, CCD) group is a contiguous range sorted by line, and the
+    per-observation data are gathered once (random gathers from network-wide arrays
+    would otherwise dominate each pass).
+    """
+
+    obs: NDArray[np.intp]  # network observation indices, in layout order
+    ranges: list[tuple[int, int, int, int]]  # (model, ccd, start, stop)
+    point: NDArray[np.intp]
+    line: F64  # observed
+    sample: F64
+    w0: F64  # (M, 2) 1/sigma^2
+    fixed_xyz: F64 | None  # (M, 3) when every point is fixed
+    line_guess: F64
+    rate_guess: F64
+
+
+class LinearizationMixin:
+    """Linearisation of a :class:`~planetref.adjust.solver.BundleSolver`.
+
+    Uses the solver's ``net``, ``models``, ``offsets``, ``pat_offsets``, ``cols``,
+    ``n_params``, ``q``, ``cfg``, ``point_fixed``, ``obs_w0``, ``point_prior_w``,
+    ``line_guess``, ``rate_guess``, ``loss``, ``threshold``, ``_groups``,
+    ``_prior_cost`` and ``_active_cache``.
+    """
+
+    def _layout(self, obs: NDArray[np.intp]) -> _Layout:
+        groups = self._groups(obs)
+        order = np.concatenate([g[2] for g in groups]) if groups else np.zeros(0, np.intp)
+        obs = obs[order]
+        ranges = []
+        a = 0
+        for mi, ccd, pos in groups:
+            ranges.append((mi, ccd, a, a + len(pos)))
+            a += len(pos)
+        net = self.net
+        point = net.obs_point[obs]
+        fixed = np.all(self.point_fixed[point])
+        return _Layout(
+            obs,
+            ranges,
+            point,
+            net.obs_line[obs],
+            net.obs_sample[obs],
+            self.obs_w0[obs],
+            net.point_xyz[point] if fixed else None,
+            self.line_guess[obs],
+            self.rate_guess[obs],
+        )
+
+    def _linearize(
+        self,
+        c: F64,
+        xyz: F64,
+        lay: _Layout,
+        tie_pos: NDArray[np.intp],
+        n_tie: int,
+        unknown: NDArray[np.intp],
+        xyz0: F64,
+    ) -> _Linearization:
+        p = self.n_params
+        m = len(lay.obs)
+        q = self.q
+        r = np.full((m, 2), np.nan)
+        valid = np.zeros(m, bool)
+        line = np.full(m, np.nan)
+        sample = np.full(m, np.nan)
+        s_all = np.full(m, np.inf)
+        weight = np.zeros((m, 2))
+        rate = np.full(m, np.nan)
+        n_cc = np.zeros((p + 1, p + 1))
+        g_c = np.zeros(p + 1)
+        a_t = np.zeros((n_tie, 2, q))
+        b_t = np.zeros((n_tie, 2, 3))
+        gpat_t = np.zeros(n_tie, np.intp)
+        cs = self.cfg.chunk_size
+        thr = self.threshold
+        thr_l = thr if np.ndim(thr) == 0 else np.asarray(thr)[lay.obs]
+        pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[lay.point]
+        robust = self.loss != "linear"
+        for mi, ccd, a0, b0 in lay.ranges:
+            model = self.models[mi]
+            x = c[self.offsets[mi] : self.offsets[mi + 1]]
+            for a in range(a0, b0, cs):
+                b = min(a + cs, b0)
+                ev = model.evaluate(
+                    x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
+                )
+                if ev.line_rate is not None:
+                    rate[a:b] = ev.line_rate
+                res = r[a:b]
+                np.subtract(ev.line, lay.line[a:b], out=res[:, 0])
+                np.subtract(ev.sample, lay.sample[a:b], out=res[:, 1])
+                w0 = lay.w0[a:b]
+                s = np.einsum("mr,mr->m", res * res, w0)
+                ok = ev.valid
+                we = weight[a:b]
+                if robust:
+                    _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else thr_l[a:b])
+                    np.multiply(w0, rw[:, None], out=we)
+                else:
+                    we[:] = w0
+                if not np.all(ok):
+                    we[~ok] = 0.0
+                    s[~ok] = np.inf
+                res_ok = np.where(ok[:, None], res, 0.0)
+                valid[a:b], s_all[a:b] = ok, s
+                line[a:b], sample[a:b] = ev.line, ev.sample
+                gp = ev.pattern + self.pat_offsets[mi]
+                d = ev.d_params
+                qm = d.shape[2]
+                self._accumulate(n_cc, g_c, d, we, we * res_ok, gp, qm)
+                if n_tie:
+                    tp = tie_pos[a:b]
+                    is_t = tp >= 0
+                    if np.any(is_t):
+                        a_t[tp[is_t], :, :qm] = d[is_t]
+                        b_t[tp[is_t]] = ev.d_ground[is_t]
+                        gpat_t[tp[is_t]] = gp[is_t]
+        if robust:
+            rho, _ = robust_rho(np.where(valid, s_all, 0.0), self.loss, thr_l)
+        else:
+            rho = np.where(valid, s_all, 0.0)
+        cost = 0.5 * float(np.sum(rho)) if np.all(valid) else math.inf
+        cost += self._prior_cost(c)
+        if len(unknown):
+            dx = xyz[unknown] - xyz0[unknown]
+            cost += 0.5 * _quadratic(self.point_prior_w[unknown], dx)
+        inv = np.empty(n_tie, np.intp)
+        sel = tie_pos >= 0
+        inv[tie_pos[sel]] = np.flatnonzero(sel)
+        return _Linearization(
+            cost,
+            r,
+            valid,
+            line,
+            sample,
+            s_all,
+            weight,
+            n_cc,
+            g_c,
+            a_t,
+            b_t,
+            gpat_t,
+            weight[inv],
+            np.where(valid[inv, None], r[inv], 0.0),
+            rate,
+            lay.obs,
+        )
+
+    def _accumulate(
+        self, n_cc: F64, g_c: F64, d: F64, we: F64, wr: F64, gp: NDArray[np.intp], qm: int
+    ) -> None:
+        """``N += sum A^T W A`` and ``g += sum A^T W r``, per run of equal patterns.
+
+        Runs are contiguous (observations sorted by line), so every product works on
+        views; the few observations whose window differs from their neighbours' simply
+        form short runs of their own. Only a pattern's active columns enter the products
+        (fixed parameters map to the sink index and would only add zeros to discarded
+        entries): with most parameters fixed that is a fraction of the flops.
+        """
+        m = len(gp)
+        cut = np.concatenate([[0], np.flatnonzero(np.diff(gp)) + 1, [m]])
+        for a, b in itertools.pairwise(cut):
+            loc, cols = self._active_columns(int(gp[a]), qm)
+            if len(cols) == 0:
+                continue
+            da = d[a:b] if loc is None else d[a:b][:, :, loc]
+            blk = np.tensordot(da, da * we[a:b, :, None], axes=([0, 1], [0, 1]))
+            n_cc[np.ix_(cols, cols)] += blk
+            # Columns within a pattern are distinct, so a fancy-index add is exact.
+            g_c[cols] += np.tensordot(da, wr[a:b], axes=([0, 1], [0, 1]))
+
+    def _active_columns(
+        self, pattern: int, qm: int
+    ) -> tuple[NDArray[np.intp] | None, NDArray[np.intp]]:
+        """Local indices (None: all) and global columns of a pattern's free parameters."""
+        cache = self._active_cache
+        key = (pattern, qm)
+        if key not in cache:
+            cols = self.cols[pattern, :qm]
+            free = cols != self.n_params
+            loc = None if free.all() else np.flatnonzero(free)
+            cache[key] = (loc, cols if loc is None else cols[loc])
+        return cache[key]
+
+
+def _quadratic(w: F64, dx: F64) -> float:
+    """``sum_p dx_p^T W_p dx_p`` of per-point 3x3 weights."""
+    return float(np.einsum("pi,pij,pj->", dx, w, dx))

@@ -1,0 +1,236 @@
+"""Schur complement of the point unknowns: reduced camera system and back-substitution.
+
+Point unknowns are eliminated per point (3x3 blocks, vectorised over chunks of complete
+points); the reduced camera system (at most a few hundred unknowns) is Jacobi-scaled
+and solved densely by Cholesky; points are back-substituted. :class:`SchurMixin` is
+mixed into :class:`~planetref.adjust.solver.BundleSolver`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from planetref.adjust.linearization import _Layout, _Linearization
+from planetref.errors import AdjustmentError
+
+__all__ = ["SchurMixin"]
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class _TieChunk:
+    """Observations of a contiguous range of unknown points (complete points)."""
+
+    obs: NDArray[np.intp]  # positions in the linearisation's tie arrays
+    pt: NDArray[np.intp]  # local point index (0..n_pts-1) per observation
+    pts: NDArray[np.intp]  # global unknown-point indices of the chunk
+    pair_a: NDArray[np.intp]  # observation pairs within points (chunk-local)
+    pair_b: NDArray[np.intp]
+    starts: NDArray[np.intp]  # first observation of each point (chunk-local)
+
+
+@dataclass
+class _Structure:
+    lay: _Layout
+    unknown: NDArray[np.intp]  # network indices of the points whose XYZ are unknowns
+    tie_pos: NDArray[np.intp]  # per layout row: row in the tie arrays, or -1
+    chunks: list[_TieChunk]
+    n_tie: int
+
+
+class SchurMixin:
+    """Reduced normal equations of a :class:`~planetref.adjust.solver.BundleSolver`.
+
+    Uses the solver's ``net``, ``n_params``, ``cols``, ``cfg``, ``active``, ``prior_w``,
+    ``x0``, ``con_n``, ``point_prior_w`` and ``_unknown_ids``.
+    """
+
+    def _tie_structure(
+        self, obs: NDArray[np.intp], unknown_of_obs: NDArray[np.intp], n_unknown: int
+    ) -> tuple[NDArray[np.intp], list[_TieChunk], int]:
+        """Tie positions of observations and chunks of complete points with pairs."""
+        is_t = unknown_of_obs >= 0
+        t_obs = np.flatnonzero(is_t)
+        order = t_obs[np.argsort(unknown_of_obs[t_obs], kind="stable")]
+        tie_pos = np.full(len(obs), -1, np.intp)
+        tie_pos[order] = np.arange(len(order))
+        pt_sorted = unknown_of_obs[order]
+        chunks = []
+        if len(order):
+            counts = np.bincount(pt_sorted, minlength=n_unknown)
+            starts = np.concatenate([[0], np.cumsum(counts)])
+            target = max(self.cfg.chunk_size // 2, 1)
+            lo_pt = 0
+            while lo_pt < n_unknown:
+                hi_pt = int(np.searchsorted(starts, starts[lo_pt] + target, side="right")) - 1
+                hi_pt = max(min(hi_pt, n_unknown), lo_pt + 1)
+                a, b = int(starts[lo_pt]), int(starts[hi_pt])
+                if b > a:
+                    loc = pt_sorted[a:b] - lo_pt
+                    cnt = counts[lo_pt:hi_pt][loc]
+                    first = (starts[lo_pt:hi_pt] - a)[loc]
+                    pa = np.repeat(np.arange(b - a), cnt)
+                    within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+                    pb = np.repeat(first, cnt) + within
+                    chunks.append(
+                        _TieChunk(
+                            np.arange(a, b),
+                            loc,
+                            np.arange(lo_pt, hi_pt),
+                            pa,
+                            pb,
+                            (starts[lo_pt:hi_pt] - a).astype(np.intp),
+                        )
+                    )
+                lo_pt = hi_pt
+        return tie_pos, chunks, len(order)
+
+    def _reduced(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        lam: float,
+        c: F64,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+    ) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
+        """Reduced camera system ``(S, rhs, D_c)`` and per-chunk point blocks."""
+        p = self.n_params
+        s_mat = lin.n_cc.copy()
+        diag = np.arange(p)
+        s_mat[diag, diag] += self.prior_w
+        grad = lin.g_c.copy()
+        grad[:p] += self.prior_w * (c - self.x0)
+        if self.con_n is not None:
+            s_mat[:p, :p] += self.con_n
+            grad[:p] += self.con_n @ (c - self.x0)
+        d_c = s_mat[diag, diag].copy()
+        if lam:
+            s_mat[diag, diag] += lam * d_c
+        rhs = -grad
+        blocks = []
+        n_pat = len(self.cols)
+        for ch in chunks:
+            a = lin.a_t[ch.obs]
+            b = lin.b_t[ch.obs]
+            we = lin.weight_t[ch.obs]
+            r = lin.r_t[ch.obs]
+            wb = b * we[:, :, None]
+            # Observations are sorted by point: per-point sums are segment reductions.
+            v = np.add.reduceat(
+                b[:, 0, :, None] * wb[:, 0, None, :] + b[:, 1, :, None] * wb[:, 1, None, :],
+                ch.starts,
+                axis=0,
+            )
+            gx = np.add.reduceat(
+                wb[:, 0] * r[:, 0, None] + wb[:, 1] * r[:, 1, None], ch.starts, axis=0
+            )
+            gpts = unknown[ch.pts]
+            pw = self.point_prior_w[gpts]
+            v += pw
+            gx += np.einsum("pij,pj->pi", pw, xyz[gpts] - xyz0[gpts])
+            d_x = v[:, [0, 1, 2], [0, 1, 2]].copy()
+            if lam:
+                v[:, [0, 1, 2], [0, 1, 2]] += lam * d_x
+            try:
+                vinv = np.linalg.inv(v)
+                chol = np.linalg.cholesky(0.5 * (vinv + np.transpose(vinv, (0, 2, 1))))
+            except np.linalg.LinAlgError:
+                bad = _first_singular(v)
+                raise AdjustmentError(
+                    f"point {self.net.point_ids[self._unknown_ids[gpts[bad]]]!r}: its "
+                    f"coordinates are not determined by its observations (rays parallel or "
+                    f"too few); give it an a-priori sigma or remove it"
+                ) from None
+            # y = A^T W B per observation, (m, q, 3); z = y L with L L^T = V^-1.
+            y = a[:, 0, :, None] * wb[:, 0, None, :] + a[:, 1, :, None] * wb[:, 1, None, :]
+            z = np.matmul(y, chol[ch.pt])
+            bx = -gx
+            vb = np.matmul(vinv, bx[:, :, None])[:, :, 0]
+            contrib = np.matmul(y, vb[ch.pt][:, :, None])[:, :, 0]
+            gcols = self.cols[lin.gpat_t[ch.obs]]
+            rhs_full = np.bincount(gcols.ravel(), weights=contrib.ravel(), minlength=p + 1)
+            rhs = rhs - rhs_full
+            ga = lin.gpat_t[ch.obs][ch.pair_a]
+            gb = lin.gpat_t[ch.obs][ch.pair_b]
+            keep = ga <= gb
+            pa, pb, ga, gb = ch.pair_a[keep], ch.pair_b[keep], ga[keep], gb[keep]
+            key = ga.astype(np.int64) * n_pat + gb
+            order = np.argsort(key, kind="stable")
+            ks = key[order]
+            cut = np.flatnonzero(np.diff(ks)) + 1
+            for seg in np.split(order, cut):
+                if not seg.size:
+                    continue
+                ka, kb = int(ga[seg[0]]), int(gb[seg[0]])
+                blk = np.tensordot(z[pa[seg]], z[pb[seg]], axes=([0, 2], [0, 2]))
+                ca, cb = self.cols[ka], self.cols[kb]
+                s_mat[np.ix_(ca, cb)] -= blk
+                if ka != kb:
+                    s_mat[np.ix_(cb, ca)] -= blk.T
+            blocks.append((vinv, bx, d_x))
+            del y, z
+        return s_mat[:p, :p], rhs[:p], d_c, blocks
+
+    def _back_substitute(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        blocks: list[tuple[F64, F64, F64]],
+        delta_c: F64,
+        n_unknown: int,
+    ) -> tuple[F64, F64, F64]:
+        """Point steps ``dX = V^-1 (b_x - W^T dc)`` and their gradient/diagonal terms."""
+        dx = np.zeros((n_unknown, 3))
+        bx_all = np.zeros((n_unknown, 3))
+        dd_all = np.zeros((n_unknown, 3))
+        dc_pad = np.concatenate([delta_c, [0.0]])
+        for ch, (vinv, bx, d_x) in zip(chunks, blocks, strict=True):
+            a = lin.a_t[ch.obs]
+            b = lin.b_t[ch.obs]
+            we = lin.weight_t[ch.obs]
+            gcols = self.cols[lin.gpat_t[ch.obs]]
+            adc = np.matmul(a, dc_pad[gcols][:, :, None])[:, :, 0]  # A dc, (m, 2)
+            wb = b * we[:, :, None]
+            wtdc = np.add.reduceat(
+                wb[:, 0] * adc[:, 0, None] + wb[:, 1] * adc[:, 1, None], ch.starts, axis=0
+            )
+            dx[ch.pts] = np.matmul(vinv, (bx - wtdc)[:, :, None])[:, :, 0]
+            bx_all[ch.pts] = bx
+            dd_all[ch.pts] = d_x
+        return dx, bx_all, dd_all
+
+    def _solve_reduced(self, s_mat: F64, rhs: F64) -> tuple[F64, F64]:
+        """Step of the active parameters and their unit-weight sigmas ``sqrt(S^-1_ii)``."""
+        act = self.active
+        delta = np.zeros(self.n_params)
+        scale = np.full(self.n_params, np.inf)
+        if not act.size:
+            return delta, scale
+        sa = s_mat[np.ix_(act, act)]
+        d = np.sqrt(np.abs(np.diag(sa)))
+        d = np.where(d > 0, d, 1.0)
+        sh = sa / d[:, None] / d[None, :]
+        factor = scipy.linalg.cho_factor(sh, lower=False, check_finite=False)
+        delta[act] = scipy.linalg.cho_solve(factor, rhs[act] / d, check_finite=False) / d
+        # diag(S^-1) from the triangular factor: S^-1 = U^-1 U^-T, row norms of U^-1.
+        u_inv = scipy.linalg.solve_triangular(
+            factor[0], np.eye(len(act)), lower=False, check_finite=False
+        )
+        scale[act] = np.sqrt(np.einsum("ij,ij->i", u_inv, u_inv)) / d
+        return delta, scale
+
+
+def _first_singular(v: F64) -> int:
+    for i in range(len(v)):
+        try:
+            np.linalg.cholesky(v[i])
+        except np.linalg.LinAlgError:
+            return i
+    return 0

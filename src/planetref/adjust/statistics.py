@@ -1,0 +1,140 @@
+"""Rank check and a-posteriori statistics (sigma0, covariance, correlations) of a solution.
+
+:class:`StatisticsMixin` is mixed into :class:`~planetref.adjust.solver.BundleSolver`:
+after convergence ``sigma0 = sqrt(v^T P v / dof)``, camera covariance ``sigma0^2 S^-1``
+with ``S`` the undamped reduced matrix, correlations. A rank-deficient reduced system
+raises :class:`~planetref.errors.AdjustmentError` naming the parameters that the
+observations do not determine.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from planetref.adjust.linearization import _Linearization, _quadratic
+from planetref.adjust.schur import _TieChunk
+from planetref.errors import AdjustmentError
+
+__all__ = ["StatisticsMixin"]
+
+F64 = NDArray[np.float64]
+
+
+class StatisticsMixin:
+    """Rank check and statistics of a :class:`~planetref.adjust.solver.BundleSolver`.
+
+    Uses the solver's ``n_params``, ``active``, ``prior_w``, ``con_n``, ``con_w``,
+    ``names``, ``cfg``, ``point_prior_w``, ``point_prior_axis_w``, ``_reduced`` and
+    ``_prior_cost``.
+    """
+
+    def _check_rank(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        c: F64,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+        when: str,
+    ) -> None:
+        act = self.active
+        if not act.size:
+            return
+        # Parameters that no observation (and no prior) touches at all.
+        full_diag = np.diag(lin.n_cc)[: self.n_params][act] + self.prior_w[act]
+        if self.con_n is not None:
+            full_diag = full_diag + np.diag(self.con_n)[act]
+        zero = np.flatnonzero(~(full_diag > 0))
+        if zero.size:
+            names = [self.names[act[i]] for i in zero[:8]]
+            raise AdjustmentError(
+                f"{zero.size} parameter(s) have no observations at all ({when} cameras): "
+                f"{', '.join(names)}{' ...' if zero.size > 8 else ''}; fix them or give them "
+                f"an a-priori sigma"
+            )
+        s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
+        sa = s_mat[np.ix_(act, act)]
+        # Scaled by the diagonal before the point elimination: a parameter that the
+        # points absorb entirely (a datum defect) shows up as a (near-)zero eigenvalue.
+        d = np.sqrt(full_diag)
+        sh = sa / d[:, None] / d[None, :]
+        ev, vec = np.linalg.eigh(0.5 * (sh + sh.T))
+        rcond = max(ev[0], 0.0) / ev[-1] if ev[-1] > 0 else 0.0
+        if not rcond > self.cfg.min_rcond:
+            weights = np.abs(vec[:, 0])
+            top = np.argsort(weights)[::-1][:6]
+            names = [f"{self.names[act[i]]} ({weights[i]:.2f})" for i in top if weights[i] > 0.05]
+            raise AdjustmentError(
+                f"the reduced normal matrix is singular (reciprocal condition "
+                f"{rcond:.2g} < {self.cfg.min_rcond:g}, {when} cameras): the observations do "
+                f"not determine a combination of {', '.join(names)}; fix or weight these "
+                f"parameters (e.g. a datum: a fixed camera or control points)"
+            )
+
+    def _statistics(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        c: F64,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+    ) -> dict[str, object]:
+        p = self.n_params
+        s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
+        act = self.active
+        # v^T P v with the final (robust) weights, plus the pseudo-observations.
+        vtpv = float(np.sum(lin.weight * np.where(lin.valid[:, None], lin.r, 0.0) ** 2))
+        vtpv += 2.0 * self._prior_cost(c)
+        n_prior = int(np.count_nonzero(self.prior_w)) + len(self.con_w)
+        if len(unknown):
+            dx = xyz[unknown] - xyz0[unknown]
+            vtpv += _quadratic(self.point_prior_w[unknown], dx)
+            n_prior += int(np.count_nonzero(self.point_prior_axis_w[unknown]))
+        n_obs = 2 * int(np.count_nonzero(lin.valid))
+        n_unk = len(act) + 3 * len(unknown)
+        dof = n_obs + n_prior - n_unk
+        if dof <= 0:
+            raise AdjustmentError(
+                f"no redundancy: {n_obs // 2} observations ({n_obs} equations) and {n_prior} "
+                f"a-priori constraints for {n_unk} unknowns; add observations or fix "
+                f"parameters"
+            )
+        sigma0 = math.sqrt(vtpv / dof)
+        cov = np.zeros((p, p))
+        cofactor = np.zeros((p, p))
+        if act.size:
+            sa = s_mat[np.ix_(act, act)]
+            d = np.sqrt(np.abs(np.diag(sa)))
+            d = np.where(d > 0, d, 1.0)
+            sh = sa / d[:, None] / d[None, :]
+            try:
+                factor = scipy.linalg.cho_factor(sh, lower=False, check_finite=False)
+                inv = scipy.linalg.cho_solve(factor, np.eye(len(act)), check_finite=False)
+            except np.linalg.LinAlgError:
+                self._check_rank(lin, chunks, c, xyz, xyz0, unknown, "adjusted")
+                raise AdjustmentError(
+                    "the reduced normal matrix is not positive definite at the solution"
+                ) from None
+            cofactor[np.ix_(act, act)] = inv / d[:, None] / d[None, :]
+            cov = sigma0**2 * cofactor
+        sig = np.sqrt(np.diag(cov))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = cov / sig[:, None] / sig[None, :]
+        corr[~np.isfinite(corr)] = 0.0
+        return {
+            "sigma0": sigma0,
+            "dof": dof,
+            "vtpv": vtpv,
+            "covariance": cov,
+            "cofactor": cofactor,
+            "sigma": sig,
+            "correlation": corr,
+            "n_unknowns": n_unk,
+            "n_equations": n_obs + n_prior,
+        }
