@@ -80,6 +80,11 @@ print(json.dumps({
     "preset": preset, "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": peak_mb,
     "worker_peak_rss_mb": child_mb, "tree_peak_pss_mb": peak[0], "cpu_workers_s": cpu_workers,
     "n_lines": cfg.camera.n_lines, "processes": cfg.render.processes,
+    "n_ccds": cfg.camera.n_ccds, "n_strips": len(cfg.strips),
+    "lines_per_s": cfg.camera.n_lines * cfg.camera.n_ccds * len(cfg.strips) / wall,
+    "render_lines_per_s": (
+        cfg.camera.n_lines * cfg.camera.n_ccds * len(cfg.strips) / res.timings_s["render"]
+    ),
     "pixels": pixels, "stages_s": res.timings_s,
     "initial_error_rms_m": e["initial_errors"]["ground_m"]["horizontal"]["rms"],
     "initial_error_max_m": e["initial_errors"]["ground_m"]["horizontal"]["max"],
@@ -151,6 +156,7 @@ def _print(preset: str, r: dict[str, object]) -> None:
     print(
         f"{preset:12s} {r['n_lines']} lines, {r['processes']} process(es): "
         f"wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:7.1f} s "
+        f"({r['lines_per_s']:.1f} CCD lines/s overall, {r['render_lines_per_s']:.1f} rendering) "
         f"(+ workers {r['cpu_workers_s']:.1f} s)  "
         f"peak RSS {r['peak_rss_mb']:7.0f} MB (workers {r['worker_peak_rss_mb']:.0f}), "
         f"tree PSS {r['tree_peak_pss_mb']:7.0f} MB  "

@@ -16,8 +16,17 @@ Geolocation error (where the true camera is known)
 --------------------------------------------------
 For a grid of image pixels, the ground point that the true camera sees on the terrain
 is compared with the adjusted camera: in metres, the distance between the two cameras'
-terrain intersections of the same pixel; in pixels, the distance between the pixel and
-the adjusted camera's projection of the true ground point.
+terrain intersections of the same pixel; in pixels, that ground displacement expressed
+in the true camera's pixel footprint at that pixel (the local affine map of image to
+ground, from the true camera's intersections half a pixel either side along the line and
+the sample direction, all inside the image).
+
+The pixel figure is not the adjusted camera's projection of the true ground point: a
+badly adjusted camera (free or extrapolated orientation nodes at a strip end) can have a
+second, spurious solution of the line equation far outside the image, and a projection
+landing there reported ~1400 px where the ground points were 25 m (10 px) apart. The
+footprint conversion evaluates both cameras only at pixels inside the image, so
+``rms_px`` is ``rms_m`` in units of the local true GSD.
 """
 
 from __future__ import annotations
@@ -30,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from planetref.errors import InputError
 
-__all__ = ["geolocation_error", "image_grid", "reprojection_metrics"]
+__all__ = ["geolocation_error", "ground_offset_px", "image_grid", "reprojection_metrics"]
 
 F64 = NDArray[np.float64]
 
@@ -127,9 +136,9 @@ def geolocation_error(
 
     Returns:
         ``{"rms_m", "max_m", "rms_px", "max_px", "n"}``: metres between the two cameras'
-        terrain intersections of each pixel, and pixels between each pixel and the
-        adjusted camera's projection of the true ground point; ``n`` grid points used
-        (those whose rays hit the terrain in both cameras).
+        terrain intersections of each pixel, and that displacement in the true camera's
+        pixels (:func:`ground_offset_px`); ``n`` grid points used (those whose rays hit
+        the terrain in both cameras).
     """
     if len(grid) == 2 and np.ndim(grid[0]) == 0:
         line, sample = image_grid(camera_true, ccd, (int(grid[0]), int(grid[1])))
@@ -140,8 +149,7 @@ def geolocation_error(
     est = camera_adjusted.image_to_ground(line, sample, terrain, ccd=ccd, on_miss="nan")
     ok = np.all(np.isfinite(truth), axis=1) & np.all(np.isfinite(est), axis=1)
     dist_m = np.linalg.norm(est[ok] - truth[ok], axis=1)
-    ip = camera_adjusted.ground_to_image(truth[ok], ccd=ccd)
-    dpx = np.hypot(ip.line - line[ok], ip.sample - sample[ok])
+    dpx = ground_offset_px(camera_true, line[ok], sample[ok], est[ok] - truth[ok], ccd, terrain)
     dpx = dpx[np.isfinite(dpx)]
     nan = float("nan")
     return {
@@ -151,3 +159,48 @@ def geolocation_error(
         "max_px": float(np.max(dpx)) if dpx.size else nan,
         "n": int(np.count_nonzero(ok)),
     }
+
+
+def ground_offset_px(
+    camera: Any, line: F64, sample: F64, offset_m: F64, ccd: str | None, terrain: Any
+) -> F64:
+    """Length in pixels of ground displacements, in a camera's local pixel footprint.
+
+    At each pixel ``(line, sample)`` the camera's terrain intersections half a pixel
+    before and after along each image axis (clipped to the image, so the camera is never
+    evaluated outside it) give the local ground vectors of one line and one sample; the
+    displacement is solved in that basis by least squares (its component off the local
+    ground surface is ignored).
+
+    Args:
+        camera: The reference (true) camera.
+        line: Line coordinates, ``(N,)``.
+        sample: Sample coordinates, ``(N,)``.
+        offset_m: Body-fixed ground displacements at those pixels, ``(N, 3)`` metres.
+        ccd: CCD name.
+        terrain: Height or terrain, as for ``image_to_ground``.
+
+    Returns:
+        ``(N,)`` lengths in pixels (NaN where an intersection missed).
+    """
+    n_lines, n_samples = camera.image_size(ccd)
+    line = np.asarray(line, np.float64)
+    sample = np.asarray(sample, np.float64)
+    l0, l1 = np.clip(line - 0.5, 0.0, n_lines), np.clip(line + 0.5, 0.0, n_lines)
+    s0, s1 = np.clip(sample - 0.5, 0.0, n_samples), np.clip(sample + 0.5, 0.0, n_samples)
+    lines = np.concatenate([l0, l1, line, line])
+    samples = np.concatenate([sample, sample, s0, s1])
+    g = camera.image_to_ground(lines, samples, terrain, ccd=ccd, on_miss="nan").reshape(4, -1, 3)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d_line = (g[1] - g[0]) / (l1 - l0)[:, None]
+        d_sample = (g[3] - g[2]) / (s1 - s0)[:, None]
+    basis = np.stack([d_line, d_sample], axis=-1)  # (N, 3, 2): metres per pixel
+    out = np.full(len(line), np.nan)
+    good = np.all(np.isfinite(basis), axis=(1, 2)) & np.all(np.isfinite(offset_m), axis=1)
+    if np.any(good):
+        b = basis[good]
+        normal = np.einsum("nki,nkj->nij", b, b)
+        rhs = np.einsum("nki,nk->ni", b, np.asarray(offset_m, np.float64)[good])
+        uv = np.linalg.solve(normal, rhs[..., None])[..., 0]
+        out[good] = np.hypot(uv[:, 0], uv[:, 1])
+    return out
