@@ -280,6 +280,41 @@ def _true_ccds(
     return tuple(out), facts
 
 
+def _lens_distortion(
+    nominal: tuple[CcdGeometry, ...],
+    ccds: tuple[CcdGeometry, ...],
+    cfg: TruthMismatchConfig,
+    rng: np.random.Generator,
+) -> tuple[tuple[CcdGeometry, ...], dict[str, float]]:
+    """The truth's lens distortion (see :class:`TruthMismatchConfig`) on every CCD.
+
+    The decentering direction is drawn last from ``rng`` (only when decentering is on),
+    so turning distortion on does not change the other draws.
+    """
+    if cfg.radial_k1_px == 0.0 and cfg.radial_k2_px == 0.0 and cfg.decentering_px == 0.0:
+        return ccds, {}
+    ends = [c.focal_plane(np.array([0.0, float(c.n_samples)])) for c in nominal]
+    r_max = max(float(np.max(np.hypot(x, y))) for x, y in ends)
+    pitch = nominal[0].pixel_pitch_mm
+    a = float(rng.uniform(0.0, 2.0 * np.pi)) if cfg.decentering_px > 0.0 else 0.0
+    dec = cfg.decentering_px * pitch / (3.0 * r_max**2)  # 3 p r^2 at the row's end
+    coeffs = (
+        cfg.radial_k1_px * pitch / r_max**3,
+        cfg.radial_k2_px * pitch / r_max**5,
+        dec * math.cos(a),
+        dec * math.sin(a),
+    )
+    lens = {
+        "k1_per_mm2": coeffs[0],
+        "k2_per_mm4": coeffs[1],
+        "p1_per_mm": coeffs[2],
+        "p2_per_mm": coeffs[3],
+        "field_edge_mm": r_max,
+        "decentering_direction_rad": a,
+    }
+    return tuple(replace(c, distortion=coeffs) for c in ccds), lens
+
+
 def build_strip_cameras(
     cfg: SimulationConfig,
     strip: StripConfig,
@@ -361,6 +396,7 @@ def build_strip_cameras(
     osc = oscillation(t_truth)
     truth_nodes = nodes_for(t_lines, jitter_angles(t_truth) + osc[:, 3:], osc[:, :3], true_rates)
     true_ccds, ccd_facts = _true_ccds(ccds, mm, mrng)
+    true_ccds, lens = _lens_distortion(ccds, true_ccds, mm, mrng)
     truth = LineScanCamera(
         ellipsoid=MARS_IAU2015_SPHERE,
         frame_rotation=r0,
@@ -420,5 +456,6 @@ def build_strip_cameras(
             "oscillation_period_s": osc_period,
             "true_line_period_s": true_period,
             "nominal_line_period_s": period,
+            "lens": lens,
         },
     )

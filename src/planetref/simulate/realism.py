@@ -49,8 +49,15 @@ class TruthMismatchConfig(_Model):
     1e-6``. The true trajectory adds, to position and attitude in the orbit frame,
     ``amplitude * sin(2 pi t / oscillation_period_s + phase)`` per axis (random phases).
 
-    The native camera file has no lens-distortion term, so the non-linear part of a
-    distortion (curvature of each CCD's image in the focal plane) is not simulated.
+    Non-linear lens distortion (Brown-Conrady radial ``k1``, ``k2`` and decentering
+    ``p1``, ``p2``, :mod:`planetref.camera.linescan.lens`, about the optical axis) is
+    given by its displacement at the field edge ``r_max`` (the focal-plane point of the
+    CCD row farthest from the axis): ``k1 = radial_k1_px * pitch / r_max^3``,
+    ``k2 = radial_k2_px * pitch / r_max^5`` (signed: negative is barrel), and
+    ``(p1, p2) = decentering_px * pitch / (3 r_max^2) * (cos a, sin a)`` with a random
+    direction ``a`` (at most ``decentering_px`` at the field edge). Along the CCD row this stretches the image non-linearly (radial)
+    and bows it along track (decentering). Only the truth carries it (its camera file
+    has the coefficients per CCD); the estimated model has no distortion term.
 
     Attributes:
         ccd_offset_px: RMS focal-plane offset of each CCD (pixels, per axis).
@@ -61,6 +68,9 @@ class TruthMismatchConfig(_Model):
         attitude_oscillation_urad: (roll, pitch, yaw) amplitudes (µrad).
         oscillation_period_s: Period of the oscillation (s); ``None`` takes a third
             of the strip's duration.
+        radial_k1_px: Displacement of the cubic radial term at the field edge (px).
+        radial_k2_px: Displacement of the quintic radial term at the field edge (px).
+        decentering_px: Displacement of the decentering terms at the field edge (px).
     """
 
     ccd_offset_px: float = Field(default=0.0, ge=0.0)
@@ -70,6 +80,9 @@ class TruthMismatchConfig(_Model):
     position_oscillation_m: Vec3 = (0.0, 0.0, 0.0)
     attitude_oscillation_urad: Vec3 = (0.0, 0.0, 0.0)
     oscillation_period_s: float | None = Field(default=None, gt=0.0)
+    radial_k1_px: float = Field(default=0.0, ge=-20.0, le=20.0)
+    radial_k2_px: float = Field(default=0.0, ge=-20.0, le=20.0)
+    decentering_px: float = Field(default=0.0, ge=0.0, le=20.0)
 
 
 class MosaicConfig(_Model):

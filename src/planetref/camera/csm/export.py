@@ -95,8 +95,13 @@ def linescan_to_isd(
         The ISD (see the module's conventions).
 
     Raises:
-        InputError: Unknown CCD or bad sampling arguments.
+        InputError: Unknown CCD, bad sampling arguments, or a CCD with lens distortion
+            (a simulation truth; the export writes a distortion-free ISD).
     """
+    if any(camera.ccd(ccd).distortion):
+        raise InputError(
+            f"CCD {camera.ccd(ccd).name} has lens distortion; the CSM export does not carry it"
+        )
     if not (lines_per_sample > 0 and math.isfinite(lines_per_sample)) or not margin_lines >= 0:
         raise InputError(
             f"lines_per_sample must be > 0 and margin_lines >= 0, got {lines_per_sample}, "

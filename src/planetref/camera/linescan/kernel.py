@@ -34,6 +34,10 @@ Partials of the projection follow from the implicit-function theorem:
 ``dline/dq = -(d offset/dq) / (d offset/dline)`` and
 ``dsample/dq = d sample/dq + (d sample/dline) dline/dq``; rows of every output partial
 are ``(line, sample)``.
+
+A CCD with lens distortion (simulation truths only, :mod:`~planetref.camera.linescan.lens`)
+maps the ideal ``(x, y)`` to its detector position before the placement; the offset and
+sample are exact, the partials ignore the distortion's Jacobian (relative error ~1e-3).
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.camera.linescan.lens import detector_position
 from planetref.geometry.lagrange import LagrangeWindows
 from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
 from planetref.geometry.rotations import rotate_to_camera
@@ -196,8 +201,12 @@ class LineScanKernel:
             inv_w = 1.0 / cf.w
         xn, yn = cf.u * inv_w, cf.v * inv_w
         sa, ca, pitch = math.sin(ccd.angle_rad), math.cos(ccd.angle_rad), ccd.pixel_pitch_mm
-        dx = x0 - f * xn - ccd.x_mm
-        dy = y0 - f * yn - ccd.y_mm
+        if any(ccd.distortion):
+            xd, yd = detector_position(x0 - f * xn, y0 - f * yn, ccd.distortion)
+            dx, dy = xd - ccd.x_mm, yd - ccd.y_mm
+        else:
+            dx = x0 - f * xn - ccd.x_mm
+            dy = y0 - f * yn - ccd.y_mm
         samp = (dx * sa + dy * ca) / pitch
         off = (dx * ca - dy * sa) / pitch
         if not full or cf.jacobian is None or deo_dt is None:

@@ -25,6 +25,11 @@ Model
   sample-0 edge sits at ``(x_mm, y_mm)`` in the focal plane, rotated by ``angle_rad``
   from the y axis: sample ``s`` is at ``(x_mm + s p sin a, y_mm + s p cos a)``. Several
   CCDs (HiRIC's three TDI arrays) share one EO and IO.
+* **Lens distortion (optional, simulation truths).** A CCD may carry Brown-Conrady
+  coefficients ``distortion = (k1, k2, p1, p2)`` (:mod:`~planetref.camera.linescan.lens`):
+  its pixels then see along the rays of their ideal positions ``(x, y) + D(x, y)``. The
+  estimated (adjusted) model has none; partials of a distorted camera ignore the
+  distortion's Jacobian (relative error ~1e-3), projections are exact.
 
 Image coordinates are ``(line, sample)`` with the first pixel's centre at ``(0.5, 0.5)``,
 as everywhere in planetref.
@@ -45,6 +50,7 @@ from numpy.typing import ArrayLike, NDArray
 from planetref.atomic import write_json_atomic
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.linescan.kernel import RAW_COLUMNS, LineScanKernel
+from planetref.camera.linescan.lens import NO_DISTORTION, ideal_position
 from planetref.errors import GeometryError, InputError
 from planetref.geometry.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
 from planetref.geometry.rotations import rotation_matrix
@@ -171,6 +177,8 @@ class CcdGeometry:
         x_mm: Along-track focal-plane coordinate of the sample-0 edge (mm).
         y_mm: Across-track focal-plane coordinate of the sample-0 edge (mm).
         angle_rad: Rotation of the array from the focal plane's y axis (radians).
+        distortion: Lens distortion ``(k1, k2, p1, p2)`` seen by this CCD (mm^-2,
+            mm^-4, mm^-1, mm^-1; :mod:`~planetref.camera.linescan.lens`); zeros: none.
     """
 
     name: str
@@ -180,6 +188,7 @@ class CcdGeometry:
     x_mm: float
     y_mm: float
     angle_rad: float = 0.0
+    distortion: tuple[float, float, float, float] = NO_DISTORTION
 
     def __post_init__(self) -> None:
         where = f"ccds[{self.name}]"
@@ -193,13 +202,20 @@ class CcdGeometry:
         for name in ("pixel_pitch_mm", "x_mm", "y_mm", "angle_rad"):
             if not math.isfinite(getattr(self, name)):
                 raise InputError(f"{name} must be finite", field=where)
+        if len(self.distortion) != 4 or not all(math.isfinite(v) for v in self.distortion):
+            raise InputError("distortion must be 4 finite numbers (k1, k2, p1, p2)", field=where)
         if self.pixel_pitch_mm <= 0:
             raise InputError(f"pixel_pitch_mm must be > 0, got {self.pixel_pitch_mm}", field=where)
 
     def focal_plane(self, sample: ArrayLike) -> tuple[F64, F64]:
-        """Focal-plane ``(x, y)`` in mm of sample coordinates on the array."""
+        """Focal-plane ``(x, y)`` in mm of sample coordinates on the array.
+
+        With lens distortion, the ideal position (whose ray the pixel sees).
+        """
         s = np.asarray(sample, dtype=np.float64) * self.pixel_pitch_mm
-        return (self.x_mm + s * math.sin(self.angle_rad), self.y_mm + s * math.cos(self.angle_rad))
+        x = self.x_mm + s * math.sin(self.angle_rad)
+        y = self.y_mm + s * math.cos(self.angle_rad)
+        return ideal_position(x, y, self.distortion)
 
 
 # ----------------------------------------------------------------- partials
@@ -555,6 +571,7 @@ class LineScanCamera:
                     "x_mm": c.x_mm,
                     "y_mm": c.y_mm,
                     "angle_rad": c.angle_rad,
+                    **({"distortion": list(c.distortion)} if any(c.distortion) else {}),
                 }
                 for c in self.ccds
             ],

@@ -57,6 +57,9 @@ class CcdDoc(_Model):
     x_mm: FiniteFloat
     y_mm: FiniteFloat
     angle_rad: FiniteFloat = 0.0
+    distortion: Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)] = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0, 0.0]
+    )
 
 
 class CameraDoc(_Model):
@@ -125,7 +128,14 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
             ),
             ccds=tuple(
                 CcdGeometry(
-                    c.name, c.n_lines, c.n_samples, c.pixel_pitch_mm, c.x_mm, c.y_mm, c.angle_rad
+                    c.name,
+                    c.n_lines,
+                    c.n_samples,
+                    c.pixel_pitch_mm,
+                    c.x_mm,
+                    c.y_mm,
+                    c.angle_rad,
+                    (c.distortion[0], c.distortion[1], c.distortion[2], c.distortion[3]),
                 )
                 for c in m.ccds
             ),
