@@ -47,17 +47,36 @@ def ideal_position(x: F64, y: F64, coeffs: tuple[float, float, float, float]) ->
 
 
 def detector_position(
-    xi: F64, yi: F64, coeffs: tuple[float, float, float, float], iterations: int = 8
+    xi: F64,
+    yi: F64,
+    coeffs: tuple[float, float, float, float],
+    r_clip: float,
+    iterations: int = 8,
 ) -> tuple[F64, F64]:
     """Detector position whose ideal position is ``(xi, yi)`` (mm): the inverse.
 
-    Fixed-point iteration ``x <- xi - D(x)``; it contracts by ``|dD/dx|`` (about 1e-3
-    for pixel-sized displacements across a 10 mm field), so 8 iterations reach 1e-20 mm.
+    Fixed-point iteration ``x <- xi - D(c(x))``, where ``c`` pulls points beyond
+    ``r_clip`` from the axis radially back onto that circle: inside it (where the CCDs
+    are) this is the exact inverse of :func:`ideal_position`; far outside, where the
+    polynomial means nothing and would grow without bound, the displacement stays that of
+    the circle, so a line search over the whole strip sees a smooth, monotonic offset.
+    The iteration contracts by ``|dD/dx|`` (about 1e-3 for pixel-sized displacements
+    across the field): 8 iterations reach 1e-20 mm.
+
+    Args:
+        xi: Ideal x (mm).
+        yi: Ideal y (mm).
+        coeffs: ``(k1, k2, p1, p2)``.
+        r_clip: Radius (mm) beyond which the displacement is held constant radially.
+        iterations: Fixed-point iterations.
     """
     if not any(coeffs):
         return xi, yi
     x, y = xi, yi
     for _ in range(iterations):
-        dx, dy = displacement(x, y, coeffs)
+        r = np.hypot(x, y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shrink = np.where(r > r_clip, r_clip / r, 1.0)
+        dx, dy = displacement(x * shrink, y * shrink, coeffs)
         x, y = xi - dx, yi - dy
     return x, y

@@ -207,6 +207,15 @@ class CcdGeometry:
         if self.pixel_pitch_mm <= 0:
             raise InputError(f"pixel_pitch_mm must be > 0, got {self.pixel_pitch_mm}", field=where)
 
+    @property
+    def lens_clip_mm(self) -> float:
+        """Radius (mm) within which the distortion's inverse is exact: 1.5 x the array's
+        farthest end from the optical axis (see :func:`~.lens.detector_position`)."""
+        length = self.n_samples * self.pixel_pitch_mm
+        x1 = self.x_mm + length * math.sin(self.angle_rad)
+        y1 = self.y_mm + length * math.cos(self.angle_rad)
+        return 1.5 * max(math.hypot(self.x_mm, self.y_mm), math.hypot(x1, y1))
+
     def focal_plane(self, sample: ArrayLike) -> tuple[F64, F64]:
         """Focal-plane ``(x, y)`` in mm of sample coordinates on the array.
 
