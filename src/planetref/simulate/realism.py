@@ -55,8 +55,9 @@ class TruthMismatchConfig(_Model):
     CCD row farthest from the axis): ``k1 = radial_k1_px * pitch / r_max^3``,
     ``k2 = radial_k2_px * pitch / r_max^5`` (signed: negative is barrel), and
     ``(p1, p2) = decentering_px * pitch / (3 r_max^2) * (cos a, sin a)`` with a random
-    direction ``a`` (at most ``decentering_px`` at the field edge). Along the CCD row this stretches the image non-linearly (radial)
-    and bows it along track (decentering). Only the truth carries it (its camera file
+    direction ``a`` (at most ``decentering_px`` at the field edge). Along the CCD row
+    this stretches the image non-linearly (radial) and bows it along track
+    (decentering). Only the truth carries it (its camera file
     has the coefficients per CCD); the estimated model has no distortion term.
 
     Attributes:

@@ -202,9 +202,7 @@ class LineScanKernel:
         xn, yn = cf.u * inv_w, cf.v * inv_w
         sa, ca, pitch = math.sin(ccd.angle_rad), math.cos(ccd.angle_rad), ccd.pixel_pitch_mm
         if any(ccd.distortion):
-            xd, yd = detector_position(
-                x0 - f * xn, y0 - f * yn, ccd.distortion, ccd.lens_clip_mm
-            )
+            xd, yd = detector_position(x0 - f * xn, y0 - f * yn, ccd.distortion, ccd.lens_clip_mm)
             dx, dy = xd - ccd.x_mm, yd - ccd.y_mm
         else:
             dx = x0 - f * xn - ccd.x_mm

@@ -209,8 +209,11 @@ class CcdGeometry:
 
     @property
     def lens_clip_mm(self) -> float:
-        """Radius (mm) within which the distortion's inverse is exact: 1.5 x the array's
-        farthest end from the optical axis (see :func:`~.lens.detector_position`)."""
+        """Radius (mm) within which the distortion's inverse is exact.
+
+        1.5 x the array's farthest end from the optical axis
+        (see :func:`~planetref.camera.linescan.lens.detector_position`).
+        """
         length = self.n_samples * self.pixel_pitch_mm
         x1 = self.x_mm + length * math.sin(self.angle_rad)
         y1 = self.y_mm + length * math.cos(self.angle_rad)
