@@ -70,6 +70,9 @@ NO_MISMATCH = {
     "line_rate_error_ppm": 0.0,
     "position_oscillation_m": [0.0, 0.0, 0.0],
     "attitude_oscillation_urad": [0.0, 0.0, 0.0],
+    "radial_k1_px": 0.0,
+    "radial_k2_px": 0.0,
+    "decentering_px": 0.0,
 }
 
 

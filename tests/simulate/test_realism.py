@@ -42,8 +42,14 @@ def test_truth_is_not_representable_by_the_initial_model(preset: str, difficulty
 
 
 def test_truth_ccd_placement_is_what_the_metadata_says(mini_config) -> None:  # type: ignore[no-untyped-def]
+    no_lens = {"radial_k1_px": 0.0, "radial_k2_px": 0.0, "decentering_px": 0.0}
     cfg = mini_config(
-        truth_mismatch={"ccd_offset_px": 3.0, "ccd_rotation_urad": 2000.0, "ccd_scale_ppm": 500.0}
+        truth_mismatch={
+            "ccd_offset_px": 3.0,
+            "ccd_rotation_urad": 2000.0,
+            "ccd_scale_ppm": 500.0,
+            **no_lens,
+        }
     )
     sc = _cameras(cfg)
     for nominal, true, fact in zip(
