@@ -36,8 +36,9 @@ Partials of the projection follow from the implicit-function theorem:
 are ``(line, sample)``.
 
 A CCD with lens distortion (simulation truths only, :mod:`~planetref.camera.linescan.lens`)
-maps the ideal ``(x, y)`` to its detector position before the placement; the offset and
-sample are exact, the partials ignore the distortion's Jacobian (relative error ~1e-3).
+maps the ideal ``(x, y)`` to its detector position before the placement (exact within
+:func:`~planetref.camera.linescan.lens.clip_radius_mm`): offset and sample are exact, the
+partials ignore the distortion's Jacobian (relative error ~1e-3).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.camera.linescan.lens import detector_position
+from planetref.camera.linescan.lens import clip_radius_mm, detector_position
 from planetref.geometry.lagrange import LagrangeWindows
 from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
 from planetref.geometry.rotations import rotate_to_camera
@@ -202,7 +203,10 @@ class LineScanKernel:
         xn, yn = cf.u * inv_w, cf.v * inv_w
         sa, ca, pitch = math.sin(ccd.angle_rad), math.cos(ccd.angle_rad), ccd.pixel_pitch_mm
         if any(ccd.distortion):
-            xd, yd = detector_position(x0 - f * xn, y0 - f * yn, ccd.distortion, ccd.lens_clip_mm)
+            r_clip = clip_radius_mm(
+                ccd.x_mm, ccd.y_mm, ccd.angle_rad, ccd.n_samples * ccd.pixel_pitch_mm
+            )
+            xd, yd = detector_position(x0 - f * xn, y0 - f * yn, ccd.distortion, r_clip)
             dx, dy = xd - ccd.x_mm, yd - ccd.y_mm
         else:
             dx = x0 - f * xn - ccd.x_mm

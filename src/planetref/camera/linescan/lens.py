@@ -17,10 +17,12 @@ detector, used when projecting ground points) is a fixed-point iteration, exact 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["NO_DISTORTION", "detector_position", "ideal_position"]
+__all__ = ["NO_DISTORTION", "clip_radius_mm", "detector_position", "ideal_position"]
 
 F64 = NDArray[np.float64]
 
@@ -44,6 +46,20 @@ def ideal_position(x: F64, y: F64, coeffs: tuple[float, float, float, float]) ->
         return x, y
     dx, dy = displacement(x, y, coeffs)
     return x + dx, y + dy
+
+
+def clip_radius_mm(x_mm: float, y_mm: float, angle_rad: float, length_mm: float) -> float:
+    """1.5 x the distance from the axis of a CCD row's farthest end (mm).
+
+    Args:
+        x_mm: Along-track position of the row's sample-0 edge (mm).
+        y_mm: Across-track position of that edge (mm).
+        angle_rad: Rotation of the row from the y axis (rad).
+        length_mm: Length of the row (mm).
+    """
+    x1 = x_mm + length_mm * math.sin(angle_rad)
+    y1 = y_mm + length_mm * math.cos(angle_rad)
+    return 1.5 * max(math.hypot(x_mm, y_mm), math.hypot(x1, y1))
 
 
 def detector_position(

@@ -26,10 +26,8 @@ Model
   from the y axis: sample ``s`` is at ``(x_mm + s p sin a, y_mm + s p cos a)``. Several
   CCDs (HiRIC's three TDI arrays) share one EO and IO.
 * **Lens distortion (optional, simulation truths).** A CCD may carry Brown-Conrady
-  coefficients ``distortion = (k1, k2, p1, p2)`` (:mod:`~planetref.camera.linescan.lens`):
-  its pixels then see along the rays of their ideal positions ``(x, y) + D(x, y)``. The
-  estimated (adjusted) model has none; partials of a distorted camera ignore the
-  distortion's Jacobian (relative error ~1e-3), projections are exact.
+  ``distortion = (k1, k2, p1, p2)`` (:mod:`~planetref.camera.linescan.lens`); the
+  estimated model has none.
 
 Image coordinates are ``(line, sample)`` with the first pixel's centre at ``(0.5, 0.5)``,
 as everywhere in planetref.
@@ -207,23 +205,8 @@ class CcdGeometry:
         if self.pixel_pitch_mm <= 0:
             raise InputError(f"pixel_pitch_mm must be > 0, got {self.pixel_pitch_mm}", field=where)
 
-    @property
-    def lens_clip_mm(self) -> float:
-        """Radius (mm) within which the distortion's inverse is exact.
-
-        1.5 x the array's farthest end from the optical axis
-        (see :func:`~planetref.camera.linescan.lens.detector_position`).
-        """
-        length = self.n_samples * self.pixel_pitch_mm
-        x1 = self.x_mm + length * math.sin(self.angle_rad)
-        y1 = self.y_mm + length * math.cos(self.angle_rad)
-        return 1.5 * max(math.hypot(self.x_mm, self.y_mm), math.hypot(x1, y1))
-
     def focal_plane(self, sample: ArrayLike) -> tuple[F64, F64]:
-        """Focal-plane ``(x, y)`` in mm of sample coordinates on the array.
-
-        With lens distortion, the ideal position (whose ray the pixel sees).
-        """
+        """Focal-plane ``(x, y)`` in mm of samples (with distortion: the ideal position)."""
         s = np.asarray(sample, dtype=np.float64) * self.pixel_pitch_mm
         x = self.x_mm + s * math.sin(self.angle_rad)
         y = self.y_mm + s * math.cos(self.angle_rad)
