@@ -25,6 +25,14 @@ prints ``{"n_obs", "planetref_s", "scipy_s", "speedup", "max_param_diff_sigma",
 planetref solve (before scipy runs); ``--no-scipy`` skips scipy (e.g. at 1e6).
 ``--n-tie K`` makes K of the points free tie points seen in the 16-pixel overlaps of
 neighbouring CCDs (2 observations each, eliminated by the Schur complement).
+
+The projection-and-partials kernel runs compiled (numba) when numba imports, else on
+numpy. ``kernel_compiled_s`` / ``kernel_numpy_s`` time one full evaluation (projection
+and partials of every observation from the observed lines, warm) with each, in the same
+run (``kernel_speedup``); ``--kernel numpy`` solves with the numpy kernel (the reference),
+``--kernel both`` solves with each and prints ``planetref_numpy_s`` and
+``speedup_compiled`` too. The first compiled call of a process loads the kernel from
+numba's on-disk cache (or compiles it once, a few seconds): ``jit_load_s``.
 """
 
 from __future__ import annotations
@@ -38,6 +46,7 @@ import time
 import numpy as np
 
 from planetref.adjust import Network, adjust
+from planetref.camera.linescan import compiled
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.geometry.geodesy import ray_ellipsoid_intersection
 
@@ -107,6 +116,38 @@ def build_problem(n_obs: int, seed: int, noise_px: float, n_nodes: int, n_tie: i
     return net, true
 
 
+def time_kernel(net: Network, use_compiled: bool, repeat: int = 2) -> float:
+    """Best-of-``repeat`` seconds of one projection-with-partials pass over every observation."""
+    cam = net.cameras[0]
+    kern = cam.kernel
+    poly = kern.eo_poly(cam.nodes)
+    io = cam.interior.as_array()
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for k, ccd in enumerate(cam.ccds):
+            sel = net.obs_ccd == k
+            p = net.point_xyz[net.obs_point[sel]]
+            kern.project_with_partials(
+                poly, io, ccd, p, net.obs_line[sel], None, use_compiled=use_compiled
+            )
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def solve(net: Network, use_compiled: bool) -> tuple[object, float]:
+    """``adjust`` with the compiled or the numpy kernel; returns the result and seconds."""
+    saved = compiled.available
+    if not use_compiled:
+        compiled.available = lambda: False  # the numpy reference
+    try:
+        t0 = time.perf_counter()
+        res = adjust(net, CONFIG)
+        return res, time.perf_counter() - t0
+    finally:
+        compiled.available = saved
+
+
 CONFIG = {
     "linescan": {
         "position": {"mode": "fixed"},
@@ -139,6 +180,12 @@ def main(argv: list[str] | None = None) -> int:
         default="both",
         help="residual/Jacobian source of the scipy runs",
     )
+    ap.add_argument(
+        "--kernel",
+        choices=["compiled", "numpy", "both"],
+        default="compiled",
+        help="projection kernel of the planetref solve (compiled falls back to numpy)",
+    )
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
@@ -147,8 +194,17 @@ def main(argv: list[str] | None = None) -> int:
     build_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    res = adjust(net, CONFIG)
-    planetref_s = time.perf_counter() - t0
+    has_jit = compiled.available() and compiled.warm_up()
+    jit_load_s = time.perf_counter() - t0
+    kernel_compiled_s = time_kernel(net, True) if has_jit else None
+    kernel_numpy_s = time_kernel(net, False)
+    planetref_numpy_s = None
+    if args.kernel in ("numpy", "both") or not has_jit:
+        res, planetref_numpy_s = solve(net, False)
+    if args.kernel != "numpy" and has_jit:
+        res, planetref_s = solve(net, True)
+    else:
+        planetref_s = planetref_numpy_s
     rss = peak_rss_mb()
     act = res.parameter_mode != 2
     true_x = np.concatenate([true.nodes.ravel(), true.interior.as_array()])
@@ -167,6 +223,19 @@ def main(argv: list[str] | None = None) -> int:
         "rmse_px_before": res.summary()["rmse_px_before"],
         "max_error_vs_truth_sigma": round(err_sigma, 3),
         "build_s": round(build_s, 3),
+        "compiled_kernel": has_jit,
+        "jit_load_s": round(jit_load_s, 3),
+        "kernel_compiled_s": None if kernel_compiled_s is None else round(kernel_compiled_s, 3),
+        "kernel_numpy_s": round(kernel_numpy_s, 3),
+        "kernel_speedup": (
+            None if kernel_compiled_s is None else round(kernel_numpy_s / kernel_compiled_s, 2)
+        ),
+        "planetref_numpy_s": None if planetref_numpy_s is None else round(planetref_numpy_s, 3),
+        "speedup_compiled": (
+            round(planetref_numpy_s / planetref_s, 2)
+            if planetref_numpy_s is not None and args.kernel == "both"
+            else None
+        ),
     }
     if not args.no_scipy:
         from planetref.adjust.reference import solve_with_scipy

@@ -205,7 +205,13 @@ def camera_shifts(
 def correlation_warnings(
     names: list[str], corr: F64, cfg: DiagnosticsConfig
 ) -> tuple[dict[str, Any], list[str]]:
-    """Pairs of parameters correlating beyond the threshold (count, largest)."""
+    """Pairs of parameters correlating beyond the threshold (count, largest).
+
+    The same attitude angle at two adjacent orientation nodes of a strip always
+    correlates highly (Lagrange interpolation couples neighbours; ~0.9999 is normal):
+    such pairs are counted and reported (``n_adjacent_node_pairs``) but do not raise
+    the warning, which is kept for pairs the observations should separate.
+    """
     c = np.abs(np.triu(np.asarray(corr), 1))
     if not c.size:
         return {"n_pairs_above": 0, "threshold": cfg.max_correlation}, []
@@ -215,11 +221,42 @@ def correlation_warnings(
         return info, []
     i, j = np.unravel_index(int(np.argmax(c)), c.shape)
     info["largest"] = [names[i], names[j], float(corr[i, j])]
+    expected = np.array([_adjacent_node_angles(names[a], names[b]) for a, b in above], bool)
+    info["n_adjacent_node_pairs"] = int(np.count_nonzero(expected))
+    other = above[~expected]
+    info["n_other_pairs"] = len(other)
+    if not len(other):
+        return info, []
+    k = int(np.argmax(c[other[:, 0], other[:, 1]]))
+    i, j = int(other[k, 0]), int(other[k, 1])
+    info["largest_other"] = [names[i], names[j], float(corr[i, j])]
+    excluded = (
+        f"; {info['n_adjacent_node_pairs']} pair(s) of the same angle at adjacent nodes, "
+        "expected with Lagrange interpolation, are not counted here"
+        if info["n_adjacent_node_pairs"]
+        else ""
+    )
     return info, [
-        f"{len(above)} parameter pair(s) correlate above {cfg.max_correlation:g} (largest: "
+        f"{len(other)} parameter pair(s) correlate above {cfg.max_correlation:g} (largest: "
         f"{names[i]} and {names[j]} at {corr[i, j]:.6f}): the observations hardly separate "
-        f"them; fix or weight one of them"
+        f"them; fix or weight one of them{excluded}"
     ]
+
+
+_NODE_PARAM = re.compile(r"^(?P<cam>.*):node(?P<node>\d+)\.(?P<param>\w+)$")
+
+
+def _adjacent_node_angles(a: str, b: str) -> bool:
+    """True for the same attitude angle of one camera at two adjacent nodes."""
+    ma, mb = _NODE_PARAM.match(a), _NODE_PARAM.match(b)
+    if ma is None or mb is None:
+        return False
+    return (
+        ma["cam"] == mb["cam"]
+        and ma["param"] == mb["param"]
+        and ma["param"] in ("phi", "omega", "kappa")
+        and abs(int(ma["node"]) - int(mb["node"])) == 1
+    )
 
 
 def _mean_height_direction(names: list[str], x0: F64, camera: str) -> F64 | None:

@@ -50,7 +50,7 @@ _VCE_FTOL = 1e-9
 #: Most LM iterations of one re-weighted adjustment.
 _VCE_MAX_LM = 8
 F64 = NDArray[np.float64]
-_PAIR_CHUNK = 4096
+_PAIR_CHUNK = 65536
 
 
 @dataclass
@@ -128,12 +128,11 @@ def redundancy(
         The :class:`Redundancy`.
     """
     net = solver.net
-    p = solver.n_params
     obs = np.asarray(obs, np.intp)
     n = len(obs)
     q = solver.q
     a_all = np.zeros((n, 2, q))
-    cols = np.full((n, q), p, np.intp)
+    gpat = np.zeros(n, np.intp)
     b_all = np.zeros((n, 2, 3))
     v_all = np.zeros((n, 2))
     for mi, ccd, pos in solver._groups(obs):
@@ -152,20 +151,19 @@ def redundancy(
             qm = ev.d_params.shape[2]
             ok = ev.valid
             a_all[sel, :, :qm] = np.where(ok[:, None, None], ev.d_params, 0.0)
-            cols[sel, :qm] = solver.cols[ev.pattern + solver.pat_offsets[mi], :qm]
+            gpat[sel] = ev.pattern + solver.pat_offsets[mi]
             b_all[sel] = np.where(ok[:, None, None], ev.d_ground, 0.0)
             v_all[sel, 0] = np.where(ok, ev.line - net.obs_line[o], 0.0)
             v_all[sel, 1] = np.where(ok, ev.sample - net.obs_sample[o], 0.0)
     w = solver.obs_w0[obs]
-    qp = np.zeros((p + 1, p + 1))
-    qp[:p, :p] = cofactor
+    pairs = _PairG(solver, a_all, gpat, cofactor)
     pt = net.obs_point[obs]
     unknown_pt = ~solver.point_fixed[pt]
     h = np.zeros((n, 2, 2))
     fixed = np.flatnonzero(~unknown_pt)
     for s0 in range(0, len(fixed), _PAIR_CHUNK):
         i = fixed[s0 : s0 + _PAIR_CHUNK]
-        h[i] = _pair_g(a_all, cols, qp, i, i)
+        h[i] = pairs(i, i)
     # Observations of unknown points, sorted by point.
     t = np.flatnonzero(unknown_pt)
     t = t[np.argsort(pt[t], kind="stable")]
@@ -188,7 +186,7 @@ def redundancy(
     umat = np.zeros((u, 3, 3))
     for s0 in range(0, len(pa), _PAIR_CHUNK):
         ia, ib = pa[s0 : s0 + _PAIR_CHUNK], pb[s0 : s0 + _PAIR_CHUNK]
-        g = _pair_g(a_all, cols, qp, t[ia], t[ib])  # (k, 2, 2)
+        g = pairs(t[ia], t[ib])  # (k, 2, 2)
         gc = np.matmul(g, np.transpose(cmat[ib], (0, 2, 1)))  # G_ik C_k^T, (k, 2, 3)
         np.add.at(tmat, ia, gc)
         np.add.at(umat, loc[ia], np.matmul(cmat[ia], gc))
@@ -243,12 +241,37 @@ def redundancy(
     )
 
 
-def _pair_g(
-    a: F64, cols: NDArray[np.intp], qp: F64, i: NDArray[np.intp], k: NDArray[np.intp]
-) -> F64:
-    """``G_ik = A_i Q A_k^T`` for pairs of observations, ``(len(i), 2, 2)``."""
-    qsub = qp[cols[i][:, :, None], cols[k][:, None, :]]
-    return np.matmul(np.matmul(a[i], qsub), np.transpose(a[k], (0, 2, 1)))
+class _PairG:
+    """``G_ik = A_i Q A_k^T`` for pairs of observations, grouped by their patterns.
+
+    Only a pattern's active columns enter (fixed parameters have zero cofactors), and
+    each pair of patterns takes one sub-matrix of ``Q``: no ``(n, q, q)`` gather.
+    """
+
+    def __init__(self, solver: BundleSolver, a: F64, gpat: NDArray[np.intp], q: F64) -> None:
+        self.solver, self.a, self.gpat, self.q = solver, a, gpat, q
+        self.n_pat = len(solver.cols)
+
+    def __call__(self, i: NDArray[np.intp], k: NDArray[np.intp]) -> F64:
+        out = np.zeros((len(i), 2, 2))
+        if not len(i):
+            return out
+        gi, gk = self.gpat[i], self.gpat[k]
+        key = gi.astype(np.int64) * self.n_pat + gk
+        order = np.argsort(key, kind="stable")
+        cut = np.flatnonzero(np.diff(key[order])) + 1
+        qw = self.a.shape[2]
+        for seg in np.split(order, cut):
+            loc_i, ci = self.solver._active_columns(int(gi[seg[0]]), qw)
+            loc_k, ck = self.solver._active_columns(int(gk[seg[0]]), qw)
+            if not (len(ci) and len(ck)):
+                continue
+            ai = self.a[i[seg]] if loc_i is None else self.a[i[seg]][:, :, loc_i]
+            ak = self.a[k[seg]] if loc_k is None else self.a[k[seg]][:, :, loc_k]
+            # One GEMM for the whole group, then the row-wise products with A_k.
+            aq = (ai.reshape(-1, len(ci)) @ self.q[np.ix_(ci, ck)]).reshape(len(seg), 2, -1)
+            out[seg] = np.einsum("mrb,msb->mrs", aq, ak)
+        return out
 
 
 # ------------------------------------------------------------------ groups and VCE

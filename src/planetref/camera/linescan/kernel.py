@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.camera.linescan import compiled
 from planetref.camera.linescan.lens import clip_radius_mm, detector_position
 from planetref.geometry.lagrange import LagrangeWindows
 from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
@@ -166,6 +167,47 @@ class LineScanKernel:
         self.line_lo = float(node_lines[0] - spacing[0])
         self.line_hi = float(node_lines[-1] + spacing[-1])
         self.r0 = np.ascontiguousarray(frame_rotation, dtype=np.float64)
+        starts, t0, period = line_rates._arrays
+        #: What the compiled kernel needs: line-rate rows, Lagrange tables, ``R0``.
+        self._tables = tuple(
+            np.ascontiguousarray(a, np.float64)
+            for a in (
+                starts,
+                t0,
+                period,
+                self.windows.times,
+                self.windows.centre,
+                self.windows.coef,
+                self.r0,
+            )
+        )
+
+    def _compiled(self, use: bool | None, ccd: CcdGeometry) -> bool:
+        """Whether to run the compiled kernel (``None``: when numba is available).
+
+        CCDs with lens distortion (simulation truths only) always run on numpy.
+        """
+        if any(ccd.distortion) or use is False:
+            return False
+        return compiled.available()
+
+    def _run_compiled(
+        self, poly: F64, io: F64, ccd: CcdGeometry, p: F64, line: F64, rate: F64 | None, full: bool
+    ) -> tuple[F64, ...]:
+        return compiled.project_points(
+            self._tables,
+            self.k,
+            (self.line_lo, self.line_hi),
+            poly,
+            io,
+            (ccd.x_mm, ccd.y_mm, ccd.angle_rad, ccd.pixel_pitch_mm),
+            p,
+            line,
+            rate,
+            full=full,
+            chord_tol=CHORD_TOL,
+            step_valid=STEP_VALID,
+        )
 
     # ------------------------------------------------------------------ evaluation
     def eo_poly(self, nodes: F64) -> F64:
@@ -329,9 +371,25 @@ class LineScanKernel:
         )
 
     def project(
-        self, poly: F64, io: F64, ccd: CcdGeometry, p: F64, line: F64, rate: F64 | None
+        self,
+        poly: F64,
+        io: F64,
+        ccd: CcdGeometry,
+        p: F64,
+        line: F64,
+        rate: F64 | None,
+        *,
+        use_compiled: bool | None = None,
     ) -> tuple[F64, F64, NDArray[np.bool_], F64]:
-        """Lines, samples, validity and rates from guesses, without partials."""
+        """Lines, samples, validity and rates from guesses, without partials.
+
+        ``use_compiled``: run the compiled twin (:mod:`~planetref.camera.linescan.
+        compiled`); ``None`` (default) when numba is available, ``False`` this numpy
+        reference.
+        """
+        if self._compiled(use_compiled, ccd):
+            ln, smp, ok, rt = self._run_compiled(poly, io, ccd, p, line, rate, False)
+            return ln, smp, ok, rt
         line, rate = self.converge(poly, io, ccd, p, line, rate)
         st = self.state(poly, io, ccd, p, line, full=False)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -342,9 +400,22 @@ class LineScanKernel:
         return line_out, st.sample, self._valid(line_out, st.sample, st.depth, step), rate
 
     def project_with_partials(
-        self, poly: F64, io: F64, ccd: CcdGeometry, p: F64, line: F64, rate: F64 | None
+        self,
+        poly: F64,
+        io: F64,
+        ccd: CcdGeometry,
+        p: F64,
+        line: F64,
+        rate: F64 | None,
+        *,
+        use_compiled: bool | None = None,
     ) -> Projection:
-        """Project from guesses and return every partial (see the module doc)."""
+        """Project from guesses and return every partial (see the module doc).
+
+        ``use_compiled``: as in :meth:`project`.
+        """
+        if self._compiled(use_compiled, ccd):
+            return Projection(*self._run_compiled(poly, io, ccd, p, line, rate, True))
         line, _ = self.converge(poly, io, ccd, p, line, rate)
         st = self.state(poly, io, ccd, p, line, full=True)
         raw, rate_, srate = st.raw, np.asarray(st.rate), np.asarray(st.srate)
