@@ -11,7 +11,7 @@ from adjust_synth import (
     true_strip,
 )
 
-from planetref.adjust import Network, adjust
+from planetref.adjust import Network, adjust, schur
 from planetref.adjust.reference import ScipyProblem
 from planetref.adjust.solver import BundleSolver, robust_rho
 from planetref.errors import AdjustmentError, InputError
@@ -190,7 +190,7 @@ def test_agrees_with_scipy_least_squares(ground_sigma):
 @pytest.mark.parametrize(
     ("tie_sigma", "pos_sigma", "tol"), [(30.0, 1.0, 1e-6), (np.inf, 100.0, 1e-3)]
 )
-def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol):
+def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol, monkeypatch):
     """One Gauss-Newton step through the Schur complement equals the dense solve.
 
     The second case is nearly singular (cond(J) ~ 3e11: tie-point depths along the 1 mm
@@ -243,6 +243,14 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol):
     s_mat, rhs, _, blocks = solver._reduced(lin, st.chunks, 0.0, solver.x0, xyz, xyz, st.unknown)
     dc, _ = solver._solve_reduced(s_mat, rhs)
     dx, _, _ = solver._back_substitute(lin, st.chunks, blocks, dc, len(st.unknown))
+    # The numpy point elimination (the reference of the compiled one, used when numba
+    # is available) gives the same step.
+    monkeypatch.setattr(schur, "_compiled", lambda: None)
+    s_np, rhs_np, _, blocks_np = solver._reduced(
+        lin, st.chunks, 0.0, solver.x0, xyz, xyz, st.unknown
+    )
+    dc_np, _ = solver._solve_reduced(s_np, rhs_np)
+    dx_np, _, _ = solver._back_substitute(lin, st.chunks, blocks_np, dc_np, len(st.unknown))
     # Dense: whitened Jacobian of every unknown (active cameras, then point XYZ).
     prob = ScipyProblem(net, cfg)
     x0 = prob.x0()
@@ -264,6 +272,9 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol):
         f"{sv[0] / sv[-1]:.2g}"
     )
     assert err.max() < tol
+    err_np = np.abs(np.concatenate([dc_np[act], dx_np.ravel()]) - ours) / sigma
+    assert err_np.max() < tol
+    assert np.abs(s_np - s_mat).max() <= 1e-6 * np.abs(s_np).max()
 
 
 def test_tie_points_connect_ccds_and_free_points_are_triangulated():

@@ -8,7 +8,11 @@ mixed into :class:`~planetref.adjust.solver.BundleSolver`.
 
 from __future__ import annotations
 
+import importlib
+import logging
 from dataclasses import dataclass
+from functools import cache
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -18,6 +22,8 @@ from planetref.adjust.linearization import _Layout, _Linearization
 from planetref.errors import AdjustmentError
 
 __all__ = ["SchurMixin"]
+
+log = logging.getLogger("planetref.adjust")
 
 F64 = NDArray[np.float64]
 
@@ -114,6 +120,8 @@ class SchurMixin:
         if lam:
             s_mat[diag, diag] += lam * d_c
         rhs = -grad
+        if chunks and _compiled() is not None:
+            return self._reduced_compiled(lin, chunks, lam, xyz, xyz0, unknown, s_mat, rhs, d_c)
         blocks = []
         n_pat = len(self.cols)
         for ch in chunks:
@@ -178,6 +186,56 @@ class SchurMixin:
             del y, z
         return s_mat[:p, :p], rhs[:p], d_c, blocks
 
+    def _reduced_compiled(
+        self,
+        lin: _Linearization,
+        chunks: list[_TieChunk],
+        lam: float,
+        xyz: F64,
+        xyz0: F64,
+        unknown: NDArray[np.intp],
+        s_mat: F64,
+        rhs: F64,
+        d_c: F64,
+    ) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
+        """:meth:`_reduced`'s point elimination by the compiled kernel (same maths).
+
+        One loop over the points: each point's 3x3 block is factored in registers and
+        only the active columns of its observations' patterns are updated.
+        """
+        p = self.n_params
+        n_u = len(unknown)
+        starts = np.concatenate([ch.obs[0] + ch.starts for ch in chunks] + [[len(lin.a_t)]])
+        pw = self.point_prior_w[unknown]
+        prior_g = np.einsum("pij,pj->pi", pw, xyz[unknown] - xyz0[unknown])
+        vinv, bx, dx = np.empty((n_u, 3, 3)), np.empty((n_u, 3)), np.empty((n_u, 3))
+        bad = _compiled().eliminate_points(
+            lin.a_t,
+            lin.b_t,
+            lin.weight_t,
+            lin.r_t,
+            lin.gpat_t,
+            self.cols,
+            starts.astype(np.intp),
+            np.ascontiguousarray(pw),
+            prior_g,
+            float(lam),
+            p,
+            s_mat,
+            rhs,
+            vinv,
+            bx,
+            dx,
+        )
+        if bad >= 0:
+            raise AdjustmentError(
+                f"point {self.net.point_ids[unknown[bad]]!r}: its coordinates are not "
+                f"determined by its observations (rays parallel or too few); give it an "
+                f"a-priori sigma or remove it"
+            )
+        blocks = [(vinv[ch.pts], bx[ch.pts], dx[ch.pts]) for ch in chunks]
+        return s_mat[:p, :p], rhs[:p], d_c, blocks
+
     def _back_substitute(
         self,
         lin: _Linearization,
@@ -234,3 +292,13 @@ def _first_singular(v: F64) -> int:
         except np.linalg.LinAlgError:
             return i
     return 0
+
+
+@cache
+def _compiled() -> Any:
+    """The compiled point elimination, or ``None`` (numpy) when numba cannot be loaded."""
+    try:
+        return importlib.import_module("planetref.adjust._numba_schur")
+    except Exception as exc:  # any failure (no numba, a broken llvmlite): numpy
+        log.info("compiled point elimination unavailable (%s): numpy is used", exc)
+        return None
