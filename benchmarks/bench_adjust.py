@@ -31,8 +31,10 @@ numpy. ``kernel_compiled_s`` / ``kernel_numpy_s`` time one full evaluation (proj
 and partials of every observation from the observed lines, warm) with each, in the same
 run (``kernel_speedup``); ``--kernel numpy`` solves with the numpy kernel (the reference),
 ``--kernel both`` solves with each and prints ``planetref_numpy_s`` and
-``speedup_compiled`` too. The first compiled call of a process loads the kernel from
-numba's on-disk cache (or compiles it once, a few seconds): ``jit_load_s``.
+``speedup_compiled`` too. ``*_cpu_s`` / ``speedup_cpu*`` are process CPU times (robust
+when other jobs share the cores; run with ``OMP_NUM_THREADS=1`` for comparable
+figures). The first compiled call of a process loads the kernel from numba's on-disk
+cache (or compiles it once, a few seconds): ``jit_load_s``.
 """
 
 from __future__ import annotations
@@ -135,15 +137,15 @@ def time_kernel(net: Network, use_compiled: bool, repeat: int = 2) -> float:
     return best
 
 
-def solve(net: Network, use_compiled: bool) -> tuple[object, float]:
-    """``adjust`` with the compiled or the numpy kernel; returns the result and seconds."""
+def solve(net: Network, use_compiled: bool) -> tuple[object, float, float]:
+    """``adjust`` with the compiled or the numpy kernel: result, wall and CPU seconds."""
     saved = compiled.available
     if not use_compiled:
         compiled.available = lambda: False  # the numpy reference
     try:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         res = adjust(net, CONFIG)
-        return res, time.perf_counter() - t0
+        return res, time.perf_counter() - t0, time.process_time() - c0
     finally:
         compiled.available = saved
 
@@ -190,21 +192,22 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
+    has_jit = compiled.available() and compiled.warm_up()
+    jit_load_s = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
     net, true = build_problem(args.n_obs, args.seed, args.noise_px, args.n_nodes, args.n_tie)
     build_s = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    has_jit = compiled.available() and compiled.warm_up()
-    jit_load_s = time.perf_counter() - t0
     kernel_compiled_s = time_kernel(net, True) if has_jit else None
     kernel_numpy_s = time_kernel(net, False)
     planetref_numpy_s = None
     if args.kernel in ("numpy", "both") or not has_jit:
-        res, planetref_numpy_s = solve(net, False)
+        res, planetref_numpy_s, cpu_numpy = solve(net, False)
     if args.kernel != "numpy" and has_jit:
-        res, planetref_s = solve(net, True)
+        res, planetref_s, planetref_cpu = solve(net, True)
     else:
-        planetref_s = planetref_numpy_s
+        planetref_s, planetref_cpu = planetref_numpy_s, cpu_numpy
     rss = peak_rss_mb()
     act = res.parameter_mode != 2
     true_x = np.concatenate([true.nodes.ravel(), true.interior.as_array()])
@@ -214,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         "n_obs": args.n_obs,
         "n_tie_points": args.n_tie,
         "planetref_s": round(planetref_s, 3),
+        "planetref_cpu_s": round(planetref_cpu, 3),
         "scipy_s": None,
         "speedup": None,
         "max_param_diff_sigma": None,
@@ -242,15 +246,16 @@ def main(argv: list[str] | None = None) -> int:
 
         kernels = ["camera", "planetref"] if args.scipy_kernel == "both" else [args.scipy_kernel]
         for kernel in kernels:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             c, _, sp = solve_with_scipy(net, CONFIG, kernel=kernel)
-            scipy_s = time.perf_counter() - t0
+            scipy_s, scipy_cpu = time.perf_counter() - t0, time.process_time() - c0
             diff = float(f"{np.max(np.abs(res.x - c)[act] / res.sigma[act]):.3g}")
             tag = "" if kernel == "camera" else "_same_kernel"
             out.update(
                 {
                     f"scipy{tag}_s": round(scipy_s, 3),
                     f"speedup{tag}": round(scipy_s / planetref_s, 2),
+                    f"speedup_cpu{tag}": round(scipy_cpu / planetref_cpu, 2),
                     f"max_param_diff_sigma{tag}": diff,
                     f"scipy{tag}_nfev": int(sp.nfev),
                     f"scipy{tag}_status": int(sp.status),

@@ -306,6 +306,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         xyz0: F64,
         *,
         initial: _Linearization | None = None,
+        check_rank: bool = True,
     ) -> tuple[F64, F64, LmReport, _Linearization, dict[str, object]]:
         """Minimise the cost over the observations ``obs`` from ``(c, xyz)``.
 
@@ -316,6 +317,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             xyz0: A priori point coordinates (for weighted points).
             initial: A linearisation of exactly these observations at ``(c, xyz)`` with
                 the current loss (from :meth:`linearize`), reused instead of a new pass.
+            check_rank: Check the rank of the reduced system first (``False`` when only
+                the weights changed since a run that checked it: the rank cannot change).
 
         Returns:
             ``(c, xyz, report, final linearisation, statistics)``.
@@ -352,7 +355,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         lay.line_guess[:] = lin.line
         lay.rate_guess[:] = lin.rate
         rep.cost_initial = lin.cost
-        self._check_rank(lin, chunks, c, xyz, xyz0, unknown, "initial")
+        if check_rank:
+            self._check_rank(lin, chunks, c, xyz, xyz0, unknown, "initial")
         # A later outlier round starts near the optimum: keep the damping it ended with.
         lam = cfg.initial_lambda if self.last_lambda is None else self.last_lambda
         nu = 2.0

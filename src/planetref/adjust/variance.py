@@ -530,7 +530,8 @@ def variance_components(
             }
         )
         try:
-            c_new, xyz_new, _rep, _lin, stats_new = solver.run(c, xyz, obs, xyz0)
+            # Positive re-weighting cannot change the rank: no rank check again.
+            c_new, xyz_new, _rep, _lin, stats_new = solver.run(c, xyz, obs, xyz0, check_rank=False)
         except AdjustmentError as exc:
             solver.cfg = base_cfg
             # Keep the last good solution and its weights.
