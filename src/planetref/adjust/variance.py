@@ -286,27 +286,42 @@ class _Group:
 
 
 def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
-    """Image groups (point kind x camera/CCD) and the a-priori ground groups."""
+    """Image groups (point kind x camera/CCD) and the a-priori ground groups.
+
+    Integer codes stand in for the kind and label strings (one string pass over the
+    points, none over the observations); the groups come in the order of their names.
+    """
     net = solver.net
-    labels = net.image_labels()
-    kind = np.asarray(net.point_kind)[net.obs_point]
+    kinds, kind_of_pt = np.unique(np.asarray(net.point_kind), return_inverse=True)
+    kind_of_pt = kind_of_pt.ravel()
+    base = max(len(cam.ccd_names) for cam in net.cameras)
+    image_key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
+    kind_obs = kind_of_pt[net.obs_point[obs]]
+    labels = {}
+    for key in np.unique(image_key):
+        cam = net.cameras[int(key) // base]
+        cid = net.camera_ids[int(key) // base]
+        names = cam.ccd_names
+        labels[int(key)] = cid if len(names) == 1 else f"{cid}/{names[int(key) % base]}"
     out: list[_Group] = []
-    for k in sorted(set(kind[obs])):
-        for lab in sorted(set(labels[obs])):
-            sel = obs[(kind[obs] == k) & (labels[obs] == lab)]
+    for k in np.unique(kind_obs):  # kinds are sorted by name
+        in_kind = kind_obs == k
+        for key, lab in sorted(labels.items(), key=lambda kv: kv[1]):
+            sel = obs[in_kind & (image_key == key)]
             if sel.size:
-                out.append(_Group(f"image {k} {lab}", "image", obs=sel))
+                out.append(_Group(f"image {kinds[k]} {lab}", "image", obs=sel))
     pts = np.unique(net.obs_point[obs])
     weighted = pts[
         ~solver.point_fixed[pts]
         & np.any(np.isfinite(solver.point_sigma[pts]) & (solver.point_sigma[pts] > 0), axis=1)
     ]
-    pk = np.asarray(net.point_kind)[weighted]
+    pk = kind_of_pt[weighted]
     local = np.asarray(net.point_sigma_local)[weighted]
-    for k in sorted(set(pk)):
+    for code in np.unique(pk):
+        k = str(kinds[code])
         estimate = k == "mcp"
         kind_g = "ground" if estimate else "prior"
-        m = pk == k
+        m = pk == code
         if np.any(m & local):
             sel = weighted[m & local]
             out.append(
