@@ -300,5 +300,5 @@ def _compiled() -> Any:
     try:
         return importlib.import_module("planetref.adjust._numba_schur")
     except Exception as exc:  # any failure (no numba, a broken llvmlite): numpy
-        log.info("compiled point elimination unavailable (%s): numpy is used", exc)
+        log.warning("compiled point elimination unavailable (%s): numpy is used", exc)
         return None

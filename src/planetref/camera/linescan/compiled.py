@@ -39,7 +39,7 @@ def _compiled() -> Any:
         mod = importlib.import_module("planetref.camera.linescan._numba_kernel")
         _smoke_test(mod)
     except Exception as exc:  # any failure (no numba, a broken llvmlite, no compiler): numpy
-        log.info("compiled kernel unavailable (%s): the line-scan kernel runs on numpy", exc)
+        log.warning("compiled kernel unavailable (%s): the line-scan kernel runs on numpy", exc)
         return None
     return mod
 
