@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.camera.linescan import compiled
+import planetref.camera.linescan.compiled as compiled
 from planetref.camera.linescan.lens import clip_radius_mm, detector_position
 from planetref.geometry.lagrange import LagrangeWindows
 from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
