@@ -110,3 +110,16 @@ def test_numpy_fallback_logs_once_and_still_projects(setup, monkeypatch, caplog)
     a = kern.project_with_partials(poly, io, ccd, xyz, line.copy(), None)
     b = kern.project_with_partials(poly, io, ccd, xyz, line.copy(), None, use_compiled=False)
     assert np.array_equal(a.line, b.line) and np.array_equal(a.partials, b.partials)
+
+
+def test_ccds_with_lens_distortion_run_on_numpy(setup):
+    """The compiled twin has no lens model: distorted CCDs (simulation truths) use numpy."""
+    from dataclasses import replace
+
+    _, kern, poly, io, ccd, xyz, line = setup
+    dist = replace(ccd, distortion=(2e-7, 0.0, 1e-7, 0.0))
+    a = kern.project_with_partials(poly, io, dist, xyz, line.copy(), None)
+    b = kern.project_with_partials(poly, io, dist, xyz, line.copy(), None, use_compiled=False)
+    c = kern.project_with_partials(poly, io, ccd, xyz, line.copy(), None, use_compiled=False)
+    assert np.array_equal(a.line, b.line) and np.array_equal(a.partials, b.partials)
+    assert np.abs(a.sample - c.sample).max() > 1e-4  # the distortion is really applied
