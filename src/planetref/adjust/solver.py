@@ -171,7 +171,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         # nodes), gathered into one global matrix; their normal contribution is A^T W A.
         rows, weights = [], []
         for i, m in enumerate(self.models):
-            con = getattr(m, "constraints", None)
+            con = m.constraints
             if con is None:
                 continue
             a_loc, w_loc = con
