@@ -26,6 +26,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, model_validator
 
+from planetref.adjust.rpc_config import RpcParameters
 from planetref.settings import Settings, validate_settings
 
 __all__ = [
@@ -475,6 +476,7 @@ class AdjustConfig(Settings):
     Attributes:
         linescan: Unknowns of native line-scan strips.
         csm: Unknowns of CSM/ALE line-scan images.
+        rpc: Unknowns of RPC images (the image-space bias model).
         fixed_cameras: Ids of cameras (strips or images) held fixed entirely.
         observations: Default weights of observations and ground points.
         solver: Levenberg-Marquardt settings.
@@ -485,6 +487,7 @@ class AdjustConfig(Settings):
 
     linescan: LineScanParameters = LineScanParameters()
     csm: CsmParameters = CsmParameters()
+    rpc: RpcParameters = RpcParameters()
     fixed_cameras: tuple[str, ...] = ()
     observations: ObservationConfig = ObservationConfig()
     solver: SolverConfig = SolverConfig()

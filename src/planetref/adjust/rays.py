@@ -25,13 +25,17 @@ def rays(
     line: F64,
     sample: F64,
     ccd: str | None,
-    heights: tuple[float, float] = (-10_000.0, 10_000.0),
+    heights: tuple[float, float] | None = None,
 ) -> tuple[F64, F64]:
     """Body-fixed rays of image points of any camera, from two terrain intersections.
 
     Returns:
         ``(point, unit direction)`` per image point, ``(m, 3)`` each (NaN if a ray misses).
+        Without ``heights``: the camera's ``ray_heights_m`` (RPCs: their valid height
+        domain), else -10 and +10 km.
     """
+    if heights is None:
+        heights = getattr(camera, "ray_heights_m", (-10_000.0, 10_000.0))
     lo = camera.image_to_ground(line, sample, heights[0], ccd=ccd, on_miss="nan")
     hi = camera.image_to_ground(line, sample, heights[1], ccd=ccd, on_miss="nan")
     d = lo - hi
@@ -101,7 +105,7 @@ def ground_error_m(network: Network, cameras: list[Any], obs: NDArray[np.intp], 
             _, _, h = xyz_to_lonlat(p, cam.ellipsoid)
             origin, d = rays(cam, network.obs_line[o], network.obs_sample[o], name)
             s = ray_ellipsoid_intersection(origin, d, cam.ellipsoid, h)
-            # The ray origin lies at +10 km, so the intersection is along +d.
+            # The ray origin lies at the upper height, so the intersection is along +d.
             hit = origin + s[:, None] * d
             out[sel] = np.linalg.norm(hit - p, axis=1)
     return out

@@ -38,6 +38,7 @@ __all__ = [
     "CrsGround",
     "Ellipsoid",
     "lonlat_to_xyz",
+    "lonlat_xyz_jacobian",
     "ray_ellipsoid_intersection",
     "wrap_longitude",
     "xyz_to_lonlat",
@@ -219,6 +220,51 @@ def xyz_to_lonlat(
     else:
         raise InputError(f"unknown latitude kind {latitude!r}")
     return wrap_longitude(lon), np.degrees(lat), h
+
+
+def lonlat_xyz_jacobian(
+    xyz: ArrayLike, ellipsoid: Ellipsoid, latitude: LatitudeKind = "planetocentric"
+) -> NDArray[np.float64]:
+    """Partial derivatives of ``(lon_deg, lat_deg, height_m)`` with respect to ``XYZ``.
+
+    The derivative of :func:`xyz_to_lonlat`. The forward map
+    (:func:`lonlat_to_xyz`) has orthogonal columns ``dXYZ/dlon = (N + h) cos(lat_g)
+    e_east``, ``dXYZ/dlat_g = (M + h) e_north`` and ``dXYZ/dh = e_up`` (``N``, ``M``: the
+    prime-vertical and meridian radii of curvature), so its inverse is each column over
+    its squared length. Planetocentric latitude is that of the foot point, a function of
+    the geodetic latitude alone (``tan lat_c = (b/a)^2 tan lat_g``), so
+    ``dlat_c/dlat_g = (b/a)^2 / (cos^2 lat_g + (b/a)^4 sin^2 lat_g)``.
+
+    Args:
+        xyz: Body-fixed points, metres, shape ``(..., 3)``.
+        ellipsoid: The reference body.
+        latitude: ``"planetocentric"`` (default) or ``"planetographic"``.
+
+    Returns:
+        ``(..., 3, 3)``: rows ``(lon, lat, h)`` in degrees, degrees and metres per metre
+        of ``(X, Y, Z)``.
+    """
+    if latitude not in ("planetocentric", "planetographic"):
+        raise InputError(f"unknown latitude kind {latitude!r}")
+    lon_d, lat_gd, h = xyz_to_lonlat(xyz, ellipsoid, "planetographic")
+    lon, lat_g = np.radians(lon_d), np.radians(lat_gd)
+    a, e2 = ellipsoid.semi_major_m, ellipsoid.e2
+    sl, cl = np.sin(lat_g), np.cos(lat_g)
+    so, co = np.sin(lon), np.cos(lon)
+    w2 = 1.0 - e2 * sl**2
+    n = a / np.sqrt(w2)
+    m = a * (1.0 - e2) / w2**1.5
+    east = np.stack([-so, co, np.zeros_like(so)], axis=-1)
+    north = np.stack([-sl * co, -sl * so, cl], axis=-1)
+    up = np.stack([cl * co, cl * so, sl], axis=-1)
+    deg = 180.0 / np.pi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_lon = east / ((n + h) * cl)[..., None] * deg
+    d_lat = north / (m + h)[..., None] * deg
+    if latitude == "planetocentric" and not ellipsoid.is_sphere:
+        k = 1.0 - e2  # (b/a)^2: tan(lat_c) = k tan(lat_g)
+        d_lat = d_lat * (k / (cl**2 + k * k * sl**2))[..., None]
+    return np.stack([d_lon, d_lat, up], axis=-2)
 
 
 def ray_ellipsoid_intersection(

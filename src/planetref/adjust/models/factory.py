@@ -19,11 +19,11 @@ def parameterize(camera_id: str, camera: Any, config: AdjustConfig) -> Adjustabl
 
     Args:
         camera_id: Id of the camera in the network.
-        camera: A native line-scan or CSM line-scan camera.
+        camera: A native line-scan, CSM line-scan or RPC camera.
         config: The adjustment configuration.
 
     Raises:
-        InputError: For cameras that cannot be adjusted (e.g. RPCs).
+        InputError: For cameras that cannot be adjusted.
     """
     fixed = camera_id in config.fixed_cameras
     if isinstance(camera, LineScanCamera):
@@ -32,8 +32,13 @@ def parameterize(camera_id: str, camera: Any, config: AdjustConfig) -> Adjustabl
 
     if isinstance(camera, CsmLineScanCamera):
         return CsmParameterization(camera_id, camera, config.csm, fixed=fixed)
+    from planetref.camera.rpc import RpcCamera
+
+    if isinstance(camera, RpcCamera):
+        from planetref.adjust.models.rpc import RpcParameterization
+
+        return RpcParameterization(camera_id, camera, config.rpc, fixed=fixed)
     raise InputError(
-        f"camera {camera_id!r} ({type(camera).__name__}) cannot be adjusted "
-        f"rigorously; use a native line-scan or CSM line-scan ISD camera "
-        f"(RPCs are refitted from an adjusted rigorous model)"
+        f"camera {camera_id!r} ({type(camera).__name__}) cannot be adjusted; use a "
+        f"native line-scan, CSM line-scan ISD or RPC camera"
     )

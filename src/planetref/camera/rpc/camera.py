@@ -83,6 +83,8 @@ class RpcCamera:
         self.latitude_kind: LatitudeKind = latitude_kind
         self._size = (n_lines, n_samples)
         self.name = name
+        #: The file the RPC was read from (set by :meth:`from_file`), else None.
+        self.source: Path | None = None
 
     def __repr__(self) -> str:
         return (
@@ -139,7 +141,19 @@ class RpcCamera:
                     p,
                     *image_size,
                 )
-        return cls(rpc, resolved.ellipsoid, resolved.latitude_kind, image_size, name or p.stem)
+        cam = cls(rpc, resolved.ellipsoid, resolved.latitude_kind, image_size, name or p.stem)
+        cam.source = p
+        return cam
+
+    @property
+    def ray_heights_m(self) -> tuple[float, float]:
+        """Heights (m) between which the RPC is valid: ``HEIGHT_OFF ± HEIGHT_SCALE``.
+
+        Rays built from two localisations should stay in this domain: a cubic in height
+        extrapolated far beyond it (e.g. to ±10 km for a 1 km domain) is meaningless.
+        """
+        h0, hs = self.rpc.height_off, abs(self.rpc.height_scale)
+        return h0 - hs, h0 + hs
 
     # -- Camera protocol ------------------------------------------------------------
 

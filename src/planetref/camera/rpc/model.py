@@ -298,23 +298,62 @@ class Rpc:
         )
 
     def _project_with_jacobian(
-        self, L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+        self,
+        L: NDArray[np.float64],
+        P: NDArray[np.float64],
+        H: NDArray[np.float64],
+        *,
+        height: bool = False,
     ) -> tuple[NDArray[np.float64], ...]:
         # Image coordinates (pixels) and their derivatives with respect to normalised
-        # L and P, by the quotient rule on the analytic term derivatives.
+        # L and P (and H with ``height``: two more, dl_dH and ds_dH), by the quotient
+        # rule on the analytic term derivatives.
         c = self._coeff_array
         v = _terms(L, P, H) @ c
-        vl = _terms_dl(L, P, H) @ c
-        vp = _terms_dp(L, P, H) @ c
+        derivs = [_terms_dl(L, P, H) @ c, _terms_dp(L, P, H) @ c]
+        if height:
+            derivs.append(_terms_dh(L, P, H) @ c)
         with np.errstate(divide="ignore", invalid="ignore"):
             line = v[..., 0] / v[..., 1] * self.line_scale + self.line_off + 0.5
             samp = v[..., 2] / v[..., 3] * self.samp_scale + self.samp_off + 0.5
             d2l, d2s = v[..., 1] ** 2, v[..., 3] ** 2
-            dl_dL = (vl[..., 0] * v[..., 1] - v[..., 0] * vl[..., 1]) / d2l * self.line_scale
-            dl_dP = (vp[..., 0] * v[..., 1] - v[..., 0] * vp[..., 1]) / d2l * self.line_scale
-            ds_dL = (vl[..., 2] * v[..., 3] - v[..., 2] * vl[..., 3]) / d2s * self.samp_scale
-            ds_dP = (vp[..., 2] * v[..., 3] - v[..., 2] * vp[..., 3]) / d2s * self.samp_scale
-        return line, samp, dl_dL, dl_dP, ds_dL, ds_dP
+            dl = [
+                (d[..., 0] * v[..., 1] - v[..., 0] * d[..., 1]) / d2l * self.line_scale
+                for d in derivs
+            ]
+            ds = [
+                (d[..., 2] * v[..., 3] - v[..., 2] * d[..., 3]) / d2s * self.samp_scale
+                for d in derivs
+            ]
+        if height:
+            return line, samp, dl[0], dl[1], ds[0], ds[1], dl[2], ds[2]
+        return line, samp, dl[0], dl[1], ds[0], ds[1]
+
+    def project_with_partials(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, height_m: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Ground to image with the analytic partial derivatives.
+
+        Args:
+            lon_deg: Longitude, degrees east.
+            lat_deg: Latitude, degrees, of the kind the RPC was made with.
+            height_m: Height above the ellipsoid, metres.
+
+        Returns:
+            ``(line, sample, d)``: as :meth:`project`, and ``d`` of shape ``(..., 2, 3)``,
+            ``d(line, sample)/d(lon_deg, lat_deg, height_m)`` in pixels per degree and per
+            metre.
+        """
+        L, P, H = self.normalize_ground(lon_deg, lat_deg, height_m)
+        line, samp, dl_L, dl_P, ds_L, ds_P, dl_H, ds_H = self._project_with_jacobian(
+            L, P, H, height=True
+        )
+        scale = np.array([self.long_scale, self.lat_scale, self.height_scale])
+        d = np.stack(
+            [np.stack([dl_L, dl_P, dl_H], axis=-1), np.stack([ds_L, ds_P, ds_H], axis=-1)],
+            axis=-2,
+        )
+        return line, samp, d / scale
 
     def localize(
         self,
@@ -489,6 +528,38 @@ def _terms_dp(
             z,
             2 * P * H,
             z,
+        ],
+        axis=-1,
+    )
+
+
+def _terms_dh(
+    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    L, P, H = np.broadcast_arrays(L, P, H)
+    z, o = np.zeros_like(L), np.ones_like(L)
+    return np.stack(
+        [
+            z,
+            z,
+            z,
+            o,
+            z,
+            L,
+            P,
+            z,
+            z,
+            2 * H,
+            P * L,
+            z,
+            z,
+            2 * L * H,
+            z,
+            z,
+            2 * P * H,
+            L * L,
+            P * P,
+            3 * H * H,
         ],
         axis=-1,
     )
