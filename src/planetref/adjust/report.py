@@ -351,6 +351,13 @@ def _write_camera(
 ) -> tuple[list[Path], dict[str, Any]]:
     folder.mkdir(parents=True, exist_ok=True)
     name = safe_name(cid)
+    from planetref.camera.rpc.bias import BiasedRpcCamera, write_refined_rpc
+
+    if isinstance(cam, BiasedRpcCamera):
+        # An RPC image: its refined RPC (bias absorbed or refitted) is its camera.
+        rpc_paths, rep = write_refined_rpc(cam, folder, name)
+        model = next(m for m in result.models if m.camera_id == cid)
+        return rpc_paths, {cam.name: {"bias_model": getattr(model, "bias_model", None), **rep}}
     paths: list[Path] = []
     if isinstance(cam, LineScanCamera):
         paths.append(cam.to_json(folder / f"{name}.json"))

@@ -247,6 +247,14 @@ def report_md(
                     f"| {cid} | {ccd} | {_fmt(rep.get('fit_rms_px'))} | "
                     f"{_fmt(rep.get('check_rms_px'))} |"
                 )
+        bias = [
+            f"* {cid}: RPC image, bias model '{rep['bias_model']}' (image-space, "
+            f"Grodecki & Dial 2003); refined RPC: {rep['method']}"
+            for cid, per in rpc.items()
+            for rep in per.values()
+            if rep.get("bias_model")
+        ]
+        lines += ["", *bias] if bias else []
     if result.warnings or notes:
         lines += ["", "## Warnings", ""] + [f"* {w}" for w in [*result.warnings, *notes]]
     return "\n".join(lines) + "\n"

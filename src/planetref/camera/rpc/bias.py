@@ -35,19 +35,33 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import shutil
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.atomic import atomic_path
 from planetref.camera.base import ImagePoints, OnMiss, Terrain
+from planetref.camera.rpc.body import RpcBody
 from planetref.camera.rpc.camera import RpcCamera
 from planetref.camera.rpc.fit import FitReport, fit_rpc
+from planetref.camera.rpc.formats import write_rpc
 from planetref.camera.rpc.model import Rpc
 from planetref.errors import InputError
 
-__all__ = ["BIAS_MODELS", "BIAS_TERMS", "BiasModel", "BiasedRpcCamera", "RpcBias", "refined_rpc"]
+__all__ = [
+    "BIAS_MODELS",
+    "BIAS_TERMS",
+    "BiasModel",
+    "BiasedRpcCamera",
+    "RpcBias",
+    "refined_rpc",
+    "write_refined_rpc",
+]
 
 F64 = NDArray[np.float64]
 BiasModel = Literal["shift", "shift+drift", "affine"]
@@ -232,3 +246,76 @@ def refined_rpc(
     model, report = fit_rpc(camera, height_range_m=(h0 - hs, h0 + hs), grid=grid)
     # The RPC's error terms still describe the corrected model's accuracy best.
     return dataclasses.replace(model, err_bias=rpc.err_bias, err_rand=rpc.err_rand), report
+
+
+def _format_of(source: Path | None) -> str:
+    """``rpb``, ``txt`` or ``geotiff``: the RPC format of an input file (``txt`` if unknown)."""
+    if source is None:
+        return "txt"
+    name = source.name.lower()
+    if name.endswith(".rpb"):
+        return "rpb"
+    if name.endswith((".tif", ".tiff")):
+        return "geotiff"
+    return "txt"
+
+
+def write_refined_rpc(
+    camera: BiasedRpcCamera, folder: str | os.PathLike[str], name: str
+) -> tuple[list[Path], dict[str, Any]]:
+    """Write the refined RPC of a bias-corrected camera in its input's format.
+
+    The format is that of the file the RPC was read from (``camera.source``): an
+    ``.RPB`` gives ``NAME.RPB``, an ``_RPC.TXT`` gives ``NAME_RPC.TXT``, a GeoTIFF
+    gives a copy ``NAME.tif`` of the image with the refined RPC in its tags (other
+    rasters, or a camera not read from a file: ``NAME_RPC.TXT``). Every file is
+    written to a temporary name and renamed; the input is never written over.
+
+    Args:
+        camera: The adjusted camera.
+        folder: Output folder (created if needed).
+        name: File-name stem.
+
+    Returns:
+        ``(paths, report)``: the files written and a summary (bias model and
+        coefficients, ``method`` ``"exact"`` (shift absorbed by LINE_OFF/SAMP_OFF) or
+        ``"refit"`` with the refit's errors against the corrected camera, pixels).
+
+    Raises:
+        InputError: If the output would be the input file.
+    """
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    model, fit = refined_rpc(camera)
+    fmt = _format_of(camera.source)
+    target = {
+        "rpb": out / f"{name}.RPB",
+        "txt": out / f"{name}_RPC.TXT",
+        "geotiff": out / f"{name}.tif",
+    }[fmt]
+    src = camera.source
+    if src is not None and target.exists() and os.path.samefile(target, src):
+        raise InputError("refusing to write the refined RPC over its input", path=src)
+    body = RpcBody(camera.ellipsoid, camera.latitude_kind)
+    if fmt == "geotiff" and src is not None:
+        with atomic_path(target) as tmp:
+            shutil.copyfile(src, tmp)
+        try:
+            write_rpc(model, target, fmt="geotiff", body=body)
+        except BaseException:
+            # Never leave the copy behind with the input's (unrefined) RPC.
+            target.unlink(missing_ok=True)
+            raise
+    else:
+        write_rpc(model, target, fmt=fmt, body=body)  # type: ignore[arg-type]
+    report: dict[str, Any] = {
+        "coefficients_px": dict(zip(BIAS_TERMS, camera.bias.coefficients, strict=True)),
+        "method": "exact" if fit is None else "refit",
+        "format": fmt,
+        "fit_rms_px": 0.0 if fit is None else fit.fit_rms_px,
+        "check_rms_px": 0.0 if fit is None else fit.check_rms_px,
+        "check_max_px": 0.0 if fit is None else fit.check_max_px,
+    }
+    if fit is not None:
+        report["min_abs_denominator"] = fit.min_abs_denominator
+    return [target], report
