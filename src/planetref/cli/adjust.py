@@ -2,9 +2,10 @@
 
 The configuration is layered: defaults, then the network file's ``[adjustment]`` table,
 then ``--config FILE`` (TOML or JSON with the same structure), then the shorthand options
-(``--solve``, ``--loss``, ``--sigma-px``, ``--no-outliers``...), then ``--set KEY=VALUE``
-overrides (dotted keys, TOML values: ``--set 'csm.pointing_offset.sigma_rad="2 mrad"'``).
-The resolved configuration is written next to the outputs (config.json, config.toml).
+(``--solve``, ``--loss``, ``--sigma-px``, ``--no-outliers``, ``--rpc-bias``...), then
+``--set KEY=VALUE`` overrides (dotted keys, TOML values:
+``--set 'csm.pointing_offset.sigma_rad="2 mrad"'``). The resolved configuration is
+written next to the outputs (config.json, config.toml).
 """
 
 from __future__ import annotations
@@ -162,7 +163,18 @@ def _toml_safe(obj: Any) -> Any:
     metavar="KEY=VALUE",
     help="Override a configuration entry (dotted key, TOML value); repeatable.",
 )
-@click.option("--no-rpc", is_flag=True, help="Do not refit RPCs to the adjusted cameras.")
+@click.option(
+    "--rpc-bias",
+    type=click.Choice(["shift", "shift+drift", "affine"]),
+    default=None,
+    help="Bias model of RPC images (image-space, per image; default affine).",
+)
+@click.option(
+    "--no-rpc",
+    is_flag=True,
+    help="Do not refit RPCs to adjusted rigorous cameras (RPC images always get their "
+    "refined RPC).",
+)
 @click.option("--no-plots", is_flag=True, help="Do not draw residual plots.")
 @click.pass_context
 def adjust_command(
@@ -179,6 +191,7 @@ def adjust_command(
     no_vce: bool,
     max_iterations: int | None,
     assignments: tuple[str, ...],
+    rpc_bias: str | None,
     no_rpc: bool,
     no_plots: bool,
 ) -> None:
@@ -218,6 +231,8 @@ def adjust_command(
         cfg.setdefault("variance", {})["enabled"] = False
     if max_iterations is not None:
         cfg.setdefault("solver", {})["max_iterations"] = max_iterations
+    if rpc_bias is not None:
+        cfg.setdefault("rpc", {})["bias"] = rpc_bias
     for a in assignments:
         _set(cfg, a)
     nf = read_network(network, config=cfg)
