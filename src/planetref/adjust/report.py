@@ -351,13 +351,14 @@ def _write_camera(
 ) -> tuple[list[Path], dict[str, Any]]:
     folder.mkdir(parents=True, exist_ok=True)
     name = safe_name(cid)
-    from planetref.camera.rpc.bias import BiasedRpcCamera, write_refined_rpc
+    from planetref.camera.rpc.strip import write_refined_rpcs
 
-    if isinstance(cam, BiasedRpcCamera):
-        # An RPC image: its refined RPC (bias absorbed or refitted) is its camera.
-        rpc_paths, rep = write_refined_rpc(cam, folder, name)
+    refined = write_refined_rpcs(cam, folder, name)
+    if refined is not None:
+        # RPC images: their refined RPCs (bias absorbed or refitted) are their cameras.
         model = next(m for m in result.models if m.camera_id == cid)
-        return rpc_paths, {cam.name: {"bias_model": getattr(model, "bias_model", None), **rep}}
+        bias = getattr(model, "bias_model", None)
+        return refined[0], {k: {"bias_model": bias, **r} for k, r in refined[1].items()}
     paths: list[Path] = []
     if isinstance(cam, LineScanCamera):
         paths.append(cam.to_json(folder / f"{name}.json"))

@@ -97,12 +97,9 @@ def strip_cameras(
 
     files = {manifest.resolve(root, c.camera) for c in strip.ccds}
     if len(files) != 1:
-        raise InputError(
-            f"strip {strip.id}: its CCDs use {len(files)} camera files; georef "
-            "adjusts a strip as one camera, so its CCDs must share one camera "
-            "file (a multi-CCD native camera)"
-        )
-    camera = load_camera(files.pop())
+        camera = _rpc_strip(manifest, root, strip, len(files))
+    else:
+        camera = load_camera(files.pop())
     images: dict[str, CcdImage] = {}
     for c in strip.ccds:
         cam_ccd = c.camera_ccd or c.name
@@ -116,6 +113,21 @@ def strip_cameras(
                 )
         images[cam_ccd] = _checked_image(CcdImage(manifest.resolve(root, c.image)), camera, cam_ccd)
     return camera, images
+
+
+def _rpc_strip(manifest: SceneManifest, root: Path, strip: StripSpec, n_files: int) -> Camera:
+    """A strip whose CCDs have one RPC each (e.g. level-2 products): one RPC strip camera."""
+    from planetref.camera.io import detect_camera_format
+    from planetref.camera.rpc.strip import RpcStripCamera
+
+    files = {c.name: manifest.resolve(root, c.camera) for c in strip.ccds}
+    if len(files) != n_files or any(detect_camera_format(f) != "rpc" for f in files.values()):
+        raise InputError(
+            f"strip {strip.id}: its CCDs use {n_files} camera files; georef adjusts a "
+            "strip as one camera, so its CCDs must share one camera file (a multi-CCD "
+            "native camera) or each have its own RPC"
+        )
+    return RpcStripCamera.from_files(files)
 
 
 def _checked_image(image: CcdImage, camera: Camera, ccd: str) -> CcdImage:

@@ -19,7 +19,7 @@ def parameterize(camera_id: str, camera: Any, config: AdjustConfig) -> Adjustabl
 
     Args:
         camera_id: Id of the camera in the network.
-        camera: A native line-scan, CSM line-scan or RPC camera.
+        camera: A native line-scan, CSM line-scan or RPC camera (or a strip of RPCs).
         config: The adjustment configuration.
 
     Raises:
@@ -33,8 +33,9 @@ def parameterize(camera_id: str, camera: Any, config: AdjustConfig) -> Adjustabl
     if isinstance(camera, CsmLineScanCamera):
         return CsmParameterization(camera_id, camera, config.csm, fixed=fixed)
     from planetref.camera.rpc import RpcCamera
+    from planetref.camera.rpc.strip import RpcStripCamera
 
-    if isinstance(camera, RpcCamera):
+    if isinstance(camera, RpcCamera | RpcStripCamera):
         from planetref.adjust.models.rpc import RpcParameterization
 
         return RpcParameterization(camera_id, camera, config.rpc, fixed=fixed)

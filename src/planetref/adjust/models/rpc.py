@@ -21,6 +21,7 @@ from planetref.adjust.models.protocol import CoverageIssue, Evaluation, mode_and
 from planetref.adjust.rpc_config import RpcParameters
 from planetref.camera.rpc import RpcCamera
 from planetref.camera.rpc.bias import BIAS_MODELS, BIAS_TERMS, BiasedRpcCamera, RpcBias
+from planetref.camera.rpc.strip import RpcStripCamera
 from planetref.errors import AdjustmentError
 from planetref.geometry.geodesy import lonlat_xyz_jacobian, xyz_to_lonlat
 
@@ -30,42 +31,64 @@ F64 = NDArray[np.float64]
 
 
 class RpcParameterization:
-    """The bias coefficients of one RPC image.
+    """The bias coefficients of one RPC image, or of each CCD image of an RPC strip.
+
+    Local parameters are, per CCD (in CCD order), the coefficients of the bias model;
+    for a strip they are named ``CCD.term``. Each CCD is one pattern.
 
     Args:
-        camera_id: The image's id.
-        camera: An :class:`RpcCamera`, or a :class:`BiasedRpcCamera` whose correction is
-            the starting point (its coefficients outside the bias model stay as they are).
+        camera_id: The image's (strip's) id.
+        camera: An :class:`RpcCamera` or an :class:`RpcStripCamera`; a
+            :class:`BiasedRpcCamera`'s correction is the starting point (its coefficients
+            outside the bias model stay as they are).
         config: The bias model, mode and sigma.
         fixed: Hold every coefficient fixed.
     """
 
     def __init__(
-        self, camera_id: str, camera: RpcCamera, config: RpcParameters, *, fixed: bool = False
+        self,
+        camera_id: str,
+        camera: RpcCamera | RpcStripCamera,
+        config: RpcParameters,
+        *,
+        fixed: bool = False,
     ) -> None:
         self.camera_id = camera_id
         self.camera = camera
         self.config = config
-        if isinstance(camera, BiasedRpcCamera):
-            self._base_camera: RpcCamera = camera.base
-            self._bias = camera.bias
-        else:
-            self._base_camera = camera
-            self._bias = RpcBias(camera.image_size())
+        self._strip = isinstance(camera, RpcStripCamera)
+        cams = camera.cameras if isinstance(camera, RpcStripCamera) else {camera.name: camera}
+        self._bases: list[RpcCamera] = []
+        self._biases: list[RpcBias] = []
+        for cam in cams.values():
+            if isinstance(cam, BiasedRpcCamera):
+                self._bases.append(cam.base)
+                self._biases.append(cam.bias)
+            else:
+                self._bases.append(cam)
+                self._biases.append(RpcBias(cam.image_size()))
+        self._ccds = tuple(cams)
         self._index = np.array(BIAS_MODELS[config.bias], np.intp)
-        n = len(self._index)
-        self.names = tuple(BIAS_TERMS[i] for i in self._index)
+        q = len(self._index)
+        terms = [BIAS_TERMS[i] for i in self._index]
+        self.names = (
+            tuple(f"{c}.{t}" for c in self._ccds for t in terms) if self._strip else tuple(terms)
+        )
+        n = len(self.names)
         self.units = ("px",) * n
-        self.x0 = np.asarray(self._bias.coefficients, np.float64)[self._index].copy()
+        self.x0 = np.concatenate(
+            [np.asarray(b.coefficients, np.float64)[self._index] for b in self._biases]
+        )
         self.mode, self.sigma = mode_and_sigma(config.mode, config.sigma_px, n, fixed)
-        self.pattern_columns = np.arange(n, dtype=np.intp)[None, :]
+        self.pattern_columns = np.arange(n, dtype=np.intp).reshape(len(self._ccds), q)
         #: No linear pseudo-observations between the coefficients.
         self.constraints: tuple[F64, F64] | None = None
 
-    def _bias_at(self, x: F64) -> RpcBias:
-        full = np.asarray(self._bias.coefficients, np.float64).copy()
-        full[self._index] = np.asarray(x, np.float64)
-        return self._bias.with_coefficients(full)
+    def _bias_at(self, x: F64, k: int) -> RpcBias:
+        q = len(self._index)
+        full = np.asarray(self._biases[k].coefficients, np.float64).copy()
+        full[self._index] = np.asarray(x, np.float64)[k * q : (k + 1) * q]
+        return self._biases[k].with_coefficients(full)
 
     @property
     def bias_model(self) -> str:
@@ -81,20 +104,21 @@ class RpcParameterization:
         rate_guess: F64 | None = None,
         partials: bool = True,
     ) -> Evaluation:
-        """Project into the image with analytic partials.
+        """Project into CCD ``ccd`` with analytic partials.
 
         Args:
             x: The bias coefficients (pixels).
             xyz: Ground points (metres), ``(m, 3)``.
-            ccd: Must be 0 (one CCD per RPC image).
+            ccd: CCD index (0 for a single image).
             line_guess: Unused (an RPC is explicit).
             rate_guess: Unused.
             partials: ``False`` projects only.
         """
         xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
         m = len(xyz)
-        cam = self._base_camera
-        bias = self._bias_at(x)
+        cam = self._bases[ccd]
+        bias = self._bias_at(x, ccd)
+        pattern = np.full(m, ccd, np.intp)
         lon, lat, h = xyz_to_lonlat(xyz, cam.ellipsoid, cam.latitude_kind)
         if not partials:
             raw_l, raw_s = cam.rpc.project(lon, lat, h)
@@ -104,7 +128,7 @@ class RpcParameterization:
                 np.where(valid, line, np.nan),
                 np.where(valid, samp, np.nan),
                 valid,
-                np.zeros(m, np.intp),
+                pattern,
                 np.empty((m, 2, 0)),
                 np.empty((m, 2, 0)),
             )
@@ -122,31 +146,39 @@ class RpcParameterization:
             np.where(valid, line, np.nan),
             np.where(valid, samp, np.nan),
             valid,
-            np.zeros(m, np.intp),
+            pattern,
             d_params,
             d_ground,
         )
 
-    def build(self, x: F64) -> BiasedRpcCamera:
-        """The corrected camera with coefficients ``x``."""
-        return BiasedRpcCamera(self._base_camera, self._bias_at(x))
+    def build(self, x: F64) -> BiasedRpcCamera | RpcStripCamera:
+        """The corrected camera (or strip of corrected cameras) with coefficients ``x``."""
+        cams = [BiasedRpcCamera(b, self._bias_at(x, k)) for k, b in enumerate(self._bases)]
+        if not self._strip:
+            return cams[0]
+        return RpcStripCamera(dict(zip(self._ccds, cams, strict=True)))
 
     def physical(self, x: F64) -> dict[str, Any]:
-        """The bias model and all six coefficients (pixels at the image edge)."""
-        coeffs = self._bias_at(x).coefficients
-        return {"bias_model": self.config.bias} | dict(zip(BIAS_TERMS, coeffs, strict=True))
+        """The bias model and all six coefficients per CCD (pixels at the image edge)."""
+        out: dict[str, Any] = {"bias_model": self.config.bias}
+        for k, c in enumerate(self._ccds):
+            coeffs = dict(zip(BIAS_TERMS, self._bias_at(x, k).coefficients, strict=True))
+            out |= {f"{c}.{t}": v for t, v in coeffs.items()} if self._strip else coeffs
+        return out
 
     def coverage(self, ccd: NDArray[np.intp], line: F64) -> list[CoverageIssue]:
-        """The image needs more observations (2 equations each) than free coefficients."""
-        free = np.flatnonzero(self.mode != 2)
-        need = math.ceil(len(free) / 2) + 1 if free.size else 0
-        if len(line) < need:
-            return [
-                CoverageIssue(
-                    f"image {self.camera_id!r}", tuple(int(i) for i in free), len(line), need
+        """Each image needs more observations (2 equations each) than free coefficients."""
+        issues = []
+        for k, rows in enumerate(self.pattern_columns):
+            free = rows[self.mode[rows] != 2]
+            need = math.ceil(len(free) / 2) + 1 if free.size else 0
+            count = int(np.count_nonzero(np.asarray(ccd) == k))
+            if count < need:
+                label = f"image {self.camera_id!r}" + (
+                    f" CCD {self._ccds[k]}" if self._strip else ""
                 )
-            ]
-        return []
+                issues.append(CoverageIssue(label, tuple(int(i) for i in free), count, need))
+        return issues
 
     def weaken(self, issues: list[CoverageIssue]) -> list[str]:
         """Too few observations for an image's bias: always an error.
@@ -158,7 +190,7 @@ class RpcParameterization:
             return []
         i = issues[0]
         raise AdjustmentError(
-            f"RPC image {self.camera_id!r}: {i.count} observation(s) cannot determine its "
+            f"RPC {i.label}: {i.count} observation(s) cannot determine its "
             f"{len(i.indices)} bias coefficient(s) ({self.config.bias}); add observations "
             f"or choose a smaller bias model (rpc.bias = 'shift')"
         )
