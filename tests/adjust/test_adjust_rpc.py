@@ -14,8 +14,9 @@ from planetref.adjust import Network, adjust
 from planetref.adjust.models import parameterize
 from planetref.adjust.models.rpc import RpcParameterization
 from planetref.adjust.rpc_config import RpcParameters
-from planetref.camera.rpc import MARS_BODY, RpcCamera, fit_rpc, read_rpc, write_rpc
+from planetref.camera.rpc import EARTH_BODY, MARS_BODY, RpcCamera, fit_rpc, read_rpc, write_rpc
 from planetref.camera.rpc.bias import BIAS_TERMS, BiasedRpcCamera, RpcBias
+from planetref.camera.rpc.strip import RpcStripCamera, write_refined_rpcs
 from planetref.cli.adjust import adjust_command
 from planetref.errors import AdjustmentError, InputError
 from planetref.metrics import geolocation_error
@@ -210,3 +211,59 @@ def test_cli_adjusts_rpc_images_and_writes_refined_rpcs(strips, tmp_path):
 def _grid():
     ll, ss = np.meshgrid(np.linspace(1, N_LINES - 1, 9), np.linspace(1, N_SAMPLES - 1, 5))
     return ll.ravel(), ss.ravel()
+
+
+def test_rpc_strip_gets_one_bias_per_ccd(strips, tmp_path):
+    """A strip of three RPC images (one per CCD): per-CCD patterns, partials, recovery."""
+    rpcs = strips[2]
+    strip = RpcStripCamera(rpcs)
+    par = parameterize("strip", strip, validate({"rpc": {"bias": "shift+drift"}}))
+    assert par.names[:4] == tuple(f"ccd1.{t}" for t in BIAS_TERMS[:4]) and len(par.names) == 12
+    np.testing.assert_array_equal(par.pattern_columns, np.arange(12).reshape(3, 4))
+    rng = np.random.default_rng(5)
+    ln, sm = rng.uniform(0, N_LINES, 10), rng.uniform(0, N_SAMPLES, 10)
+    xyz = rpcs["ccd3"].image_to_ground(ln, sm, 300.0)
+    x = rng.normal(0, 2.0, 12)
+    ev = par.evaluate(x, xyz, 2, ln)
+    assert np.all(ev.pattern == 2)
+    for j in range(4):
+        step = np.zeros(12)
+        step[8 + j] = 1e-3
+        hi = par.evaluate(x + step, xyz, 2, ln, partials=False)
+        lo = par.evaluate(x - step, xyz, 2, ln, partials=False)
+        fd = np.stack([hi.line - lo.line, hi.sample - lo.sample], 1) / 2e-3
+        np.testing.assert_allclose(ev.d_params[:, :, j], fd, atol=1e-8)
+    # Known per-CCD biases come back from MCPs.
+    true_bias = {c: (1.0 + k, -0.5 * k, 0.3 * k, 0.7, 0.0, 0.0) for k, c in enumerate(rpcs)}
+    truth = RpcStripCamera(
+        {c: BiasedRpcCamera(r, RpcBias(r.image_size(), true_bias[c])) for c, r in rpcs.items()}
+    )
+    lines, samples, ccds, ground = [], [], [], []
+    for c in rpcs:
+        ln, sm = rng.uniform(0, N_LINES, 30), rng.uniform(0, N_SAMPLES, 30)
+        lines.append(ln), samples.append(sm), ccds.append([c] * 30)
+        ground.append(truth.image_to_ground(ln, sm, 100.0, ccd=c))
+    net = Network.mcps(
+        strip,
+        line=np.concatenate(lines),
+        sample=np.concatenate(samples),
+        xyz=np.concatenate(ground),
+        ccd=np.concatenate(ccds),
+    )
+    r = adjust(net, {"rpc": {"bias": "shift+drift"}})
+    got = np.asarray(r.x).reshape(3, 4)
+    np.testing.assert_allclose(got, [true_bias[c][:4] for c in rpcs], atol=1e-6)
+    assert isinstance(r.cameras["strip"], RpcStripCamera)
+    # Refined RPCs, one per CCD (no input file: _RPC.TXT), exact to the corrected camera.
+    paths, reports = write_refined_rpcs(r.cameras["strip"], tmp_path, "strip")
+    assert sorted(p.name for p in paths) == [f"strip_ccd{k}_RPC.TXT" for k in (1, 2, 3)]
+    assert all(rep["check_max_px"] < 0.01 for rep in reports.values())
+    # Too few observations of one CCD name that CCD.
+    few = Network.mcps(
+        strip, line=lines[0][:2], sample=samples[0][:2], xyz=ground[0][:2], ccd=["ccd1"] * 2
+    )
+    with pytest.raises(AdjustmentError, match="CCD ccd1: 2 observation"):
+        adjust(few, {"rpc": {"bias": "shift+drift"}})
+    with pytest.raises(InputError, match="share a body"):
+        earth = write_rpc(rpcs["ccd2"].rpc, tmp_path / "earth.RPB", body=EARTH_BODY)
+        RpcStripCamera({"a": rpcs["ccd1"], "b": RpcCamera.from_file(earth, image_size=(9, 9))})
