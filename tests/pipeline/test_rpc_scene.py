@@ -12,15 +12,19 @@ and they cover every CCD evenly.
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
 from planetref.adjust import Network, adjust
 from planetref.camera.io import load_camera
-from planetref.camera.rpc import RpcCamera
+from planetref.camera.rpc import RpcCamera, RpcStripCamera
+from planetref.errors import InputError
 from planetref.metrics import geolocation_error
-from planetref.pipeline.inputs import truth_inputs
-from planetref.pipeline.scene import load_manifest
+from planetref.pipeline.georef import run_georef
+from planetref.pipeline.inputs import strip_cameras, truth_inputs
+from planetref.pipeline.scene import load_manifest, write_manifest
 
 
 def _rms(values):
@@ -84,3 +88,65 @@ def test_rpc_only_true_error_within_1_5x_of_the_rigorous_model(tiny_scene, bias)
     assert before > 50.0
     assert rpc_after <= 1.5 * rig_after
     assert rpc_after < 5.0 and rig_after < 5.0
+
+
+def _rpc_only_scene(tiny_scene, dst):
+    """A copy of the tiny scene whose CCDs have only their RPCs (no rigorous camera)."""
+    shutil.copytree(tiny_scene, dst)
+    manifest, _ = load_manifest(dst)
+    strips = tuple(
+        s.model_copy(
+            update={
+                "ccds": tuple(
+                    c.model_copy(update={"camera": c.rpc, "camera_ccd": None, "rpc": None})
+                    for c in s.ccds
+                )
+            }
+        )
+        for s in manifest.strips
+    )
+    write_manifest(manifest.model_copy(update={"strips": strips}), dst / "scene.toml")
+    return dst
+
+
+def test_a_strip_of_rpc_images_is_one_camera(tiny_scene, tmp_path):
+    scene = _rpc_only_scene(tiny_scene, tmp_path / "rpc")
+    manifest, root = load_manifest(scene)
+    camera, images = strip_cameras(manifest, root, manifest.strips[0])
+    assert isinstance(camera, RpcStripCamera)
+    assert camera.ccd_names == ("ccd1", "ccd2", "ccd3") == tuple(images)
+    rigorous = load_camera(tiny_scene / "strips" / "strip1" / "camera.json")
+    for ccd in camera.ccd_names:
+        assert camera.image_size(ccd) == rigorous.image_size(ccd)
+    # Mixing an RPC and a rigorous camera file in one strip is refused.
+    strip = manifest.strips[0]
+    mixed = strip.model_copy(
+        update={
+            "ccds": (
+                strip.ccds[0].model_copy(update={"camera": "strips/strip1/camera.json"}),
+                *strip.ccds[1:],
+            )
+        }
+    )
+    with pytest.raises(InputError, match="each have its own RPC"):
+        strip_cameras(manifest, root, mixed)
+
+
+@pytest.mark.slow
+def test_georef_from_rpcs_alone_within_1_5x_of_the_rigorous_model(tiny_scene, tmp_path):
+    """End to end (SIFT matching, MCPs, adjustment, outputs) on the RPC-only scene."""
+    scene = _rpc_only_scene(tiny_scene, tmp_path / "rpc")
+    rpc = run_georef(scene, "sift", tmp_path / "run_rpc", progress=False)
+    rig = run_georef(tiny_scene, "sift", tmp_path / "run_rig", progress=False)
+    c_rpc, c_rig = rpc.report["check"], rig.report["check"]
+    print(
+        f"true error (m): initial {c_rpc['geoloc_rmse_m_before']:.2f}; rigorous "
+        f"{c_rig['geoloc_rmse_m']:.3f}; RPC-only {c_rpc['geoloc_rmse_m']:.3f}"
+    )
+    assert c_rpc["geoloc_rmse_m_before"] > 50.0
+    assert c_rpc["geoloc_rmse_m"] <= 1.5 * c_rig["geoloc_rmse_m"]
+    cams = rpc.run_dir / "strip1" / "adjustment" / "cameras"
+    assert sorted(p.name for p in cams.iterdir()) == [f"strip1_ccd{k}.RPB" for k in (1, 2, 3)]
+    assert len(list((rpc.run_dir / "strip1" / "ortho").glob("ccd*.tif"))) == 3
+    report = (rpc.run_dir / "strip1" / "adjustment" / "report.md").read_text()
+    assert "bias model 'affine'" in report
