@@ -16,7 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.blas import single_threaded_blas
-from planetref.camera.rpc.model import _N_TERMS, Rpc, _terms
+from planetref.camera.rpc.model import _N_TERMS, Rpc
+from planetref.camera.rpc.terms import _terms
 from planetref.errors import (
     GeometryError,
     InputError,

@@ -37,6 +37,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.camera.rpc.terms import _terms, _terms_dh, _terms_dl, _terms_dp
 from planetref.errors import (
     InputError,
 )
@@ -436,133 +437,6 @@ class Rpc:
         lon = np.where(good, wrap_longitude(L * self.long_scale + self.long_off), np.nan)
         lat = np.where(good, P * self.lat_scale + self.lat_off, np.nan)
         return lon.reshape(shape), lat.reshape(shape)
-
-
-def _terms(
-    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    return np.stack(
-        [
-            np.ones_like(L),
-            L,
-            P,
-            H,
-            L * P,
-            L * H,
-            P * H,
-            L * L,
-            P * P,
-            H * H,
-            P * L * H,
-            L**3,
-            L * P * P,
-            L * H * H,
-            L * L * P,
-            P**3,
-            P * H * H,
-            L * L * H,
-            P * P * H,
-            H**3,
-        ],
-        axis=-1,
-    )
-
-
-def _terms_dl(
-    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack(
-        [
-            z,
-            o,
-            z,
-            z,
-            P,
-            H,
-            z,
-            2 * L,
-            z,
-            z,
-            P * H,
-            3 * L * L,
-            P * P,
-            H * H,
-            2 * L * P,
-            z,
-            z,
-            2 * L * H,
-            z,
-            z,
-        ],
-        axis=-1,
-    )
-
-
-def _terms_dp(
-    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack(
-        [
-            z,
-            z,
-            o,
-            z,
-            L,
-            z,
-            H,
-            z,
-            2 * P,
-            z,
-            L * H,
-            z,
-            2 * L * P,
-            z,
-            L * L,
-            3 * P * P,
-            H * H,
-            z,
-            2 * P * H,
-            z,
-        ],
-        axis=-1,
-    )
-
-
-def _terms_dh(
-    L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack(
-        [
-            z,
-            z,
-            z,
-            o,
-            z,
-            L,
-            P,
-            z,
-            z,
-            2 * H,
-            P * L,
-            z,
-            z,
-            2 * L * H,
-            z,
-            z,
-            2 * P * H,
-            L * L,
-            P * P,
-            3 * H * H,
-        ],
-        axis=-1,
-    )
 
 
 def _fmt(value: float) -> str:
