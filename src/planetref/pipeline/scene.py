@@ -116,7 +116,8 @@ class CcdSpec(_Model):
         name: CCD name, unique within the strip.
         image: The image (GDAL raster; band 1 is used).
         camera: The camera file: native line-scan JSON, USGS CSM ISD or RPC
-            (``.RPB``, ``_RPC.TXT`` or a GeoTIFF with RPC tags).
+            (``.RPB``, ``_RPC.TXT`` or a GeoTIFF with RPC tags). The CCDs of a strip
+            share one camera file, or each names its own RPC (an RPC strip).
         camera_ccd: Name of this CCD inside a multi-CCD camera file (native JSON),
             default: the camera's first CCD.
         rpc: Optional RPC fitted to the camera (any of the RPC formats).
