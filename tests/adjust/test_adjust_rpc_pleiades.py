@@ -1,10 +1,11 @@
 """The real Pléiades pair (Earth, RPCs only): bias-compensated tie-point adjustment.
 
 Tie points are matched between the two images with planetref's matchers and verified by
-a fundamental matrix (1 px); the points are triangulated from the RPCs and adjusted
-(a-priori tie sigma 200 m, the default). The mutual residual is the reprojection RMSE of
-the tie points. Baseline: the same adjustment with the biases fixed (points only), so
-the reduction is that of the bias compensation and not of re-triangulating the points.
+a fundamental matrix (1 px); the points are triangulated from the RPCs and adjusted as
+free points (no a-priori coordinates); the datum is the bias coefficients' a-priori
+weight (10 px). The mutual residual is the reprojection RMSE of the tie points.
+Baseline: the same adjustment with the biases fixed (points only), so the reduction is
+that of the bias compensation and not of re-triangulating the points.
 """
 
 from __future__ import annotations
