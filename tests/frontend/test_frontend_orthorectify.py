@@ -121,3 +121,74 @@ def test_downsample_tile_mapping(setup):
     # The block image is the mean of the raw pixels of each block.
     raw, _ = img.read(tile.line0, tile.sample0, 10, 10)
     assert ds.image[0, 0] == pytest.approx(raw.mean(), rel=1e-5)
+
+
+def test_cached_preparation_equals_direct(setup):
+    """The per-reader caches (reference-grid lattice, raw block means) change nothing.
+
+    Tiles of one CCD share lattice nodes and raw block means through the reader's caches;
+    every stage image must equal the one built from the window's own lattice and a direct
+    read (to the lattice interpolation's precision), on the coarse and the fine grid, with
+    a fine_upsample grid too.
+    """
+    from planetref.frontend.grid import FineWindow
+    from planetref.frontend.orthorectify import lattice_cache
+    from planetref.raster.ortho import RefWindow
+
+    scene, ref, plan, img = setup
+    fresh = CcdImage(scene.image_paths["ccd1"])
+    cache = lattice_cache(fresh, scene.init_cam, "ccd1", ref, scene.dem, 8)
+    assert lattice_cache(fresh, scene.init_cam, "ccd1", ref, scene.dem, 8) is cache
+    try:
+        for tile in plan.tiles[:4]:
+            fp = tile_footprint(scene.init_cam, tile, ref, scene.dem)
+            c0, r0, c1, r1 = fp.window.bounds_px
+            windows = [
+                fp.window.padded(16),
+                RefWindow.around(c0, r0, c1, r1, pad_px=40, factor=2),
+                FineWindow(fp.window.padded(4), 2),
+            ]
+            for win in windows:
+                direct = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, win)
+                cached = orthorectify(
+                    fresh, scene.init_cam, "ccd1", ref, scene.dem, win, cache=cache
+                )
+                assert cached.prefilter == direct.prefilter
+                assert cached.valid.sum() > 0.3 * cached.valid.size
+                assert np.mean(cached.valid != direct.valid) < 1e-3
+                both = cached.valid & direct.valid
+                diff = np.abs(cached.image - direct.image)[both]
+                # uint16 DN around 1e3: the two lattices differ by < 0.002 raw px
+                assert diff.max() < 1e-3 * direct.image[both].std(), diff.max()
+                x = np.array([3.5, win.width / 2, win.width - 4.0])
+                y = np.array([2.5, win.height / 3, win.height - 3.0])
+                la, sa = direct.raw_coords(x, y)
+                lb, sb = cached.raw_coords(x, y)
+                assert np.nanmax(np.abs(np.r_[la - lb, sa - sb])) < 0.01
+    finally:
+        fresh.close()
+
+
+def test_block_mean_cache_equals_direct_read(setup):
+    """Cached block means (bands over the whole width) equal a direct windowed read."""
+    scene, _, _, _ = setup
+    with (
+        CcdImage(scene.image_paths["ccd1"]) as direct,
+        CcdImage(scene.image_paths["ccd1"]) as cached,
+    ):
+        cached.BAND_ROWS = 8  # several bands, evicted and read again
+        cached.MAX_CACHED_PIXELS = 3000
+        n_lines, n_samples = direct.shape
+        for k, (l0, s0, h, w) in [
+            (4, (0, 0, 200, 160)),
+            (4, (-8, 40, 120, 300)),
+            (5, (n_lines - 95, n_samples - 105, 120, 130)),  # beyond the image end
+            (3, (30, 60, 99, 33)),
+            (4, (3, 5, 40, 40)),  # off the block grid: read directly
+        ]:
+            a, va = direct.read_block_mean(l0, s0, h, w, k)
+            b, vb = cached.read_block_mean_cached(l0, s0, h, w, k)
+            assert a.shape == b.shape and va.any()
+            np.testing.assert_array_equal(va, vb)
+            np.testing.assert_allclose(b[vb], a[va], rtol=1e-6)
+        assert cached._band_pixels <= 3000 + n_samples

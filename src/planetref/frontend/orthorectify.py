@@ -44,7 +44,15 @@ from planetref.frontend.tiles import Tile
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
-__all__ = ["DownsampledTile", "ImageSide", "OrthoTile", "downsample_tile", "orthorectify"]
+__all__ = [
+    "DownsampledTile",
+    "ImageSide",
+    "LatticeCache",
+    "OrthoTile",
+    "downsample_tile",
+    "lattice_cache",
+    "orthorectify",
+]
 
 F64 = NDArray[np.float64]
 
@@ -156,18 +164,15 @@ class OrthoTile:
         return line, sample, ok
 
 
-def _lattice(
-    camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, window: RefWindow, step: int
-) -> tuple[F64, F64, F64, F64]:
-    lx = _lattice_nodes(window.width, step)
-    ly = _lattice_nodes(window.height, step)
-    gx, gy = np.meshgrid(lx, ly)
-    col, row = window.to_ref_pixel(gx.ravel(), gy.ravel())
-    mx, my = ref.pixel_to_map(col, row)
+def _project_nodes(
+    camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, col: F64, row: F64
+) -> tuple[F64, F64]:
+    """Raw ``(line, sample)`` of a ``(ny, nx)`` grid of reference ``(col, row)`` nodes."""
+    ny, nx = col.shape
+    mx, my = ref.pixel_to_map(col.ravel(), row.ravel())
     xyz, *_ = map_to_ground(ref, terrain, mx, my)
-    # Project a few spread nodes without a guess, fit an affine line(x, y), and use it as
-    # the starting line of every node: the guided projection is several times cheaper.
-    ny, nx = len(ly), len(lx)
+    # Project a few spread nodes without a guess, fit an affine line(col, row), and use it
+    # as the starting line of every node: the guided projection is several times cheaper.
     probe = np.unique(
         np.ravel_multi_index(
             (
@@ -181,11 +186,122 @@ def _lattice(
     good = np.isfinite(pl)
     guess = None
     if good.sum() >= 3:
-        a = np.column_stack([gx.ravel()[probe][good], gy.ravel()[probe][good], np.ones(good.sum())])
-        coef, *_ = np.linalg.lstsq(a, pl[good], rcond=None)
-        guess = coef[0] * gx.ravel() + coef[1] * gy.ravel() + coef[2]
+        cr = np.column_stack([col.ravel(), row.ravel(), np.ones(col.size)])
+        coef, *_ = np.linalg.lstsq(cr[probe][good], pl[good], rcond=None)
+        guess = cr @ coef
     line, sample = project_to_image(camera, ccd, xyz, line_guess=guess)
-    return lx, ly, line.reshape(ny, nx), sample.reshape(ny, nx)
+    return line.reshape(ny, nx), sample.reshape(ny, nx)
+
+
+def _lattice(
+    camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, window: RefWindow, step: int
+) -> tuple[F64, F64, F64, F64]:
+    lx = _lattice_nodes(window.width, step)
+    ly = _lattice_nodes(window.height, step)
+    gx, gy = np.meshgrid(lx, ly)
+    col, row = window.to_ref_pixel(gx, gy)
+    line, sample = _project_nodes(camera, ccd, ref, terrain, col, row)
+    return lx, ly, line, sample
+
+
+class LatticeCache:
+    """One CCD's exactly projected lattice on the reference grid, filled chunk by chunk.
+
+    Nodes sit at reference pixel edges ``(col, row) = (j step, i step)`` of the whole
+    reference grid, so every window (any coarsening, any fine grid) takes its lattice
+    from the same nodes: a tile's neighbours and its coarse stage reuse the projections
+    instead of repeating them. Chunks of ``chunk x chunk`` nodes are projected when a
+    window first needs them and kept (a node costs 16 bytes).
+
+    Args:
+        camera: The initial camera.
+        ccd: CCD name.
+        ref: The reference orthoimage (grid and CRS).
+        terrain: The reference DEM.
+        step: Node spacing, full-resolution reference pixels.
+        chunk: Nodes per chunk side.
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        ccd: str,
+        ref: ReferenceOrtho,
+        terrain: Terrain,
+        step: int,
+        chunk: int = 8,
+    ) -> None:
+        self.camera, self.ccd, self.ref, self.terrain = camera, ccd, ref, terrain
+        self.step, self.chunk = int(step), int(chunk)
+        self._chunks: dict[tuple[int, int], tuple[F64, F64]] = {}
+
+    def matches(self, camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain) -> bool:
+        """Whether this cache serves these inputs (the very same objects)."""
+        return (
+            self.camera is camera
+            and self.ccd == ccd
+            and self.ref is ref
+            and self.terrain is terrain
+        )
+
+    def _fill(self, wanted: list[tuple[int, int]]) -> None:
+        """Project the missing chunks among ``wanted`` (in one call: it has a fixed cost)."""
+        todo = [c for c in wanted if c not in self._chunks]
+        if not todo:
+            return
+        n, s = self.chunk, float(self.step)
+        k = np.arange(n)
+        # chunks stacked along the rows of one node grid
+        col = np.concatenate([np.broadcast_to((cj * n + k) * s, (n, n)) for _, cj in todo])
+        row = np.concatenate(
+            [np.broadcast_to(((ci * n + k) * s)[:, None], (n, n)) for ci, _ in todo]
+        )
+        line, sample = _project_nodes(self.camera, self.ccd, self.ref, self.terrain, col, row)
+        for m, c in enumerate(todo):
+            self._chunks[c] = (line[m * n : (m + 1) * n], sample[m * n : (m + 1) * n])
+
+    def nodes(self, window: RefWindow) -> tuple[F64, F64, F64, F64]:
+        """The lattice of a window: node ``(x, y)`` in window pixels, raw line and sample.
+
+        The nodes cover the window with one node at or beyond each edge, so nothing in the
+        window is extrapolated.
+        """
+        c0, r0, c1, r1 = window.bounds_px
+        s, n = self.step, self.chunk
+        j0, j1 = c0 // s, -(-c1 // s)
+        i0, i1 = r0 // s, -(-r1 // s)
+        line = np.empty((i1 - i0 + 1, j1 - j0 + 1))
+        sample = np.empty_like(line)
+        chunks = [
+            (ci, cj) for ci in range(i0 // n, i1 // n + 1) for cj in range(j0 // n, j1 // n + 1)
+        ]
+        self._fill(chunks)
+        for ci, cj in chunks:
+            cl, cs = self._chunks[(ci, cj)]
+            a0, a1 = max(i0, ci * n), min(i1 + 1, (ci + 1) * n)
+            b0, b1 = max(j0, cj * n), min(j1 + 1, (cj + 1) * n)
+            dst = slice(a0 - i0, a1 - i0), slice(b0 - j0, b1 - j0)
+            src = slice(a0 - ci * n, a1 - ci * n), slice(b0 - cj * n, b1 - cj * n)
+            line[dst], sample[dst] = cl[src], cs[src]
+        lx, _ = window.from_ref_pixel(np.arange(j0, j1 + 1) * float(s), 0.0)
+        _, ly = window.from_ref_pixel(0.0, np.arange(i0, i1 + 1) * float(s))
+        return np.asarray(lx, np.float64), np.asarray(ly, np.float64), line, sample
+
+
+def lattice_cache(
+    image: CcdImage, camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain, step: int
+) -> LatticeCache:
+    """The :class:`LatticeCache` kept with a CCD reader for these inputs (made when missing).
+
+    It lives in ``image.caches`` (a worker keeps its readers for the whole run), one per
+    ``(ccd, step)``; a different camera, reference or DEM object replaces it.
+    """
+    key = ("ortho-lattice", ccd, int(step))
+    cache = image.caches.get(key)
+    if not isinstance(cache, LatticeCache) or not cache.matches(camera, ccd, ref, terrain):
+        cache = LatticeCache(camera, ccd, ref, terrain, int(step))
+        image.caches[key] = cache
+    return cache
 
 
 def orthorectify(
@@ -200,6 +316,7 @@ def orthorectify(
     lattice_step: int = 8,
     prefilter: float = 0.5,
     min_valid_fraction: float = 0.5,
+    cache: LatticeCache | None = None,
 ) -> OrthoTile:
     """Resample a CCD tile onto a reference-grid window through the camera and the DEM.
 
@@ -222,13 +339,22 @@ def orthorectify(
         prefilter: Side of the raw block average as a fraction of an output pixel
             (0.5 imitates area sampling once combined with the bilinear interpolation).
         min_valid_fraction: A pre-filter block needs this fraction of valid raw pixels.
+        cache: The CCD's lattice cache (:func:`lattice_cache`): the lattice comes from its
+            reference-grid nodes (``lattice_step`` is then ignored) and the raw block
+            means from the reader's block cache
+            (:meth:`~planetref.raster.image.CcdImage.read_block_mean_cached`), so
+            overlapping windows and the two stages of a tile share that work. None: the
+            window's own lattice and a direct read.
 
     Returns:
         The orthorectified tile.
     """
-    lx, ly, lat_line, lat_sample = _lattice(
-        camera, ccd, ref, terrain, window, max(1, int(lattice_step))
-    )
+    if cache is not None:
+        lx, ly, lat_line, lat_sample = cache.nodes(window)
+    else:
+        lx, ly, lat_line, lat_sample = _lattice(
+            camera, ccd, ref, terrain, window, max(1, int(lattice_step))
+        )
     h, w = window.shape
     # Raw pixels per output pixel from the lattice's Jacobian sets the pre-filter.
     with np.errstate(invalid="ignore"):
@@ -276,7 +402,8 @@ def orthorectify(
     c1 = min(s_hi, int(np.ceil(np.max(lat_sample[fin]))) + 2 * k)
     if r1 <= r0 or c1 <= c0:
         return blank
-    block, block_valid = image.read_block_mean(r0, c0, r1 - r0, c1 - c0, k, min_valid_fraction)
+    read = image.read_block_mean if cache is None else image.read_block_mean_cached
+    block, block_valid = read(r0, c0, r1 - r0, c1 - c0, k, min_valid_fraction)
 
     xs = np.arange(w, dtype=np.float64) + 0.5
     ys = np.arange(h, dtype=np.float64) + 0.5

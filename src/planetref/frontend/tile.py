@@ -47,7 +47,12 @@ from numpy.typing import NDArray
 from planetref.camera.base import Camera, Terrain
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.grid import FineWindow, read_fine
-from planetref.frontend.orthorectify import ImageSide, downsample_tile, orthorectify
+from planetref.frontend.orthorectify import (
+    ImageSide,
+    downsample_tile,
+    lattice_cache,
+    orthorectify,
+)
 from planetref.frontend.result import StageDebug, TileResult, TileStatus
 from planetref.frontend.robust import robust_translation, spread_select, verify_points
 from planetref.frontend.tiles import Tile, tile_footprint
@@ -106,8 +111,10 @@ def _image_side(
     if config.geometry == "orthorectify":
         # The whole image may fill the window: matches outside the tile are dropped when
         # mapped back, and the real neighbourhood beats a no-data border for matching.
-        # The lattice keeps its ground spacing on a fine grid (its step is in output px).
-        step = config.lattice_step_ref_px * (round(1 / stage_factor) if stage_factor < 1 else 1)
+        # Both stages and all tiles of the CCD take their lattice from the nodes the
+        # reader's cache keeps on the reference grid, and their raw block means from its
+        # block cache: each node is projected and each raw pixel read once per worker.
+        cache = lattice_cache(image, camera, tile.ccd, ref, terrain, config.lattice_step_ref_px)
         return orthorectify(
             image,
             camera,
@@ -115,7 +122,7 @@ def _image_side(
             ref,
             terrain,
             window,  # type: ignore[arg-type]  # a FineWindow offers the same interface
-            lattice_step=step,
+            cache=cache,
         )
     return downsample_tile(image, tile, max(1, round(ratio * stage_factor)), camera, ref, terrain)
 

@@ -29,6 +29,7 @@ Invalid pixels are set to 0 in the returned data; never use them without the mas
 from __future__ import annotations
 
 import warnings
+from collections import OrderedDict
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -294,6 +295,15 @@ class CcdImage(BandReader):
         super().__init__(
             source, band=band, nodata=nodata, isis_special=isis_special, name=name, what="CCD image"
         )
+        # Block means of bands of whole block rows, per (factor, min_valid_fraction), least
+        # recently used first; see read_block_mean_cached.
+        self._bands: OrderedDict[tuple[int, float, int], tuple[NDArray[Any], NDArray[Any]]] = (
+            OrderedDict()
+        )
+        self._band_pixels = 0
+        #: Caches that belong with this reader (e.g. the front end's orthorectification
+        #: lattices), keyed by their owner; they live and die with the reader.
+        self.caches: dict[Any, Any] = {}
 
     def __enter__(self) -> CcdImage:
         return self
@@ -364,3 +374,70 @@ class CcdImage(BandReader):
             data, valid = self.read(line0 + i * k, sample0, n, n_samples)
             out[i:j], ok[i:j] = masked_block_mean(data, valid, k, min_valid_fraction)
         return out, ok
+
+    #: Block rows per cached band of :meth:`read_block_mean_cached`.
+    BAND_ROWS = 64
+    #: Most block pixels :meth:`read_block_mean_cached` keeps (about 5 bytes each).
+    MAX_CACHED_PIXELS = 1 << 25
+
+    def read_block_mean_cached(
+        self,
+        line0: int,
+        sample0: int,
+        n_lines: int,
+        n_samples: int,
+        factor: int,
+        min_valid_fraction: float = 0.5,
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """:meth:`read_block_mean` on the image's own block grid, from a cache of block rows.
+
+        The image is averaged once per factor, in bands of :attr:`BAND_ROWS` block rows
+        over the whole width (the blocks of ``(0, 0)``-anchored ``factor x factor`` cells,
+        the last row and column partial where the image ends), read when first needed and
+        kept while they fit :attr:`MAX_CACHED_PIXELS`. Windows that start on the block grid
+        get the same blocks as :meth:`read_block_mean` of the same window, except that a
+        block the window cuts short is whole here; other windows are read directly.
+
+        Returns:
+            ``(mean, valid)`` of shape ``ceil((n_lines, n_samples) / factor)``; blocks
+            outside the image are invalid.
+        """
+        k = int(factor)
+        if k < 1:
+            raise InputError(f"block factor must be >= 1, got {factor}")
+        if line0 % k or sample0 % k:
+            return self.read_block_mean(line0, sample0, n_lines, n_samples, k, min_valid_fraction)
+        hb, wb = -(-int(n_lines) // k), -(-int(n_samples) // k)
+        out = np.zeros((hb, wb), np.float32)
+        ok = np.zeros((hb, wb), bool)
+        rows, cols = self._shape
+        nbr, nbc = -(-rows // k), -(-cols // k)
+        bi0, bj0 = line0 // k, sample0 // k
+        i0, i1 = max(bi0, 0), min(bi0 + hb, nbr)
+        j0, j1 = max(bj0, 0), min(bj0 + wb, nbc)
+        if i0 >= i1 or j0 >= j1:
+            return out, ok
+        n = self.BAND_ROWS
+        for b in range(i0 // n, (i1 - 1) // n + 1):
+            data, valid = self._band(k, float(min_valid_fraction), b)
+            a0, a1 = max(i0, b * n), min(i1, (b + 1) * n)
+            dst = slice(a0 - bi0, a1 - bi0), slice(j0 - bj0, j1 - bj0)
+            src = slice(a0 - b * n, a1 - b * n), slice(j0, j1)
+            out[dst], ok[dst] = data[src], valid[src]
+        return out, ok
+
+    def _band(self, k: int, frac: float, b: int) -> tuple[NDArray[Any], NDArray[Any]]:
+        key = (k, frac, b)
+        hit = self._bands.get(key)
+        if hit is not None:
+            self._bands.move_to_end(key)
+            return hit
+        rows, cols = self._shape
+        l0 = b * self.BAND_ROWS * k
+        got = self.read_block_mean(l0, 0, min(rows - l0, self.BAND_ROWS * k), cols, k, frac)
+        self._bands[key] = got
+        self._band_pixels += got[0].size
+        while self._band_pixels > self.MAX_CACHED_PIXELS and len(self._bands) > 1:
+            _, old = self._bands.popitem(last=False)
+            self._band_pixels -= old[0].size
+        return got
