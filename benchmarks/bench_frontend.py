@@ -110,10 +110,9 @@ def bench(name: str, s: dict, cfg, weights_dir: Path | None) -> dict:
     from planetref.frontend.tile import match_tile
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching import get_matcher
-    from planetref.raster.image import CcdImage
-
     from planetref.pipeline.config import GeorefConfig
     from planetref.pipeline.matchers import matcher_options
+    from planetref.raster.image import CcdImage
 
     # The run's own matcher settings (NCC: dense fine stage, wide coarse search).
     gsd = float(np.mean(s["ref"].ground_sampling_m()))

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_precision import HIRISE, PAIRS, stats  # noqa: E402
+from bench_precision import HIRISE, PAIRS, stats
 
 PRUNING = {"published": (0.95, 0.99), "off": (-1.0, -1.0)}
 
