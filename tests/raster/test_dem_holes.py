@@ -149,3 +149,21 @@ def test_harmonic_fill_is_exact_on_a_plane_and_bounded() -> None:
     assert np.isnan(h).sum() == 13  # the input is not modified
     with pytest.raises(InputError, match="max_hole_cells"):
         DemHoles(max_hole_cells=-1)
+
+
+def test_hole_warning_once_per_run_not_per_worker(tmp_path: Path) -> None:
+    """The run warns when it opens the DEM; a worker opening it again fills it silently."""
+    from planetref.frontend.tasks import open_worker_dem
+    from planetref.raster.dem_holes import DemHoleWarning
+
+    h = _heights()
+    h[60, 60] = np.nan
+    path = _write(tmp_path / "holey.tif", h)
+    with pytest.warns(DemHoleWarning, match=r"holey\.tif: filled 1 nodata cells"):
+        run_dem = GridTerrain.from_geotiff(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        worker_dem = open_worker_dem(str(path), 1)
+    assert not [w for w in caught if issubclass(w.category, DemHoleWarning)]
+    np.testing.assert_array_equal(worker_dem.heights, run_dem.heights)
+    assert np.isfinite(worker_dem.heights).all()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import json
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,7 +26,7 @@ from planetref.raster.dem import GridTerrain
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
 
-__all__ = ["MatcherRecipe", "TileSources", "TileTask", "run_tile_task"]
+__all__ = ["MatcherRecipe", "TileSources", "TileTask", "open_worker_dem", "run_tile_task"]
 
 
 @dataclass(frozen=True)
@@ -137,6 +138,19 @@ def _matchers_key(fine: MatcherRecipe, coarse: MatcherRecipe | None) -> str:
     return json.dumps(doc, sort_keys=True, default=str)
 
 
+def open_worker_dem(path: str, band: int) -> GridTerrain:
+    """The reference DEM in a worker, without the warning about filled holes.
+
+    The run opened the same file before it dispatched any tile and said then which holes
+    it filled (once per run); every worker process filling them again is no news.
+    """
+    from planetref.raster.dem_holes import DemHoleWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DemHoleWarning)
+        return GridTerrain.from_geotiff(path, band=band)
+
+
 @functools.lru_cache(maxsize=4)
 def _worker_context(sources: str, matchers: str) -> _WorkerContext:
     """Open a strip's rasters, camera and DEM and build its matchers, once per process."""
@@ -152,7 +166,7 @@ def _worker_context(sources: str, matchers: str) -> _WorkerContext:
         camera=load_camera(doc["camera"]),
         images={ccd: CcdImage(path) for ccd, path in doc["images"]},
         ref=ReferenceOrtho(doc["ref"], band=int(doc["ref_band"])),
-        dem=GridTerrain.from_geotiff(doc["dem"], band=int(doc["dem_band"])),
+        dem=open_worker_dem(doc["dem"], int(doc["dem_band"])),
         fine=fine,
         coarse=coarse,
     )

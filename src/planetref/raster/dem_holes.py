@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from planetref.errors import InputError
 
-__all__ = ["DemHoleReport", "DemHoles", "fill_dem_holes"]
+__all__ = ["DemHoleReport", "DemHoleWarning", "DemHoles", "fill_dem_holes"]
 
 
 @dataclass(frozen=True)
@@ -73,6 +73,10 @@ class DemHoleReport:
     filled: bool
     edge_nodata_cells: int
 
+
+
+class DemHoleWarning(UserWarning):
+    """Nodata holes of a DEM were filled (the message names the file and the count)."""
 
 def fill_dem_holes(
     heights: NDArray[np.floating],
@@ -137,7 +141,7 @@ def fill_dem_holes(
     warnings.warn(
         f"{name}: filled {n_cells} nodata cells in {hole_ids.size} holes of the DEM by "
         "harmonic interpolation",
-        UserWarning,
+        DemHoleWarning,
         stacklevel=3,
     )
     return out, DemHoleReport(int(hole_ids.size), n_cells, True, edge_cells)
