@@ -50,11 +50,13 @@ def robust_translation(
         dist2 = np.sum((d[c][:, None, :] - d[None, :, :]) ** 2, axis=-1)
         close = dist2 <= r2
         counts = close.sum(axis=1)
-        wsum = (close * w[None, :]).sum(axis=1)
-        for i in np.flatnonzero(counts == counts.max()):
-            score = (int(counts[i]), float(wsum[i]))
-            if score > best_score:
-                best, best_score = int(c[i]), score
+        wsum = close @ w
+        # The chunk's best: most neighbours, then the largest weight, then the first.
+        top = np.flatnonzero(counts == counts.max())
+        i = int(top[np.argmax(wsum[top])])
+        score = (int(counts[i]), float(wsum[i]))
+        if score > best_score:
+            best, best_score = int(c[i]), score
     inl = np.sum((d - d[best]) ** 2, axis=1) <= r2
     offset = np.median(d[inl], axis=0)
     inl = np.sum((d - offset) ** 2, axis=1) <= r2
