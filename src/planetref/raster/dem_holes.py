@@ -74,9 +74,9 @@ class DemHoleReport:
     edge_nodata_cells: int
 
 
-
 class DemHoleWarning(UserWarning):
     """Nodata holes of a DEM were filled (the message names the file and the count)."""
+
 
 def fill_dem_holes(
     heights: NDArray[np.floating],
