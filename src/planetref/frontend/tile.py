@@ -114,7 +114,10 @@ def _image_side(
         # Both stages and all tiles of the CCD take their lattice from the nodes the
         # reader's cache keeps on the reference grid, and their raw block means from its
         # block cache: each node is projected and each raw pixel read once per worker.
-        cache = lattice_cache(image, camera, tile.ccd, ref, terrain, config.lattice_step_ref_px)
+        # The lattice keeps its spacing in output pixels on coarse grids (8 coarse px by
+        # default) and its ground spacing on the reference and finer grids.
+        step = config.lattice_step_ref_px * max(1, round(stage_factor))
+        cache = lattice_cache(image, camera, tile.ccd, ref, terrain, step)
         return orthorectify(
             image,
             camera,
