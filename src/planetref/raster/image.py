@@ -377,8 +377,8 @@ class CcdImage(BandReader):
 
     #: Block rows per cached band of :meth:`read_block_mean_cached`.
     BAND_ROWS = 64
-    #: Most block pixels :meth:`read_block_mean_cached` keeps (about 5 bytes each).
-    MAX_CACHED_PIXELS = 1 << 25
+    #: Most block pixels :meth:`read_block_mean_cached` keeps per reader (5 bytes each: ~40 MB).
+    MAX_CACHED_PIXELS = 1 << 23
 
     def read_block_mean_cached(
         self,
