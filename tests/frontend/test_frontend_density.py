@@ -10,7 +10,7 @@ import pytest
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.result import FUNNEL_STAGES
 from planetref.frontend.tile import match_tile
-from planetref.frontend.tiles import plan_tiles
+from planetref.frontend.tiles import plan_tiles, tile_footprint
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
 
@@ -165,7 +165,7 @@ def test_dense_ncc_reaches_the_ccd_edges(scene, ref):
     cfg = CFG.model_copy(update={"tile_size_ref_px": 64})
     plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, cfg)
     first = [t for t in plan.tiles if t.line0 == 0]  # the strip start, both sample edges
-    n_lines, n_samples = plan.image_size
+    _, n_samples = plan.image_size
     assert min(t.sample0 for t in first) == 0
     assert max(t.sample0 + t.n_samples for t in first) == n_samples
     kw = dict(
@@ -210,3 +210,38 @@ def test_dense_ncc_reaches_the_ccd_edges(scene, ref):
     )
     assert band.sum() >= 100
     assert np.median(err[band]) < 0.1 and np.percentile(err[band], 90) < 0.15
+
+
+def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
+    """Without a coarse offset, a first fine pass's offset places the fine window."""
+    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.matching.ncc import NccMatcher
+
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
+    tile = plan.tiles[0]
+    lc, sc = tile.centre
+    tc, tr = image_to_ref_pixel(scene.true_cam, "ccd1", [lc], [sc], ref, scene.dem)
+    ic, ir = image_to_ref_pixel(scene.init_cam, "ccd1", [lc], [sc], ref, scene.dem)
+    truth = np.array([tc[0] - ic[0], tr[0] - ir[0]])  # ~(12, 7) reference px
+    r = match_tile(
+        tile,
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=NccMatcher(spacing=8, search_radius=20),
+        # a coarse search of 2 px cannot reach the ~6 coarse px of the initial error
+        coarse_matcher=NccMatcher(spacing=8, search_radius=2),
+        config=CFG,
+    )
+    assert r.status == "ok", r.message
+    assert r.n_coarse_inliers < CFG.coarse_min_matches  # the coarse stage found nothing
+    assert np.max(np.abs(np.asarray(r.coarse_offset_px) - truth)) < 0.5
+    assert np.max(np.abs(np.asarray(r.offset_px) - truth)) < 0.1
+    # The second pass searched the footprint window shifted by that offset.
+    fp = tile_footprint(scene.init_cam, tile, ref, scene.dem, CFG.footprint_points_per_edge)
+    win = fp.window.padded(CFG.fine_pad_ref_px)
+    col0, row0 = r.search_window[:2]
+    assert (col0 - win.col0, row0 - win.row0) != (0, 0)
+    dc, dr = np.asarray(r.coarse_offset_px)
+    assert abs(col0 - win.col0 - dc) <= 1 and abs(row0 - win.row0 - dr) <= 1
