@@ -99,8 +99,14 @@ def test_coverage_flags_unobserved_nodes(cam):
     par = LineScanParameterization("s", cam, LineScanParameters(min_obs_per_node=5))
     line = np.linspace(10, N_LINES / 2, 200)  # nodes at lines -64, 562, ..., 2438, 3064
     issues = par.coverage(np.zeros(200, np.intp), line)
-    assert [i.label.split()[1] for i in issues] == ["4", "5"]
-    assert issues[0].indices == tuple(range(24, 30)) and issues[0].count == 0
+    # An observation counts for its nearest node only: node 3 (line 1812) has every
+    # observation (up to line 1500) half a spacing or more away, nearer to node 2.
+    assert [i.label.split()[1] for i in issues] == ["3", "4", "5"]
+    assert issues[0].indices == tuple(range(18, 24)) and issues[0].count == 0
+    # One observation just past the midpoint (line 1500) makes it count 1.
+    more = np.append(line, 1502.0)
+    issues = par.coverage(np.zeros(201, np.intp), more)
+    assert issues[0].label.split()[1] == "3" and issues[0].count == 1
 
 
 def test_csm_parameterization_on_a_real_isd():

@@ -421,3 +421,25 @@ def test_smooth_weak_nodes_extrapolate_the_observed_correction():
     # Tying unobserved nodes to their (wrong) initial values bends the strip's end;
     # continuing the observed correction keeps it close to the truth.
     assert errs["smooth"] < 0.5 * errs["weight"], errs
+
+
+def test_rank_check_takes_smoothing_constraints_as_exact():
+    """A stiffer smoothing of weak nodes is no reason to call the system singular.
+
+    Checked as weights, constraints of sigma 1e-10 rad (weight 1e20) dwarf the
+    observations and the reduced normal matrix looked singular (reciprocal condition
+    4.5e-16); checked as exact constraints the observations determine every direction
+    they leave free, and the solution is the default one.
+    """
+    net, _true, _ = mcp_problem(
+        600, seed=12, true=true_strip(n_nodes=8), init=perturb(true_strip(n_nodes=8))
+    )
+    keep = net.obs_line < 2000  # the last nodes see nothing: they are smoothed
+    sub = Network(**{**net._fields(), "obs_check": ~keep})
+    base = adjust(sub)
+    stiff = adjust(
+        sub, {"linescan": {"weak_node_smooth_sigma_rad": 1e-10, "weak_node_smooth_sigma_m": 1e-3}}
+    )
+    assert any("weak node" in w for w in stiff.warnings)
+    assert stiff.summary()["rmse_px"] == pytest.approx(base.summary()["rmse_px"], abs=1e-3)
+    assert stiff.summary()["rmse_px"] < 0.5

@@ -10,7 +10,7 @@ import pytest
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.result import FUNNEL_STAGES
 from planetref.frontend.tile import match_tile
-from planetref.frontend.tiles import plan_tiles
+from planetref.frontend.tiles import plan_tiles, tile_footprint
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
 
@@ -150,3 +150,98 @@ def test_refinement_runs_on_every_matcher_s_output(scene, ref):
     assert np.isfinite(r.sigma_px).mean() > 0.9 and np.nanmedian(r.sigma_px) < 0.5
     err = np.abs(np.asarray(r.offset_px) - truth_offset(scene, ref, tile))
     assert err.max() < 0.5, err
+
+
+def test_dense_ncc_reaches_the_ccd_edges(scene, ref):
+    """Partial (masked) templates carry the dense NCC grid to the edges of the CCD.
+
+    A whole 21 x 21 template (10 reference px = ~100 samples of this 0.5 m CCD each side)
+    stops short of the CCD's edges; masked templates reach them, as accurately as the
+    interior (measured: edge band median 0.05 ref px, p90 0.07; interior the same).
+    """
+    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.matching.ncc import NccMatcher
+
+    cfg = CFG.model_copy(update={"tile_size_ref_px": 64})
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, cfg)
+    first = [t for t in plan.tiles if t.line0 == 0]  # the strip start, both sample edges
+    _, n_samples = plan.image_size
+    assert min(t.sample0 for t in first) == 0
+    assert max(t.sample0 + t.n_samples for t in first) == n_samples
+    kw = dict(
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        config=cfg,
+        coarse_matcher=NccMatcher(spacing=8, search_radius=12),
+    )
+    opts = dict(dense_spacing_px=4, search_radius=24)
+    got = {}
+    for frac in (1.0, 0.5):
+        pts = []
+        for t in first:
+            r = match_tile(t, matcher=NccMatcher(min_template_valid=frac, **opts), **kw)
+            assert r.status == "ok", r.message
+            pts.append(np.column_stack([r.line, r.sample, r.ref_col, r.ref_row]))
+        got[frac] = np.vstack(pts)
+        line, sample = got[frac][:, 0], got[frac][:, 1]
+        print(
+            f"min_template_valid {frac}: ncp {len(line)}, sample {sample.min():.1f}.."
+            f"{sample.max():.1f} of {n_samples}, first line {line.min():.1f}"
+        )
+    whole, part = got[1.0], got[0.5]
+    gap = 5.0  # samples: well inside the ~20-sample band that whole templates cannot reach
+    assert whole[:, 1].min() > 15 and whole[:, 1].max() < n_samples - 15
+    assert whole[:, 0].min() > 15
+    assert part[:, 1].min() < gap and part[:, 1].max() > n_samples - gap
+    assert part[:, 0].min() < gap
+    assert len(part) > len(whole)
+    # Accuracy: reference position of each match against the true camera's projection.
+    line, sample = part[:, 0], part[:, 1]
+    tc, tr = image_to_ref_pixel(scene.true_cam, "ccd1", line, sample, ref, scene.dem)
+    err = np.hypot(part[:, 2] - tc, part[:, 3] - tr)
+    # the band that whole templates leave empty (~14 reference px here: radius + cell)
+    band = (sample < whole[:, 1].min()) | (sample > whole[:, 1].max()) | (line < whole[:, 0].min())
+    print(
+        f"|match - truth| (ref px): edge band n={band.sum()} median "
+        f"{np.median(err[band]):.3f} p90 {np.percentile(err[band], 90):.3f}; "
+        f"interior median {np.median(err[~band]):.3f} p90 {np.percentile(err[~band], 90):.3f}"
+    )
+    assert band.sum() >= 100
+    assert np.median(err[band]) < 0.1 and np.percentile(err[band], 90) < 0.15
+
+
+def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
+    """Without a coarse offset, a first fine pass's offset places the fine window."""
+    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.matching.ncc import NccMatcher
+
+    plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)
+    tile = plan.tiles[0]
+    lc, sc = tile.centre
+    tc, tr = image_to_ref_pixel(scene.true_cam, "ccd1", [lc], [sc], ref, scene.dem)
+    ic, ir = image_to_ref_pixel(scene.init_cam, "ccd1", [lc], [sc], ref, scene.dem)
+    truth = np.array([tc[0] - ic[0], tr[0] - ir[0]])  # ~(12, 7) reference px
+    r = match_tile(
+        tile,
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        matcher=NccMatcher(spacing=8, search_radius=20),
+        # a coarse search of 2 px cannot reach the ~6 coarse px of the initial error
+        coarse_matcher=NccMatcher(spacing=8, search_radius=2),
+        config=CFG,
+    )
+    assert r.status == "ok", r.message
+    assert r.n_coarse_inliers < CFG.coarse_min_matches  # the coarse stage found nothing
+    assert np.max(np.abs(np.asarray(r.coarse_offset_px) - truth)) < 0.5
+    assert np.max(np.abs(np.asarray(r.offset_px) - truth)) < 0.1
+    # The second pass searched the footprint window shifted by that offset.
+    fp = tile_footprint(scene.init_cam, tile, ref, scene.dem, CFG.footprint_points_per_edge)
+    win = fp.window.padded(CFG.fine_pad_ref_px)
+    col0, row0 = r.search_window[:2]
+    assert (col0 - win.col0, row0 - win.row0) != (0, 0)
+    dc, dr = np.asarray(r.coarse_offset_px)
+    assert abs(col0 - win.col0 - dc) <= 1 and abs(row0 - win.row0 - dr) <= 1

@@ -45,3 +45,36 @@ def test_dense_mode_one_template_per_cell(shifted_pair):
     assert len(m) >= 0.8 * usable_cells
     err = np.abs(m.displacement - [1.7, 2.2])
     assert np.median(err) < 0.05 and np.percentile(err, 95) < 0.2
+
+
+def test_partial_templates_reach_the_edge_of_the_valid_area(shifted_pair):
+    """Templates cut by image 0's no-data area correlate over their valid pixels only."""
+    a, b = shifted_pair(size=192, shift=(1.7, 2.2), seed=4)
+    mask0 = np.ones(a.shape, bool)
+    mask0[:, 120:] = False  # a straight edge at column 120
+    yy, xx = np.mgrid[0 : a.shape[0], 0 : a.shape[1]]
+    mask0 &= yy >= 40 + 0.3 * xx  # and a slanted one
+    t = 10
+    got = {}
+    for frac in (1.0, 0.5):
+        m = NccMatcher(dense_spacing_px=4, search_radius=6, min_template_valid=frac)
+        got[frac] = m.match(a, b, mask0)
+    whole, part = got[1.0], got[0.5]
+    x, y = part.keypoints0[:, 0], part.keypoints0[:, 1]
+    # Whole templates stop a radius short of the edge; partial ones reach it.
+    assert whole.keypoints0[:, 0].max() < 120 - t
+    assert x.max() > 118 and (x > 120 - t).sum() >= 30
+    assert mask0[np.floor(y).astype(int), np.floor(x).astype(int)].all()
+    # Every whole-template match is kept, to the bit (cells prefer whole templates).
+    common = {tuple(k) for k in whole.keypoints0}
+    assert common <= {tuple(k) for k in part.keypoints0}
+    # The partial ones are as accurate as the whole ones on this pure shift.
+    edge = np.array([tuple(k) not in common for k in part.keypoints0])
+    assert edge.sum() >= 60
+    err = np.abs(part.displacement[edge] - [1.7, 2.2])
+    err_whole = np.abs(whole.displacement - [1.7, 2.2])
+    print(
+        f"whole {len(whole)} median {np.median(err_whole):.3f}; "
+        f"partial {edge.sum()} median {np.median(err):.3f} p95 {np.percentile(err, 95):.3f}"
+    )
+    assert np.median(err) < 0.05 and np.percentile(err, 95) < 0.2

@@ -258,7 +258,8 @@ class LineScanParameters(Settings):
         interior: Interior orientation.
         ccd_placement: Per-CCD placement in the focal plane (fixed by default).
         min_obs_per_node: A node that is not fixed needs at least this many observations
-            near it (between its two neighbouring nodes); see ``weak_nodes``.
+            near it (nearer to it than to any other node: where its interpolation weight
+            dominates); see ``weak_nodes``.
         weak_nodes: What to do with nodes below ``min_obs_per_node``: ``error`` raises an
             :class:`~planetref.errors.AdjustmentError` naming them; ``weight`` ties them
             to their initial values with ``weak_node_position_sigma_m`` and

@@ -27,7 +27,7 @@ F64 = NDArray[np.float64]
 class StatisticsMixin:
     """Rank check and statistics of a :class:`~planetref.adjust.solver.BundleSolver`.
 
-    Uses the solver's ``n_params``, ``active``, ``prior_w``, ``con_n``, ``con_w``,
+    Uses the solver's ``n_params``, ``active``, ``prior_w``, ``con_a``, ``con_n``, ``con_w``,
     ``names``, ``cfg``, ``point_prior_w``, ``point_prior_axis_w``, ``_reduced`` and
     ``_prior_cost``.
     """
@@ -57,16 +57,46 @@ class StatisticsMixin:
                 f"{', '.join(names)}{' ...' if zero.size > 8 else ''}; fix them or give them "
                 f"an a-priori sigma"
             )
-        s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
+        con_n, self.con_n = self.con_n, None  # the constraints are checked apart (below)
+        try:
+            s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
+        finally:
+            self.con_n = con_n
         sa = s_mat[np.ix_(act, act)]
         # Scaled by the diagonal before the point elimination: a parameter that the
         # points absorb entirely (a datum defect) shows up as a (near-)zero eigenvalue.
         d = np.sqrt(full_diag)
+        z = np.eye(act.size)
+        if con_n is not None:
+            # The constraints (e.g. smoothed weak nodes, sigma 1e-7 rad) are as good as
+            # exact, and their weights dwarf the observations': checked as weights they
+            # make any determined direction look singular next to them. Checked as exact:
+            # the observations must determine every direction the constraints leave free
+            # (their null space; each basis vector mixes only parameters that the
+            # constraints tie together, so the diagonal scaling keeps its meaning).
+            d = np.sqrt(np.diag(lin.n_cc)[: self.n_params][act] + self.prior_w[act])
+            a_act = self.con_a[:, act]
+            a_act = a_act[np.any(a_act != 0.0, axis=1)]
+            if len(a_act):
+                _, r_f, perm = scipy.linalg.qr(a_act, mode="economic", pivoting=True)
+                tol = abs(r_f[0, 0]) * max(a_act.shape) * np.finfo(float).eps
+                rank = int(np.sum(np.abs(np.diag(r_f)) > tol))
+                n_free = act.size - rank
+                basis = np.zeros((act.size, n_free))
+                basis[perm[:rank]] = -scipy.linalg.solve_triangular(
+                    r_f[:rank, :rank], r_f[:rank, rank:]
+                )
+                basis[perm[rank:]] = np.eye(n_free)
+                z = basis / np.linalg.norm(basis, axis=0)
+            sa = z.T @ sa @ z
+            d = np.sqrt(np.maximum((z * z).T @ (d * d), 0.0))
+            d = np.where(d > 0, d, 1.0)  # directions no observation touches: zero rows
         sh = sa / d[:, None] / d[None, :]
         ev, vec = np.linalg.eigh(0.5 * (sh + sh.T))
         rcond = max(ev[0], 0.0) / ev[-1] if ev[-1] > 0 else 0.0
         if not rcond > self.cfg.min_rcond:
-            weights = np.abs(vec[:, 0])
+            weights = np.abs(z @ vec[:, 0])
+            weights /= max(float(np.linalg.norm(weights)), 1e-300)
             top = np.argsort(weights)[::-1][:6]
             names = [f"{self.names[act[i]]} ({weights[i]:.2f})" for i in top if weights[i] > 0.05]
             raise AdjustmentError(

@@ -81,8 +81,10 @@ class TileResult:
         message: Why, for any status but ``ok``.
         geometry: ``"orthorectify"`` or ``"downsample"``.
         search_window: The fine reference window ``(col0, row0, width, height, factor)``.
-        coarse_offset_px: Coarse offset ``(dcol, drow)``, reference px; None if the coarse
-            stage did not run or found no consensus.
+        coarse_offset_px: Offset ``(dcol, drow)`` that placed the fine window, reference
+            px: the coarse stage's, or, when it found no consensus, that of a first fine
+            pass over the whole uncertainty (the funnel is the second pass's); None if
+            the coarse stage did not run or neither found a consensus.
         offset_px: Fine offset (mean displacement of the verified inliers), reference px.
         offset_mad_px: Median absolute deviation of the inlier displacements, reference px.
         n_coarse_matches: Matches of the coarse stage.

@@ -325,54 +325,71 @@ def match_tile(
             )
 
     # ---- fine stage
-    up = cfg.fine_upsample
-    with _timed(timings, "fine_prepare"):
-        pad = cfg.fine_pad_ref_px if coarse_offset is not None else pad_unc + cfg.fine_pad_ref_px
-        iwin = base.padded(pad)
-        fwin = iwin if coarse_offset is None else iwin.shifted(coarse_offset[0], coarse_offset[1])
-        side = _image_side(1.0 / up, FineWindow(iwin, up) if up > 1 else iwin, **side_kw)
-        fine_ref = FineWindow(fwin, up)
-        fref, fvalid = read_fine(ref, fine_ref)
-    res.search_window = fwin.to_tuple()
-    problem = _unmatchable(side, fref, fvalid, _area_share(base, iwin, cfg), cfg)
-    if problem is not None:
-        return finish(*problem)
-    st = _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
-    res.n_matches = len(st.kp0)
-    res.record("raw", res.n_matches)
-    with _timed(timings, "verify"):
-        # Gate: a predicted position, and (after a coarse consensus) a displacement that
-        # the fine window around the coarse offset can hold at all.
-        ok = np.all(np.isfinite(st.predicted), axis=1)
-        gate = {"no_prediction": int(np.count_nonzero(~ok))}
-        if coarse_offset is not None:
-            reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
-            with np.errstate(invalid="ignore"):
-                far = np.any(np.abs(st.actual - st.predicted - coarse_offset) > reach, axis=1)
-            gate["outside_window"] = int(np.count_nonzero(ok & far))
-            ok &= ~far
-        res.record("coarse_gate", int(ok.sum()), gate)
-        src = st.predicted if cfg.geometry == "orthorectify" else st.kp0
-        inl = np.zeros(len(st.kp0), bool)
-        inl[ok] = verify_points(
-            src[ok],
-            st.actual[ok],
-            cfg.ransac_model,
-            cfg.ransac_threshold_ref_px,
-            cfg.ransac_confidence,
-            cfg.ransac_max_iters,
-        )
-        res.record("ransac", int(inl.sum()), {"outlier": int(ok.sum() - inl.sum())})
-        n_ransac = int(inl.sum())
-        if inl.any():
-            # True matches of one tile share (nearly) one displacement; a homography
-            # fitted to wrong matches does not, whatever its residuals.
-            idx = np.flatnonzero(inl)
-            _, cons = robust_translation(
-                (st.actual - st.predicted)[idx], cfg.fine_radius_ref_px, st.conf[idx]
+    # When the coarse stage ran but found no consensus, the fine stage searches the whole
+    # a-priori uncertainty; matchers whose precision falls with the displacement (XFeat*'s
+    # head is ~1 px only within ~2 px of its cell) then give loose matches that a 1-px
+    # RANSAC mostly rejects. The first fine pass's consensus offset then places the
+    # window of a second pass, as a coarse offset would have (the same for every matcher).
+    passes = 2 if cfg.coarse and coarse_offset is None else 1
+    for attempt in range(passes):
+        res.funnel, res.drops = {}, {}
+        up = cfg.fine_upsample
+        with _timed(timings, "fine_prepare"):
+            pad = (
+                cfg.fine_pad_ref_px if coarse_offset is not None else pad_unc + cfg.fine_pad_ref_px
             )
-            inl[idx[~cons]] = False
-        res.record("consensus", int(inl.sum()), {"off_translation": n_ransac - int(inl.sum())})
+            iwin = base.padded(pad)
+            fwin = (
+                iwin if coarse_offset is None else iwin.shifted(coarse_offset[0], coarse_offset[1])
+            )
+            side = _image_side(1.0 / up, FineWindow(iwin, up) if up > 1 else iwin, **side_kw)
+            fine_ref = FineWindow(fwin, up)
+            fref, fvalid = read_fine(ref, fine_ref)
+        res.search_window = fwin.to_tuple()
+        problem = _unmatchable(side, fref, fvalid, _area_share(base, iwin, cfg), cfg)
+        if problem is not None:
+            return finish(*problem)
+        st = _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
+        res.n_matches = len(st.kp0)
+        res.record("raw", res.n_matches)
+        with _timed(timings, "verify"):
+            # Gate: a predicted position, and (after a coarse consensus) a displacement that
+            # the fine window around the coarse offset can hold at all.
+            ok = np.all(np.isfinite(st.predicted), axis=1)
+            gate = {"no_prediction": int(np.count_nonzero(~ok))}
+            if coarse_offset is not None:
+                reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
+                with np.errstate(invalid="ignore"):
+                    far = np.any(np.abs(st.actual - st.predicted - coarse_offset) > reach, axis=1)
+                gate["outside_window"] = int(np.count_nonzero(ok & far))
+                ok &= ~far
+            res.record("coarse_gate", int(ok.sum()), gate)
+            src = st.predicted if cfg.geometry == "orthorectify" else st.kp0
+            inl = np.zeros(len(st.kp0), bool)
+            inl[ok] = verify_points(
+                src[ok],
+                st.actual[ok],
+                cfg.ransac_model,
+                cfg.ransac_threshold_ref_px,
+                cfg.ransac_confidence,
+                cfg.ransac_max_iters,
+            )
+            res.record("ransac", int(inl.sum()), {"outlier": int(ok.sum() - inl.sum())})
+            n_ransac = int(inl.sum())
+            if inl.any():
+                # True matches of one tile share (nearly) one displacement; a homography
+                # fitted to wrong matches does not, whatever its residuals.
+                idx = np.flatnonzero(inl)
+                _, cons = robust_translation(
+                    (st.actual - st.predicted)[idx], cfg.fine_radius_ref_px, st.conf[idx]
+                )
+                inl[idx[~cons]] = False
+            res.record("consensus", int(inl.sum()), {"off_translation": n_ransac - int(inl.sum())})
+        if attempt + 1 < passes and int(inl.sum()) >= cfg.min_inliers:
+            coarse_offset = np.mean((st.actual - st.predicted)[inl], axis=0)
+            res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
+            continue
+        break
     res.n_inliers = int(inl.sum())
     if debug:
         res.debug.append(

@@ -20,7 +20,9 @@ INVALID = -2.0
 
 
 def zncc_surfaces(
-    templates: NDArray[np.floating], windows: NDArray[np.floating]
+    templates: NDArray[np.floating],
+    windows: NDArray[np.floating],
+    masks: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.float64]:
     """Correlate each template with its own search window.
 
@@ -33,6 +35,11 @@ def zncc_surfaces(
     Args:
         templates: ``(N, a, b)`` templates.
         windows: ``(N, H, W)`` search windows, ``H >= a`` and ``W >= b``.
+        masks: Optional ``(N, a, b)`` template masks: where a mask has a False pixel the
+            ZNCC of that template is taken over its True pixels only (means, variances
+            and the product all over the same pixels of template and window; OpenCV's
+            masked ``TM_CCOEFF_NORMED``). Templates whose mask is all True take the
+            unmasked path.
 
     Returns:
         ``(N, H - a + 1, W - b + 1)`` ZNCC surfaces in ``[-1, 1]``; positions where the
@@ -44,11 +51,20 @@ def zncc_surfaces(
     w = np.ascontiguousarray(windows, np.float32)
     n, a, b = t.shape
     out = np.empty((n, w.shape[1] - a + 1, w.shape[2] - b + 1), np.float32)
-    for k in range(n):
+    partial = np.zeros(n, bool) if masks is None else ~np.asarray(masks, bool).all(axis=(1, 2))
+    for k in np.flatnonzero(~partial):
         cv2.matchTemplate(w[k], t[k], cv2.TM_CCOEFF_NORMED, result=out[k])
+    for k in np.flatnonzero(partial):
+        m = np.asarray(masks[k], np.float32)  # type: ignore[index]
+        out[k] = cv2.matchTemplate(w[k], t[k], cv2.TM_CCOEFF_NORMED, mask=m)
     res = out.astype(np.float64)
     res[~np.isfinite(res)] = INVALID
-    flat_t = t.reshape(n, -1).std(axis=1) <= 1e-7 * (1.0 + np.abs(t).reshape(n, -1).max(axis=1))
+    flat = t.reshape(n, -1).astype(np.float64)
+    wt = np.ones_like(flat) if masks is None else np.asarray(masks, bool).reshape(n, -1)
+    cnt = np.maximum(wt.sum(axis=1), 1)
+    mean = (flat * wt).sum(axis=1) / cnt
+    spread = np.sqrt(((flat - mean[:, None]) ** 2 * wt).sum(axis=1) / cnt)
+    flat_t = spread <= 1e-7 * (1.0 + np.abs(flat * wt).max(axis=1))
     res[flat_t] = INVALID
     return np.clip(res, INVALID, 1.0)
 

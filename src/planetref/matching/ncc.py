@@ -4,7 +4,11 @@ Templates of ``(2t + 1)^2`` pixels are taken on a regular grid of image 0, skipp
 their standard deviation (on the robustly normalised image, range about ``[0, 1]``) is
 below ``min_std`` or when they touch an invalid pixel, and searched in image 1 within
 ``search_radius`` pixels of the predicted position with OpenCV's ``TM_CCOEFF_NORMED``
-(zero-mean NCC, invariant to gain and offset). Candidate positions whose window touches
+(zero-mean NCC, invariant to gain and offset). Where image 0 ends (the edge of a CCD's
+footprint in an orthorectified tile), a template centred on a valid pixel may be partial:
+with at least ``min_template_valid`` of its pixels valid, its NCC is taken over those
+pixels only (masked ZNCC), so matches reach the very edge of the valid area instead of
+stopping ``t`` pixels short of it. Candidate positions whose window touches
 an invalid pixel of image 1 are excluded. The integer peak must be a strict interior
 maximum above ``min_ncc``; a peak is ambiguous (rejected) when another local maximum of the
 correlation surface, more than 2 pixels away, reaches ``ambiguity_ratio`` times its value.
@@ -45,6 +49,20 @@ def _box_stats(image: NDArray[np.float32], valid: NDArray[np.bool_], radius: int
         (~valid).astype(np.float64), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT
     )
     return std, bad > 0.5
+
+
+def _partial_stats(image: NDArray[np.float32], valid: NDArray[np.bool_], radius: int):
+    """Per-pixel std over the valid pixels of the ``(2r+1)^2`` window, and their share."""
+    k = (2 * radius + 1, 2 * radius + 1)
+    v = valid.astype(np.float64)
+    img = np.where(valid, image, 0.0).astype(np.float64)
+    share = cv2.boxFilter(v, -1, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
+    s1 = cv2.boxFilter(img, -1, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
+    s2 = cv2.boxFilter(img * img, -1, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s1 / share
+        std = np.sqrt(np.maximum(s2 / share - mean * mean, 0.0))
+    return np.where(share > 0, std, 0.0), share
 
 
 # least-squares quadratic on a 3x3 patch: f = a + b x + c y + d x^2 + e x y + g y^2
@@ -149,8 +167,12 @@ class NccMatcher(BaseMatcher):
             pixels; the search is centred there.
         dense_spacing_px: Dense mode: image 0 is cut into cells of this many pixels and
             each cell contributes one template, centred on its most textured usable pixel
-            (largest template standard deviation, at least ``min_std``). ``None``: templates
-            on the regular ``spacing`` grid.
+            (largest template standard deviation, at least ``min_std``; a whole template
+            before a partial one). ``None``: templates on the regular ``spacing`` grid.
+        min_template_valid: Smallest share of valid pixels of a template centred on a
+            valid pixel next to invalid ones (the edge of the valid area); its NCC is taken
+            over its valid pixels only. ``1.0``: whole templates only (matches stop
+            ``template_radius`` pixels short of the edge).
 
     Raises:
         InputError: A parameter out of range.
@@ -170,8 +192,14 @@ class NccMatcher(BaseMatcher):
         subpixel: Subpixel = "quadratic",
         initial_offset: tuple[float, float] = (0.0, 0.0),
         dense_spacing_px: int | None = None,
+        min_template_valid: float = 0.5,
     ) -> None:
         super().__init__()
+        if not 0.0 < float(min_template_valid) <= 1.0:
+            raise InputError(
+                f"must be in (0, 1], got {min_template_valid}", field="min_template_valid"
+            )
+        self.min_template_valid = float(min_template_valid)
         if dense_spacing_px is not None and int(dense_spacing_px) < 1:
             raise InputError(f"must be >= 1, got {dense_spacing_px}", field="dense_spacing_px")
         self.dense_spacing_px = None if dense_spacing_px is None else int(dense_spacing_px)
@@ -212,18 +240,17 @@ class NccMatcher(BaseMatcher):
         return rr.ravel(), cc.ravel()
 
     def _dense_grid(
-        self, std: NDArray[np.float64], usable: NDArray[np.bool_]
+        self, score: NDArray[np.float64]
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """One template per ``dense_spacing_px`` cell: its most textured usable pixel."""
+        """One template per ``dense_spacing_px`` cell: its best-scoring pixel (score >= 0)."""
         s = int(self.dense_spacing_px)  # type: ignore[arg-type]
-        h, w = std.shape
-        score = np.where(usable, std, -1.0)
+        h, w = score.shape
         hc, wc = -(-h // s), -(-w // s)
         padded = np.full((hc * s, wc * s), -1.0)
         padded[:h, :w] = score
         cells = padded.reshape(hc, s, wc, s).transpose(0, 2, 1, 3).reshape(hc, wc, s * s)
         best = cells.argmax(axis=2)
-        ok = np.take_along_axis(cells, best[..., None], axis=2)[..., 0] >= self.min_std
+        ok = np.take_along_axis(cells, best[..., None], axis=2)[..., 0] >= 0.0
         ci, cj = np.nonzero(ok)
         di, dj = np.divmod(best[ci, cj], s)
         return ci * s + di, cj * s + dj
@@ -241,13 +268,22 @@ class NccMatcher(BaseMatcher):
             _, bad1 = _box_stats(image1, valid1, t)
             h0, w0 = image0.shape
             rr, cc = np.mgrid[0:h0, 0:w0]
-            usable = ~bad0 & (rr >= t) & (rr < h0 - t) & (cc >= t) & (cc < w0 - t)
+            inside = (rr >= t) & (rr < h0 - t) & (cc >= t) & (cc < w0 - t)
+            whole = ~bad0 & inside & (std0 >= self.min_std)
+            # Whole templates score 2 + std, partial ones (at the edge of the valid area)
+            # their std over valid pixels: a cell prefers a whole template.
+            score = np.where(whole, 2.0 + std0, -1.0)
+            if self.min_template_valid < 1.0:
+                std_p, share = _partial_stats(image0, valid0, t)
+                partial = bad0 & inside & valid0 & (share >= self.min_template_valid - 1e-9)
+                partial &= std_p >= self.min_std
+                score = np.where(partial, std_p, score)
             if self.dense_spacing_px is None:
                 rows, cols = self._grid(image0.shape)
-                keep = (std0[rows, cols] >= self.min_std) & usable[rows, cols]
+                keep = score[rows, cols] >= 0.0
                 rows, cols = rows[keep], cols[keep]
             else:
-                rows, cols = self._dense_grid(std0, usable)
+                rows, cols = self._dense_grid(score)
             dx0, dy0 = self.initial_offset
             out = correlate_batch(
                 image0,
@@ -258,6 +294,7 @@ class NccMatcher(BaseMatcher):
                 np.round(rows + dy0).astype(np.int64),
                 np.round(cols + dx0).astype(np.int64),
                 self,
+                valid0=valid0 if self.min_template_valid < 1.0 else None,
             )
         x1, y1, conf, ok = out
         if not ok.any():
@@ -279,13 +316,15 @@ def correlate_batch(
     r1: NDArray[np.int64],
     c1: NDArray[np.int64],
     settings: NccMatcher,
+    valid0: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """Vectorised template search: the batched equivalent of :func:`_correlate`.
 
     Template ``n`` is centred on image-0 pixel ``(r0[n], c0[n])`` and searched around image-1
     pixel ``(r1[n], c1[n])`` within ``settings.search_radius``; candidate centres whose window
     leaves image 1 or touches an invalid pixel (``bad1``) are excluded. Peak, ambiguity and
-    sub-pixel rules are those of :class:`NccMatcher`.
+    sub-pixel rules are those of :class:`NccMatcher`. With ``valid0`` (image 0's valid
+    mask), a template that covers invalid pixels is correlated over its valid pixels only.
 
     Returns:
         ``(x1, y1, ncc, ok)`` per template, corner-convention pixels.
@@ -321,7 +360,12 @@ def correlate_batch(
         templ = image0[(r0[sl] - t)[:, None, None] + ko[:, None], (c0[sl] - t)[:, None, None] + ko]
         # search window rows r1 - radius - t ... r1 + radius + t, in padded coordinates (+m)
         win = img1[r1[sl][:, None, None] + kw[:, None], c1[sl][:, None, None] + kw]
-        res = zncc_surfaces(templ, win)
+        masks = None
+        if valid0 is not None:
+            masks = valid0[
+                (r0[sl] - t)[:, None, None] + ko[:, None], (c0[sl] - t)[:, None, None] + ko
+            ]
+        res = zncc_surfaces(templ, win, masks)
         # candidate centre (r1 - radius + i, c1 - radius + j) -> blocked index (+radius)
         res[blocked[r1[sl][:, None, None] + ks[:, None], c1[sl][:, None, None] + ks]] = _INVALID
         flat = res.reshape(len(res), -1)

@@ -250,19 +250,23 @@ class LineScanParameterization:
     def coverage(self, ccd: NDArray[np.intp], line: F64) -> list[CoverageIssue]:
         """Nodes (not fixed) with fewer than ``min_obs_per_node`` observations near them.
 
-        An observation is near a node when its time lies between the node's neighbours
-        (the two intervals the node's Lagrange basis function peaks over).
+        An observation is near the node whose interpolation weight dominates at its time:
+        the nearest node. (Counting it for both nodes around it, as before, let a node
+        whose observations all lie half a spacing or more away pass while the
+        observations hardly determine it, e.g. the last node when the matches stop short
+        of the strip end; its attitude was then free and the adjustment singular.)
         """
         need = self.config.min_obs_per_node
         if need <= 0 or np.all(self.mode[: 6 * self._n_nodes] == 2):
             return []
         t = self.camera.line_rates.time(np.asarray(line, np.float64))
-        interval = np.searchsorted(self._kernel.windows.times, t, side="right") - 1  # -1 .. N-1
-        per_interval = np.bincount(
-            np.clip(interval + 1, 0, self._n_nodes), minlength=self._n_nodes + 1
-        )
-        # Node i is near intervals i-1 and i (index shifted by one above).
-        counts = per_interval[:-1] + per_interval[1:]
+        times = np.asarray(self._kernel.windows.times, np.float64)
+        if self._n_nodes < 2:
+            nearest = np.zeros(len(t), np.intp)
+        else:
+            after = np.clip(np.searchsorted(times, t), 1, self._n_nodes - 1)
+            nearest = np.where(t - times[after - 1] <= times[after] - t, after - 1, after)
+        counts = np.bincount(nearest, minlength=self._n_nodes)
         issues = []
         for i in range(self._n_nodes):
             sl = tuple(range(6 * i, 6 * i + 6))
