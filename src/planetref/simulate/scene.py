@@ -21,9 +21,8 @@ Layout of a scene directory (all paths in ``scene.toml`` are relative to it)::
 The scene is built in a temporary sibling folder and renamed into place at the end, so
 an interrupted run never leaves a half-written scene behind.
 
-Random streams: each component draws from ``SeedSequence(seed, spawn_key=(k, ...))``
-with a fixed ``k`` per component (and strip/CCD indices), so changing one part of the
-config does not reshuffle the others, and the same seed gives byte-identical files.
+Random streams: one independent generator per component, see
+:mod:`planetref.simulate.streams`.
 """
 
 from __future__ import annotations
@@ -44,42 +43,12 @@ import numpy as np
 
 from planetref.errors import InputError
 from planetref.simulate.config import SimulationConfig
+from planetref.simulate.streams import seed_sequence, stream
 
 __all__ = ["SceneModel", "SceneResult", "build_scene_model", "simulate_scene", "stream"]
 
-_STREAMS = {
-    "regional": 1,
-    "fractal": 2,
-    "plains": 3,
-    "dunes": 4,
-    "craters": 5,
-    "ridges": 6,
-    "albedo": 7,
-    "texture": 8,
-    "ortho_noise": 9,
-    "dem_noise": 10,
-    "checkpoints": 11,
-    "consistency": 12,
-    "mismatch": 13,
-    "change": 14,
-    "mosaic": 15,
-    "mola": 16,
-    "strip": 100,
-    "ccd_noise": 200,
-}
-
 COARSE_FACTOR = 32
 """Regional-relief grid spacing, in truth DEM cells."""
-
-
-def stream(seed: int, name: str, *extra: int) -> np.random.Generator:
-    """The random generator of a component (see the module docstring)."""
-    return np.random.default_rng(seed_sequence(seed, name, *extra))
-
-
-def seed_sequence(seed: int, name: str, *extra: int) -> np.random.SeedSequence:
-    """The seed sequence of a component."""
-    return np.random.SeedSequence(seed, spawn_key=(_STREAMS[name], *extra))
 
 
 @dataclass
