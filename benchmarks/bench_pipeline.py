@@ -119,11 +119,15 @@ def ortho_old_vs_new(scene: Path, rev: str, out: Path) -> dict[str, Any]:
         )
         t_new += time.perf_counter() - t0
         with rasterio.open(p_old) as a, rasterio.open(p_new) as b:
-            va, vb = a.read(1), b.read(1)
-        both = np.isfinite(va) & np.isfinite(vb)
-        max_diff = max(max_diff, float(np.abs(va - vb)[both].max()))
+            va, vb = (ds.read(1, masked=True).astype(float).filled(np.nan) for ds in (a, b))
+            same_grid = a.transform == b.transform and a.shape == b.shape
         lo, hi = np.nanpercentile(va, [1, 99])
         dn_range = max(dn_range, float(hi - lo))
+        if not same_grid:  # the new grid is aligned to multiples of the pixel size
+            max_diff = float("nan")
+            continue
+        both = np.isfinite(va) & np.isfinite(vb)
+        max_diff = max(max_diff, float(np.abs(va - vb)[both].max()))
     return {
         "ccds": len(strip.ccds),
         "lines": lines,

@@ -104,13 +104,50 @@ def test_georef_reduces_true_error_below_reference_gsd(tiny_scene, tmp_path, wei
     assert (run / "strip1" / "adjustment" / "residuals.csv").is_file()
     with rasterio.open(tiny_scene / "reference" / "ortho.tif") as ref:
         ref_crs = ref.crs
-    orthos = sorted((run / "strip1" / "ortho").glob("*.tif"))
-    assert len(orthos) == 3
+    orthos = sorted((run / "strip1" / "ortho").glob("ccd*.tif"))
+    assert len(orthos) == 3 and (run / "strip1" / "ortho" / "mosaic.tif").is_file()
     with rasterio.open(orthos[0]) as o:
         assert o.crs == ref_crs
-        assert np.isfinite(o.read(1)).mean() > 0.3
+        assert (~o.read(1, masked=True).mask).mean() > 0.3
+    if matcher == "sift":
+        _check_standard_products(out, tiny_scene)
     for png in ("strip1_mcp_distribution.png", "strip1_residuals.png"):
         assert (run / "figures" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _check_standard_products(out, scene):
+    """ISDs of the adjusted native camera and the control-point exports of a georef run."""
+    from planetref.camera.csm import CsmLineScanCamera, read_isd
+    from planetref.camera.io import load_camera
+    from planetref.raster.dem import GridTerrain
+
+    run = out.run_dir
+    adjusted = load_camera(run / "strip1" / "adjustment" / "cameras" / "strip1.json")
+    dem = GridTerrain.from_geotiff(scene / "reference" / "dem.tif")
+    isds = out.files["strip1"]["isd"]
+    assert len(isds) == 3
+    worst = 0.0
+    for path in isds:
+        ccd = path.rsplit("strip1_", 1)[1].removesuffix(".json")
+        n_lines, n_samples = adjusted.image_size(ccd)
+        gl, gs = np.meshgrid(
+            np.linspace(0.5, n_lines - 0.5, 31), np.linspace(0.5, n_samples - 0.5, 7), indexing="ij"
+        )
+        # Ground points on the DEM, projected by the native camera and by the ISD.
+        xyz = adjusted.image_to_ground(gl.ravel(), gs.ravel(), dem, ccd=ccd)
+        native = adjusted.ground_to_image(xyz, ccd=ccd)
+        csm = CsmLineScanCamera.from_isd(read_isd(path)).ground_to_image(xyz)
+        err = np.hypot(csm.line - native.line, csm.sample - native.sample)
+        worst = max(worst, float(err.max()))
+    assert worst <= 1e-3, worst
+    print(f"ISD vs native adjusted camera, max over 3 x 217 ground points: {worst:.2e} px")
+    ex = out.files["strip1"]["exports"]
+    n = len(open(ex["asp_gcp"]).read().splitlines())  # one MCP per line, one image each
+    assert n >= 12 and len(open(ex["isis_cnet_csv"]).read().splitlines()) == n + 1
+    listed = json.loads((run / "run.json").read_text())
+    names = json.dumps(listed)
+    for p in [*isds, ex["asp_gcp"], ex["isis_cnet_csv"]]:
+        assert p.split(str(run) + "/", 1)[1] in names  # recorded in the run manifest
 
 
 def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path):

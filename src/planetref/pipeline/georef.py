@@ -16,9 +16,11 @@ Run directory layout::
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,7 +30,15 @@ import numpy as np
 from planetref import __version__
 from planetref.errors import MatchingError
 from planetref.pipeline.config import GeorefConfig
-from planetref.pipeline.georef_outputs import figure_residuals, figures_matching, orthoimages
+from planetref.pipeline.georef_outputs import (
+    camera_isds,
+    campaign_points,
+    control_exports,
+    figure_residuals,
+    figures_matching,
+    mcp_points,
+    orthoimages,
+)
 from planetref.pipeline.georef_report import (
     adjustment_block,
     camera_view,
@@ -298,9 +308,9 @@ def _match(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> StripM
             camera=str(man.resolve(job.root, strip.ccds[0].camera)),
             images=tuple((c, str(Path(img.path).resolve())) for c, img in images.items()),
             ref=str(man.resolve(job.root, man.reference.ortho)),
-            dem=str(man.resolve(job.root, man.reference.dem)),
+            dem=str(_worker_dem(job)),
             ref_band=man.reference.ortho_band,
-            dem_band=man.reference.dem_band,
+            dem_band=1 if man.reference.dem_datum != "body" else man.reference.dem_band,
         )
         fine: Matcher | MatcherRecipe = pair.fine
         coarse: Matcher | MatcherRecipe | None = pair.coarse
@@ -320,6 +330,24 @@ def _match(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> StripM
         executor=job.executor,
         sources=sources,
     )
+
+
+def _worker_dem(job: StripJob) -> Path:
+    """The DEM file parallel workers read: the scene's, or its body-height conversion.
+
+    A DEM above the areoid is converted once (``reference/dem_body.tif`` in the run
+    folder) so that every worker reads the same body-relative heights as this process.
+    """
+    from planetref.atomic import atomic_path
+
+    man = job.manifest
+    if man.reference.dem_datum == "body":
+        return man.resolve(job.root, man.reference.dem)
+    target = job.run.file("reference", "dem_body.tif")
+    if not target.is_file():
+        with atomic_path(target) as tmp:
+            job.dem.to_geotiff(tmp)
+    return target
 
 
 def _strip_mcps(job: StripJob) -> StripMcps:
@@ -377,7 +405,8 @@ def _strip_mcps(job: StripJob) -> StripMcps:
         "drops": matches.drops(),
         "mcp_counts": table.counts.to_dict() if table.counts is not None else {},
     }
-    figures_matching(job, matches, table, sizes, images, camera)
+    with single_threaded_blas(), _timed(job.timing, "figures"):  # figures are outputs
+        figures_matching(job, matches, table, sizes, images, camera)
     n = len(table)
     if n < cfg.mcp.min_mcps:
         raise MatchingError(
@@ -421,17 +450,40 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         run.file(prep.id, "adjustment"),
         truth=truth,
         terrain=job.truth_dem if job.truth_dem is not None else job.dem,
+        plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
     )
     out["files"]["adjustment"] = adj_files
     out["adjustment"] = result_block(result)
     out["check"] = check_block(result, truth, job.truth_dem) if truth else None
     out["warnings"] = list(result.warnings)
+    dt = time.perf_counter() - t0  # adjusted cameras, RPC refits, residuals, reports
+    job.timing["outputs"] += dt
+    job.timing["outputs_adjustment_files"] = job.timing.get("outputs_adjustment_files", 0.0) + dt
+    with _timed(job.timing, "isd"):
+        out["files"]["isd"] = camera_isds(job, prep.id, result.cameras[prep.id])
+    with _timed(job.timing, "exports"):
+        out["files"]["exports"] = control_exports(
+            job, f"{prep.id}_mcps", mcp_points(prep, cfg), (prep.id, "exports")
+        )
     if cfg.ortho.enabled:
-        out["files"]["ortho"] = orthoimages(job, prep.id, result.cameras[prep.id], prep.images)
-    figure_residuals(run, prep.id, result, prep.sizes)
-    job.timing["outputs"] += time.perf_counter() - t0
+        with _timed(job.timing, "orthoimages"):
+            out["files"]["ortho"] = orthoimages(job, prep.id, result.cameras[prep.id], prep.images)
+    with _timed(job.timing, "figures"):
+        figure_residuals(run, prep.id, result, prep.sizes)
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+@contextlib.contextmanager
+def _timed(timing: dict[str, float], part: str) -> Iterator[None]:
+    """Add the block's seconds to ``outputs`` and to ``outputs_<part>``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        dt = time.perf_counter() - t0
+        timing["outputs"] = timing.get("outputs", 0.0) + dt
+        timing[f"outputs_{part}"] = timing.get(f"outputs_{part}", 0.0) + dt
 
 
 def _adjust_together(
@@ -481,6 +533,7 @@ def _adjust_together(
         run.file("campaign", "adjustment"),
         truth=truth,
         terrain=job.truth_dem if job.truth_dem is not None else job.dem,
+        plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
     )
     strips: dict[str, dict[str, Any]] = {}
     is_tie = np.asarray(network.point_kind)[network.obs_point] == "tie"
@@ -500,11 +553,14 @@ def _adjust_together(
         one = {p.id: job.truth_cameras[p.id]} if p.id in job.truth_cameras else None
         out["check"] = check_block(result, one, job.truth_dem) if one else None
         out["warnings"] = list(result.warnings)
+        out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
         if cfg.ortho.enabled:
             out["files"]["ortho"] = orthoimages(job, p.id, result.cameras[p.id], p.images)
         out["_residuals"] = (result.residual[on], result.inlier[on])
         figure_residuals(run, p.id, camera_view(result, ci), p.sizes)
         strips[p.id] = out
+    exports = campaign_points(preps, ties, cfg)
+    joint_exports = control_exports(job, "campaign", exports, ("campaign", "exports"))
     timing["outputs"] += time.perf_counter() - t0
     campaign = {
         "adjust_together": True,
@@ -519,6 +575,9 @@ def _adjust_together(
             tie_rmse_px=None if not len(ties) else rmse_px(result.residual[is_tie & result.inlier]),
             tie_rmse_px_before=None if not len(ties) else rmse_px(result.residual_initial[is_tie]),
         ),
-        "files": {k: v for k, v in joint_files.items() if k != "cameras"},
+        "files": {
+            **{k: v for k, v in joint_files.items() if k != "cameras"},
+            "exports": joint_exports,
+        },
     }
     return strips, campaign

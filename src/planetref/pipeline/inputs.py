@@ -45,6 +45,8 @@ def scene_path(scene: str | os.PathLike[str]) -> Path:
 def scene_input_files(manifest: SceneManifest, root: Path) -> list[Path]:
     """Every file a scene manifest names (reference, images, cameras, truth): run inputs."""
     names = [manifest.reference.ortho, manifest.reference.dem]
+    if manifest.reference.areoid:
+        names.append(manifest.reference.areoid)
     for strip in manifest.strips:
         for c in strip.ccds:
             names += [c.image, c.camera]
@@ -78,14 +80,16 @@ def check_body(body: Any, raster: Any, what: str, path: Any = None) -> None:
 
 def open_reference(manifest: SceneManifest, root: Path) -> tuple[ReferenceOrtho, GridTerrain]:
     """The scene's reference orthoimage and DEM, opened."""
-    from planetref.raster.dem import GridTerrain
+    from planetref.raster.datum import open_reference_dem
     from planetref.raster.ortho import ReferenceOrtho
 
-    ortho_path = manifest.resolve(root, manifest.reference.ortho)
-    dem_path = manifest.resolve(root, manifest.reference.dem)
-    ref = ReferenceOrtho(ortho_path, band=manifest.reference.ortho_band)
-    dem = GridTerrain.from_geotiff(dem_path, band=manifest.reference.dem_band)
-    return ref, dem
+    spec = manifest.reference
+    ortho_path = manifest.resolve(root, spec.ortho)
+    dem_path = manifest.resolve(root, spec.dem)
+    ref = ReferenceOrtho(ortho_path, band=spec.ortho_band)
+    areoid = None if spec.areoid is None else manifest.resolve(root, spec.areoid)
+    dem = open_reference_dem(dem_path, band=spec.dem_band, datum=spec.dem_datum, areoid=areoid)
+    return ref, dem  # type: ignore[return-value]
 
 
 def strip_cameras(

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,7 +40,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.atomic import atomic_path
 from planetref.camera.base import Camera, Terrain
 from planetref.errors import GeometryError
 from planetref.frontend.geometry import project_to_image, rays_to_ground
@@ -124,6 +122,29 @@ def _weights(pos: F64, n: int) -> F64:
     if n > 1:
         w[rows, i0 + 1] += f
     return w
+
+
+def _cell(pos: F64, n: int) -> tuple[NDArray[np.intp], F64]:
+    """Lattice cell ``i0`` and fraction ``f`` of positions in lattice units (0..n-1)."""
+    i0 = np.clip(np.floor(pos).astype(np.intp), 0, max(0, n - 2))
+    return i0, pos - i0
+
+
+def _separable(lat: F64, ir: NDArray[np.intp], fr: F64, ic: NDArray[np.intp], fc: F64) -> F64:
+    """Bilinear interpolation of a lattice at rows ``(ir, fr)`` and columns ``(ic, fc)``.
+
+    The same values as :func:`_interpolate` with :func:`_weights` (two gathers instead
+    of two dense products). Pixel centres never fall on a lattice node (they sit at
+    half-integers, the nodes at multiples of the step), so both weights of a cell are
+    positive and a NaN node makes every value it touches NaN, as there.
+    """
+    if lat.shape[0] == 1:
+        tmp = lat[np.zeros_like(ir)]
+    else:
+        tmp = lat[ir] * (1.0 - fr)[:, None] + lat[ir + 1] * fr[:, None]
+    if lat.shape[1] == 1:
+        return tmp[:, np.zeros_like(ic)]
+    return tmp[:, ic] * (1.0 - fc)[None, :] + tmp[:, ic + 1] * fc[None, :]
 
 
 def _interpolate(lat: F64, wr: F64, wc: F64) -> F64:
@@ -261,9 +282,9 @@ class LatticeProjector:
             guess_fn = self._coarse_guess(rows, cols, lat_l)
         self._prev = (rows, cols, lat_l)
         self.steps_used.append((step_r, step_c))
-        wr = _weights((centres_r - r0) / step_r, n_r)
-        wc = _weights(centres_c / step_c, n_c)
-        return _interpolate(lat_l, wr, wc), _interpolate(lat_s, wr, wc)
+        ir, fr = _cell((centres_r - r0) / step_r, n_r)
+        ic, fc = _cell(centres_c / step_c, n_c)
+        return _separable(lat_l, ir, fr, ic, fc), _separable(lat_s, ir, fr, ic, fc)
 
     @staticmethod
     def _coarse_guess(rows: F64, cols: F64, lines: F64) -> Any:
@@ -341,6 +362,9 @@ def orthorectify_ccd(
 ) -> Path:
     """Write the orthoimage of one CCD image, streamed block by block.
 
+    One CCD of :func:`~planetref.pipeline.ortho_strip.orthorectify_strip` (its grid,
+    data type, nodata, overviews and resume rules), without a mosaic.
+
     Args:
         image: A :class:`~planetref.raster.image.CcdImage` (windowed reads).
         camera: The camera (e.g. the adjusted one).
@@ -353,83 +377,21 @@ def orthorectify_ccd(
         resume: Keep an existing orthoimage whose inputs digest matches.
 
     Returns:
-        The path written. Pixels outside the image or the DEM are nodata (NaN, float32).
+        The path written. Pixels outside the image or the DEM are nodata.
+
+    Raises:
+        GeometryError: The image's border does not meet the DEM.
     """
-    import cv2
-    import rasterio
-    from rasterio.transform import from_origin
-    from rasterio.windows import Window
+    from planetref.pipeline.ortho_strip import orthorectify_strip
 
-    from planetref.geometry.geodesy import CrsGround
-
-    s = settings or OrthoSettings()
-    target = Path(path)
-    digest_path = target.with_name(target.name + DIGEST_SUFFIX)
-    digest = inputs_digest(image, camera, ccd, terrain, crs, gsd_m, s)
-    if (
-        resume
-        and target.is_file()
-        and digest_path.is_file()
-        and digest_path.read_text(encoding="utf-8").strip() == digest
-    ):
-        return target
-
-    ground = CrsGround(crs)
-    x0, y0, x1, y1 = _footprint(camera, ccd, terrain, ground)
-    width = max(1, math.ceil((x1 - x0) / gsd_m))
-    height = max(1, math.ceil((y1 - y0) / gsd_m))
-    grid = OrthoGrid(ground, x0, y1, gsd_m, width, height)
-    projector = LatticeProjector(camera, ccd, terrain, grid, s)
-    n_lines, n_samples = camera.image_size(ccd)
-    profile = {
-        "driver": "GTiff",
-        "width": width,
-        "height": height,
-        "count": 1,
-        "dtype": "float32",
-        "crs": ground.crs.to_wkt(),
-        "transform": from_origin(x0, y1, gsd_m, gsd_m),
-        "nodata": float("nan"),
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        **_compression(),
-    }
-    if digest_path.exists():
-        digest_path.unlink()
-    with atomic_path(target) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-        for r0 in range(0, height, s.block_rows):
-            r1 = min(height, r0 + s.block_rows)
-            map_line, map_sample = projector.block(r0, r1)
-            out = np.full((r1 - r0, width), np.nan, np.float32)
-            with np.errstate(invalid="ignore"):
-                finite = np.isfinite(map_line) & np.isfinite(map_sample)
-                inside = (
-                    finite
-                    & (map_line > -1)
-                    & (map_line < n_lines + 1)
-                    & (map_sample > -1)
-                    & (map_sample < n_samples + 1)
-                )
-            if inside.any():
-                l_lo = max(0, int(np.floor(map_line[inside].min())) - 2)
-                l_hi = min(n_lines, int(np.ceil(map_line[inside].max())) + 2)
-                if l_hi > l_lo:
-                    raw, valid = image.read(l_lo, 0, l_hi - l_lo, n_samples)
-                    raw = np.where(valid, raw, np.nan).astype(np.float32)
-                    # Pixel centres are at +0.5; remap indexes pixel centres from 0. A pixel
-                    # whose bilinear support leaves the image gets the NaN border.
-                    mx_ = np.where(inside, map_sample - 0.5, -10.0).astype(np.float32)
-                    my_ = np.where(inside, map_line - l_lo - 0.5, -10.0).astype(np.float32)
-                    out = cv2.remap(
-                        raw,
-                        mx_,
-                        my_,
-                        cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=np.nan,
-                    )
-            dst.write(out, 1, window=Window(0, r0, width, r1 - r0))
-    with atomic_path(digest_path) as tmp_digest:
-        tmp_digest.write_text(digest + "\n", encoding="utf-8")
-    return target
+    res = orthorectify_strip(
+        {ccd: image},
+        camera,
+        terrain,
+        crs,
+        {ccd: path},
+        gsd_m=gsd_m,
+        settings=settings,
+        resume=resume,
+    )
+    return res.ccds[ccd]

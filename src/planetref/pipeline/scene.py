@@ -98,15 +98,30 @@ class ReferenceSpec(_Model):
 
     Attributes:
         ortho: Orthoimage (georeferenced raster, any GDAL format, e.g. a CTX mosaic).
-        dem: DEM (georeferenced raster of heights in metres above ``body``).
+        dem: DEM (georeferenced raster of heights in metres above ``dem_datum``).
         ortho_band: 1-based band of the ortho to use.
         dem_band: 1-based band of the DEM.
+        dem_datum: What the DEM's heights are above: ``"body"`` (the ``[body]``
+            sphere/ellipsoid; CTX/HRSC-like products) or ``"areoid"`` (MOLA MEGDR-like
+            products; needs ``areoid``). See :mod:`planetref.raster.datum`.
+        areoid: Raster of the areoid's height above ``body`` (metres, any map CRS of the
+            body); the DEM is converted to body heights with it when it is read.
     """
 
     ortho: str
     dem: str
     ortho_band: int = Field(default=1, ge=1)
     dem_band: int = Field(default=1, ge=1)
+    dem_datum: Literal["body", "areoid"] = "body"
+    areoid: str | None = None
+
+    @model_validator(mode="after")
+    def _datum(self) -> ReferenceSpec:
+        if self.dem_datum == "areoid" and not self.areoid:
+            raise ValueError('dem_datum = "areoid" needs areoid = "<raster of areoid heights>"')
+        if self.areoid and self.dem_datum != "areoid":
+            raise ValueError('areoid is given but dem_datum is not "areoid"')
+        return self
 
 
 class CcdSpec(_Model):
@@ -212,6 +227,8 @@ class SceneManifest(_Model):
     def paths(self) -> list[str]:
         """Every file path the manifest names (for existence checks)."""
         out = [self.reference.ortho, self.reference.dem]
+        if self.reference.areoid:
+            out.append(self.reference.areoid)
         for s in self.strips:
             for c in s.ccds:
                 out += [c.image, c.camera] + ([c.rpc] if c.rpc else [])

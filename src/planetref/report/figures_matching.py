@@ -229,7 +229,9 @@ def _gray() -> Any:
 
 def _show(ax: Any, img: NDArray[Any], valid: NDArray[np.bool_] | None, label: str) -> None:
     h, w = np.shape(img)
-    step = max(1, int(np.ceil(max(h, w) / 1500)))  # display only; extent keeps pixels
+    # Display only (the extent keeps pixel units): a panel is at most ~550 px wide at the
+    # figures' dpi, so more than 700 px of image would only cost drawing time.
+    step = max(1, int(np.ceil(max(h, w) / 700)))
     shown = _display(
         np.asarray(img)[::step, ::step], None if valid is None else valid[::step, ::step]
     )

@@ -250,6 +250,7 @@ def write_linescan_isds(
     stem: str,
     *,
     tolerance_px: float = 1e-3,
+    lines_per_sample: float = 32.0,
 ) -> list[Path]:
     """Write one USGS CSM line-scan ISD per CCD of a native camera (atomically).
 
@@ -266,6 +267,7 @@ def write_linescan_isds(
         stem: File name stem; CCD ``c`` goes to ``<stem>_<c>.json`` (see
             :func:`isd_file_name`).
         tolerance_px: Largest accepted disagreement in pixels.
+        lines_per_sample: The first (coarsest) ephemeris sampling tried, in lines.
 
     Returns:
         The paths written, in the camera's CCD order.
@@ -278,7 +280,7 @@ def write_linescan_isds(
         raise InputError("the output folder does not exist", path=folder)
     paths = []
     for name in camera.ccd_names:
-        lps = 32.0
+        lps = float(lines_per_sample)
         while True:
             isd = linescan_to_isd(camera, name, lines_per_sample=lps)
             err = isd_agreement_px(camera, name, isd)

@@ -1,0 +1,429 @@
+"""Orthoimages of a strip: every CCD and their mosaic on one round grid, streamed.
+
+:func:`orthorectify_strip` writes one GeoTIFF per CCD and (optionally) a mosaic of all
+of them, in one pass over block rows of a common north-up grid:
+
+* **Grid.** Every output shares one pixel size (``gsd_m``; :func:`round_gsd` turns a
+  CCD's native GSD such as 0.4873 m into a round 0.5 m) and one lattice of pixel edges
+  at integer multiples of it in the reference CRS, so the CCD orthoimages, the mosaic
+  and orthoimages of other strips at the same size overlay pixel for pixel. A CCD's
+  file covers its footprint (its top row moved up to the mosaic's block grid so that
+  every write fills whole 256-row tiles).
+* **Data type.** The input's type is kept: floating inputs as float32 (float64 stays
+  float64) with NaN nodata; unsigned integers with nodata at the type's maximum
+  (255, 65535), signed ones at its minimum, valid values rounded and clipped one short
+  of it: a valid pixel never reads as nodata (only an input pixel at the type's extreme,
+  i.e. saturated, is written one DN below it).
+* **Overviews.** Internal overviews (factors 2, 4, ... while the smaller side stays
+  >= 256 pixels), averaged over valid pixels.
+* **Mosaic, overlap rule.** Where CCDs overlap, a mosaic pixel takes the CCD whose image
+  point lies farthest from that CCD's first/last sample (the distance to its nearer
+  side edge), so seams run along the middle of each overlap, where both CCDs are
+  farthest from their edges; ties go to the CCD listed first.
+* **Streaming and atomic writes.** Each block of ``block_rows`` rows is projected
+  (:class:`~planetref.pipeline.orthoimage.LatticeProjector`), resampled from the raw
+  lines it needs and written with windowed writes into temporary files renamed when
+  complete; memory is bounded by the block size.
+* **Resume.** A digest of the inputs (cameras, images, DEM, CRS, grid, settings) is
+  written next to each file; a re-run with the same digest keeps the files.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.atomic import atomic_path
+from planetref.camera.base import Camera, Terrain
+from planetref.errors import GeometryError, InputError
+from planetref.pipeline.orthoimage import (
+    DIGEST_SUFFIX,
+    LatticeProjector,
+    OrthoGrid,
+    OrthoSettings,
+    _compression,
+    _file_id,
+    _footprint,
+    _terrain_id,
+)
+
+__all__ = ["PixelType", "StripOrthoResult", "orthorectify_strip", "round_gsd"]
+
+F32 = NDArray[np.float32]
+#: Round pixel sizes (times a power of ten) that :func:`round_gsd` chooses from.
+ROUND_STEPS = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
+TILE = 256
+
+
+def round_gsd(gsd_m: float) -> float:
+    """The round pixel size nearest (in ratio) to ``gsd_m``: 0.4873 -> 0.5, 2.7 -> 2.5.
+
+    The candidates are :data:`ROUND_STEPS` times powers of ten (neighbours differ by at
+    most a factor 1.33, so the rounding changes the size by at most ~15 %).
+    """
+    g = float(gsd_m)
+    if not (np.isfinite(g) and g > 0):
+        raise InputError(f"pixel size must be positive, got {gsd_m}")
+    k = math.floor(math.log10(g))
+    cands = [s * 10.0**e for e in (k - 1, k, k + 1) for s in ROUND_STEPS]
+    best = min(cands, key=lambda c: abs(math.log(c / g)))
+    return float(f"{best:.12g}")
+
+
+@dataclass(frozen=True)
+class PixelType:
+    """Output data type and nodata for an input data type (see the module doc).
+
+    Attributes:
+        dtype: Output numpy dtype.
+        nodata: The nodata value (NaN for floats).
+        lo: Smallest valid value (integers), else None.
+        hi: Largest valid value (integers), else None.
+    """
+
+    dtype: np.dtype[Any]
+    nodata: float
+    lo: float | None = None
+    hi: float | None = None
+
+    @classmethod
+    def of(cls, dtype: Any) -> PixelType:
+        """The output type of an input dtype."""
+        dt = np.dtype(dtype)
+        if np.issubdtype(dt, np.floating):
+            out = np.dtype(np.float64) if dt.itemsize > 4 else np.dtype(np.float32)
+            return cls(out, float("nan"))
+        if np.issubdtype(dt, np.unsignedinteger):
+            info = np.iinfo(dt)
+            return cls(dt, float(info.max), float(info.min), float(info.max) - 1.0)
+        if np.issubdtype(dt, np.signedinteger):
+            info = np.iinfo(dt)
+            return cls(dt, float(info.min), float(info.min) + 1.0, float(info.max))
+        return cls(np.dtype(np.float32), float("nan"))
+
+    def cast(self, values: F32) -> NDArray[Any]:
+        """Float values (NaN = no data) to the output type, nodata where NaN."""
+        if self.lo is None:
+            return values.astype(self.dtype, copy=False)
+        bad = np.isnan(values)
+        v = np.clip(np.rint(values), self.lo, self.hi)
+        v[bad] = self.nodata
+        return v.astype(self.dtype)
+
+
+@dataclass
+class StripOrthoResult:
+    """What :func:`orthorectify_strip` wrote.
+
+    Attributes:
+        ccds: CCD name -> orthoimage path.
+        mosaic: The mosaic's path (None if not asked for).
+        gsd_m: The common pixel size.
+        dtype: The output data type's name.
+        nodata: The nodata value.
+        resumed: True when every file was kept from a previous run.
+    """
+
+    ccds: dict[str, Path]
+    mosaic: Path | None
+    gsd_m: float
+    dtype: str
+    nodata: float
+    resumed: bool = False
+
+
+@dataclass
+class _CcdJob:
+    ccd: str
+    image: Any
+    grid: OrthoGrid
+    row_off: int
+    col_off: int
+    projector: LatticeProjector
+    n_lines: int
+    n_samples: int
+
+
+def _strip_digest(
+    images: Mapping[str, Any],
+    camera: Camera,
+    terrain: Terrain,
+    crs: Any,
+    gsd_m: float,
+    s: OrthoSettings,
+    mosaic: bool,
+) -> str:
+    to_dict = getattr(camera, "to_dict", None)
+    doc = {
+        "camera": to_dict() if callable(to_dict) else repr(camera),
+        "images": {c: _file_id(getattr(im, "path", None)) for c, im in images.items()},
+        "dem": _terrain_id(terrain),
+        "crs": str(crs),
+        "gsd_m": float(gsd_m),
+        "settings": [s.lattice_step, s.min_lattice_step, s.max_error_px, s.block_rows],
+        "mosaic": mosaic,
+        "format": 2,
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=repr).encode()).hexdigest()
+
+
+def _digest_ok(path: Path, digest: str) -> bool:
+    d = path.with_name(path.name + DIGEST_SUFFIX)
+    return path.is_file() and d.is_file() and d.read_text(encoding="utf-8").strip() == digest
+
+
+def _overview_factors(width: int, height: int) -> list[int]:
+    out, f = [], 2
+    while min(width, height) // f >= TILE:
+        out.append(f)
+        f *= 2
+    return out
+
+
+def _resample(job: _CcdJob, r0: int, r1: int, want_dist: bool) -> tuple[F32, F32 | None]:
+    """Resampled values of a CCD's rows r0:r1, and their edge distances for the mosaic.
+
+    Returns:
+        Values (float32, NaN outside) and, if ``want_dist``, each pixel's distance
+        (samples) to the CCD's nearer side edge (-inf where there is no value).
+    """
+    import cv2
+
+    map_line, map_sample = job.projector.block(r0, r1)
+    # float32 maps, as cv2.remap takes them (it resolves 1/32 pixel anyway).
+    ml = map_line.astype(np.float32)
+    ms = map_sample.astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        inside = (ml > -1) & (ml < job.n_lines + 1) & (ms > -1) & (ms < job.n_samples + 1)
+    empty = np.full((r1 - r0, job.grid.width), np.nan, np.float32)
+    if not inside.any():
+        return empty, (np.full_like(empty, -np.inf) if want_dist else None)
+    lines = ml[inside]
+    l_lo = max(0, int(np.floor(lines.min())) - 2)
+    l_hi = min(job.n_lines, int(np.ceil(lines.max())) + 2)
+    if l_hi <= l_lo:
+        return empty, (np.full_like(empty, -np.inf) if want_dist else None)
+    raw, valid = job.image.read(l_lo, 0, l_hi - l_lo, job.n_samples)
+    if not valid.all():
+        raw = np.where(valid, raw, np.float32(np.nan))
+    # Pixel centres are at +0.5; remap indexes pixel centres from 0. A pixel whose
+    # bilinear support leaves the image gets the NaN border.
+    outside = ~inside
+    mx = ms - np.float32(0.5)
+    my = ml - np.float32(l_lo + 0.5)
+    mx[outside] = -10.0
+    my[outside] = -10.0
+    out = cv2.remap(
+        raw.astype(np.float32, copy=False),
+        mx,
+        my,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
+    if not want_dist:
+        return out, None
+    dist = np.minimum(ms, np.float32(job.n_samples) - ms)
+    dist[np.isnan(out)] = -np.inf
+    return out, dist
+
+
+def orthorectify_strip(
+    images: Mapping[str, Any],
+    camera: Camera,
+    terrain: Terrain,
+    crs: Any,
+    paths: Mapping[str, str | os.PathLike[str]],
+    *,
+    gsd_m: float,
+    mosaic: str | os.PathLike[str] | None = None,
+    settings: OrthoSettings | None = None,
+    resume: bool = True,
+    overviews: bool = True,
+    threads: int | None = None,
+) -> StripOrthoResult:
+    """Orthoimages of the CCDs of one strip and their mosaic (see the module doc).
+
+    Args:
+        images: CCD name -> :class:`~planetref.raster.image.CcdImage` (windowed reads), in
+            the strip's order (the mosaic's tie-break order).
+        camera: The strip's camera (e.g. the adjusted one).
+        terrain: The DEM the images are projected onto.
+        crs: The output CRS (the reference ortho's), projected, in metres.
+        paths: CCD name -> output GeoTIFF.
+        gsd_m: The common pixel size (CRS units); see :func:`round_gsd`.
+        mosaic: Output GeoTIFF of the mosaic, or None.
+        settings: Lattice and block settings.
+        resume: Keep existing outputs whose inputs digest matches.
+        overviews: Build internal overviews.
+        threads: CCDs resampled at once (default: OpenCV's thread budget, see
+            :mod:`planetref.threads`); the output does not depend on it.
+
+    Returns:
+        What was written.
+
+    Raises:
+        GeometryError: No CCD's footprint meets the DEM.
+    """
+    import cv2
+    import rasterio
+    from rasterio.enums import Resampling
+    from rasterio.transform import from_origin
+    from rasterio.windows import Window
+
+    from planetref.geometry.geodesy import CrsGround
+
+    s = settings or OrthoSettings()
+    if threads is None:
+        threads = cv2.getNumThreads()
+    rows_per_block = max(TILE, (int(s.block_rows) // TILE) * TILE)
+    g = float(gsd_m)
+    dtypes = {np.dtype(getattr(im, "dtype", np.float32)) for im in images.values()}
+    ptype = PixelType.of(np.result_type(*dtypes) if dtypes else np.float32)
+    targets = {c: Path(paths[c]) for c in images}
+    mosaic_path = None if mosaic is None else Path(mosaic)
+    every = [*targets.values(), *([mosaic_path] if mosaic_path else [])]
+    digest = _strip_digest(images, camera, terrain, crs, g, s, mosaic_path is not None)
+    result = StripOrthoResult(targets, mosaic_path, g, ptype.dtype.name, ptype.nodata)
+    if resume and all(_digest_ok(p, digest) for p in every):
+        result.resumed = True
+        return result
+
+    ground = CrsGround(crs)
+    boxes: dict[str, tuple[int, int, int, int]] = {}
+    for ccd in images:
+        try:
+            x0, y0, x1, y1 = _footprint(camera, ccd, terrain, ground)
+        except GeometryError:
+            continue
+        boxes[ccd] = (
+            math.floor(x0 / g),
+            math.floor(y0 / g),
+            max(math.ceil(x1 / g), math.floor(x0 / g) + 1),
+            max(math.ceil(y1 / g), math.floor(y0 / g) + 1),
+        )
+    if not boxes:
+        raise GeometryError("no CCD's image border meets the DEM: no orthoimage")
+    mx0 = min(b[0] for b in boxes.values())
+    my1 = max(b[3] for b in boxes.values())
+    mx1 = max(b[2] for b in boxes.values())
+    my0 = min(b[1] for b in boxes.values())
+    m_grid = OrthoGrid(ground, mx0 * g, my1 * g, g, mx1 - mx0, my1 - my0)
+    jobs: list[_CcdJob] = []
+    for ccd, (ix0, _iy0, ix1, iy1) in boxes.items():
+        row_off = ((my1 - iy1) // rows_per_block) * rows_per_block
+        col_off = ix0 - mx0
+        height = (my1 - boxes[ccd][1]) - row_off
+        grid = OrthoGrid(ground, ix0 * g, (my1 - row_off) * g, g, ix1 - ix0, height)
+        n_lines, n_samples = camera.image_size(ccd)
+        jobs.append(
+            _CcdJob(
+                ccd,
+                images[ccd],
+                grid,
+                row_off,
+                col_off,
+                LatticeProjector(camera, ccd, terrain, grid, s),
+                int(n_lines),
+                int(n_samples),
+            )
+        )
+
+    def profile(grid: OrthoGrid) -> dict[str, Any]:
+        return {
+            "driver": "GTiff",
+            "width": grid.width,
+            "height": grid.height,
+            "count": 1,
+            "dtype": ptype.dtype.name,
+            "crs": ground.crs.to_wkt(),
+            "transform": from_origin(grid.x0, grid.y1, g, g),
+            "nodata": ptype.nodata,
+            "tiled": True,
+            "blockxsize": TILE,
+            "blockysize": TILE,
+            "BIGTIFF": "IF_SAFER",
+            **_compression(),
+        }
+
+    for p in every:
+        d = p.with_name(p.name + DIGEST_SUFFIX)
+        if d.exists():
+            d.unlink()
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(rasterio.Env(GDAL_PAM_ENABLED="NO"))
+        dst: dict[str, Any] = {}
+        for j in jobs:
+            tmp = stack.enter_context(atomic_path(targets[j.ccd]))
+            dst[j.ccd] = stack.enter_context(rasterio.open(tmp, "w", **profile(j.grid)))
+        m_dst = None
+        if mosaic_path is not None:
+            tmp = stack.enter_context(atomic_path(mosaic_path))
+            m_dst = stack.enter_context(rasterio.open(tmp, "w", **profile(m_grid)))
+        # The CCDs of a block are resampled and written in threads (separate files and
+        # readers; OpenCV, GDAL and numpy's large operations release the GIL).
+        n_threads = min(len(jobs), max(1, int(threads or 1)))
+        pool = (
+            stack.enter_context(ThreadPoolExecutor(n_threads, thread_name_prefix="ortho"))
+            if n_threads > 1
+            else None
+        )
+        for r0 in range(0, m_grid.height, rows_per_block):
+            r1 = min(m_grid.height, r0 + rows_per_block)
+            m_val = m_dist = None
+            if m_dst is not None:
+                m_val = np.full((r1 - r0, m_grid.width), np.nan, np.float32)
+                m_dist = np.full((r1 - r0, m_grid.width), -np.inf, np.float32)
+            todo = []
+            for j in jobs:
+                a0, a1 = max(r0 - j.row_off, 0), min(r1 - j.row_off, j.grid.height)
+                if a1 > a0:
+                    todo.append((j, a0, a1))
+
+            def one(job: _CcdJob, a0: int, a1: int) -> tuple[F32, F32 | None]:
+                val, dist = _resample(job, a0, a1, m_dst is not None)
+                win = Window(0, a0, job.grid.width, a1 - a0)
+                dst[job.ccd].write(ptype.cast(val), 1, window=win)
+                return val, dist
+
+            if pool is not None and len(todo) > 1:
+                done = [f.result() for f in [pool.submit(one, *t) for t in todo]]
+            else:
+                done = [one(*t) for t in todo]
+            for (j, a0, a1), (val, dist) in zip(todo, done, strict=True):
+                if m_val is not None and m_dist is not None and dist is not None:
+                    rs = slice(a0 + j.row_off - r0, a1 + j.row_off - r0)
+                    cs = slice(j.col_off, j.col_off + j.grid.width)
+                    better = dist > m_dist[rs, cs]
+                    m_val[rs, cs] = np.where(better, val, m_val[rs, cs])
+                    m_dist[rs, cs] = np.where(better, dist, m_dist[rs, cs])
+            if m_dst is not None and m_val is not None:
+                m_dst.write(ptype.cast(m_val), 1, window=Window(0, r0, m_grid.width, r1 - r0))
+        if overviews:
+            for ds in [*dst.values(), *([m_dst] if m_dst is not None else [])]:
+                factors = _overview_factors(ds.width, ds.height)
+                if factors:
+                    ds.build_overviews(factors, Resampling.average)
+                    ds.update_tags(ns="rio_overview", resampling="average")
+    for p in targets.values() if len(jobs) == len(targets) else [targets[j.ccd] for j in jobs]:
+        _write_digest(p, digest)
+    if mosaic_path is not None:
+        _write_digest(mosaic_path, digest)
+    result.ccds = {j.ccd: targets[j.ccd] for j in jobs}
+    return result
+
+
+def _write_digest(path: Path, digest: str) -> None:
+    with atomic_path(path.with_name(path.name + DIGEST_SUFFIX)) as tmp:
+        tmp.write_text(digest + "\n", encoding="utf-8")
