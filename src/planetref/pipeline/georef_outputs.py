@@ -101,7 +101,7 @@ def control_exports(
 
 
 def mcp_points(prep: Any, cfg: Any) -> Any:
-    """A strip's MCPs (a :class:`~planetref.pipeline.networks.StripMcps`) as ``ControlPoints`` for the exports."""
+    """A strip's MCPs (a :class:`~planetref.pipeline.networks.StripMcps`) for the exports."""
     from pathlib import Path
 
     from planetref.report.control_exports import ControlPoints
