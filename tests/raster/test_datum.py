@@ -130,3 +130,29 @@ def test_implausible_heights_for_the_declared_datum_warn(tmp_path, caplog):
         with pytest.raises(InputError):  # the areoid raster is near 20 N, not 75 N
             open_reference_dem(sub / "dem.tif", datum="areoid", areoid=areoid)
     assert len(caplog.records) == 1 and "implausible" in caplog.records[0].getMessage()
+
+
+def test_parallel_workers_read_the_converted_dem(tmp_path):
+    """A DEM above the areoid reaches tile workers as one body-height file in the run folder."""
+    from types import SimpleNamespace
+
+    from planetref.pipeline.georef import _worker_dem
+    from planetref.pipeline.rundir import RunDir
+
+    dem_path, _ = _dem(tmp_path)
+    areoid = _linear_areoid(tmp_path, 321.0, 10.0, -5.0)
+    body = open_reference_dem(dem_path, datum="areoid", areoid=areoid)
+    ref = SimpleNamespace(dem=dem_path.name, dem_datum="areoid")
+    man = SimpleNamespace(reference=ref, resolve=lambda root, rel: Path(root) / rel)
+    run = RunDir(tmp_path / "run", "georef", {"test": 1})
+    try:
+        job = SimpleNamespace(manifest=man, root=tmp_path, run=run, dem=body)
+        path = _worker_dem(job)
+        assert path.parent.parent == run.path and path.is_file()
+        back = GridTerrain.from_geotiff(path)
+        assert np.array_equal(back.heights, body.heights) and back.transform == body.transform
+        assert _worker_dem(job) == path  # written once
+        ref.dem_datum = "body"
+        assert _worker_dem(job) == dem_path  # the scene's own file otherwise
+    finally:
+        run.close()
