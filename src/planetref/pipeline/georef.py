@@ -10,7 +10,12 @@ Run directory layout::
     <strip>/tiles.jsonl              per-tile matching journal (resume)
     <strip>/mcps.parquet, mcps.gpkg  matched control points
     <strip>/adjustment/...           adjusted cameras, RPCs, residuals, per-strip report
-    <strip>/ortho/<ccd>.tif          orthoimages through the adjusted camera
+    <strip>/adjustment/isd/*.json    adjusted native camera as USGS CSM ISDs (one per CCD)
+    <strip>/exports/*.gcp, *_cnet.csv   MCPs as an ASP GCP file, ISIS-style control network
+    <strip>/ortho/<ccd>.tif          orthoimages through the adjusted camera (input type,
+                                     round pixel size, overviews)
+    <strip>/ortho/mosaic.tif         the strip's mosaic of all CCDs
+    reference/dem_body.tif           a DEM above the areoid in body heights (parallel runs)
     figures/*.png                    matches of one tile, MCP distribution, residuals
 """
 
