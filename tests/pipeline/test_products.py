@@ -238,3 +238,45 @@ def test_scene_manifest_datum_keys(tiny_scene, tmp_path):
     (scene / "scene.toml").write_text(head + '[reference]\ndem_datum = "areoid"\n' + rest)
     with pytest.raises(InputError, match="needs areoid"):
         load_manifest(scene)
+
+
+@pytest.mark.slow
+def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
+    """The same scene declared above a +150 m areoid: every MCP's ground point lies 150 m
+    above the scene's DEM (to float precision), whatever the matches."""
+    from planetref.control import read_mcps
+    from planetref.geometry.geodesy import xyz_to_lonlat
+    from planetref.pipeline.georef import run_georef
+    from planetref.raster.dem import GridTerrain
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    dem_file = scene / "reference" / "dem.tif"
+    with rasterio.open(dem_file) as ds:
+        crs, transform, shape = ds.crs, ds.transform, ds.shape
+    n = np.full((shape[0] + 4, shape[1] + 4), 150.0)
+    with rasterio.open(
+        scene / "reference" / "areoid.tif",
+        "w",
+        driver="GTiff",
+        width=n.shape[1],
+        height=n.shape[0],
+        count=1,
+        dtype="float64",
+        crs=crs,
+        transform=transform @ rasterio.Affine.translation(-2, -2),
+    ) as ds:
+        ds.write(n, 1)
+    lines = [ln for ln in (scene / "scene.toml").read_text().splitlines() if "dem_datum" not in ln]
+    text = "\n".join(lines) + "\n"
+    head, rest = text.split("[reference]\n", 1)
+    (scene / "scene.toml").write_text(
+        head + '[reference]\ndem_datum = "areoid"\nareoid = "reference/areoid.tif"\n' + rest
+    )
+    out = run_georef(scene, "sift", tmp_path / "run", progress=False)
+    table = read_mcps(tmp_path / "run" / "strip1" / "mcps.parquet")
+    dem = GridTerrain.from_geotiff(dem_file)
+    lon, lat, h = xyz_to_lonlat(table.xyz(), dem.ellipsoid)
+    assert len(h) >= 12
+    assert np.max(np.abs(h - (dem.height(lon, lat) + 150.0))) < 1e-3
+    assert out.report["adjustment"]["n_total"] > 0
