@@ -41,6 +41,7 @@ def main() -> int:
     ap.add_argument("out")
     ap.add_argument("--matcher", default="sift")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--profile", default=None, help="Also write the cProfile stats here.")
     args = ap.parse_args()
 
     from planetref.threads import ThreadBudget, apply_thread_budget
@@ -54,6 +55,8 @@ def main() -> int:
     out = run_georef(args.scene, args.matcher, args.out, progress=False, overwrite=True)
     prof.disable()
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    if args.profile:
+        prof.dump_stats(args.profile)
     cum: dict[str, float] = {}
     for (path, _line, name), (_cc, _nc, _tt, ct, _callers) in pstats.Stats(prof).stats.items():
         key = f"{path.split('/planetref/')[-1]}:{name}"
