@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.errors import InputError, MissingFileError
+from planetref.geometry.geodesy import Ellipsoid, lonlat_to_xyz
 
 __all__ = [
     "AREOID_MARGIN_M",
@@ -65,10 +66,10 @@ _AREOID_INV_F = 169.8
 _MARS_A_M = 3396190.0
 
 
-def _radius(lat_deg: NDArray[np.float64], a: float, b: float) -> NDArray[np.float64]:
+def _radius(lat_deg: NDArray[np.float64], ellipsoid: Ellipsoid) -> NDArray[np.float64]:
     """Geocentric radius (m) of an ellipsoid at planetocentric latitudes (degrees)."""
-    t = np.radians(lat_deg)
-    return a * b / np.sqrt((b * np.cos(t)) ** 2 + (a * np.sin(t)) ** 2)
+    lat = np.asarray(lat_deg, float)
+    return np.linalg.norm(lonlat_to_xyz(0.0, lat, 0.0, ellipsoid, "planetocentric"), axis=-1)
 
 
 def areoid_above_body_estimate_m(lat_deg: NDArray[np.float64], body: object) -> NDArray[np.float64]:
@@ -77,11 +78,8 @@ def areoid_above_body_estimate_m(lat_deg: NDArray[np.float64], body: object) -> 
     The areoid is approximated by the ellipsoid of MOLA's mean equatorial radius and
     shape flattening; ``body`` is an :class:`~planetref.geometry.geodesy.Ellipsoid`.
     """
-    a_ar = _AREOID_A_M
-    b_ar = a_ar * (1.0 - 1.0 / _AREOID_INV_F)
-    lat = np.asarray(lat_deg, float)
-    r_body = _radius(lat, float(body.semi_major_m), float(body.semi_minor_m))  # type: ignore[attr-defined]
-    return _radius(lat, a_ar, b_ar) - r_body
+    areoid = Ellipsoid(_AREOID_A_M, _AREOID_A_M * (1.0 - 1.0 / _AREOID_INV_F))
+    return _radius(lat_deg, areoid) - _radius(lat_deg, body)  # type: ignore[arg-type]
 
 
 def datum_warning(dem: object, datum: DemDatum, path: str | PathLike[str] | None) -> str | None:
