@@ -66,3 +66,22 @@ def test_stop_at_ftol_accepts_a_noisy_residual():
     br = bracket_first_sign_change(noisy, np.linspace(-1.0, 1.0, 5), 1)
     x = refine_bracketed(br, residual=noisy, xtol=1e-15, ftol=1e-9, stop_at_ftol=True)
     assert abs(x[0] - 0.3) < 2e-9
+
+
+@pytest.mark.parametrize("slope", [True, False])
+def test_a_root_on_a_grid_node_with_rounding_of_the_other_sign_is_found(slope):
+    # The root is 1e-12 above the grid node 0.5, but the residual evaluated exactly at the
+    # node has the other sign (rounding noise, as a camera's offset at a search-grid line):
+    # the bracket is [0, 0.5] and the converged Newton point lies 1e-12 beyond its end.
+    # It must be returned, not replaced by the bracket's midpoint (and then rejected).
+    def noisy(x, rows):
+        return (x - 0.5 - 1e-12) + 2e-12 * (x == 0.5)
+
+    def noisy_slope(x, rows):
+        return noisy(x, rows), np.ones_like(x)
+
+    br = bracket_first_sign_change(noisy, np.linspace(-1.0, 1.0, 5), 1)
+    assert br.found[0] and br.hi[0] == 0.5
+    kw = {"residual_with_slope": noisy_slope} if slope else {"residual": noisy}
+    x = refine_bracketed(br, xtol=1e-8, ftol=1e-6, **kw)
+    assert abs(x[0] - 0.5) < 1e-11

@@ -79,7 +79,26 @@ def test_radial_distortion_has_the_configured_size_at_the_field_edge(k1_px, k2_p
     # The far end of the last CCD: the ground that the distorted truth's edge pixel sees
     # is where the undistorted truth sees k1 + k2 px further out along the row.
     c = lens.ccds[-1]
-    line = np.array([0.5 * c.n_lines + 0.37])  # not on a search-grid node (see report)
+    line = np.array([0.5 * c.n_lines])  # on a search-grid node (see the test below)
     g = lens.image_to_ground(line, np.array([float(c.n_samples)]), 0.0, ccd=c.name)
     moved = plain.ground_to_image(g, ccd=c.name).sample[0] - c.n_samples
     assert abs(moved) == pytest.approx(abs(k1_px + k2_px), abs=1e-4)
+
+
+def test_round_trip_on_search_grid_lines_and_image_edges() -> None:
+    """Ground points whose true line is a line of the search grid (or the image's first
+    or last line) project back there: rounding may give the residual at the grid line
+    either sign, and the root on the bracket's end must still be accepted."""
+    cam = _truth(load_config("tiny")).truth
+    kern = cam.kernel
+    grid = np.linspace(kern.line_lo, kern.line_hi, 33)  # search_lines' default grid
+    for c in cam.ccds:
+        inside = grid[(grid >= 0.0) & (grid <= c.n_lines)]
+        lines = np.concatenate([inside, [0.0, float(c.n_lines), 0.5 * c.n_lines]])
+        line = np.repeat(lines, 3)
+        sample = np.tile([0.0, 0.5 * c.n_samples, float(c.n_samples)], len(lines))
+        g = cam.image_to_ground(line, sample, 0.0, ccd=c.name)
+        ip = cam.ground_to_image(g, ccd=c.name)
+        assert ip.valid.all(), line[~ip.valid]
+        assert np.max(np.abs(ip.line - line)) < 1e-6
+        assert np.max(np.abs(ip.sample - sample)) < 1e-6

@@ -147,16 +147,21 @@ def refine_bracketed(
                 slope = (f - f_prev[ia]) / (xa - x_prev[ia])
             step = -f / slope
         fx[ia] = f
-        new = xa + step
+        newton = xa + step
         lo_a, hi_a = lo[ia], hi[ia]
-        out = ~np.isfinite(new) | (new < lo_a) | (new > hi_a)
-        new = np.where(out, 0.5 * (lo_a + hi_a), new)
+        out = ~np.isfinite(newton) | (newton < lo_a) | (newton > hi_a)
+        new = np.where(out, 0.5 * (lo_a + hi_a), newton)
         same = np.sign(f) == np.sign(f_lo[ia])
         lo[ia] = np.where(same, xa, lo_a)
         f_lo[ia] = np.where(same, f, f_lo[ia])
         hi[ia] = np.where(same, hi_a, xa)
         x_prev[ia], f_prev[ia] = xa, f
-        done = (np.abs(step) < xtol) | (f == 0)
+        converged = (np.abs(step) < xtol) | (f == 0)
+        # A converged Newton point is kept even when it lies (by less than ``xtol``)
+        # outside the bracket: a root on a bracket end, where rounding gave the end's
+        # residual the other sign, is found there, not replaced by the bracket's midpoint.
+        new = np.where(converged, newton, new)
+        done = converged
         if stop_at_ftol:
             hit = np.abs(f) <= ftol
             done |= hit
