@@ -10,7 +10,7 @@ arithmetic so that both give the same numbers:
   ``focal2pixel_lines`` (inverted), ``detector_center``, ``starting_detector_*`` and
   ``detector_*_summing``; the detector line is the focal-plane position of image line 0
   (usgscsm's ``computeDistortedFocalPlaneCoordinates(0, sample, ...)``). Lens distortion
-  is ``radial`` or ``transverse``.
+  is ``radial``, ``transverse`` or ``radtan`` (:mod:`~planetref.camera.csm.distortion`).
 * **Sensor frame**: the look direction of a focal-plane point ``(x, y)`` is
   ``(x, y, f)`` in the sensor frame, boresight +Z, as in every real ISD. usgscsm's
   arithmetic does not depend on the boresight's sign (it intersects with the nearer root
@@ -318,7 +318,11 @@ class CsmLineScanCamera:
         pos, _, rot = self._exterior(t)
         dx, dy = self._focal_plane(sample)
         ux, uy = _remove_distortion(
-            self._isd.distortion_model, np.asarray(self._isd.distortion_coefficients), dx, dy
+            self._isd.distortion_model,
+            np.asarray(self._isd.distortion_coefficients),
+            dx,
+            dy,
+            focal_length_mm=self._isd.focal_length_mm,
         )
         look = np.stack([ux, uy, np.full_like(ux, self._focal_length)], axis=-1)
         look *= self._zdir / np.linalg.norm(look, axis=1, keepdims=True)
@@ -430,7 +434,11 @@ class CsmLineScanCamera:
             scale = self._focal_length / cam[:, 2]
             fx, fy = cam[:, 0] * scale, cam[:, 1] * scale
             dx, dy = _apply_distortion(
-                isd.distortion_model, np.asarray(isd.distortion_coefficients), fx, fy
+                isd.distortion_model,
+                np.asarray(isd.distortion_coefficients),
+                fx,
+                fy,
+                focal_length_mm=isd.focal_length_mm,
             )
         il, is_ = self._itrans_l, self._itrans_s
         det_line = il[0] + il[1] * dx + il[2] * dy

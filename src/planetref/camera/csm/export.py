@@ -28,8 +28,15 @@ Conventions of the ISDs written
   y_mm)``, pitch ``p``, angle ``a``) becomes ``focal2pixel_lines = [0, cos a / p, sin a /
   p]``, ``focal2pixel_samples = [0, sin a / p, -cos a / p]`` and a ``detector_center``
   that puts the principal point where the native model has it; no summing, starting
-  detector line/sample 0, ``radial`` distortion with zero coefficients (the native model
-  has none).
+  detector line/sample 0, ``radial`` distortion with zero coefficients when the CCD has
+  no lens distortion.
+* **Lens distortion.** A CCD with Brown-Conrady distortion (simulation truths,
+  :mod:`planetref.camera.linescan.lens`) gets usgscsm's ``radtan`` model, fitted by
+  :func:`fit_radtan` (the inverse direction and centre differ, so the coefficients are
+  not a copy), with the fit's affinity folded into ``focal2pixel_*`` and
+  ``detector_center``; the fit's largest error is recorded as
+  ``planetref.distortion_fit_max_px``. A distortion the fit cannot reproduce to
+  ``distortion_tolerance_px`` is refused with an error (never written as zero).
 * **Time.** ``line_scan_rate`` rows ``[start_line, t0 - 0.5 period - center, period]``
   reproduce the native table under usgscsm's ``t = t0_k + rate_k (line - line_k + 0.5)``.
 * **Pixels.** Both models use ``(line, sample)`` with the first pixel's centre at
@@ -44,12 +51,13 @@ import math
 import os
 import re
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from planetref.camera.csm.distortion import radtan_basis, radtan_displacement
 from planetref.camera.csm.isd import (
     J2000,
     MIN_EPHEMERIS_NODES,
@@ -59,12 +67,20 @@ from planetref.camera.csm.isd import (
     write_isd,
 )
 from planetref.camera.csm.orientation import _quat_from_matrix
+from planetref.camera.linescan.lens import ideal_position
 from planetref.errors import InputError
 
 if TYPE_CHECKING:
     from planetref.camera.linescan import LineScanCamera
 
-__all__ = ["isd_agreement_px", "isd_file_name", "linescan_to_isd", "write_linescan_isds"]
+__all__ = [
+    "RadtanFit",
+    "fit_radtan",
+    "isd_agreement_px",
+    "isd_file_name",
+    "linescan_to_isd",
+    "write_linescan_isds",
+]
 
 #: Native camera frame (boresight -z) -> ISD sensor frame (boresight +z): 180 deg about x.
 _FLIP = np.diag([1.0, -1.0, -1.0])
@@ -79,6 +95,7 @@ def linescan_to_isd(
     lines_per_sample: float = 32.0,
     margin_lines: float = 64.0,
     sun_position_km: tuple[float, float, float] | None = None,
+    distortion_tolerance_px: float = 1e-4,
 ) -> CsmIsd:
     """The USGS CSM line-scan ISD of one CCD of a native line-scan camera.
 
@@ -90,18 +107,16 @@ def linescan_to_isd(
             orbital strips).
         margin_lines: Lines sampled beyond each end of the image.
         sun_position_km: Body-fixed Sun position for usgscsm's illumination queries.
+        distortion_tolerance_px: Largest accepted error (pixels) of the ``radtan`` fit
+            of a CCD's lens distortion (:func:`fit_radtan`).
 
     Returns:
         The ISD (see the module's conventions).
 
     Raises:
-        InputError: Unknown CCD, bad sampling arguments, or a CCD with lens distortion
-            (a simulation truth; the export writes a distortion-free ISD).
+        InputError: Unknown CCD, bad sampling arguments, or a lens distortion that
+            usgscsm's ``radtan`` model cannot reproduce to ``distortion_tolerance_px``.
     """
-    if any(camera.ccd(ccd).distortion):
-        raise InputError(
-            f"CCD {camera.ccd(ccd).name} has lens distortion; the CSM export does not carry it"
-        )
     if not (lines_per_sample > 0 and math.isfinite(lines_per_sample)) or not margin_lines >= 0:
         raise InputError(
             f"lines_per_sample must be > 0 and margin_lines >= 0, got {lines_per_sample}, "
@@ -142,6 +157,26 @@ def linescan_to_isd(
     c0 = np.array([c.x_mm - io.x0_mm, -(c.y_mm - io.y0_mm)])
     center_line = -float(np.dot(c0, w)) / (p * p)
     center_sample = -float(np.dot(c0, v)) / (p * p)
+    # Focal plane (distorted, mm) -> detector (line, sample) about the detector centre.
+    to_pixel = np.array([[ca / p, sa / p], [sa / p, -ca / p]])
+    distortion: tuple[str, np.ndarray] = ("radial", np.zeros(3))
+    fit_px = None
+    if any(c.distortion):
+        lens = fit_radtan(camera, c.name)
+        if not lens.max_error_px <= distortion_tolerance_px:
+            raise InputError(
+                f"CCD {c.name}: usgscsm's radtan model reproduces its lens distortion only to "
+                f"{lens.max_error_px:.2g} px (tolerance {distortion_tolerance_px:g} px); "
+                f"not exported"
+            )
+        # The fitted affine part goes into the detector map: D = A^-1 (delta - B).
+        a_inv = np.linalg.inv(lens.affine)
+        shift = to_pixel @ a_inv @ lens.shift_mm
+        to_pixel = to_pixel @ a_inv
+        center_line -= float(shift[0])
+        center_sample -= float(shift[1])
+        distortion = ("radtan", lens.coefficients)
+        fit_px = lens.max_error_px
     table = np.array(
         [[r[0], r[1] - 0.5 * r[2] - center, r[2]] for r in rates.rows], dtype=np.float64
     )
@@ -157,16 +192,16 @@ def linescan_to_isd(
         starting_ephemeris_time=float(rates.time(0.0)),
         line_scan_rate=table,
         focal_length_mm=float(io.focal_length_mm),
-        focal2pixel_lines=np.array([0.0, ca / p, sa / p]),
-        focal2pixel_samples=np.array([0.0, sa / p, -ca / p]),
+        focal2pixel_lines=np.array([0.0, *to_pixel[0]]),
+        focal2pixel_samples=np.array([0.0, *to_pixel[1]]),
         detector_center_line=center_line,
         detector_center_sample=center_sample,
         starting_detector_line=0.0,
         starting_detector_sample=0.0,
         detector_line_summing=1.0,
         detector_sample_summing=1.0,
-        distortion_model="radial",
-        distortion_coefficients=np.zeros(3),
+        distortion_model=distortion[0],
+        distortion_coefficients=distortion[1],
         semi_major_km=ell.semi_major_m / 1000.0,
         semi_minor_km=ell.semi_minor_m / 1000.0,
         min_height_m=-10000.0,
@@ -190,9 +225,86 @@ def linescan_to_isd(
                 "source": "planetref native line-scan camera",
                 "camera_name": getattr(camera, "name", ""),
                 "time_relative_seconds": rel[[0, -1]].tolist(),
+                **({} if fit_px is None else {"distortion_fit_max_px": fit_px}),
             },
         },
     )
+
+
+@dataclass(frozen=True)
+class RadtanFit:
+    """usgscsm ``radtan`` coefficients (and a detector affinity) for a CCD's lens distortion.
+
+    In the ISD's focal plane (mm about the principal point, sensor frame), a native
+    detector position ``D`` of the CCD and its undistorted position ``U`` satisfy
+    ``U + f R(U / f) = A D + B`` to ``max_error_px``, with ``R`` the ``radtan``
+    displacement (:mod:`planetref.camera.csm.distortion`).
+
+    Attributes:
+        coefficients: ``(k1, k2, p1, p2, k3)``.
+        affine: ``A``, ``(2, 2)`` (the identity when the distortion is centred on the
+            principal point).
+        shift_mm: ``B`` (mm), ``(2,)``.
+        max_error_px: Largest error of the fit over the CCD (pixels).
+    """
+
+    coefficients: np.ndarray
+    affine: np.ndarray
+    shift_mm: np.ndarray
+    max_error_px: float
+
+
+def fit_radtan(camera: LineScanCamera, ccd: str | None = None) -> RadtanFit:
+    """Fit usgscsm's ``radtan`` model to a CCD's Brown-Conrady lens distortion.
+
+    The native lens (:mod:`planetref.camera.linescan.lens`) maps detector positions to
+    ideal ones (distorted -> undistorted) about the focal-plane origin; usgscsm's
+    ``radtan`` maps undistorted -> distorted about the principal point, on coordinates
+    normalised by the focal length, with OpenCV's ``p1``/``p2`` order. The inverse of one
+    polynomial is not exactly the other, so the coefficients are fitted (linear least
+    squares, together with an affinity that the detector map absorbs) over the CCD: every
+    sample from 0 to ``n_samples`` and 2 px either side of the detector line (where
+    ground-to-image converges and image-to-ground starts). The error is measured on the
+    same points, in pixels.
+
+    Args:
+        camera: The native camera.
+        ccd: The CCD (default: the first).
+
+    Returns:
+        :class:`RadtanFit`.
+    """
+    c = camera.ccd(ccd)
+    io = camera.interior
+    f, p = float(io.focal_length_mm), float(c.pixel_pitch_mm)
+    sa, ca = math.sin(c.angle_rad), math.cos(c.angle_rad)
+    s, o = (
+        a.ravel()
+        for a in np.meshgrid(np.linspace(0.0, c.n_samples, 257), np.linspace(-2.0, 2.0, 9))
+    )
+    xd = c.x_mm + p * (s * sa + o * ca)
+    yd = c.y_mm + p * (s * ca - o * sa)
+    xi, yi = ideal_position(xd, yd, c.distortion)
+    # ISD focal plane: about the principal point, y flipped (the sensor frame).
+    d = np.stack([xd - io.x0_mm, -(yd - io.y0_mm)], axis=-1)
+    u = np.stack([xi - io.x0_mm, -(yi - io.y0_mm)], axis=-1)
+    bx, by = radtan_basis(u[:, 0] / f, u[:, 1] / f)
+    zero, one = np.zeros(len(s)), np.ones(len(s))
+    # Unknowns: A (row-major), B, the radtan coefficients; U = A D + B - f R(U / f).
+    rows_x = np.column_stack([d[:, 0], d[:, 1], zero, zero, one, zero, -f * bx])
+    rows_y = np.column_stack([zero, zero, d[:, 0], d[:, 1], zero, one, -f * by])
+    design = np.concatenate([rows_x, rows_y])
+    scale = np.max(np.abs(design), axis=0)
+    scale[scale == 0] = 1.0
+    theta = np.linalg.lstsq(design / scale, np.concatenate([u[:, 0], u[:, 1]]), rcond=None)[0]
+    theta /= scale
+    affine, shift, coeffs = theta[:4].reshape(2, 2), theta[4:6], theta[6:]
+    # What the ISD computes: delta = U + f R(U / f), then D' = A^-1 (delta - B).
+    rx, ry = radtan_displacement(coeffs, u[:, 0] / f, u[:, 1] / f)
+    delta = u + f * np.stack([rx, ry], axis=-1)
+    d_isd = np.linalg.solve(affine, (delta - shift).T).T
+    err = float(np.max(np.hypot(*(d_isd - d).T))) / p
+    return RadtanFit(coeffs, affine, shift, err)
 
 
 def isd_agreement_px(camera: LineScanCamera, ccd: str | None, isd: CsmIsd) -> float:

@@ -57,7 +57,7 @@ MIN_EPHEMERIS_NODES = 25
 
 
 #: Distortion models this reader implements.
-SUPPORTED_DISTORTION = ("radial", "transverse")
+SUPPORTED_DISTORTION = ("radial", "transverse", "radtan")
 
 
 CORRECTION_PARAMETER_NAMES = (
@@ -280,8 +280,9 @@ class CsmIsd:
         starting_detector_sample: Detector sample of image sample 0.
         detector_line_summing: Detector lines per image line.
         detector_sample_summing: Detector samples per image sample.
-        distortion_model: ``"radial"`` or ``"transverse"``.
-        distortion_coefficients: The model's coefficients (mm based), shape ``(n,)``.
+        distortion_model: ``"radial"``, ``"transverse"`` or ``"radtan"``.
+        distortion_coefficients: The model's coefficients, shape ``(n,)`` (mm based;
+            ``radtan``: on coordinates normalised by the focal length).
         semi_major_km: Body equatorial radius (km).
         semi_minor_km: Body polar radius (km).
         min_height_m: Lowest terrain height expected (m).

@@ -230,11 +230,13 @@ def _read_distortion(f: _Fields) -> tuple[str, NDArray[np.float64]]:
             path=f.path,
             field="optical_distortion",
         )
-    if model == "radial":
-        c = f.array("optical_distortion.radial.coefficients")
-        if len(c) != 3:
+    if model in ("radial", "radtan"):
+        n = 3 if model == "radial" else 5
+        c = f.array(f"optical_distortion.{model}.coefficients")
+        if len(c) != n:
             raise f.error(
-                "optical_distortion.radial.coefficients", f"expected 3 coefficients, got {len(c)}"
+                f"optical_distortion.{model}.coefficients",
+                f"expected {n} coefficients, got {len(c)}",
             )
         return model, c
     cx = f.array("optical_distortion.transverse.x")
