@@ -16,7 +16,9 @@ from planetref.pipeline.orthoimage import (
     LatticeProjector,
     OrthoGrid,
     OrthoSettings,
+    _cell,
     _footprint,
+    bilinear_lattice,
     orthorectify_ccd,
 )
 from planetref.pipeline.scene import load_manifest
@@ -125,3 +127,46 @@ def test_orthoimage_lattice_vs_exact_and_resume(ccd1, tmp_path):
     assert os.stat(new).st_mtime_ns != stamp
     assert (tmp_path / "new.tif.inputs.sha256").is_file()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def _at(lat, rows, cols):
+    ir, fr = _cell(np.asarray(rows, float), lat.shape[0])
+    ic, fc = _cell(np.asarray(cols, float), lat.shape[1])
+    return bilinear_lattice(lat, ir, fr, ic, fc)
+
+
+def test_bilinear_lattice_agrees_with_scipy_and_extrapolates_linearly():
+    from scipy.interpolate import RegularGridInterpolator
+
+    rng = np.random.default_rng(4)
+    lat = rng.normal(size=(5, 7))
+    rows, cols = rng.uniform(0.0, 4.0, 40), rng.uniform(0.0, 6.0, 30)
+    ref = RegularGridInterpolator((np.arange(5.0), np.arange(7.0)), lat)
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    want = ref(np.stack([rr.ravel(), cc.ravel()], axis=-1)).reshape(rr.shape)
+    np.testing.assert_allclose(_at(lat, rows, cols), want, rtol=0, atol=1e-13)
+    # Outside the lattice: the plane of the first/last cell (exact for a bilinear field).
+    plane = np.add.outer(2.0 * np.arange(5.0), -3.0 * np.arange(7.0)) + 1.0
+    got = _at(plane, [-0.5, 4.25], [-1.0, 6.5])
+    np.testing.assert_allclose(got, [[3.0, -19.5], [12.5, -10.0]], atol=1e-12)
+    # One row: constant along the rows.
+    np.testing.assert_allclose(_at(lat[:1], [0.0, 0.7], [1.5]), [[lat[0, 1:3].mean()]] * 2)
+
+
+def test_bilinear_lattice_nan_semantics():
+    """NaN exactly where a node with a non-zero weight is NaN: a position on a node or on
+    a lattice line beside a NaN node keeps its value (the finer lattice's start lines),
+    a position inside a cell with a NaN corner is NaN (output pixels)."""
+    lat = np.arange(20.0).reshape(4, 5)
+    lat[1, 2] = np.nan
+    # On the nodes around the NaN (including the last row/column, fraction 1).
+    got = _at(lat, [0.0, 1.0, 2.0, 3.0], [1.0, 3.0, 4.0])
+    np.testing.assert_array_equal(got, lat[:, [1, 3, 4]])
+    # On lattice lines next to it: the line's own interpolation.
+    assert _at(lat, [1.0], [1.5])[0, 0] == pytest.approx(np.nan, nan_ok=True)  # on the NaN
+    assert _at(lat, [2.0], [1.5])[0, 0] == pytest.approx(11.5)
+    assert _at(lat, [0.5], [1.0])[0, 0] == pytest.approx(3.5)
+    # Inside any of the four cells around the NaN node: NaN; the others finite.
+    inner = _at(lat, [0.5, 1.5, 2.5], [1.5, 2.5, 3.5])
+    assert np.isnan(inner[:2, :2]).all()
+    assert np.isfinite(inner[2]).all() and np.isfinite(inner[:, 2]).all()

@@ -44,7 +44,7 @@ from planetref.camera.base import Camera, Terrain
 from planetref.errors import GeometryError
 from planetref.frontend.geometry import project_to_image, rays_to_ground
 
-__all__ = ["LatticeProjector", "OrthoGrid", "OrthoSettings", "orthorectify_ccd"]
+__all__ = ["LatticeProjector", "OrthoGrid", "OrthoSettings", "bilinear_lattice", "orthorectify_ccd"]
 
 F64 = NDArray[np.float64]
 DIGEST_SUFFIX = ".inputs.sha256"
@@ -112,49 +112,53 @@ def _footprint(
     return float(x.min()), float(y.min()), float(x.max()), float(y.max())
 
 
-def _weights(pos: F64, n: int) -> F64:
-    """Bilinear weight matrix ``(len(pos), n)`` of positions in lattice units (0..n-1)."""
-    i0 = np.clip(np.floor(pos).astype(np.intp), 0, max(0, n - 2))
-    f = pos - i0
-    w = np.zeros((len(pos), n))
-    rows = np.arange(len(pos))
-    w[rows, i0] = 1.0 - f
-    if n > 1:
-        w[rows, i0 + 1] += f
-    return w
-
-
 def _cell(pos: F64, n: int) -> tuple[NDArray[np.intp], F64]:
-    """Lattice cell ``i0`` and fraction ``f`` of positions in lattice units (0..n-1)."""
+    """Lattice cell ``i0`` and fraction ``f`` of positions in lattice units (0..n-1).
+
+    Positions beyond the lattice fall in its first or last cell, with ``f < 0`` or
+    ``f > 1`` (linear extrapolation).
+    """
     i0 = np.clip(np.floor(pos).astype(np.intp), 0, max(0, n - 2))
     return i0, pos - i0
 
 
-def _separable(lat: F64, ir: NDArray[np.intp], fr: F64, ic: NDArray[np.intp], fc: F64) -> F64:
+def _lerp(a: F64, b: F64, f: F64) -> F64:
+    """``a (1 - f) + b f``; a zero weight ignores its end, so a NaN there does not spread."""
+    out = a * (1.0 - f) + b * f
+    on_a, on_b = f == 0.0, f == 1.0
+    if on_a.any() or on_b.any():
+        out = np.where(on_a, a, np.where(on_b, b, out))
+    return out
+
+
+def bilinear_lattice(lat: F64, ir: NDArray[np.intp], fr: F64, ic: NDArray[np.intp], fc: F64) -> F64:
     """Bilinear interpolation of a lattice at rows ``(ir, fr)`` and columns ``(ic, fc)``.
 
-    The same values as :func:`_interpolate` with :func:`_weights` (two gathers instead
-    of two dense products). Pixel centres never fall on a lattice node (they sit at
-    half-integers, the nodes at multiples of the step), so both weights of a cell are
-    positive and a NaN node makes every value it touches NaN, as there.
+    Separable, rows first, then columns: the value at row ``r = ir + fr`` and column
+    ``c = ic + fc`` (from :func:`_cell`) is ``sum w_r w_c lat`` over the cell's four
+    nodes, with ``w_r`` = ``1 - fr`` and ``fr``, ``w_c`` likewise (linear
+    extrapolation outside the lattice). NaN semantics: the value is NaN exactly when a
+    node with a non-zero weight is NaN, so a position on a node (or on a lattice line)
+    next to a NaN node keeps the node's (line's) value; a lattice of one row or column
+    is constant along it.
+
+    Args:
+        lat: Lattice values, ``(n_r, n_c)``.
+        ir: Cell row of each output row, ``(R,)``.
+        fr: Fraction within the cell, ``(R,)``.
+        ic: Cell column of each output column, ``(C,)``.
+        fc: Fraction within the cell, ``(C,)``.
+
+    Returns:
+        ``(R, C)`` values.
     """
     if lat.shape[0] == 1:
         tmp = lat[np.zeros_like(ir)]
     else:
-        tmp = lat[ir] * (1.0 - fr)[:, None] + lat[ir + 1] * fr[:, None]
+        tmp = _lerp(lat[ir], lat[ir + 1], fr[:, None])
     if lat.shape[1] == 1:
         return tmp[:, np.zeros_like(ic)]
-    return tmp[:, ic] * (1.0 - fc)[None, :] + tmp[:, ic + 1] * fc[None, :]
-
-
-def _interpolate(lat: F64, wr: F64, wc: F64) -> F64:
-    """Separable bilinear interpolation ``wr @ lat @ wc.T``; NaN where a corner is NaN."""
-    bad = ~np.isfinite(lat)
-    out = wr @ np.where(bad, 0.0, lat) @ wc.T
-    if bad.any():
-        hit = (wr > 0).astype(np.float64) @ bad.astype(np.float64) @ (wc > 0).T.astype(np.float64)
-        out[hit > 0] = np.nan
-    return out
+    return _lerp(tmp[:, ic], tmp[:, ic + 1], fc[None, :])
 
 
 def _error_bounds(lat: F64, inside: NDArray[np.bool_]) -> tuple[float, float]:
@@ -284,16 +288,18 @@ class LatticeProjector:
         self.steps_used.append((step_r, step_c))
         ir, fr = _cell((centres_r - r0) / step_r, n_r)
         ic, fc = _cell(centres_c / step_c, n_c)
-        return _separable(lat_l, ir, fr, ic, fc), _separable(lat_s, ir, fr, ic, fc)
+        return bilinear_lattice(lat_l, ir, fr, ic, fc), bilinear_lattice(lat_s, ir, fr, ic, fc)
 
     @staticmethod
     def _coarse_guess(rows: F64, cols: F64, lines: F64) -> Any:
         """Starting lines for a finer lattice: the coarse one, interpolated."""
 
         def guess(rows_f: F64, cols_f: F64) -> F64:
-            w_r = _weights((rows_f - rows[0]) / (rows[1] - rows[0]), len(rows))
-            w_c = _weights((cols_f - cols[0]) / (cols[1] - cols[0]), len(cols))
-            return _interpolate(lines, w_r, w_c).ravel()
+            # The finer lattice's nodes include the coarse ones: those keep their exact
+            # lines even next to a NaN node (see bilinear_lattice).
+            ir, fr = _cell((rows_f - rows[0]) / (rows[1] - rows[0]), len(rows))
+            ic, fc = _cell((cols_f - cols[0]) / (cols[1] - cols[0]), len(cols))
+            return bilinear_lattice(lines, ir, fr, ic, fc).ravel()
 
         return guess
 
