@@ -158,3 +158,33 @@ def test_two_strips_share_one_truth(mini_config, tmp_path: Path) -> None:  # typ
         ip = cam.ground_to_image(xyz, ccd="ccd2")
         np.testing.assert_allclose(ip.line, [10.5, 80.5], atol=0.01)
         assert res.errors[sid]["consistency"]["roundtrip_max_px"] < 0.01
+
+
+def test_an_areoid_scene_declares_its_datum_and_reads_back_body_heights(
+    mini_scene: Path,
+    mini_config,  # type: ignore[no-untyped-def]
+    tmp_path: Path,
+) -> None:
+    """With ``[reference.mola] areoid`` the DEM holds heights above the areoid-like
+    surface; the scene carries that surface (``reference/areoid.tif``) and declares
+    ``dem_datum = "areoid"``, so the DEM read by the pipeline equals the same scene's
+    DEM without an areoid (heights above the sphere) to float32 rounding."""
+    from planetref.pipeline.inputs import open_reference
+    from planetref.raster.datum import open_reference_dem
+
+    mola = {"areoid": True, "areoid_offset_m": 250.0, "areoid_tilt_m_per_km": 40.0}
+    out = tmp_path / "areoid"
+    simulate_scene(mini_config(seed=7, reference={"mola": mola}), out)
+    m, root = load_manifest(out)
+    assert m.reference.dem_datum == "areoid" and m.reference.areoid == "reference/areoid.tif"
+    assert "reference/areoid.tif" in m.paths()
+    _, dem = open_reference(m, root)
+    m0, root0 = load_manifest(mini_scene)
+    assert m0.reference.dem_datum == "body"
+    _, dem0 = open_reference(m0, root0)
+    assert dem.heights.shape == dem0.heights.shape
+    assert np.nanmax(np.abs(dem.heights - dem0.heights)) < 1e-3
+    # The file itself is above the areoid: read as body heights it is 250 m +- the tilt low.
+    naive = open_reference_dem(root / m.reference.dem)
+    low = dem0.heights - naive.heights
+    assert 200.0 < np.nanmin(low) < 250.0 < np.nanmax(low) < 300.0

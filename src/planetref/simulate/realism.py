@@ -129,8 +129,11 @@ class MolaConfig(_Model):
     its length, and the grid is the linear (Delaunay) interpolation between the shots,
     as in a gridded MEGDR where tracks are sparse. With ``areoid``, the heights are
     given above an areoid-like surface: the sphere raised by ``areoid_offset_m`` plus a
-    tilt of ``areoid_tilt_m_per_km`` towards ``track_azimuth_deg + 90``; a pipeline that
-    reads them as heights above the sphere makes a vertical error of that size.
+    tilt of ``areoid_tilt_m_per_km`` towards ``track_azimuth_deg + 90``. With
+    ``areoid_declared`` (default) the scene carries that surface as
+    ``reference/areoid.tif`` and ``scene.toml`` declares ``dem_datum = "areoid"``, so the
+    DEM is read back as heights above the sphere; without it nothing says so, as with a
+    MEGDR read naively, and a pipeline makes a vertical error of that size.
 
     Attributes:
         tracks: Grid the DEM from tracks.
@@ -142,6 +145,7 @@ class MolaConfig(_Model):
         areoid: Refer the heights to the areoid-like surface.
         areoid_offset_m: Height of the areoid-like surface above the sphere (m).
         areoid_tilt_m_per_km: Its slope across the scene (m/km).
+        areoid_declared: Write the areoid raster and declare the datum in ``scene.toml``.
     """
 
     tracks: bool = False
@@ -153,6 +157,7 @@ class MolaConfig(_Model):
     areoid: bool = False
     areoid_offset_m: float = 0.0
     areoid_tilt_m_per_km: float = 0.0
+    areoid_declared: bool = True
 
 
 class SurfaceChangeConfig(_Model):

@@ -234,15 +234,42 @@ def reference_dem(
     return h.astype(np.float32)
 
 
-def areoid_height(x: F64, y: F64, mola: Any) -> F64:
+def areoid_height(x: F64, y: F64, mola: Any, centre: tuple[float, float] | None = None) -> F64:
     """Height (m) of the areoid-like surface above the sphere at reference map points.
 
-    ``areoid_offset_m`` plus ``areoid_tilt_m_per_km`` times the distance (km) from the
-    points' mean towards azimuth ``track_azimuth_deg + 90``.
+    ``areoid_offset_m`` plus ``areoid_tilt_m_per_km`` times the distance (km) from
+    ``centre`` (default: the points' mean) towards azimuth ``track_azimuth_deg + 90``.
     """
+    cx, cy = (float(x.mean()), float(y.mean())) if centre is None else centre
     az = math.radians(mola.track_azimuth_deg + 90.0)
-    d = (x - x.mean()) * math.sin(az) + (y - y.mean()) * math.cos(az)
+    d = (x - cx) * math.sin(az) + (y - cy) * math.cos(az)
     return mola.areoid_offset_m + mola.areoid_tilt_m_per_km * d / 1000.0
+
+
+def areoid_raster(grid: MapGrid, mola: Any, margin_px: int = 2) -> tuple[F64, MapGrid]:
+    """The areoid-like surface of :func:`reference_dem` as a raster, for ``scene.toml``.
+
+    Heights (m) above the sphere on the reference DEM's grid widened by ``margin_px``
+    pixels on every side (so that bilinear sampling at every DEM pixel centre stays
+    inside it), centred as in :func:`reference_dem`: at the DEM's pixel centres the
+    values are the ones subtracted there (the surface is a plane, so bilinear sampling
+    reproduces it exactly).
+
+    Args:
+        grid: The reference DEM's grid.
+        mola: The ``[reference.mola]`` configuration.
+        margin_px: Extra pixels on each side.
+
+    Returns:
+        ``(heights, grid)``: float64 heights and their grid.
+    """
+    xx, yy = np.meshgrid(grid.x_centres(), grid.y_centres())
+    centre = (float(xx.mean()), float(yy.mean()))
+    m = int(margin_px)
+    pad = m * grid.res
+    wide = MapGrid(grid.x0 - pad, grid.y0 + pad, grid.res, grid.rows + 2 * m, grid.cols + 2 * m)
+    wx, wy = np.meshgrid(wide.x_centres(), wide.y_centres())
+    return np.asarray(areoid_height(wx, wy, mola, centre), np.float64), wide
 
 
 def gridded_tracks(

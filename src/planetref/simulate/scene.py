@@ -332,6 +332,7 @@ def _build(
     )
     from planetref.simulate.mosaic import draw_mosaic, sources_to_dict
     from planetref.simulate.reference import (
+        areoid_raster,
         finish_ortho,
         ortho_radiance,
         reference_dem,
@@ -480,6 +481,11 @@ def _build(
         json.dumps(sm.change.to_dict(), indent=1, sort_keys=True) + "\n", encoding="utf-8"
     )
     write_raster(root / "reference" / "dem.tif", ref_dem, dem_grid, ref_wkt, nodata=float("nan"))
+    datum: dict[str, str] = {}
+    if cfg.reference.mola.areoid and cfg.reference.mola.areoid_declared:
+        areoid, areoid_grid = areoid_raster(dem_grid, cfg.reference.mola)
+        write_raster(root / "reference" / "areoid.tif", areoid, areoid_grid, ref_wkt)
+        datum = {"dem_datum": "areoid", "areoid": "reference/areoid.tif"}
     lap("reference")
 
     # Truth ---------------------------------------------------------------------------
@@ -549,7 +555,7 @@ def _build(
 
     manifest = SceneManifest(
         name=cfg.name,
-        reference=ReferenceSpec(ortho="reference/ortho.tif", dem="reference/dem.tif"),
+        reference=ReferenceSpec(ortho="reference/ortho.tif", dem="reference/dem.tif", **datum),
         strips=tuple(strip_specs),
         truth=TruthSpec(
             dem="truth/dem.tif",
