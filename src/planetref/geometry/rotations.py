@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "CameraFrameVectors",
+    "axis_rotation",
     "rotate_to_camera",
     "rotation_matrix",
     "rotation_matrix_derivatives",
@@ -31,21 +32,25 @@ __all__ = [
 F64 = NDArray[np.float64]
 
 
+def axis_rotation(axis: int, angle: ArrayLike) -> F64:
+    """Right-handed rotations by ``angle`` (rad) about the x (0), y (1) or z (2) axis.
+
+    ``x: [[1, 0, 0], [0, c, -s], [0, s, c]]``, ``y: [[c, 0, s], [0, 1, 0], [-s, 0, c]]``,
+    ``z: [[c, -s, 0], [s, c, 0], [0, 0, 1]]``; shape ``angle.shape + (3, 3)``.
+    """
+    a = np.asarray(angle, dtype=np.float64)
+    c, s = np.cos(a), np.sin(a)
+    i, j = ((1, 2), (2, 0), (0, 1))[axis]
+    r = np.zeros((*a.shape, 3, 3))
+    r[..., axis, axis] = 1.0
+    r[..., i, i], r[..., i, j], r[..., j, i], r[..., j, j] = c, -s, s, c
+    return r
+
+
 def _axis_rotations(phi: F64, omega: F64, kappa: F64) -> tuple[F64, F64, F64]:
-    shape = np.shape(phi)
-    rp = np.zeros((*shape, 3, 3))
-    cp, sp = np.cos(phi), np.sin(phi)
-    rp[..., 0, 0], rp[..., 0, 2], rp[..., 1, 1] = cp, -sp, 1.0
-    rp[..., 2, 0], rp[..., 2, 2] = sp, cp
-    ro = np.zeros((*shape, 3, 3))
-    co, so = np.cos(omega), np.sin(omega)
-    ro[..., 0, 0], ro[..., 1, 1], ro[..., 1, 2] = 1.0, co, -so
-    ro[..., 2, 1], ro[..., 2, 2] = so, co
-    rk = np.zeros((*shape, 3, 3))
-    ck, sk = np.cos(kappa), np.sin(kappa)
-    rk[..., 0, 0], rk[..., 0, 1], rk[..., 1, 0] = ck, -sk, sk
-    rk[..., 1, 1], rk[..., 2, 2] = ck, 1.0
-    return rp, ro, rk
+    # R_phi is the rotation about y by -phi: the transpose of axis_rotation(1, phi).
+    rp = np.ascontiguousarray(np.swapaxes(axis_rotation(1, phi), -1, -2))
+    return rp, axis_rotation(0, omega), axis_rotation(2, kappa)
 
 
 def rotation_matrix(phi: ArrayLike, omega: ArrayLike, kappa: ArrayLike) -> F64:

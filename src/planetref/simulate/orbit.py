@@ -43,6 +43,7 @@ from planetref.camera.linescan import (
 )
 from planetref.camera.orbit import MARS_GM_M3_S2, ccd_row
 from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
+from planetref.geometry.rotations import axis_rotation
 from planetref.simulate.config import SimulationConfig, StripConfig
 from planetref.simulate.realism import TruthMismatchConfig
 
@@ -52,9 +53,6 @@ __all__ = [
     "StripCameras",
     "angles_from_rotation",
     "build_strip_cameras",
-    "rot_x",
-    "rot_y",
-    "rot_z",
 ]
 
 F64 = NDArray[np.float64]
@@ -63,38 +61,8 @@ MARS_ROTATION_RAD_S = math.radians(350.89198226) / 86400.0
 """Sidereal rotation rate of Mars (IAU 2015), rad/s."""
 
 
-def rot_x(a: F64) -> F64:
-    """Right-handed rotations about x by angles ``a`` (rad), shape ``a.shape + (3, 3)``."""
-    a = np.asarray(a, dtype=np.float64)
-    c, s = np.cos(a), np.sin(a)
-    r = np.zeros((*a.shape, 3, 3))
-    r[..., 0, 0] = 1.0
-    r[..., 1, 1], r[..., 1, 2], r[..., 2, 1], r[..., 2, 2] = c, -s, s, c
-    return r
-
-
-def rot_y(a: F64) -> F64:
-    """Right-handed rotations about y by angles ``a`` (rad)."""
-    a = np.asarray(a, dtype=np.float64)
-    c, s = np.cos(a), np.sin(a)
-    r = np.zeros((*a.shape, 3, 3))
-    r[..., 1, 1] = 1.0
-    r[..., 0, 0], r[..., 0, 2], r[..., 2, 0], r[..., 2, 2] = c, s, -s, c
-    return r
-
-
-def rot_z(a: F64) -> F64:
-    """Right-handed rotations about z by angles ``a`` (rad)."""
-    a = np.asarray(a, dtype=np.float64)
-    c, s = np.cos(a), np.sin(a)
-    r = np.zeros((*a.shape, 3, 3))
-    r[..., 2, 2] = 1.0
-    r[..., 0, 0], r[..., 0, 1], r[..., 1, 0], r[..., 1, 1] = c, -s, s, c
-    return r
-
-
 def _rpy(roll: F64, pitch: F64, yaw: F64) -> F64:
-    return rot_x(roll) @ rot_y(pitch) @ rot_z(yaw)
+    return axis_rotation(0, roll) @ axis_rotation(1, pitch) @ axis_rotation(2, yaw)
 
 
 def angles_from_rotation(m: F64) -> F64:
@@ -165,7 +133,7 @@ class CircularOrbit:
         p0, q0, n, w = self._state
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         pi = np.cos(n * t)[:, None] * p0 + np.sin(n * t)[:, None] * q0
-        return (rot_z(-w * t) @ pi[..., None])[..., 0]
+        return (axis_rotation(2, -w * t) @ pi[..., None])[..., 0]
 
     def velocity(self, t: F64) -> F64:
         """Body-fixed velocities (m/s) at times ``t`` (s), shape ``(M, 3)``."""
@@ -173,7 +141,8 @@ class CircularOrbit:
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         vi = n * (-np.sin(n * t)[:, None] * p0 + np.cos(n * t)[:, None] * q0)
         pos = self.position(t)
-        return (rot_z(-w * t) @ vi[..., None])[..., 0] - w * np.cross([0.0, 0.0, 1.0], pos)
+        spin = axis_rotation(2, -w * t)
+        return (spin @ vi[..., None])[..., 0] - w * np.cross([0.0, 0.0, 1.0], pos)
 
     def frame(self, t: F64) -> F64:
         """Orbit frames ``L(t)`` (columns x along, y left, z up; body-fixed), ``(M, 3, 3)``."""

@@ -107,11 +107,13 @@ def fractal_field(
     return field
 
 
-def smooth_noise(grid: MapGrid, feature_size_m: float, rng: np.random.Generator) -> F32:
-    """Smooth zero-mean unit-RMS noise with blobs of about ``feature_size_m``, on ``grid``.
+def _coarse_noise(
+    grid: MapGrid, feature_size_m: float, rng: np.random.Generator
+) -> tuple[MapGrid, F64]:
+    """The coarse noise field of :func:`smooth_noise`: ``(coarse grid, field)``.
 
-    White noise on a coarse grid (``feature_size_m / 8`` cells, 4 cells of margin) is
-    Gaussian-filtered (sigma 2 cells), normalised and interpolated (cubic) onto ``grid``.
+    White noise on a coarse grid (``feature_size_m / 8`` cells, 4 cells of margin around
+    ``grid``), Gaussian-filtered (sigma 2 cells), normalised to zero mean and unit RMS.
     """
     step = max(feature_size_m / 8.0, grid.res)
     xmin, ymin, xmax, ymax = grid.bounds
@@ -121,6 +123,15 @@ def smooth_noise(grid: MapGrid, feature_size_m: float, rng: np.random.Generator)
     field = gaussian_filter(white, 2.0, mode="reflect")
     field -= field.mean()
     field /= max(float(field.std()), 1e-12)
+    return coarse, field
+
+
+def smooth_noise(grid: MapGrid, feature_size_m: float, rng: np.random.Generator) -> F32:
+    """Smooth zero-mean unit-RMS noise with blobs of about ``feature_size_m``, on ``grid``.
+
+    The coarse field of :func:`_coarse_noise`, interpolated (cubic) onto ``grid``.
+    """
+    coarse, field = _coarse_noise(grid, feature_size_m, rng)
     return cubic_resample(field, coarse, grid)
 
 
@@ -132,14 +143,7 @@ def smooth_noise_at(grid: MapGrid, feature_size_m: float, rng: np.random.Generat
     """
     from scipy.ndimage import map_coordinates
 
-    step = max(feature_size_m / 8.0, grid.res)
-    xmin, ymin, xmax, ymax = grid.bounds
-    pad = 4 * step
-    coarse = MapGrid.covering(xmin - pad, ymin - pad, xmax + pad, ymax + pad, step, align=step)
-    white = rng.standard_normal(coarse.shape)
-    field = gaussian_filter(white, 2.0, mode="reflect")
-    field -= field.mean()
-    field /= max(float(field.std()), 1e-12)
+    coarse, field = _coarse_noise(grid, feature_size_m, rng)
 
     def f(x: F64, y: F64) -> F64:
         r, c = coarse.to_index(np.asarray(x, float), np.asarray(y, float))
