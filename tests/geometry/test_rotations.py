@@ -1,6 +1,7 @@
 import numpy as np
 
 from planetref.geometry.rotations import (
+    axis_rotation,
     rotate_to_camera,
     rotation_matrix,
     rotation_matrix_derivatives,
@@ -45,3 +46,17 @@ def test_rotate_to_camera_angle_partials_finite_differences():
         m = rotate_to_camera(*(ang - h).T, d)
         fd = np.stack([p.u - m.u, p.v - m.v, p.w - m.w], axis=1) / 2e-6
         assert np.abs(fd - out.jacobian[:, 3 + j]).max() < 1e-8
+
+
+def test_axis_rotations_are_right_handed_and_compose_the_photogrammetric_rotation():
+    ex, ey, ez = np.eye(3)
+    q = np.pi / 2
+    # Right-handed: x -> y about z, y -> z about x, z -> x about y.
+    np.testing.assert_allclose(axis_rotation(2, q) @ ex, ey, atol=1e-15)
+    np.testing.assert_allclose(axis_rotation(0, q) @ ey, ez, atol=1e-15)
+    np.testing.assert_allclose(axis_rotation(1, q) @ ez, ex, atol=1e-15)
+    rng = np.random.default_rng(5)
+    phi, omega, kappa = rng.uniform(-3, 3, (3, 7))
+    r = axis_rotation(1, -phi) @ axis_rotation(0, omega) @ axis_rotation(2, kappa)
+    np.testing.assert_allclose(r, rotation_matrix(phi, omega, kappa), atol=1e-15)
+    assert axis_rotation(0, phi).shape == (7, 3, 3)
