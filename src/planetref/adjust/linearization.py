@@ -12,9 +12,13 @@ unknown points are kept (tie arrays) for the Schur complement
 
 from __future__ import annotations
 
+import importlib
 import itertools
+import logging
 import math
 from dataclasses import dataclass
+from functools import cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +26,8 @@ from numpy.typing import NDArray
 from planetref.adjust.robust import robust_rho
 
 __all__ = ["LinearizationMixin"]
+
+log = logging.getLogger("planetref.adjust")
 
 F64 = NDArray[np.float64]
 
@@ -207,9 +213,16 @@ class LinearizationMixin:
         Runs are contiguous (observations sorted by line), so every product works on
         views; the few observations whose window differs from their neighbours' simply
         form short runs of their own. Only a pattern's active columns enter the products
-        (fixed parameters map to the sink index and would only add zeros to discarded
-        entries): with most parameters fixed that is a fraction of the flops.
+        (fixed parameters are never solved for: their rows of ``N`` stay zero): with most
+        parameters fixed that is a fraction of the flops. The compiled twin
+        (:mod:`~planetref.adjust._numba_normal`) runs when numba is available and
+        ``compiled_normal`` is set; this numpy code is its reference.
         """
+        if self.compiled_normal and _compiled() is not None:
+            _compiled().accumulate(
+                n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col
+            )
+            return
         m = len(gp)
         cut = np.concatenate([[0], np.flatnonzero(np.diff(gp)) + 1, [m]])
         for a, b in itertools.pairwise(cut):
@@ -229,11 +242,41 @@ class LinearizationMixin:
         cache = self._active_cache
         key = (pattern, qm)
         if key not in cache:
-            cols = self.cols[pattern, :qm]
-            free = cols != self.n_params
-            loc = None if free.all() else np.flatnonzero(free)
-            cache[key] = (loc, cols if loc is None else cols[loc])
+            n = int(self.act_n[pattern])
+            loc = self.act_loc[pattern, :n]
+            keep = loc < qm
+            loc = loc[keep]
+            cols = self.act_col[pattern, :n][keep]
+            cache[key] = (None if np.array_equal(loc, np.arange(qm)) else loc, cols)
         return cache[key]
+
+    def _active_tables(self) -> None:
+        """Per pattern, the local indices and global columns of its non-fixed parameters.
+
+        ``act_n`` ``(n_pat,)``, ``act_loc`` and ``act_col`` ``(n_pat, q)`` (padded).
+        """
+        cols = self.cols
+        n_pat, q = cols.shape
+        mode = np.append(self.mode, np.int8(2))  # the sink is fixed
+        active = mode[cols] != 2
+        self.act_n = np.count_nonzero(active, axis=1).astype(np.intp)
+        self.act_loc = np.zeros((n_pat, q), np.intp)
+        self.act_col = np.full((n_pat, q), self.n_params, np.intp)
+        for g in range(n_pat):
+            loc = np.flatnonzero(active[g])
+            self.act_loc[g, : len(loc)] = loc
+            self.act_col[g, : len(loc)] = cols[g, loc]
+        self._active_cache.clear()
+
+
+@cache
+def _compiled() -> Any:
+    """The compiled accumulation, or ``None`` (numpy) when numba cannot be loaded."""
+    try:
+        return importlib.import_module("planetref.adjust._numba_normal")
+    except Exception as exc:  # any failure (no numba, a broken llvmlite): numpy
+        log.warning("compiled normal equations unavailable (%s): numpy is used", exc)
+        return None
 
 
 def _quadratic(w: F64, dx: F64) -> float:

@@ -103,6 +103,9 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             blk = np.where(pc >= 0, pc + self.offsets[i], p)
             cols[self.pat_offsets[i] : self.pat_offsets[i + 1], : pc.shape[1]] = blk
         self.cols = cols
+        #: Accumulate the normal equations compiled (numba) when available; ``False``
+        #: runs the numpy reference.
+        self.compiled_normal = True
         self._active_cache: dict[
             tuple[int, int], tuple[NDArray[np.intp] | None, NDArray[np.intp]]
         ] = {}
@@ -165,6 +168,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             np.concatenate([m.sigma for m in self.models]) if self.n_params else np.zeros(0)
         )
         self.active = np.flatnonzero(self.mode != 2)
+        self._active_tables()
         with np.errstate(divide="ignore"):
             self.prior_w = np.where(self.mode == 1, 1.0 / self.sigma**2, 0.0)
         # Linear pseudo-observations A (c - x0) = 0 of the models (e.g. smooth weak

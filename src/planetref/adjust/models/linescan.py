@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import LineScanParameters
 from planetref.adjust.models.protocol import CoverageIssue, Evaluation, mode_and_sigma
-from planetref.camera.linescan import CcdGeometry, InteriorOrientation, LineScanCamera
+from planetref.camera.linescan import CcdGeometry, InteriorOrientation, LineScanCamera, compiled
 from planetref.camera.linescan.kernel import RAW_COLUMNS
 from planetref.errors import AdjustmentError, InputError
 
@@ -66,6 +66,9 @@ class LineScanParameterization:
     ) -> None:
         self.camera_id = camera_id
         self.camera = camera
+        #: ``False`` runs the numpy reference kernel (tests, benchmarks); ``True`` the
+        #: compiled one where it applies (numba available, no lens distortion).
+        self.compiled_partials = True
         self.config = config
         self._kernel = camera.kernel
         n = camera.n_nodes
@@ -202,14 +205,21 @@ class LineScanParameterization:
                 np.empty((m, 2, 0)),
                 rate,
             )
-        proj = kern.project_with_partials(poly, io, c, p, guess, rate_guess)
-        k6 = 6 * self._k
+        use_compiled = None if self.compiled_partials else False
+        proj = kern.project_with_partials(
+            poly, io, c, p, guess, rate_guess, use_compiled=use_compiled
+        )
         dp = np.empty((m, 2, self.pattern_columns.shape[1]))
-        kern.node_partials(proj, out=dp[:, :, :k6].reshape(m, 2, self._k, 6))
-        dp[:, :, k6 : k6 + 3] = proj.partials[:, :, RAW_COLUMNS["interior"]]
-        if self._placement:
-            dp[:, :, k6 + 3 :] = proj.partials[:, :, RAW_COLUMNS["ccd"]]
-        dg = proj.partials[:, :, RAW_COLUMNS["ground"]]
+        if kern.runs_compiled(use_compiled, c):
+            dg = np.empty((m, 2, 3))
+            compiled.fill_partials(proj.partials, proj.weights, self._placement, dp, dg)
+        else:  # the numpy reference of compiled.fill_partials
+            k6 = 6 * self._k
+            kern.node_partials(proj, out=dp[:, :, :k6].reshape(m, 2, self._k, 6))
+            dp[:, :, k6 : k6 + 3] = proj.partials[:, :, RAW_COLUMNS["interior"]]
+            if self._placement:
+                dp[:, :, k6 + 3 :] = proj.partials[:, :, RAW_COLUMNS["ccd"]]
+            dg = proj.partials[:, :, RAW_COLUMNS["ground"]]
         pg = ccd if self._pattern_groups > 1 else 0
         pattern = proj.start * self._pattern_groups + pg
         line, samp, valid, rate = proj.line, proj.sample, proj.valid, proj.rate

@@ -19,7 +19,10 @@ _CHORD_ITERATIONS = 40
 njit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 
-@njit
+_inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+
+
+@_inline
 def row_of(x: float, starts: F64) -> int:
     # np.searchsorted(starts, x, side="right") - 1, clipped to [0, n - 1].
     j = len(starts) - 1
@@ -28,7 +31,7 @@ def row_of(x: float, starts: F64) -> int:
     return j
 
 
-@njit
+@_inline
 def window_of(t: float, times: F64, k: int) -> int:
     n = len(times)
     i = n - 1
@@ -42,77 +45,67 @@ def window_of(t: float, times: F64, k: int) -> int:
     return s
 
 
-@njit
-def evaluate(
-    line: float,
-    rs: F64,
-    rt0: F64,
-    rp: F64,
-    times: F64,
-    centre: F64,
-    k: int,
-    poly: F64,
-    r0: F64,
-    io: F64,
-    ccd: F64,
-    p: F64,
-    full: bool,
-    eo: F64,
-    deo: F64,
-    res: F64,
-) -> int:
-    """Offset, sample, depth (res[0:3]); with ``full`` also EO and its derivative."""
+@_inline
+def horner(poly: F64, s: int, k: int, c: int, tau: float) -> float:
+    v = poly[s, k - 1, c]
+    for q in range(k - 2, -1, -1):
+        v = v * tau + poly[s, q, c]
+    return v
+
+
+@_inline
+def horner_dt(poly: F64, s: int, k: int, c: int, tau: float) -> float:
+    d = (k - 1) * poly[s, k - 1, c]
+    for q in range(k - 2, 0, -1):
+        d = d * tau + q * poly[s, q, c]
+    return d
+
+
+@_inline
+def locate(line: float, rs: F64, rt0: F64, rp: F64, times: F64, centre: F64, k: int) -> Any:
+    """Window start, time within the window and line period at a line."""
     j = row_of(line, rs)
     t = rt0[j] + (line - rs[j]) * rp[j]
     s = window_of(t, times, k)
-    tau = t - centre[s]
-    for c in range(6):
-        v = poly[s, k - 1, c]
-        for q in range(k - 2, -1, -1):
-            v = v * tau + poly[s, q, c]
-        eo[c] = v
-        if full:
-            d = (k - 1) * poly[s, k - 1, c]
-            for q in range(k - 2, 0, -1):
-                d = d * tau + q * poly[s, q, c]
-            deo[c] = d
-    e0 = p[0] - eo[0]
-    e1 = p[1] - eo[1]
-    e2 = p[2] - eo[2]
+    return s, t - centre[s], rp[j]
+
+
+@_inline
+def collinear(
+    poly: F64, s: int, k: int, tau: float, r0: F64, io: F64, ccd: F64, p: F64, i: int
+) -> Any:
+    """Offset, sample, depth and the intermediate terms of point ``p[i]`` at ``(s, tau)``.
+
+    Scalars only (no temporaries): ``(offset, sample, w, u, v, a0, a2, b1, cos phi,
+    sin phi, cos omega, sin omega, cos kappa, sin kappa)``.
+    """
+    e0 = p[i, 0] - horner(poly, s, k, 0, tau)
+    e1 = p[i, 1] - horner(poly, s, k, 1, tau)
+    e2 = p[i, 2] - horner(poly, s, k, 2, tau)
+    phi = horner(poly, s, k, 3, tau)
+    omega = horner(poly, s, k, 4, tau)
+    kappa = horner(poly, s, k, 5, tau)
     d0 = e0 * r0[0, 0] + e1 * r0[1, 0] + e2 * r0[2, 0]
     d1 = e0 * r0[0, 1] + e1 * r0[1, 1] + e2 * r0[2, 1]
     d2 = e0 * r0[0, 2] + e1 * r0[1, 2] + e2 * r0[2, 2]
-    cp, sp = math.cos(eo[3]), math.sin(eo[3])
-    co, so = math.cos(eo[4]), math.sin(eo[4])
-    ck, sk = math.cos(eo[5]), math.sin(eo[5])
+    cp, sp = math.cos(phi), math.sin(phi)
+    co, so = math.cos(omega), math.sin(omega)
+    ck, sk = math.cos(kappa), math.sin(kappa)
     a0 = cp * d0 + sp * d2
     a2 = -sp * d0 + cp * d2
     b1 = co * d1 + so * a2
     b2 = -so * d1 + co * a2
     u = ck * a0 + sk * b1
     v_ = -sk * a0 + ck * b1
-    w = b2
-    inv_w = 1.0 / w
+    inv_w = 1.0 / b2
     xn = u * inv_w
     yn = v_ * inv_w
-    x0, y0, f = io[0], io[1], io[2]
     sa, ca, pitch = ccd[4], ccd[5], ccd[3]
-    dx = x0 - f * xn - ccd[0]
-    dy = y0 - f * yn - ccd[1]
-    res[0] = (dx * ca - dy * sa) / pitch  # offset
-    res[1] = (dx * sa + dy * ca) / pitch  # sample
-    res[2] = w
-    if not full:
-        return s
-    # Partials (see kernel.state): jac rows 0-2 = d(u,v,w)/dP, 3-5 angles.
-    res[3] = u
-    res[4] = v_
-    res[5] = a0
-    res[6] = a2
-    res[7] = b1
-    res[8] = rp[j]
-    res[9] = tau
-    return s
+    dx = io[0] - io[2] * xn - ccd[0]
+    dy = io[1] - io[2] * yn - ccd[1]
+    off = (dx * ca - dy * sa) / pitch
+    samp = (dx * sa + dy * ca) / pitch
+    return off, samp, b2, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk
 
 
 @njit
@@ -144,60 +137,55 @@ def project(
     out_w: F64,
     out_imp: F64,
 ) -> None:
-    eo = np.empty(6)
-    deo = np.empty(6)
-    res = np.empty(10)
     jac = np.empty((6, 3))
     raw = np.empty((2, 15))
+    deo = np.empty(6)
     f = io[2]
     sa, ca, pitch = ccd[4], ccd[5], ccd[3]
     for i in range(len(pts)):
-        p = pts[i]
         line = guess[i]
         if not math.isfinite(line):
             line = 0.5 * (lo + hi)
         line = min(max(line, lo), hi)
-        evaluate(line, rs, rt0, rp, times, centre, k, poly, r0, io, ccd, p, False, eo, deo, res)
-        off = res[0]
+        # ``ev`` always holds the evaluation at ``line``: the last one of the chord
+        # iterations is the final one (its terms give the partials).
+        s, tau, period = locate(line, rs, rt0, rp, times, centre, k)
+        ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i)
+        off = ev[0]
         rate = rate_in[i]
         if not (math.isfinite(rate) and rate != 0.0):
-            evaluate(
-                line + 1.0, rs, rt0, rp, times, centre, k, poly, r0, io, ccd, p, False, eo,
-                deo, res,
-            )  # fmt: skip
-            rate = res[0] - off
+            s1, tau1, _ = locate(line + 1.0, rs, rt0, rp, times, centre, k)
+            rate = collinear(poly, s1, k, tau1, r0, io, ccd, pts, i)[0] - off
         step = -off / rate
         active = math.isfinite(step) and abs(step) > chord_tol
         for _ in range(_CHORD_ITERATIONS):
             if not active:
                 break
             line = min(max(line + step, lo), hi)
-            evaluate(line, rs, rt0, rp, times, centre, k, poly, r0, io, ccd, p, False, eo, deo, res)
-            step = -res[0] / rate
+            s, tau, period = locate(line, rs, rt0, rp, times, centre, k)
+            ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i)
+            step = -ev[0] / rate
             active = math.isfinite(step) and abs(step) > chord_tol
         if not full:
-            evaluate(line, rs, rt0, rp, times, centre, k, poly, r0, io, ccd, p, False, eo, deo, res)
-            step = -res[0] / rate
+            step = -ev[0] / rate
             lo_ = line + step
             out_line[i] = lo_
-            out_samp[i] = res[1]
+            out_samp[i] = ev[1]
             out_rate[i] = rate
             out_valid[i] = (
                 math.isfinite(lo_)
-                and math.isfinite(res[1])
-                and res[2] < 0
+                and math.isfinite(ev[1])
+                and ev[2] < 0
                 and abs(step) < step_valid
                 and lo_ >= lo
                 and lo_ <= hi
             )
             continue
-        s = evaluate(line, rs, rt0, rp, times, centre, k, poly, r0, io, ccd, p, True, eo, deo, res)
-        off, samp, w = res[0], res[1], res[2]
-        u, v_, a0, a2, b1, period, tau = res[3], res[4], res[5], res[6], res[7], res[8], res[9]
+        off, samp, w, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk = ev
+        for c in range(6):
+            deo[c] = horner_dt(poly, s, k, c, tau)
         b2 = w
-        cp, sp = math.cos(eo[3]), math.sin(eo[3])
-        co, so = math.cos(eo[4]), math.sin(eo[4])
-        ck, sk = math.cos(eo[5]), math.sin(eo[5])
+        # Partials (see kernel.state): jac rows 0-2 = d(u,v,w)/dP, 3-5 angles.
         bp1 = so * (-a0)
         jac[3, 0] = ck * a2 + sk * bp1
         jac[3, 1] = -sk * a2 + ck * bp1
@@ -275,3 +263,27 @@ def project(
             a = raw[0, q] * nir
             out_imp[i, 0, q] = a
             out_imp[i, 1, q] = a * srate + raw[1, q]
+
+
+@njit
+def fill_partials(imp: F64, weights: F64, placement: bool, dp: F64, dg: F64) -> None:
+    """Adjustment partials from a projection's (see ``LineScanParameterization.evaluate``).
+
+    ``dp[:, :, 6 j + c] = imp[:, :, c] * weights[:, j]`` (node ``j`` of the window, EO
+    column ``c``), then the interior (and placement) columns; ``dg`` the ground columns.
+    """
+    m = imp.shape[0]
+    k = weights.shape[1]
+    k6 = 6 * k
+    for i in range(m):
+        for r in range(2):
+            for j in range(k):
+                wj = weights[i, j]
+                for c in range(6):
+                    dp[i, r, 6 * j + c] = imp[i, r, c] * wj
+            for c in range(3):
+                dp[i, r, k6 + c] = imp[i, r, 6 + c]
+                dg[i, r, c] = imp[i, r, 9 + c]
+            if placement:
+                for c in range(3):
+                    dp[i, r, k6 + 3 + c] = imp[i, r, 12 + c]

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["available", "project_points", "warm_up"]
+__all__ = ["available", "fill_partials", "project_points", "warm_up"]
 
 log = logging.getLogger("planetref.camera")
 
@@ -66,6 +66,8 @@ def _smoke_test(mod: Any) -> None:
             one * np.nan, full, 1e-6, 1e-3, np.empty(1), np.empty(1), np.empty(1, np.bool_),
             np.empty(1), np.empty(1, np.intp), np.empty((1, k)), np.empty((1, 2, 15)),
         )  # fmt: skip
+    mod.fill_partials(np.zeros((1, 2, 15)), np.ones((1, k)), True, np.empty((1, 2, 6 * k + 6)),
+                      np.empty((1, 2, 3)))  # fmt: skip
 
 
 def available() -> bool:
@@ -159,3 +161,25 @@ def project_points(
     if full:
         return out_line, out_samp, out_valid, out_rate, start, weights, partials
     return out_line, out_samp, out_valid, out_rate
+
+
+def fill_partials(imp: F64, weights: F64, placement: bool, dp: F64, dg: F64) -> None:
+    """Write an adjustment's pattern partials from a projection's, compiled.
+
+    The twin of the numpy code in
+    :meth:`~planetref.adjust.models.linescan.LineScanParameterization.evaluate`:
+    ``dp[:, :, 6 j + c] = imp[:, :, c] * weights[:, j]`` (node ``j`` of the window, EO
+    column ``c``), then the interior ``x0, y0, f`` (and, with ``placement``, the CCD
+    placement) columns; ``dg`` gets the ground columns.
+
+    Args:
+        imp: ``(m, 2, 15)`` partials of a :class:`~planetref.camera.linescan.kernel.
+            Projection`.
+        weights: Its Lagrange weights ``(m, k)``.
+        placement: Whether ``dp`` has the three placement columns.
+        dp: Output ``(m, 2, 6 k + 3 [+ 3])``.
+        dg: Output ``(m, 2, 3)``.
+    """
+    _compiled().fill_partials(
+        np.ascontiguousarray(imp), np.ascontiguousarray(weights), placement, dp, dg
+    )

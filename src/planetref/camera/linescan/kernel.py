@@ -182,6 +182,10 @@ class LineScanKernel:
             )
         )
 
+    def runs_compiled(self, use: bool | None, ccd: CcdGeometry) -> bool:
+        """Whether a projection with ``use_compiled=use`` into ``ccd`` runs compiled."""
+        return self._compiled(use, ccd)
+
     def _compiled(self, use: bool | None, ccd: CcdGeometry) -> bool:
         """Whether to run the compiled kernel (``None``: when numba is available).
 
