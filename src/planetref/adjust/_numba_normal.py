@@ -81,3 +81,51 @@ def accumulate(
             y0, y1 = w0 * x0, w1 * x1
             for b in range(na):
                 blk[a, b] += y0 * v0[b] + y1 * v1[b]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def diag_cofactor(
+    d: F64, gp: Any, q_mat: F64, act_n: Any, act_loc: Any, act_col: Any, out: F64
+) -> None:
+    """``out[i] = A_i Q A_i^T`` (2 x 2) over the active columns of each observation.
+
+    The twin of ``variance._PairG(i, i)`` (the numpy reference). ``d``: partials
+    ``(m, 2, q)``; ``gp``: patterns; ``q_mat``: the cofactor matrix of the camera
+    parameters (``(P, P)``); ``out``: ``(m, 2, 2)``. The pattern's block of ``Q`` is
+    gathered once per run of equal patterns.
+    """
+    m = d.shape[0]
+    q = act_loc.shape[1]
+    qs = np.empty((q, q))
+    a0 = np.empty(q)
+    a1 = np.empty(q)
+    cur = -1
+    na = 0
+    for i in range(m):
+        g = gp[i]
+        if g != cur:
+            cur = g
+            na = act_n[g]
+            for a in range(na):
+                for b in range(na):
+                    qs[a, b] = q_mat[act_col[g, a], act_col[g, b]]
+        for a in range(na):
+            col = act_loc[cur, a]
+            a0[a] = d[i, 0, col]
+            a1[a] = d[i, 1, col]
+        h00 = 0.0
+        h01 = 0.0
+        h11 = 0.0
+        for a in range(na):
+            t0 = 0.0
+            t1 = 0.0
+            for b in range(na):
+                t0 += qs[a, b] * a0[b]
+                t1 += qs[a, b] * a1[b]
+            h00 += a0[a] * t0
+            h01 += a0[a] * t1
+            h11 += a1[a] * t1
+        out[i, 0, 0] = h00
+        out[i, 0, 1] = h01
+        out[i, 1, 0] = h01
+        out[i, 1, 1] = h11

@@ -95,7 +95,7 @@ def _adjust(
     # Points whose coordinates the rays must determine: free ones, and tie points under
     # their (loose) a-priori sigma; they need min_tie_observations rays.
     free_pt = np.all(np.isinf(net.point_sigma_m), axis=1) | (
-        (np.asarray(net.point_kind) == "tie") & ~np.all(net.point_sigma_m == 0, axis=1)
+        _is_kind(net, "tie") & ~np.all(net.point_sigma_m == 0, axis=1)
     )
     candidates = ~net.obs_check
     xyz0 = net.point_xyz.copy()
@@ -164,7 +164,7 @@ def _adjust(
     # ground point through the adjusted camera, as with fixed MCPs; the adjusted point
     # may absorb its image residual (one view) and would flatter the RMSE.
     ref_pt = (
-        (np.asarray(net.point_kind) == "mcp")
+        _is_kind(net, "mcp")
         & ~solver.point_fixed
         & ~np.all(np.isinf(net.point_sigma_m), axis=1)
     )
@@ -302,6 +302,13 @@ def _adjust(
         seconds=time.perf_counter() - t0,
     )
     return result
+
+
+def _is_kind(net: Network, kind: str) -> NDArray[np.bool_]:
+    """Points of one kind (``"mcp"``, ``"tie"``)."""
+    kinds, code = net.point_kind_codes
+    hit = np.flatnonzero(kinds == kind)
+    return code == hit[0] if hit.size else np.zeros(net.n_points, bool)
 
 
 def _set_threshold(

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import DiagnosticsConfig
-from planetref.adjust.problem import Network
+from planetref.adjust.problem import Network, small_unique
 from planetref.geometry.geodesy import xyz_to_lonlat
 
 __all__ = [
@@ -76,17 +76,27 @@ def point_table(
     ok0 = np.all(np.isfinite(xyz0), axis=1)
     lon0, lat0, h0 = (np.full(n, np.nan) for _ in range(3))
     lon1, lat1, h1 = (np.full(n, np.nan) for _ in range(3))
+    d = xyz - xyz0
+    # Points that did not move (fixed ones) keep their a-priori geodetic coordinates and
+    # have no shift: only the others are converted.
+    moved = ok0 & np.any(d != 0.0, axis=1)
     if np.any(ok0):
         lon0[ok0], lat0[ok0], h0[ok0] = xyz_to_lonlat(xyz0[ok0], ell)
-        lon1[ok0], lat1[ok0], h1[ok0] = xyz_to_lonlat(xyz[ok0], ell)
-    d = xyz - xyz0
+        lon1[ok0], lat1[ok0], h1[ok0] = lon0[ok0], lat0[ok0], h0[ok0]
+    if np.any(moved):
+        lon1[moved], lat1[moved], h1[moved] = xyz_to_lonlat(xyz[moved], ell)
+    d_enu = np.zeros((n, 3))
+    d_enu[~ok0] = np.nan
+    cof_pts = np.array([j for j in cofactor if ok0[j]], np.intp)
+    rot = np.flatnonzero(moved | np.isin(np.arange(n), cof_pts))
     enu = np.full((n, 3, 3), np.nan)
-    enu[ok0] = enu_rotation(xyz0[ok0])
-    d_enu = np.einsum("pij,pj->pi", enu, d)
+    enu[rot] = enu_rotation(xyz0[rot])
+    mv = np.flatnonzero(moved)
+    d_enu[mv] = np.einsum("pij,pj->pi", enu[mv], d[mv])
     post = np.zeros((n, 3))
-    for j, q in cofactor.items():
-        if ok0[j]:
-            post[j] = sigma0 * np.sqrt(np.maximum(np.diag(enu[j] @ q @ enu[j].T), 0.0))
+    for j in cof_pts:
+        q = cofactor[int(j)]
+        post[j] = sigma0 * np.sqrt(np.maximum(np.diag(enu[j] @ q @ enu[j].T), 0.0))
     d_frame = np.einsum("pij,pj->pi", frame, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         norm = np.where(
@@ -121,9 +131,10 @@ def point_summary(
     """Movement statistics of the points per kind and the warning lines."""
     out: dict[str, Any] = {}
     warnings: list[str] = []
-    kind = table["kind"]
-    for k in sorted(set(kind[used])):
-        m = used & (kind == k) & np.isfinite(table["shift_m"])
+    kinds, code = small_unique(table["kind"])
+    for c in np.flatnonzero(np.bincount(code[used], minlength=len(kinds))):
+        k = str(kinds[c])
+        m = used & (code == c) & np.isfinite(table["shift_m"])
         s = table["shift_m"][m]
         if not s.size:
             continue
@@ -158,11 +169,14 @@ def camera_shifts(
     xyz: F64,
     cfg: DiagnosticsConfig,
     grid: int = 5,
+    heights: F64 | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
     """How far each camera's ground footprint moved (per CCD, metres).
 
     A ``grid x grid`` set of pixels of each CCD image is intersected with the sphere at
     the median height of the camera's points by the initial and the adjusted camera.
+    ``heights``: the points' heights above the first camera's ellipsoid (NaN where
+    ``xyz`` is not finite), when already known (:func:`point_table`).
 
     Returns:
         ``({camera_id: {ccd: {"mean_m", "max_m"}, "max_m": ...}}, warnings)``.
@@ -171,10 +185,17 @@ def camera_shifts(
     moved: list[str] = []
     for ci, cid in enumerate(net.camera_ids):
         c0, c1 = cams0[ci], cams1[ci]
-        pts = np.unique(net.obs_point[net.obs_camera == ci])
-        p = xyz[pts]
-        p = p[np.all(np.isfinite(p), axis=1)]
-        h = float(np.median(xyz_to_lonlat(p, c0.ellipsoid)[2])) if len(p) else 0.0
+        pts = np.flatnonzero(
+            np.bincount(net.obs_point[net.obs_camera == ci], minlength=net.n_points)
+        )
+        if heights is not None and c0.ellipsoid == net.cameras[0].ellipsoid:
+            hp = heights[pts]
+            hp = hp[np.isfinite(hp)]
+        else:
+            p = xyz[pts]
+            p = p[np.all(np.isfinite(p), axis=1)]
+            hp = xyz_to_lonlat(p, c0.ellipsoid)[2] if len(p) else np.zeros(0)
+        h = float(np.median(hp)) if len(hp) else 0.0
         per: dict[str, Any] = {}
         for ccd in c0.ccd_names:
             nl, ns = c0.image_size(ccd)

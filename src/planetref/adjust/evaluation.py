@@ -53,7 +53,7 @@ def diagnostics(
     used = np.zeros(net.n_points, bool)
     used[net.obs_point[red.obs]] = True
     moved, w_pts = point_summary(table, used, dc)
-    shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc)
+    shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc, heights=table["height"])
     corr_info, w_corr = correlation_warnings(solver.names, stats["correlation"], dc)
     calib, w_cal = self_calibration(
         solver.names, solver.mode, solver.sigma, solver.x0, c, stats["covariance"], dc

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -28,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
-__all__ = ["Network", "PointKind", "enu_rotation"]
+__all__ = ["Network", "PointKind", "enu_rotation", "small_unique"]
 
 PointKind = str  # "mcp" or "tie" (informative: how a point is reported)
 F64 = NDArray[np.float64]
@@ -191,6 +193,16 @@ class Network:
         return np.array(
             [labels[c][k] for c, k in zip(self.obs_camera, self.obs_ccd, strict=True)], dtype=str
         )
+
+    @cached_property
+    def point_kind_codes(self) -> tuple[NDArray[np.str_], NDArray[np.intp]]:
+        """``(kinds, code)``: the sorted distinct point kinds and each point's index in them.
+
+        The same as ``np.unique(point_kind, return_inverse=True)``, computed once and by
+        comparisons (a handful of kinds) instead of a sort of every string.
+        """
+        kinds, code = small_unique(self.point_kind)
+        return kinds, code
 
     def point_frame_matrices(self) -> F64:
         """Rotations from body-fixed XYZ to each point's sigma frame, ``(P, 3, 3)``.
@@ -383,6 +395,32 @@ class Network:
             obs_ids=np.array([str(i) for i in range(m)], dtype=str),
             point_sigma_local=bool(ground_sigma_local),
         )
+
+
+def small_unique(values: ArrayLike, limit: int = 16) -> tuple[NDArray[Any], NDArray[np.intp]]:
+    """``np.unique(values, return_inverse=True)`` for arrays of a few distinct values.
+
+    One comparison pass per distinct value (strings are never sorted); falls back to
+    ``np.unique`` beyond ``limit`` distinct values.
+    """
+    v = np.asarray(values).ravel()
+    code = np.empty(len(v), np.intp)
+    found = []
+    rest = np.arange(len(v))
+    while rest.size:
+        if len(found) == limit:
+            u, inv = np.unique(v, return_inverse=True)
+            return u, inv.ravel().astype(np.intp)
+        x = v[rest[0]]
+        same = v[rest] == x
+        code[rest[same]] = len(found)
+        found.append(x)
+        rest = rest[~same]
+    uniq = np.array(found, dtype=v.dtype)
+    order = np.argsort(uniq, kind="stable")
+    rank = np.empty(len(order), np.intp)
+    rank[order] = np.arange(len(order))
+    return uniq[order], rank[code]
 
 
 def enu_rotation(xyz: F64) -> F64:

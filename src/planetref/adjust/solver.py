@@ -150,8 +150,12 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / sig**2, 0.0)
         #: Per-axis weights in the sigma frame, (P, 3).
         self.point_prior_axis_w = w
-        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, (P, 3, 3).
-        self.point_prior_w = np.einsum("pki,pk,pkj->pij", self.point_frame, w, self.point_frame)
+        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, (P, 3, 3) (zero for the
+        #: fixed and free points: only weighted ones are multiplied out).
+        self.point_prior_w = np.zeros((len(w), 3, 3))
+        on = np.flatnonzero(np.any(w > 0, axis=1))
+        fr = self.point_frame[on]
+        self.point_prior_w[on] = np.einsum("pki,pk,pkj->pij", fr, w[on], fr)
 
     def set_obs_sigma(self, sigma_px: F64) -> None:
         """Set the sigmas of the image measures, ``(M, 2)`` pixels (line, sample)."""

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import VarianceConfig
+from planetref.adjust.linearization import _compiled as _compiled_normal
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
 
@@ -131,10 +132,19 @@ def redundancy(
     obs = np.asarray(obs, np.intp)
     n = len(obs)
     q = solver.q
-    a_all = np.zeros((n, 2, q))
-    gpat = np.zeros(n, np.intp)
-    b_all = np.zeros((n, 2, 3))
+    w = solver.obs_w0[obs]
+    pt = net.obs_point[obs]
+    unknown_pt = ~solver.point_fixed[pt]
+    # Observations of fixed points need only their own G_ii, computed chunk by chunk;
+    # the partials of those of unknown points are kept for the pairs below.
+    t_all = np.flatnonzero(unknown_pt)
+    tpos = np.full(n, -1, np.intp)
+    tpos[t_all] = np.arange(len(t_all))
+    a_u = np.zeros((len(t_all), 2, q))
+    gpat_u = np.zeros(len(t_all), np.intp)
+    b_u = np.zeros((len(t_all), 2, 3))
     v_all = np.zeros((n, 2))
+    h = np.zeros((n, 2, 2))
     for mi, ccd, pos in solver._groups(obs):
         model = solver.models[mi]
         x = c[solver.offsets[mi] : solver.offsets[mi + 1]]
@@ -148,30 +158,30 @@ def redundancy(
                 solver.line_guess[o],
                 rate_guess=solver.rate_guess[o],
             )
-            qm = ev.d_params.shape[2]
             ok = ev.valid
-            a_all[sel, :, :qm] = np.where(ok[:, None, None], ev.d_params, 0.0)
-            gpat[sel] = ev.pattern + solver.pat_offsets[mi]
-            b_all[sel] = np.where(ok[:, None, None], ev.d_ground, 0.0)
+            d = np.where(ok[:, None, None], ev.d_params, 0.0)
+            gp = ev.pattern + solver.pat_offsets[mi]
             v_all[sel, 0] = np.where(ok, ev.line - net.obs_line[o], 0.0)
             v_all[sel, 1] = np.where(ok, ev.sample - net.obs_sample[o], 0.0)
-    w = solver.obs_w0[obs]
-    pairs = _PairG(solver, a_all, gpat, cofactor)
-    pt = net.obs_point[obs]
-    unknown_pt = ~solver.point_fixed[pt]
-    h = np.zeros((n, 2, 2))
-    fixed = np.flatnonzero(~unknown_pt)
-    for s0 in range(0, len(fixed), _PAIR_CHUNK):
-        i = fixed[s0 : s0 + _PAIR_CHUNK]
-        h[i] = pairs(i, i)
-    # Observations of unknown points, sorted by point.
-    t = np.flatnonzero(unknown_pt)
-    t = t[np.argsort(pt[t], kind="stable")]
+            fx = np.flatnonzero(~unknown_pt[sel])
+            if fx.size:
+                h[sel[fx]] = _diag_cofactor(solver, d[fx], gp[fx], cofactor)
+            tu = tpos[sel]
+            is_u = tu >= 0
+            if np.any(is_u):
+                a_u[tu[is_u], :, : d.shape[2]] = d[is_u]
+                gpat_u[tu[is_u]] = gp[is_u]
+                b_u[tu[is_u]] = np.where(ok[is_u, None, None], ev.d_ground[is_u], 0.0)
+    pairs = _PairG(solver, a_u, gpat_u, cofactor)
+    # Observations of unknown points, sorted by point (positions into obs; ``tpos``
+    # maps them into the kept partials).
+    t = t_all[np.argsort(pt[t_all], kind="stable")]
     unknown, first, counts = np.unique(pt[t], return_index=True, return_counts=True)
     u = len(unknown)
     loc = np.repeat(np.arange(u), counts)
-    bw = b_all[t] * w[t][:, :, None]  # W B, (m, 2, 3)
-    vmat = np.einsum("mki,mkj->mij", b_all[t], bw)
+    bt = b_u[tpos[t]]
+    bw = bt * w[t][:, :, None]  # W B, (m, 2, 3)
+    vmat = np.einsum("mki,mkj->mij", bt, bw)
     vsum = np.zeros((u, 3, 3))
     np.add.at(vsum, loc, vmat)
     vsum += solver.point_prior_w[unknown]
@@ -186,13 +196,12 @@ def redundancy(
     umat = np.zeros((u, 3, 3))
     for s0 in range(0, len(pa), _PAIR_CHUNK):
         ia, ib = pa[s0 : s0 + _PAIR_CHUNK], pb[s0 : s0 + _PAIR_CHUNK]
-        g = pairs(t[ia], t[ib])  # (k, 2, 2)
+        g = pairs(tpos[t[ia]], tpos[t[ib]])  # (k, 2, 2)
         gc = np.matmul(g, np.transpose(cmat[ib], (0, 2, 1)))  # G_ik C_k^T, (k, 2, 3)
         np.add.at(tmat, ia, gc)
         np.add.at(umat, loc[ia], np.matmul(cmat[ia], gc))
         diag = ia == ib
         h[t[ia[diag]]] = g[diag]
-    bt = b_all[t]
     btt = np.transpose(bt, (0, 2, 1))
     qjj = vinv + umat
     h[t] += (
@@ -239,6 +248,19 @@ def redundancy(
         constraint_vtpv=con_vtpv,
         constraint_n=len(solver.con_w),
     )
+
+
+def _diag_cofactor(solver: BundleSolver, d: F64, gp: NDArray[np.intp], cofactor: F64) -> F64:
+    """``A_i Q A_i^T`` of each observation, ``(m, 2, 2)``: compiled, or :class:`_PairG`."""
+    fn = _compiled_normal() if solver.compiled_normal else None
+    if fn is None:
+        idx = np.arange(len(gp))
+        return _PairG(solver, d, gp, cofactor)(idx, idx)
+    out = np.empty((len(gp), 2, 2))
+    fn.diag_cofactor(
+        d, gp, cofactor, solver.act_n, solver.act_loc, solver.act_col, out
+    )
+    return out
 
 
 class _PairG:
@@ -292,32 +314,31 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     points, none over the observations); the groups come in the order of their names.
     """
     net = solver.net
-    kinds, kind_of_pt = np.unique(np.asarray(net.point_kind), return_inverse=True)
-    kind_of_pt = kind_of_pt.ravel()
+    kinds, kind_of_pt = net.point_kind_codes
     base = max(len(cam.ccd_names) for cam in net.cameras)
     image_key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
     kind_obs = kind_of_pt[net.obs_point[obs]]
     labels = {}
-    for key in np.unique(image_key):
+    for key in np.flatnonzero(np.bincount(image_key)):
         cam = net.cameras[int(key) // base]
         cid = net.camera_ids[int(key) // base]
         names = cam.ccd_names
         labels[int(key)] = cid if len(names) == 1 else f"{cid}/{names[int(key) % base]}"
     out: list[_Group] = []
-    for k in np.unique(kind_obs):  # kinds are sorted by name
+    for k in np.flatnonzero(np.bincount(kind_obs)):  # kinds are sorted by name
         in_kind = kind_obs == k
         for key, lab in sorted(labels.items(), key=lambda kv: kv[1]):
             sel = obs[in_kind & (image_key == key)]
             if sel.size:
                 out.append(_Group(f"image {kinds[k]} {lab}", "image", obs=sel))
-    pts = np.unique(net.obs_point[obs])
+    pts = np.flatnonzero(np.bincount(net.obs_point[obs], minlength=net.n_points))
     weighted = pts[
         ~solver.point_fixed[pts]
         & np.any(np.isfinite(solver.point_sigma[pts]) & (solver.point_sigma[pts] > 0), axis=1)
     ]
     pk = kind_of_pt[weighted]
     local = np.asarray(net.point_sigma_local)[weighted]
-    for code in np.unique(pk):
+    for code in np.flatnonzero(np.bincount(pk)):
         k = str(kinds[code])
         estimate = k == "mcp"
         kind_g = "ground" if estimate else "prior"
