@@ -109,19 +109,20 @@ def reprojection_blocks(
     """
     adjusted = ~net.obs_check
 
-    def block(sel: NDArray[np.bool_]) -> dict[str, Any]:
-        idx = np.flatnonzero(sel & adjusted)
+    def block(sel: NDArray[np.bool_] | None) -> dict[str, Any]:
+        idx = np.flatnonzero(adjusted if sel is None else sel & adjusted)
         return {
             "before": reprojection_metrics(res0[idx, 1], res0[idx, 0], inlier[idx]),
             "before_all": reprojection_metrics(res0[idx, 1], res0[idx, 0], usable[idx]),
             "after": reprojection_metrics(res[idx, 1], res[idx, 0], inlier[idx]),
         }
 
-    out: dict[str, Any] = {"all": block(np.ones(net.n_obs, bool)), "cameras": {}, "ccds": {}}
+    out: dict[str, Any] = {"all": block(None), "cameras": {}, "ccds": {}}
     single = len(net.camera_ids) == 1
     for ci, cid in enumerate(net.camera_ids):
         on = net.obs_camera == ci
-        entry = block(on)
+        # One camera: its block is the overall one (the same observations).
+        entry = {k: dict(v) for k, v in out["all"].items()} if single else block(on)
         names = net.cameras[ci].ccd_names
         if len(names) > 1:
             entry["ccds"] = {n: block(on & (net.obs_ccd == k)) for k, n in enumerate(names)}

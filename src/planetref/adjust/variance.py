@@ -94,11 +94,19 @@ class Redundancy:
     constraint_r: float
     constraint_vtpv: float
     constraint_n: int
+    _row_of: NDArray[np.intp] | None = field(default=None, repr=False)
 
     @property
     def obs_order(self) -> NDArray[np.intp]:
         """Argsort of :attr:`obs`."""
         return np.argsort(self.obs)
+
+    def positions(self, obs: NDArray[np.intp]) -> NDArray[np.intp]:
+        """Rows of network observations ``obs`` (all in :attr:`obs`) in these arrays."""
+        if self._row_of is None:
+            self._row_of = np.full(int(self.obs.max(initial=-1)) + 1, -1, np.intp)
+            self._row_of[self.obs] = np.arange(len(self.obs))
+        return self._row_of[obs]
 
     @property
     def total(self) -> float:
@@ -129,11 +137,14 @@ def redundancy(
         The :class:`Redundancy`.
     """
     net = solver.net
-    obs = np.asarray(obs, np.intp)
+    # The solver's layout of these observations: contiguous (camera, CCD) ranges with
+    # the per-observation data gathered once (the redundancy follows its order).
+    lay = solver._structure(np.asarray(obs, np.intp)).lay
+    obs = lay.obs
     n = len(obs)
     q = solver.q
     w = solver.obs_w0[obs]
-    pt = net.obs_point[obs]
+    pt = lay.point
     unknown_pt = ~solver.point_fixed[pt]
     # Observations of fixed points need only their own G_ii, computed chunk by chunk;
     # the partials of those of unknown points are kept for the pairs below.
@@ -145,28 +156,31 @@ def redundancy(
     b_u = np.zeros((len(t_all), 2, 3))
     v_all = np.zeros((n, 2))
     h = np.zeros((n, 2, 2))
-    for mi, ccd, pos in solver._groups(obs):
+    pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[pt]
+    cs = solver.cfg.chunk_size
+    for mi, ccd, a0, b0 in lay.ranges:
         model = solver.models[mi]
         x = c[solver.offsets[mi] : solver.offsets[mi + 1]]
-        for a in range(0, len(pos), solver.cfg.chunk_size):
-            sel = pos[a : a + solver.cfg.chunk_size]
-            o = obs[sel]
+        for a in range(a0, b0, cs):
+            b = min(a + cs, b0)
             ev = model.evaluate(
-                x,
-                xyz[net.obs_point[o]],
-                ccd,
-                solver.line_guess[o],
-                rate_guess=solver.rate_guess[o],
+                x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
             )
             ok = ev.valid
-            d = np.where(ok[:, None, None], ev.d_params, 0.0)
+            every = bool(np.all(ok))
+            d = ev.d_params if every else np.where(ok[:, None, None], ev.d_params, 0.0)
             gp = ev.pattern + solver.pat_offsets[mi]
-            v_all[sel, 0] = np.where(ok, ev.line - net.obs_line[o], 0.0)
-            v_all[sel, 1] = np.where(ok, ev.sample - net.obs_sample[o], 0.0)
-            fx = np.flatnonzero(~unknown_pt[sel])
-            if fx.size:
-                h[sel[fx]] = _diag_cofactor(solver, d[fx], gp[fx], cofactor)
-            tu = tpos[sel]
+            np.subtract(ev.line, lay.line[a:b], out=v_all[a:b, 0])
+            np.subtract(ev.sample, lay.sample[a:b], out=v_all[a:b, 1])
+            if not every:
+                v_all[a:b][~ok] = 0.0
+            fixed = ~unknown_pt[a:b]
+            if np.all(fixed):
+                h[a:b] = _diag_cofactor(solver, d, gp, cofactor)
+            elif np.any(fixed):
+                fx = np.flatnonzero(fixed)
+                h[a + fx] = _diag_cofactor(solver, d[fx], gp[fx], cofactor)
+            tu = tpos[a:b]
             is_u = tu >= 0
             if np.any(is_u):
                 a_u[tu[is_u], :, : d.shape[2]] = d[is_u]
@@ -390,8 +404,7 @@ def _single_view_notes(
 def _group_stats(g: _Group, red: Redundancy) -> tuple[float, float, int]:
     """``(v^T P v, redundancy, number of equations)`` of a group."""
     if g.kind == "image":
-        pos = np.searchsorted(red.obs, g.obs, sorter=red.obs_order)
-        pos = red.obs_order[pos]
+        pos = red.positions(g.obs)
         v, w, r = red.obs_v[pos], red.obs_w[pos], red.obs_r[pos]
         return float(np.sum(w * v * v)), float(np.sum(r)), 2 * len(pos)
     order = np.argsort(red.points)
