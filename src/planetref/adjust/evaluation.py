@@ -83,6 +83,7 @@ def round_summary(
         "converged": rep.converged,
         "reason": rep.reason,
         "seconds": rep.seconds,
+        "cpu_seconds": rep.cpu_seconds,
     }
 
 

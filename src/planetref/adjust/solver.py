@@ -57,6 +57,7 @@ class LmReport:
         cost_final: Cost at the end.
         history: ``(iteration, cost, lambda)`` per accepted step.
         seconds: Wall time.
+        cpu_seconds: Process CPU time (robust when other jobs share the cores).
     """
 
     iterations: int = 0
@@ -67,6 +68,7 @@ class LmReport:
     cost_final: float = float("nan")
     history: list[tuple[int, float, float]] = field(default_factory=list)
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
 
 
 class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
@@ -335,6 +337,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             AdjustmentError: Degenerate normal equations or divergence.
         """
         t_start = time.perf_counter()
+        c_start = time.process_time()
         cfg = self.cfg
         net = self.net
         st = self._structure(obs)
@@ -461,6 +464,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         self.last_lambda = min(lam, cfg.initial_lambda)
         stats = self._statistics(lin, chunks, c, xyz, xyz0, unknown)
         rep.seconds = time.perf_counter() - t_start
+        rep.cpu_seconds = time.process_time() - c_start
         return c, xyz, rep, lin, stats
 
 

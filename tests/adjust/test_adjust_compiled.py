@@ -1,0 +1,126 @@
+"""The adjustment's compiled (numba) pieces against their numpy references.
+
+Compiled: the pattern partials of a line-scan strip
+(:func:`planetref.camera.linescan.compiled.fill_partials`), the normal-equation
+accumulation over active columns and the cofactor products of the redundancy numbers
+(:mod:`planetref.adjust._numba_normal`). Each has a numpy twin that stays the reference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from adjust_synth import mcp_problem
+
+from planetref.adjust import adjust, linearization, schur
+from planetref.adjust.config import validate_config
+from planetref.adjust.models import parameterize
+from planetref.adjust.solver import BundleSolver
+from planetref.adjust.variance import _diag_cofactor, _PairG
+from planetref.camera.linescan import compiled
+
+pytestmark = pytest.mark.skipif(
+    linearization._compiled() is None or not compiled.available(),
+    reason="numba is not installed (the numpy references run)",
+)
+
+CONFIG = {
+    "solver": {"loss": "linear"},
+    # Positions weighted, attitudes free, interior fixed: active and fixed columns mix.
+    "linescan": {"position": {"mode": "weighted", "sigma_m": 50.0}},
+}
+
+
+def _solver(net, reference: bool) -> BundleSolver:
+    cfg = validate_config(CONFIG)
+    models = [parameterize("strip", net.cameras[0], cfg)]
+    solver = BundleSolver(net, models, cfg.solver)
+    if reference:
+        solver.compiled_normal = False
+        models[0].compiled_partials = False
+    return solver
+
+
+def _linearize(solver: BundleSolver, net):
+    st = solver._structure(np.arange(net.n_obs))
+    xyz = net.point_xyz.copy()
+    return solver._linearize(solver.x0, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz)
+
+
+def test_linearisation_compiled_equals_numpy_reference():
+    net, _, _ = mcp_problem(500, seed=4)
+    fast, ref = _solver(net, False), _solver(net, True)
+    a, b = _linearize(fast, net), _linearize(ref, net)
+    act = fast.active
+    assert 0 < act.size < fast.n_params  # some columns fixed, some not
+    n_a, n_b = a.n_cc[np.ix_(act, act)], b.n_cc[np.ix_(act, act)]
+    scale = np.sqrt(np.outer(np.diag(n_b), np.diag(n_b)))
+    assert np.abs(n_a - n_b).max() <= 1e-12 * scale.max()
+    assert np.all(np.abs(n_a - n_b) <= 1e-10 * scale)
+    g_scale = np.sqrt(np.diag(n_b)) * np.sqrt(np.sum(b.weight * b.r**2))
+    assert np.all(np.abs(a.g_c[act] - b.g_c[act]) <= 1e-10 * g_scale)
+    assert np.abs(a.r - b.r).max() < 1e-9
+    assert a.cost == pytest.approx(b.cost, rel=1e-12)
+    # Only the active columns are accumulated: the fixed ones' rows stay zero.
+    fixed = np.flatnonzero(fast.mode == 2)
+    assert fixed.size and not np.any(a.n_cc[fixed]) and not np.any(b.n_cc[fixed])
+    assert np.all(np.diag(n_b) > 0)
+
+
+def test_cofactor_products_compiled_equal_numpy_reference():
+    net, _, _ = mcp_problem(300, seed=5)
+    solver = _solver(net, False)
+    rng = np.random.default_rng(0)
+    m = 700
+    d = rng.normal(size=(m, 2, solver.q))
+    gp = np.sort(rng.integers(0, len(solver.cols), m))
+    act = solver.active
+    root = rng.normal(size=(act.size, act.size))
+    q = np.zeros((solver.n_params, solver.n_params))
+    q[np.ix_(act, act)] = root @ root.T + act.size * np.eye(act.size)
+    fast = _diag_cofactor(solver, d, gp, q)
+    idx = np.arange(m)
+    ref = _PairG(solver, d, gp, q)(idx, idx)
+    assert np.abs(fast - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert np.all(ref[:, 0, 0] > 0)
+
+
+def test_adjustment_identical_with_the_numpy_references(monkeypatch):
+    """Whole adjustments (weighted MCPs: the Schur and pair paths too) agree to ~1e-10."""
+    net, _, _ = mcp_problem(400, seed=6, ground_sigma_m=3.0)
+    cfg = {**CONFIG, "outliers": {"enabled": False}}
+    fast = adjust(net, cfg)
+    monkeypatch.setattr(compiled, "available", lambda: False)
+    monkeypatch.setattr(linearization, "_compiled", lambda: None)
+    monkeypatch.setattr(schur, "_compiled", lambda: None)
+    ref = adjust(net, cfg)
+    act = ref.parameter_mode != 2
+    assert np.max(np.abs(fast.x - ref.x)[act] / ref.sigma[act]) < 1e-8
+    # Positions against attitudes are ill-conditioned: their sigmas agree to ~4e-9.
+    assert np.max(np.abs(fast.sigma - ref.sigma)[act] / ref.sigma[act]) < 1e-8
+    assert np.nanmax(np.abs(fast.residual - ref.residual)) < 1e-8
+    assert fast.sigma0 == pytest.approx(ref.sigma0, rel=1e-10)
+    for key in ("redundancy_real", "redundancy_pseudo"):
+        assert fast.variance["dof"][key] == pytest.approx(ref.variance["dof"][key], rel=1e-9)
+    assert ref.variance["dof"]["redundancy_real"] > 100
+
+
+def test_pattern_partials_compiled_equal_numpy_reference():
+    net, _, _ = mcp_problem(200, seed=8)
+    cfg = validate_config({"linescan": {"ccd_placement": {"mode": "free"}}})
+    fast = parameterize("strip", net.cameras[0], cfg)
+    ref = parameterize("strip", net.cameras[0], cfg)
+    ref.compiled_partials = False
+    sel = net.obs_ccd == 1
+    xyz = net.point_xyz[net.obs_point[sel]]
+    # From converged lines both kernels evaluate at the same line (from cold guesses
+    # their chord iterations stop ~1e-9 px apart).
+    first = ref.evaluate(ref.x0, xyz, 1, net.obs_line[sel])
+    args = (fast.x0, xyz, 1, first.line)
+    a = fast.evaluate(*args, rate_guess=first.line_rate)
+    b = ref.evaluate(*args, rate_guess=first.line_rate)
+    assert a.d_params.shape[2] == 6 * fast._k + 6  # nodes, interior, placement
+    for x, y in ((a.d_params, b.d_params), (a.d_ground, b.d_ground)):
+        scale = np.abs(y).max(axis=0)
+        assert np.all(np.abs(x - y).max(axis=0) <= 1e-12 * scale + 1e-9)
+    assert np.array_equal(a.pattern, b.pattern)
