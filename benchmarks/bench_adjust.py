@@ -43,10 +43,11 @@ and partials of every observation from the observed lines, warm) with each, in t
 run (``kernel_speedup``); ``--kernel numpy`` solves with the numpy references of every
 compiled piece (projection kernel, pattern partials, normal-equation accumulation,
 point elimination, cofactor products), ``--kernel both`` solves with each and prints
-``planetref_numpy_s`` and ``speedup_compiled`` too. ``*_cpu_s`` / ``speedup_cpu*`` are process CPU times (robust
-when other jobs share the cores; run with ``OMP_NUM_THREADS=1`` for comparable
-figures). The first compiled call of a process loads the kernel from numba's on-disk
-cache (or compiles it once, a few seconds): ``jit_load_s``.
+``planetref_numpy_s`` and ``speedup_compiled`` too. ``*_cpu_s`` / ``speedup_cpu*`` are
+process CPU times (robust when other jobs share the cores; run with
+``OMP_NUM_THREADS=1`` for comparable figures). The first compiled call of a process
+loads the kernel from numba's on-disk cache (or compiles it once, a few seconds):
+``jit_load_s``.
 """
 
 from __future__ import annotations

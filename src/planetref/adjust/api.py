@@ -164,9 +164,7 @@ def _adjust(
     # ground point through the adjusted camera, as with fixed MCPs; the adjusted point
     # may absorb its image residual (one view) and would flatter the RMSE.
     ref_pt = (
-        _is_kind(net, "mcp")
-        & ~solver.point_fixed
-        & ~np.all(np.isinf(net.point_sigma_m), axis=1)
+        _is_kind(net, "mcp") & ~solver.point_fixed & ~np.all(np.isinf(net.point_sigma_m), axis=1)
     )
 
     def _reference(xyz_now: F64) -> F64:

@@ -219,9 +219,7 @@ class LinearizationMixin:
         ``compiled_normal`` is set; this numpy code is its reference.
         """
         if self.compiled_normal and _compiled() is not None:
-            _compiled().accumulate(
-                n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col
-            )
+            _compiled().accumulate(n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col)
             return
         m = len(gp)
         cut = np.concatenate([[0], np.flatnonzero(np.diff(gp)) + 1, [m]])

@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.adjust.config import VarianceConfig
 from planetref.adjust import linearization
+from planetref.adjust.config import VarianceConfig
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
 
@@ -136,7 +136,6 @@ def redundancy(
     Returns:
         The :class:`Redundancy`.
     """
-    net = solver.net
     # The solver's layout of these observations: contiguous (camera, CCD) ranges with
     # the per-observation data gathered once (the redundancy follows its order).
     lay = solver._structure(np.asarray(obs, np.intp)).lay
@@ -271,9 +270,7 @@ def _diag_cofactor(solver: BundleSolver, d: F64, gp: NDArray[np.intp], cofactor:
         idx = np.arange(len(gp))
         return _PairG(solver, d, gp, cofactor)(idx, idx)
     out = np.empty((len(gp), 2, 2))
-    fn.diag_cofactor(
-        d, gp, cofactor, solver.act_n, solver.act_loc, solver.act_col, out
-    )
+    fn.diag_cofactor(d, gp, cofactor, solver.act_n, solver.act_loc, solver.act_col, out)
     return out
 
 
