@@ -218,8 +218,9 @@ class LinearizationMixin:
         (:mod:`~planetref.adjust._numba_normal`) runs when numba is available and
         ``compiled_normal`` is set; this numpy code is its reference.
         """
-        if self.compiled_normal and _compiled() is not None:
-            _compiled().accumulate(n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col)
+        fn = self.normal_kernels()
+        if fn is not None:
+            fn.accumulate(n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col)
             return
         m = len(gp)
         cut = np.concatenate([[0], np.flatnonzero(np.diff(gp)) + 1, [m]])
@@ -232,6 +233,14 @@ class LinearizationMixin:
             n_cc[np.ix_(cols, cols)] += blk
             # Columns within a pattern are distinct, so a fancy-index add is exact.
             g_c[cols] += np.tensordot(da, wr[a:b], axes=([0, 1], [0, 1]))
+
+    def normal_kernels(self) -> Any:
+        """The compiled normal-equation kernels, or ``None`` for the numpy references.
+
+        :mod:`~planetref.adjust._numba_normal`; ``None`` when numba is missing or
+        ``compiled_normal`` is off.
+        """
+        return _compiled() if self.compiled_normal else None
 
     def _active_columns(
         self, pattern: int, qm: int

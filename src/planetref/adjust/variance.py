@@ -37,7 +37,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.adjust import linearization
 from planetref.adjust.config import VarianceConfig
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
@@ -265,7 +264,7 @@ def redundancy(
 
 def _diag_cofactor(solver: BundleSolver, d: F64, gp: NDArray[np.intp], cofactor: F64) -> F64:
     """``A_i Q A_i^T`` of each observation, ``(m, 2, 2)``: compiled, or :class:`_PairG`."""
-    fn = linearization._compiled() if solver.compiled_normal else None
+    fn = solver.normal_kernels()
     if fn is None:
         idx = np.arange(len(gp))
         return _PairG(solver, d, gp, cofactor)(idx, idx)
