@@ -93,19 +93,11 @@ class Redundancy:
     constraint_r: float
     constraint_vtpv: float
     constraint_n: int
-    _row_of: NDArray[np.intp] | None = field(default=None, repr=False)
 
     @property
     def obs_order(self) -> NDArray[np.intp]:
         """Argsort of :attr:`obs`."""
         return np.argsort(self.obs)
-
-    def positions(self, obs: NDArray[np.intp]) -> NDArray[np.intp]:
-        """Rows of network observations ``obs`` (all in :attr:`obs`) in these arrays."""
-        if self._row_of is None:
-            self._row_of = np.full(int(self.obs.max(initial=-1)) + 1, -1, np.intp)
-            self._row_of[self.obs] = np.arange(len(self.obs))
-        return self._row_of[obs]
 
     @property
     def total(self) -> float:
@@ -397,12 +389,41 @@ def _single_view_notes(
     return out
 
 
-def _group_stats(g: _Group, red: Redundancy) -> tuple[float, float, int]:
-    """``(v^T P v, redundancy, number of equations)`` of a group."""
+def _image_group_of(solver: BundleSolver, groups: list[_Group]) -> NDArray[np.intp]:
+    """Per network observation, the index of its image group in ``groups`` (or -1)."""
+    gid = np.full(solver.net.n_obs, -1, np.intp)
+    for i, g in enumerate(groups):
+        if g.kind == "image":
+            gid[g.obs] = i
+    return gid
+
+
+def _image_sums(
+    groups: list[_Group], red: Redundancy, group_of: NDArray[np.intp]
+) -> dict[str, tuple[float, float, int]]:
+    """``(v^T P v, redundancy, equations)`` of every image group in one pass."""
+    rg = group_of[red.obs]
+    on = rg >= 0
+    vtpv = np.bincount(
+        rg[on], weights=np.sum(red.obs_w * red.obs_v**2, axis=1)[on], minlength=len(groups)
+    )
+    r = np.bincount(rg[on], weights=red.obs_r.sum(axis=1)[on], minlength=len(groups))
+    return {
+        g.name: (float(vtpv[i]), float(r[i]), 2 * len(g.obs))
+        for i, g in enumerate(groups)
+        if g.kind == "image"
+    }
+
+
+def _group_stats(
+    g: _Group, red: Redundancy, image: dict[str, tuple[float, float, int]]
+) -> tuple[float, float, int]:
+    """``(v^T P v, redundancy, number of equations)`` of a group.
+
+    ``image``: the sums of the image groups (:func:`_image_sums`).
+    """
     if g.kind == "image":
-        pos = red.positions(g.obs)
-        v, w, r = red.obs_v[pos], red.obs_w[pos], red.obs_r[pos]
-        return float(np.sum(w * v * v)), float(np.sum(r)), 2 * len(pos)
+        return image[g.name]
     order = np.argsort(red.points)
     pos = order[np.searchsorted(red.points, g.points, sorter=order)]
     ax = list(g.axes)
@@ -495,12 +516,14 @@ def variance_components(
     iterations = 0
     converged = False
     stopped = ""
+    group_of = _image_group_of(solver, groups)
     while True:
         red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"])
+        image = _image_sums(groups, red, group_of)
         table = []
         factors: dict[str, float] = {}
         for g in groups:
-            vtpv, r, n_eq = _group_stats(g, red)
+            vtpv, r, n_eq = _group_stats(g, red, image)
             f = math.sqrt(vtpv / r) if r > 0 else float("nan")
             why = ""
             if not g.estimate:
