@@ -50,6 +50,8 @@ class _Linearization:
     r_t: F64  # (Mt, 2) residuals in the order of a_t (0 where invalid)
     rate: F64  # (M,) the models' line-rate hints (NaN if none)
     obs: NDArray[np.intp]  # network observation index of each row
+    seconds: float = 0.0  # wall and CPU time of a linearisation made by ``linearize``
+    cpu_seconds: float = 0.0
 
 
 @dataclass

@@ -302,10 +302,13 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         With the plain least-squares loss the result can be handed to :meth:`run` as its
         first linearisation (``initial=``), sparing one pass over the observations.
         """
+        t0, c0 = time.perf_counter(), time.process_time()
         st = self._structure(obs)
         lin = self._linearize(c, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz0)
         self.line_guess[lin.obs] = np.where(lin.valid, lin.line, self.line_guess[lin.obs])
         self.rate_guess[lin.obs] = lin.rate
+        lin.seconds = time.perf_counter() - t0
+        lin.cpu_seconds = time.process_time() - c0
         return lin
 
     def run(
@@ -354,7 +357,10 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
 
         if initial is not None and np.array_equal(initial.obs, obs):
             lin = initial
-            rep.evaluations += 1  # made outside, but part of this run's work
+            # Made outside, but part of this run's work (its time too).
+            rep.evaluations += 1
+            t_start -= initial.seconds
+            c_start -= initial.cpu_seconds
         else:
             lin = linearize(c, xyz)
         if not np.all(lin.valid):

@@ -70,14 +70,48 @@ def locate(line: float, rs: F64, rt0: F64, rp: F64, times: F64, centre: F64, k: 
     return s, t - centre[s], rp[j]
 
 
+#: Angle changes below which cos/sin are updated from the previous evaluation's
+#: (rad): the series below are then exact to double precision.
+_NEAR_RAD = 1e-4
+
+
+@_inline
+def cos_sin(a: float, a0: float, c0: float, s0: float, near: bool) -> Any:
+    """``(cos a, sin a)``, from those of a nearby angle ``a0`` when ``near``.
+
+    Chord iterations move the line by pixels: the attitude changes by ~1e-9 rad, and
+    the angle-addition formulas with 5th-order series of the change replace two
+    library calls (a few ulp from ``math.cos``/``math.sin``).
+    """
+    d = a - a0
+    if near and abs(d) < _NEAR_RAD:
+        d2 = d * d
+        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0))
+        sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
+        return c0 * cd - s0 * sd, s0 * cd + c0 * sd
+    return math.cos(a), math.sin(a)
+
+
 @_inline
 def collinear(
-    poly: F64, s: int, k: int, tau: float, r0: F64, io: F64, ccd: F64, p: F64, i: int
+    poly: F64,
+    s: int,
+    k: int,
+    tau: float,
+    r0: F64,
+    io: F64,
+    ccd: F64,
+    p: F64,
+    i: int,
+    prev: Any,
+    near: bool,
 ) -> Any:
     """Offset, sample, depth and the intermediate terms of point ``p[i]`` at ``(s, tau)``.
 
     Scalars only (no temporaries): ``(offset, sample, w, u, v, a0, a2, b1, cos phi,
-    sin phi, cos omega, sin omega, cos kappa, sin kappa)``.
+    sin phi, cos omega, sin omega, cos kappa, sin kappa, phi, omega, kappa)``. With
+    ``near``, the cosines and sines come from ``prev`` (an earlier result for the same
+    point) where the angles moved little (:func:`cos_sin`).
     """
     e0 = p[i, 0] - horner(poly, s, k, 0, tau)
     e1 = p[i, 1] - horner(poly, s, k, 1, tau)
@@ -88,9 +122,9 @@ def collinear(
     d0 = e0 * r0[0, 0] + e1 * r0[1, 0] + e2 * r0[2, 0]
     d1 = e0 * r0[0, 1] + e1 * r0[1, 1] + e2 * r0[2, 1]
     d2 = e0 * r0[0, 2] + e1 * r0[1, 2] + e2 * r0[2, 2]
-    cp, sp = math.cos(phi), math.sin(phi)
-    co, so = math.cos(omega), math.sin(omega)
-    ck, sk = math.cos(kappa), math.sin(kappa)
+    cp, sp = cos_sin(phi, prev[14], prev[8], prev[9], near)
+    co, so = cos_sin(omega, prev[15], prev[10], prev[11], near)
+    ck, sk = cos_sin(kappa, prev[16], prev[12], prev[13], near)
     a0 = cp * d0 + sp * d2
     a2 = -sp * d0 + cp * d2
     b1 = co * d1 + so * a2
@@ -105,7 +139,7 @@ def collinear(
     dy = io[1] - io[2] * yn - ccd[1]
     off = (dx * ca - dy * sa) / pitch
     samp = (dx * sa + dy * ca) / pitch
-    return off, samp, b2, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk
+    return off, samp, b2, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk, phi, omega, kappa
 
 
 @njit
@@ -142,6 +176,7 @@ def project(
     deo = np.empty(6)
     f = io[2]
     sa, ca, pitch = ccd[4], ccd[5], ccd[3]
+    none = (0.0,) * 17  # no earlier evaluation
     for i in range(len(pts)):
         line = guess[i]
         if not math.isfinite(line):
@@ -150,12 +185,12 @@ def project(
         # ``ev`` always holds the evaluation at ``line``: the last one of the chord
         # iterations is the final one (its terms give the partials).
         s, tau, period = locate(line, rs, rt0, rp, times, centre, k)
-        ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i)
+        ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i, none, False)
         off = ev[0]
         rate = rate_in[i]
         if not (math.isfinite(rate) and rate != 0.0):
             s1, tau1, _ = locate(line + 1.0, rs, rt0, rp, times, centre, k)
-            rate = collinear(poly, s1, k, tau1, r0, io, ccd, pts, i)[0] - off
+            rate = collinear(poly, s1, k, tau1, r0, io, ccd, pts, i, ev, True)[0] - off
         step = -off / rate
         active = math.isfinite(step) and abs(step) > chord_tol
         for _ in range(_CHORD_ITERATIONS):
@@ -163,7 +198,7 @@ def project(
                 break
             line = min(max(line + step, lo), hi)
             s, tau, period = locate(line, rs, rt0, rp, times, centre, k)
-            ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i)
+            ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i, ev, True)
             step = -ev[0] / rate
             active = math.isfinite(step) and abs(step) > chord_tol
         if not full:
@@ -181,7 +216,7 @@ def project(
                 and lo_ <= hi
             )
             continue
-        off, samp, w, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk = ev
+        off, samp, w, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk, _, _, _ = ev
         for c in range(6):
             deo[c] = horner_dt(poly, s, k, c, tau)
         b2 = w
