@@ -15,8 +15,8 @@ from adjust_synth import mcp_problem
 from planetref.adjust import adjust, linearization, schur
 from planetref.adjust.config import validate_config
 from planetref.adjust.models import parameterize
+from planetref.adjust.redundancy import _diag_cofactor, _PairG
 from planetref.adjust.solver import BundleSolver
-from planetref.adjust.variance import _diag_cofactor, _PairG
 from planetref.camera.linescan import compiled
 
 pytestmark = pytest.mark.skipif(

@@ -1,0 +1,282 @@
+"""Redundancy numbers of the equations of a bundle-adjustment solution.
+
+Redundancy numbers
+------------------
+For every equation ``i`` (an image measure's line or sample, an a-priori coordinate of
+a weighted point, a camera prior, a smoothing constraint) the redundancy number is
+``r_i = 1 - p_i (J Q J^T)_ii`` with ``p_i`` its weight and ``Q = N^-1`` the cofactor
+matrix of all unknowns; ``sum r_i`` is the degrees of freedom. ``Q`` is never formed:
+with the camera block ``Q_cc = S^-1`` (the reduced matrix) and the point blocks
+``V_j`` (3x3), an observation ``i`` of a point ``j`` has
+
+    J_i Q J_i^T = G_ii - T_i B_i^T - B_i T_i^T + B_i (V_j^-1 + U_j) B_i^T
+
+with ``G_ik = A_i S^-1 A_k^T`` over the pairs of observations of the same point,
+``C_k = V_j^-1 B_k^T W_k``, ``T_i = sum_k G_ik C_k^T`` and ``U_j = sum_kl C_k G_kl C_l^T``;
+the point's cofactor block is ``Q_jj = V_j^-1 + U_j``. (``A``: camera partials,
+``B``: ground partials, ``W``: weights.)
+
+Observations of fixed points need only ``G_ii`` (compiled, :mod:`planetref.adjust.
+_numba_normal`, with :class:`_PairG` as the numpy reference); the pairs of observations of
+unknown points go through :class:`_PairG`. The variance components built on these
+numbers are in :mod:`planetref.adjust.variance`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planetref.adjust.solver import BundleSolver
+
+__all__ = ["Redundancy", "redundancy"]
+
+F64 = NDArray[np.float64]
+_PAIR_CHUNK = 65536
+
+
+@dataclass
+class Redundancy:
+    """Redundancy numbers of the equations of one solution.
+
+    Attributes:
+        obs: Network indices of the image observations, ``(n,)``.
+        obs_r: Redundancy numbers of their (line, sample) equations, ``(n, 2)``.
+        obs_v: Their residuals (px), ``(n, 2)``.
+        obs_w: Their weights (1/px^2), ``(n, 2)``.
+        points: Network indices of the weighted unknown points, ``(k,)``.
+        point_r: Redundancy numbers of their a-priori coordinates, in each point's sigma
+            frame, ``(k, 3)`` (0 on axes without a prior).
+        point_v: Their residuals (adjusted - a priori, metres, sigma frame), ``(k, 3)``.
+        point_w: Their weights (1/m^2), ``(k, 3)``.
+        unknown: Network indices of every unknown point, ``(u,)``.
+        point_cofactor: Cofactor blocks of the unknown points (XYZ, m^2), ``(u, 3, 3)``.
+        camera_r: Redundancy of the camera priors (sum).
+        camera_vtpv: Their ``v^T P v``.
+        camera_n: Their number of equations.
+        constraint_r: Redundancy of the smoothing constraints (sum).
+        constraint_vtpv: Their ``v^T P v``.
+        constraint_n: Their number of equations.
+    """
+
+    obs: NDArray[np.intp]
+    obs_r: F64
+    obs_v: F64
+    obs_w: F64
+    points: NDArray[np.intp]
+    point_r: F64
+    point_v: F64
+    point_w: F64
+    unknown: NDArray[np.intp]
+    point_cofactor: F64
+    camera_r: float
+    camera_vtpv: float
+    camera_n: int
+    constraint_r: float
+    constraint_vtpv: float
+    constraint_n: int
+
+    @property
+    def obs_order(self) -> NDArray[np.intp]:
+        """Argsort of :attr:`obs`."""
+        return np.argsort(self.obs)
+
+    @property
+    def total(self) -> float:
+        """Sum of all redundancy numbers (the degrees of freedom)."""
+        return float(self.obs_r.sum() + self.point_r.sum() + self.camera_r + self.constraint_r)
+
+
+def redundancy(
+    solver: BundleSolver,
+    c: F64,
+    xyz: F64,
+    obs: NDArray[np.intp],
+    xyz0: F64,
+    cofactor: F64,
+) -> Redundancy:
+    """Redundancy numbers of every equation at a solution (plain least-squares weights).
+
+    Args:
+        solver: The solver (models, weights, priors).
+        c: Adjusted global camera vector.
+        xyz: Adjusted coordinates of every point, ``(P, 3)``.
+        obs: The observations that took part.
+        xyz0: A-priori point coordinates.
+        cofactor: ``S^-1`` of the camera parameters (zero rows for fixed ones),
+            ``(n_params, n_params)``.
+
+    Returns:
+        The :class:`Redundancy`.
+    """
+    # The solver's layout of these observations: contiguous (camera, CCD) ranges with
+    # the per-observation data gathered once (the redundancy follows its order).
+    lay = solver._structure(np.asarray(obs, np.intp)).lay
+    obs = lay.obs
+    n = len(obs)
+    q = solver.q
+    w = solver.obs_w0[obs]
+    pt = lay.point
+    unknown_pt = ~solver.point_fixed[pt]
+    # Observations of fixed points need only their own G_ii, computed chunk by chunk;
+    # the partials of those of unknown points are kept for the pairs below.
+    t_all = np.flatnonzero(unknown_pt)
+    tpos = np.full(n, -1, np.intp)
+    tpos[t_all] = np.arange(len(t_all))
+    a_u = np.zeros((len(t_all), 2, q))
+    gpat_u = np.zeros(len(t_all), np.intp)
+    b_u = np.zeros((len(t_all), 2, 3))
+    v_all = np.zeros((n, 2))
+    h = np.zeros((n, 2, 2))
+    pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[pt]
+    cs = solver.cfg.chunk_size
+    for mi, ccd, a0, b0 in lay.ranges:
+        model = solver.models[mi]
+        x = c[solver.offsets[mi] : solver.offsets[mi + 1]]
+        for a in range(a0, b0, cs):
+            b = min(a + cs, b0)
+            ev = model.evaluate(
+                x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
+            )
+            ok = ev.valid
+            every = bool(np.all(ok))
+            d = ev.d_params if every else np.where(ok[:, None, None], ev.d_params, 0.0)
+            gp = ev.pattern + solver.pat_offsets[mi]
+            np.subtract(ev.line, lay.line[a:b], out=v_all[a:b, 0])
+            np.subtract(ev.sample, lay.sample[a:b], out=v_all[a:b, 1])
+            if not every:
+                v_all[a:b][~ok] = 0.0
+            fixed = ~unknown_pt[a:b]
+            if np.all(fixed):
+                h[a:b] = _diag_cofactor(solver, d, gp, cofactor)
+            elif np.any(fixed):
+                fx = np.flatnonzero(fixed)
+                h[a + fx] = _diag_cofactor(solver, d[fx], gp[fx], cofactor)
+            tu = tpos[a:b]
+            is_u = tu >= 0
+            if np.any(is_u):
+                a_u[tu[is_u], :, : d.shape[2]] = d[is_u]
+                gpat_u[tu[is_u]] = gp[is_u]
+                b_u[tu[is_u]] = np.where(ok[is_u, None, None], ev.d_ground[is_u], 0.0)
+    pairs = _PairG(solver, a_u, gpat_u, cofactor)
+    # Observations of unknown points, sorted by point (positions into obs; ``tpos``
+    # maps them into the kept partials).
+    t = t_all[np.argsort(pt[t_all], kind="stable")]
+    unknown, first, counts = np.unique(pt[t], return_index=True, return_counts=True)
+    u = len(unknown)
+    loc = np.repeat(np.arange(u), counts)
+    bt = b_u[tpos[t]]
+    bw = bt * w[t][:, :, None]  # W B, (m, 2, 3)
+    vmat = np.einsum("mki,mkj->mij", bt, bw)
+    vsum = np.zeros((u, 3, 3))
+    np.add.at(vsum, loc, vmat)
+    vsum += solver.point_prior_w[unknown]
+    vinv = np.linalg.inv(vsum)
+    cmat = np.matmul(vinv[loc], np.transpose(bw, (0, 2, 1)))  # C_k = V^-1 B^T W, (m, 3, 2)
+    # Pairs (i, k) of observations of the same point, in t's order.
+    cnt = counts[loc]
+    pa = np.repeat(np.arange(len(t)), cnt)
+    within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    pb = first[loc[pa]] + within
+    tmat = np.zeros((len(t), 2, 3))
+    umat = np.zeros((u, 3, 3))
+    for s0 in range(0, len(pa), _PAIR_CHUNK):
+        ia, ib = pa[s0 : s0 + _PAIR_CHUNK], pb[s0 : s0 + _PAIR_CHUNK]
+        g = pairs(tpos[t[ia]], tpos[t[ib]])  # (k, 2, 2)
+        gc = np.matmul(g, np.transpose(cmat[ib], (0, 2, 1)))  # G_ik C_k^T, (k, 2, 3)
+        np.add.at(tmat, ia, gc)
+        np.add.at(umat, loc[ia], np.matmul(cmat[ia], gc))
+        diag = ia == ib
+        h[t[ia[diag]]] = g[diag]
+    btt = np.transpose(bt, (0, 2, 1))
+    qjj = vinv + umat
+    h[t] += (
+        -np.matmul(tmat, btt)
+        - np.matmul(bt, np.transpose(tmat, (0, 2, 1)))
+        + np.matmul(np.matmul(bt, qjj[loc]), btt)
+    )
+    obs_r = 1.0 - w * np.stack([h[:, 0, 0], h[:, 1, 1]], axis=1)
+    # Priors of weighted points, in their sigma frames.
+    pw_axis = solver.point_prior_axis_w[unknown]
+    has = np.any(pw_axis > 0, axis=1)
+    rot = solver.point_frame[unknown[has]]
+    q_frame = np.matmul(np.matmul(rot, qjj[has]), np.transpose(rot, (0, 2, 1)))
+    wp = pw_axis[has]
+    point_r = np.where(wp > 0, 1.0 - wp * np.einsum("pii->pi", q_frame), 0.0)
+    dx = xyz[unknown[has]] - xyz0[unknown[has]]
+    point_v = np.einsum("pij,pj->pi", rot, dx)
+    # Camera priors and smoothing constraints.
+    dc = c - solver.x0
+    diag_q = np.diag(cofactor)
+    prior = solver.prior_w > 0
+    camera_r = float(np.sum(1.0 - solver.prior_w[prior] * diag_q[prior]))
+    camera_vtpv = float(np.sum(solver.prior_w * dc * dc))
+    con_r = con_vtpv = 0.0
+    if len(solver.con_w):
+        aq = solver.con_a @ cofactor
+        con_r = float(np.sum(1.0 - solver.con_w * np.einsum("ij,ij->i", aq, solver.con_a)))
+        con_vtpv = float(np.sum(solver.con_w * (solver.con_a @ dc) ** 2))
+    return Redundancy(
+        obs=obs,
+        obs_r=obs_r,
+        obs_v=v_all,
+        obs_w=w,
+        points=unknown[has],
+        point_r=point_r,
+        point_v=point_v,
+        point_w=wp,
+        unknown=unknown,
+        point_cofactor=qjj,
+        camera_r=camera_r,
+        camera_vtpv=camera_vtpv,
+        camera_n=int(np.count_nonzero(prior)),
+        constraint_r=con_r,
+        constraint_vtpv=con_vtpv,
+        constraint_n=len(solver.con_w),
+    )
+
+
+def _diag_cofactor(solver: BundleSolver, d: F64, gp: NDArray[np.intp], cofactor: F64) -> F64:
+    """``A_i Q A_i^T`` of each observation, ``(m, 2, 2)``: compiled, or :class:`_PairG`."""
+    fn = solver.normal_kernels()
+    if fn is None:
+        idx = np.arange(len(gp))
+        return _PairG(solver, d, gp, cofactor)(idx, idx)
+    out = np.empty((len(gp), 2, 2))
+    fn.diag_cofactor(d, gp, cofactor, solver.act_n, solver.act_loc, solver.act_col, out)
+    return out
+
+
+class _PairG:
+    """``G_ik = A_i Q A_k^T`` for pairs of observations, grouped by their patterns.
+
+    Only a pattern's active columns enter (fixed parameters have zero cofactors), and
+    each pair of patterns takes one sub-matrix of ``Q``: no ``(n, q, q)`` gather.
+    """
+
+    def __init__(self, solver: BundleSolver, a: F64, gpat: NDArray[np.intp], q: F64) -> None:
+        self.solver, self.a, self.gpat, self.q = solver, a, gpat, q
+        self.n_pat = len(solver.cols)
+
+    def __call__(self, i: NDArray[np.intp], k: NDArray[np.intp]) -> F64:
+        out = np.zeros((len(i), 2, 2))
+        if not len(i):
+            return out
+        gi, gk = self.gpat[i], self.gpat[k]
+        key = gi.astype(np.int64) * self.n_pat + gk
+        order = np.argsort(key, kind="stable")
+        cut = np.flatnonzero(np.diff(key[order])) + 1
+        qw = self.a.shape[2]
+        for seg in np.split(order, cut):
+            loc_i, ci = self.solver._active_columns(int(gi[seg[0]]), qw)
+            loc_k, ck = self.solver._active_columns(int(gk[seg[0]]), qw)
+            if not (len(ci) and len(ck)):
+                continue
+            ai = self.a[i[seg]] if loc_i is None else self.a[i[seg]][:, :, loc_i]
+            ak = self.a[k[seg]] if loc_k is None else self.a[k[seg]][:, :, loc_k]
+            # One GEMM for the whole group, then the row-wise products with A_k.
+            aq = (ai.reshape(-1, len(ci)) @ self.q[np.ix_(ci, ck)]).reshape(len(seg), 2, -1)
+            out[seg] = np.einsum("mrb,msb->mrs", aq, ak)
+        return out
