@@ -25,7 +25,10 @@ systems, steps, covariance). scipy's time is its ``least_squares`` call alone (n
 covariance, no diagnostics). ``speedup_cpu_same_kernel`` compares scipy with the whole
 adjustment (conservative); ``speedup_cpu_same_kernel_lm`` compares the two solves.
 Both stop at the same optimum (``max_param_diff_sigma*``: the largest difference of the
-active parameters, in planetref's sigmas).
+active parameters, in planetref's sigmas). scipy's path (``scipy*_nfev``) depends on
+the BLAS threads of its ``lsmr`` (their rounding): with ``OMP_NUM_THREADS=1`` it took 5
+evaluations here, with the default threads 16, so its CPU time tripled. The
+single-threaded figure is the conservative one.
 
 Usage::
 
