@@ -5,7 +5,9 @@ Whether an OR of ~0 means "no blunders reached the adjustment" or "the adjustmen
 them" can only be told with the truth: this script projects each MCP's reference ground
 point (``x_m, y_m, z_m`` in ``mcps.parquet``: the reference ortho's position on the
 reference DEM) through the scene's TRUE camera and subtracts the observed ``(line,
-sample)``. That difference, in image pixels, is the MCP's true error: the matcher's error
+sample)``. (Through the adjusted camera instead, the same difference is the MCP's residual
+in ``residuals.csv``, to its six printed decimals.) That difference, in image pixels, is
+the MCP's true error: the matcher's error
 plus the reference's own geometric error (mosaic offsets and warps, DEM track artefacts
 at ``hard``). It is split by the adjustment's status (``inlier``, ``outlier``, ``check``)
 from ``residuals.csv``, and summarised per tile (the mean vector is the tile's systematic
