@@ -5,17 +5,16 @@ Whether an OR of ~0 means "no blunders reached the adjustment" or "the adjustmen
 them" can only be told with the truth: this script projects each MCP's reference ground
 point (``x_m, y_m, z_m`` in ``mcps.parquet``: the reference ortho's position on the
 reference DEM) through the scene's TRUE camera and subtracts the observed ``(line,
-sample)``. (Through the adjusted camera instead, the same difference is the MCP's residual
-in ``residuals.csv``, to its six printed decimals.) That difference, in image pixels, is
-the MCP's true error: the matcher's error
-plus the reference's own geometric error (mosaic offsets and warps, DEM track artefacts
-at ``hard``). It is split by the adjustment's status (``inlier``, ``outlier``, ``check``)
-from ``residuals.csv``, and summarised per tile (the mean vector is the tile's systematic
-offset, the spread its random part).
+sample)``. That difference, in image pixels, is the MCP's true error: the matcher's
+error plus the reference's own geometric error (mosaic offsets and warps, DEM track
+artefacts at ``hard``); through the adjusted camera instead, the same difference is the
+MCP's residual in ``residuals.csv`` (checked to its six printed decimals). The true
+errors are split by the adjustment's status (``inlier``, ``outlier``, ``check``) and
+summarised per tile (the mean vector is the tile's systematic offset, the spread its
+random part).
 
-A blunder is counted against the true errors' own robust spread: beyond ``--k`` (default 3)
-times the RMS of the true errors of all MCPs of the strip, the analogue of the seed's rule
-applied to the truth. Usage::
+A blunder is an MCP whose true error exceeds ``--k`` (default 3) times the RMS of the
+true errors of all MCPs of the strip: the seed's rule applied to the truth. Usage::
 
     python benchmarks/bench_mcp_truth.py RUN_DIR SCENE_DIR
     python benchmarks/bench_mcp_truth.py COMPARE_DIR/runs/ncc planetref-demo/scene-tiny-seed0
