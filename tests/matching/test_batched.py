@@ -1,0 +1,71 @@
+"""Batched matching (``match_many(..., batch_size)``) equals one pair at a time.
+
+The learned sparse matchers run the detector/descriptor of same-shaped images in one
+forward pass (the GPU path); with the official weights, on the CPU, every match must be the
+one an unbatched call finds, to float tolerance. Pairs of another shape and a flat pair in
+the same call check the grouping and the order of the results.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planetref.errors import InputError
+from planetref.matching import get_matcher
+
+SMALL = {
+    "disk-lightglue": {"max_keypoints": 512},
+    "aliked-lightglue": {"max_keypoints": 512},
+    "xfeat-lighterglue": {"max_keypoints": 512},
+}
+
+
+def _pairs(shifted_pair) -> list[tuple[np.ndarray, ...]]:
+    pairs = []
+    for seed, shift in ((1, (2.2, -1.4)), (2, (-3.1, 0.7)), (3, (0.4, 2.9))):
+        a, b = shifted_pair(96, shift, seed=seed)
+        pairs.append((a, b))
+    a, b = shifted_pair(128, (1.5, 1.5), seed=4)
+    pairs.append((a[:80], b[:80]))  # another shape: its own group
+    flat = np.full((96, 96), 7.0, np.float32)
+    pairs.append((flat, pairs[0][1]))  # flat: no matches, order kept
+    mask = np.ones((96, 96), bool)
+    mask[:, :20] = False
+    pairs.append((pairs[1][0], pairs[1][1], mask, None))  # masked
+    return pairs
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "xfeat-lighterglue",  # ~2 CPU-s: the default run's check
+        pytest.param("disk-lightglue", marks=pytest.mark.slow),
+        pytest.param("aliked-lightglue", marks=pytest.mark.slow),
+    ],
+)
+def test_batched_equals_unbatched_on_cpu(name, shared_weights, shifted_pair):
+    matcher = get_matcher(name, weights_dir=shared_weights, **SMALL[name])
+    pairs = _pairs(shifted_pair)
+    one = [matcher.match(*p) for p in pairs]
+    many = matcher.match_many(pairs, batch_size=4)
+    assert len(many) == len(pairs)
+    assert len(one[4]) == len(many[4]) == 0
+    assert sum(len(m) for m in one) > 100
+    for a, b in zip(one, many, strict=True):
+        assert len(a) == len(b)
+        np.testing.assert_allclose(b.keypoints0, a.keypoints0, atol=1e-3)
+        np.testing.assert_allclose(b.keypoints1, a.keypoints1, atol=1e-3)
+        # descriptors equal to ~1e-6 move LightGlue's scores by up to ~3e-4
+        np.testing.assert_allclose(b.confidence, a.confidence, atol=2e-3)
+    assert not np.any(many[5].keypoints0[:, 0] < 20)  # the mask holds
+    assert matcher.timings["forward"] > 0
+
+
+def test_batch_size_is_checked(shared_weights, shifted_pair):
+    matcher = get_matcher("sift")
+    a, b = shifted_pair(96, (1.0, 1.0), seed=1)
+    # classical matchers accept any batch size and match one pair at a time
+    assert len(matcher.match_many([(a, b)], batch_size=8)[0]) > 0
+    with pytest.raises(InputError, match="batch_size"):
+        matcher.match_many([(a, b)], batch_size=0)
