@@ -69,3 +69,34 @@ def test_batch_size_is_checked(shared_weights, shifted_pair):
     assert len(matcher.match_many([(a, b)], batch_size=8)[0]) > 0
     with pytest.raises(InputError, match="batch_size"):
         matcher.match_many([(a, b)], batch_size=0)
+
+
+def test_device_auto_and_a_missing_gpu_are_one_line(tmp_path):
+    """``auto`` is the GPU when torch sees one, else the CPU; a missing GPU is one line.
+
+    georef checks the device before it reads anything, so a missing scene does not hide
+    the device error.
+    """
+    import torch
+    from click.testing import CliRunner
+
+    from planetref.cli import main
+    from planetref.matching._torch import resolve_device
+
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device("auto").type == expected
+    assert get_matcher("sift", device="auto").name == "sift"  # classical: the CPU
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: the missing-GPU message cannot be produced")
+    with pytest.raises(InputError, match="CUDA is not available") as err:
+        resolve_device("cuda")
+    assert "\n" not in str(err.value) and "use cpu or auto" in str(err.value)
+    r = CliRunner().invoke(
+        main,
+        ["-q", "georef", str(tmp_path / "nowhere"), "--matcher", "sift"]
+        + ["--out", str(tmp_path / "run"), "--device", "cuda"],
+    )
+    assert r.exit_code != 0
+    lines = [x for x in r.output.splitlines() if x.strip()]
+    assert len(lines) == 1 and "CUDA is not available" in lines[0], r.output
+    assert "Traceback" not in r.output and not (tmp_path / "run").exists()

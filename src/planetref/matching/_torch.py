@@ -39,23 +39,38 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     """Parse a device name and check that it can be used.
 
     Args:
-        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``, a ``torch.device`` or ``None``
-            (CPU).
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``, ``"auto"`` (the first CUDA
+            GPU when torch sees one, else the CPU), a ``torch.device`` or ``None`` (CPU).
 
     Returns:
         The device.
 
     Raises:
-        InputError: Unknown name, or a device this machine does not have.
+        InputError: Unknown name, or a device this machine does not have (one line saying
+            why and what to use instead).
     """
+    if isinstance(device, str) and device.strip().lower() == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         dev = torch.device("cpu" if device is None else device)
     except (RuntimeError, TypeError) as exc:
         raise InputError(f"not a torch device: {device!r} ({exc})", field="device") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("CUDA is not available on this machine", field="device")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "a CPU-only build" if torch.version.cuda is None else "no usable GPU"
+            raise InputError(
+                f"{device!r} requested but CUDA is not available on this machine (torch "
+                f"{torch.__version__}: {build}); use cpu or auto",
+                field="device",
+            )
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise InputError(
+                f"{device!r} requested but this machine has {torch.cuda.device_count()} "
+                "CUDA device(s)",
+                field="device",
+            )
     if dev.type == "mps" and not torch.backends.mps.is_available():
-        raise InputError("MPS is not available on this machine", field="device")
+        raise InputError("MPS is not available on this machine; use cpu or auto", field="device")
     if dev.type not in ("cpu", "cuda", "mps"):
         raise InputError(f"unsupported device type {dev.type!r}", field="device")
     return dev
