@@ -93,8 +93,10 @@ def test_device_auto_and_a_missing_gpu_are_one_line(tmp_path):
     assert "\n" not in str(err.value) and "use cpu or auto" in str(err.value)
     r = CliRunner().invoke(
         main,
-        ["-q", "georef", str(tmp_path / "nowhere"), "--matcher", "sift"]
-        + ["--out", str(tmp_path / "run"), "--device", "cuda"],
+        [
+            *("-q", "georef", str(tmp_path / "nowhere"), "--matcher", "sift"),
+            *("--out", str(tmp_path / "run"), "--device", "cuda"),
+        ],
     )
     assert r.exit_code != 0
     lines = [x for x in r.output.splitlines() if x.strip()]
