@@ -258,3 +258,17 @@ def test_coarse_lattice_is_every_other_fine_node(setup):
     for u, v in zip(a[2:], b[2:], strict=True):
         np.testing.assert_array_equal(np.isfinite(u), np.isfinite(v))
         np.testing.assert_allclose(u, v, rtol=0, atol=1e-8)
+
+
+def test_raw_coords_grid_equals_pointwise(setup):
+    """The separable grid evaluation gives the very values of the pointwise one."""
+    scene, ref, plan, img = setup
+    fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
+    o = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, fp.window.padded(8))
+    xs = np.arange(o.window.width, dtype=np.float64) + 0.5
+    ys = np.arange(o.window.height, dtype=np.float64) + 0.5
+    gl, gs = o.raw_coords_grid(xs, ys)
+    pl, ps = o.raw_coords(*np.meshgrid(xs, ys))
+    assert gl.shape == (len(ys), len(xs)) and np.isfinite(gl).mean() > 0.5
+    np.testing.assert_array_equal(gl, pl)
+    np.testing.assert_array_equal(gs, ps)

@@ -123,14 +123,27 @@ class OrthoTile:
         y = np.asarray(y, np.float64)
         fx = _fractional_index(self.lattice_x, x.ravel())
         fy = _fractional_index(self.lattice_y, y.ravel())
-        coords = np.vstack([fy, fx])
+        return self._interpolate(np.vstack([fy, fx]), x.shape)
+
+    def raw_coords_grid(self, xs: F64, ys: F64) -> tuple[F64, F64]:
+        """:meth:`raw_coords` of the grid ``xs x ys``, ``(len(ys), len(xs))`` (same values).
+
+        The lattice's fractional indices are separable: computed once per column and row.
+        """
+        fx = _fractional_index(self.lattice_x, np.asarray(xs, np.float64))
+        fy = _fractional_index(self.lattice_y, np.asarray(ys, np.float64))
+        coords = np.vstack([np.repeat(fy, len(fx)), np.tile(fx, len(fy))])
+        return self._interpolate(coords, (len(fy), len(fx)))
+
+    def _interpolate(self, coords: F64, shape: tuple[int, ...]) -> tuple[F64, F64]:
+        """Bilinear lattice line and sample at fractional ``(row, col)`` node indices."""
         line = ndimage.map_coordinates(
             self.lattice_line, coords, order=1, mode="nearest", prefilter=False
         )
         sample = ndimage.map_coordinates(
             self.lattice_sample, coords, order=1, mode="nearest", prefilter=False
         )
-        return line.reshape(x.shape), sample.reshape(x.shape)
+        return line.reshape(shape), sample.reshape(shape)
 
     def predicted_ref_pixel(self, x: ArrayLike, y: ArrayLike) -> tuple[F64, F64]:
         """Reference ``(col, row)`` of window pixels: the orthoimage *is* the prediction."""
@@ -447,8 +460,7 @@ def orthorectify(
 
     xs = np.arange(w, dtype=np.float64) + 0.5
     ys = np.arange(h, dtype=np.float64) + 0.5
-    gx, gy = np.meshgrid(xs, ys)
-    line, sample = blank.raw_coords(gx, gy)
+    line, sample = blank.raw_coords_grid(xs, ys)
     # Block (i, j) has its centre at raw (r0 + (i + 0.5) k, c0 + (j + 0.5) k); scipy puts
     # array element centres at integer coordinates.
     u = (line - r0) / k - 0.5
