@@ -248,9 +248,9 @@ def test_coarse_lattice_is_every_other_fine_node(setup):
     scene, ref, plan, _ = setup
     fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
     c0, r0, c1, r1 = fp.window.bounds_px
-    win = RefWindow.around(c0, r0, c1, r1, pad_px=37, factor=2)
-    fine = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 8)
-    coarse = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 16)
+    win = RefWindow.around(c0, r0, c1, r1, pad_px=13, factor=2)
+    fine = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 8, chunk=4)
+    coarse = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 16, chunk=4)
     a, b = fine.nodes(win, stride=2), coarse.nodes(win)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
