@@ -1,8 +1,9 @@
 """Batched matching (``match_many(..., batch_size)``) equals one pair at a time.
 
 The learned sparse matchers run the detector/descriptor of same-shaped images in one
-forward pass (the GPU path); with the official weights, on the CPU, every match must be the
-one an unbatched call finds, to float tolerance. Pairs of another shape and a flat pair in
+forward pass (the GPU path); with the official weights, on the CPU, the matches must be
+those of an unbatched call, to float tolerance (as sets: near-equal detector scores may
+come in another order). Pairs of another shape and a flat pair in
 the same call check the grouping and the order of the results.
 """
 
@@ -19,6 +20,11 @@ SMALL = {
     "aliked-lightglue": {"max_keypoints": 512},
     "xfeat-lighterglue": {"max_keypoints": 512},
 }
+
+
+def _sorted(m) -> np.ndarray:
+    a = m.to_array()
+    return a[np.lexsort(np.round(a[:, 3::-1], 3).T)]
 
 
 def _pairs(shifted_pair) -> list[tuple[np.ndarray, ...]]:
@@ -54,10 +60,12 @@ def test_batched_equals_unbatched_on_cpu(name, shared_weights, shifted_pair):
     assert sum(len(m) for m in one) > 100
     for a, b in zip(one, many, strict=True):
         assert len(a) == len(b)
-        np.testing.assert_allclose(b.keypoints0, a.keypoints0, atol=1e-3)
-        np.testing.assert_allclose(b.keypoints1, a.keypoints1, atol=1e-3)
+        # The same matches as sets: keypoints whose scores differ by float rounding may
+        # swap places in the detector's ranking, and LightGlue keeps image 0's order.
+        sa, sb = _sorted(a), _sorted(b)
+        np.testing.assert_allclose(sb[:, :4], sa[:, :4], atol=1e-3)
         # descriptors equal to ~1e-6 move LightGlue's scores by up to ~3e-4
-        np.testing.assert_allclose(b.confidence, a.confidence, atol=2e-3)
+        np.testing.assert_allclose(sb[:, 4], sa[:, 4], atol=2e-3)
     assert not np.any(many[5].keypoints0[:, 0] < 20)  # the mask holds
     assert matcher.timings["forward"] > 0
 
