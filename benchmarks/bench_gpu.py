@@ -105,11 +105,17 @@ def bench(name: str, args, weights: Path, pairs: list) -> dict:
     m.build()
     m.match(*pairs[0])  # warm-up: kernels, allocator
     dev = m.device
-    t_one, one = _timed(lambda: [m.match(*p) for p in pairs], dev)
-    fwd_one = 0.0
-    for p in pairs[:1]:
-        m.match(*p)
-        fwd_one = m.timings.get("forward", 0.0)
+    fwd = []
+
+    def each() -> list:
+        out = []
+        for p in pairs:
+            out.append(m.match(*p))
+            fwd.append(m.timings.get("forward", 0.0))
+        return out
+
+    t_one, one = _timed(each, dev)
+    fwd_one = sum(fwd) / len(pairs)
     rows = []
     for b in args.batch:
         t_b, many = _timed(lambda b=b: m.match_many(pairs, batch_size=b), dev)
