@@ -37,7 +37,7 @@ Usage::
 
     python benchmarks/bench_frontend.py [--matchers sift ncc disk-lightglue ...]
         [--tile 128] [--threads 1] [--prep cached uncached] [--clock cpu]
-        [--weights-dir DIR] [--scene DIR] [--json]
+        [--device cpu|cuda|auto] [--weights-dir DIR] [--scene DIR] [--json]
 """
 
 from __future__ import annotations
@@ -118,12 +118,20 @@ def truth_error(s: dict, r) -> float:
     return float(np.max(np.abs(np.asarray(r.offset_px) - truth)))
 
 
-def bench(name: str, s: dict, cfg, weights_dir: Path | None, prep: str = "cached") -> dict:
+def bench(
+    name: str,
+    s: dict,
+    cfg,
+    weights_dir: Path | None,
+    prep: str = "cached",
+    device: str = "cpu",
+) -> dict:
     import planetref.frontend.tile as tile_module
     from planetref.frontend.orthorectify import lattice_cache
     from planetref.frontend.tile import match_tile
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching import get_matcher
+    from planetref.matching.registry import MATCHERS
     from planetref.pipeline.config import GeorefConfig
     from planetref.pipeline.matchers import matcher_options
     from planetref.raster.image import CcdImage
@@ -131,6 +139,9 @@ def bench(name: str, s: dict, cfg, weights_dir: Path | None, prep: str = "cached
     # The run's own matcher settings (NCC: dense fine stage, wide coarse search).
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
     fine_opts, coarse_opts = matcher_options(name, GeorefConfig(frontend=cfg), gsd)
+    if device != "cpu" and MATCHERS[name].weights:
+        fine_opts = {**fine_opts, "device": device}
+        coarse_opts = None if coarse_opts is None else {**coarse_opts, "device": device}
     matcher = get_matcher(name, weights_dir=weights_dir, **fine_opts)
     coarse = None
     if coarse_opts is not None:
@@ -214,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tile", type=int, default=128, help="tile size, reference pixels")
     ap.add_argument("--geometry", default="orthorectify", choices=["orthorectify", "downsample"])
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--device", default="cpu", help="torch device of the learned matchers (cpu, cuda, auto)"
+    )
     ap.add_argument("--weights-dir", type=Path, default=None)
     ap.add_argument("--scene", type=Path, default=None, help="a scene folder (scene.toml)")
     ap.add_argument(
@@ -239,6 +253,14 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    from planetref.errors import PlanetrefError
+    from planetref.matching._torch import resolve_device
+
+    try:
+        args.device = str(resolve_device(args.device))
+    except PlanetrefError as exc:
+        print(f"bench_frontend: {exc}", file=sys.stderr)
+        return 2
     from planetref.frontend.config import FrontendConfig
     from planetref.matching.registry import MATCHERS
     from planetref.matching.weights import missing_weights
@@ -263,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
                 skipped[name] = f"weights missing: {missing}"
                 continue
             for prep in args.prep:
-                results.append(bench(name, s, cfg, weights, prep))
+                results.append(bench(name, s, cfg, weights, prep, args.device))
         s["ref"].close()
     if args.json:
         print(
@@ -280,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(
         f"scene: {'given' if args.scene else f'simulated in {sim_s:.1f} s'}; tile "
-        f"{args.tile} ref px; {args.geometry}; torch threads {args.threads}; clock {args.clock}"
+        f"{args.tile} ref px; {args.geometry}; torch threads {args.threads}; clock {args.clock}; "
+        f"device {args.device}"
     )
     print("per tile, mean seconds (warm-up tile excluded); ratio = planetref / bare model")
     print(

@@ -234,3 +234,41 @@ def test_lattice_nodes_do_not_depend_on_tile_order(setup):
     ok = np.isfinite(line.ravel())
     np.testing.assert_allclose(line.ravel()[ok], el[ok], atol=1e-6)
     np.testing.assert_allclose(sample.ravel()[ok], es[ok], atol=1e-6)
+
+
+def test_coarse_lattice_is_every_other_fine_node(setup):
+    """A coarse stage takes every ``stride``-th node of the fine stages' cache.
+
+    The nodes are the same exact projections as those of a cache of the coarse spacing
+    (to the projection's convergence, ~1e-10 px), so one cache per CCD serves both stages.
+    """
+    from planetref.frontend.orthorectify import LatticeCache
+    from planetref.raster.ortho import RefWindow
+
+    scene, ref, plan, _ = setup
+    fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
+    c0, r0, c1, r1 = fp.window.bounds_px
+    win = RefWindow.around(c0, r0, c1, r1, pad_px=13, factor=2)
+    fine = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 8, chunk=4)
+    coarse = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 16, chunk=4)
+    a, b = fine.nodes(win, stride=2), coarse.nodes(win)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert a[2].shape == b[2].shape and np.isfinite(a[2]).mean() > 0.5
+    for u, v in zip(a[2:], b[2:], strict=True):
+        np.testing.assert_array_equal(np.isfinite(u), np.isfinite(v))
+        np.testing.assert_allclose(u, v, rtol=0, atol=1e-8)
+
+
+def test_raw_coords_grid_equals_pointwise(setup):
+    """The separable grid evaluation gives the very values of the pointwise one."""
+    scene, ref, plan, img = setup
+    fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
+    o = orthorectify(img, scene.init_cam, "ccd1", ref, scene.dem, fp.window.padded(8))
+    xs = np.arange(o.window.width, dtype=np.float64) + 0.5
+    ys = np.arange(o.window.height, dtype=np.float64) + 0.5
+    gl, gs = o.raw_coords_grid(xs, ys)
+    pl, ps = o.raw_coords(*np.meshgrid(xs, ys))
+    assert gl.shape == (len(ys), len(xs)) and np.isfinite(gl).mean() > 0.5
+    np.testing.assert_array_equal(gl, pl)
+    np.testing.assert_array_equal(gs, ps)

@@ -94,6 +94,32 @@ def test_masked_block_mean_ignores_invalid_pixels():
     assert ok.tolist() == [[True, True], [False, True]]
 
 
+@pytest.mark.parametrize("factor", [2, 5, 9, 11])
+@pytest.mark.parametrize("share_valid", [1.0, 0.8])
+def test_masked_block_mean_equals_numpy(factor: int, share_valid: float) -> None:
+    """Block means (the all-valid fast path and the masked one) equal a numpy reduction.
+
+    Shapes that are not multiples of the factor have trailing partial blocks, averaged
+    over the pixels they have; factor 11 is one whose 121 ones times 1/121 is not 1 in
+    float32.
+    """
+    rng = np.random.default_rng(factor)
+    h, w = 7 * factor + 3, 5 * factor + factor - 1
+    data = rng.uniform(0, 4000, (h, w)).astype(np.float32)
+    valid = rng.random((h, w)) < share_valid
+    mean, ok = masked_block_mean(np.where(valid, data, 0).astype(np.float32), valid, factor)
+    hb, wb = -(-h // factor), -(-w // factor)
+    pad = ((0, hb * factor - h), (0, wb * factor - w))
+    blocks = lambda a: np.pad(a, pad).reshape(hb, factor, wb, factor).sum(axis=(1, 3))  # noqa: E731
+    s = blocks(np.where(valid, data, 0).astype(np.float64))
+    n = blocks(valid.astype(np.float64))
+    size = blocks(np.ones((h, w)))
+    expect_ok = n >= 0.5 * size - 1e-9
+    np.testing.assert_array_equal(ok, expect_ok)
+    np.testing.assert_allclose(mean[ok], (s / np.maximum(n, 1))[ok], rtol=2e-6)
+    assert not mean[~ok].any()
+
+
 def test_block_mean_read_in_strips_equals_whole():
     rng = np.random.default_rng(0)
     data = rng.normal(size=(37, 23)).astype(np.float32)

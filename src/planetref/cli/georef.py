@@ -49,7 +49,8 @@ def _common(f: Any) -> Any:
         "--device",
         default="cpu",
         show_default=True,
-        help="Torch device of the learned matchers (cpu, cuda, cuda:1...).",
+        help="Torch device of the learned matchers (cpu, cuda, cuda:1..., or auto: the GPU "
+        "when torch sees one, else the CPU).",
     )(f)
     f = click.option(
         "--scheduler",
@@ -72,6 +73,12 @@ def _runtime(
 
     apply_thread_budget(ThreadBudget.resolve(threads, scheduler_workers(scheduler)))
     cfg = load_config(config_path)
+    if device != "cpu":
+        # Checked here, before any work (one line when the device does not exist); "auto"
+        # becomes the device it stands for, so the run's identity names the real one.
+        from planetref.matching._torch import resolve_device
+
+        device = str(resolve_device(device))
     if device == "cpu":
         return cfg  # the default: the run's identity stays what it was
     opts = {k: dict(v) for k, v in cfg.matchers.items()}

@@ -232,7 +232,11 @@ def matchers_command(weights_dir: str | None, as_json: bool) -> None:
     help="Weights directory (default: $PLANETREF_WEIGHTS, $TORCH_HOME, torch hub cache).",
 )
 @click.option(
-    "--device", default="cpu", show_default=True, help="Torch device of learned matchers."
+    "--device",
+    default="cpu",
+    show_default=True,
+    help="Torch device of learned matchers (cpu, cuda, cuda:1..., or auto: the GPU when "
+    "torch sees one, else the CPU).",
 )
 @click.option(
     "--tile-size",

@@ -123,14 +123,27 @@ class OrthoTile:
         y = np.asarray(y, np.float64)
         fx = _fractional_index(self.lattice_x, x.ravel())
         fy = _fractional_index(self.lattice_y, y.ravel())
-        coords = np.vstack([fy, fx])
+        return self._interpolate(np.vstack([fy, fx]), x.shape)
+
+    def raw_coords_grid(self, xs: F64, ys: F64) -> tuple[F64, F64]:
+        """:meth:`raw_coords` of the grid ``xs x ys``, ``(len(ys), len(xs))`` (same values).
+
+        The lattice's fractional indices are separable: computed once per column and row.
+        """
+        fx = _fractional_index(self.lattice_x, np.asarray(xs, np.float64))
+        fy = _fractional_index(self.lattice_y, np.asarray(ys, np.float64))
+        coords = np.vstack([np.repeat(fy, len(fx)), np.tile(fx, len(fy))])
+        return self._interpolate(coords, (len(fy), len(fx)))
+
+    def _interpolate(self, coords: F64, shape: tuple[int, ...]) -> tuple[F64, F64]:
+        """Bilinear lattice line and sample at fractional ``(row, col)`` node indices."""
         line = ndimage.map_coordinates(
             self.lattice_line, coords, order=1, mode="nearest", prefilter=False
         )
         sample = ndimage.map_coordinates(
             self.lattice_sample, coords, order=1, mode="nearest", prefilter=False
         )
-        return line.reshape(x.shape), sample.reshape(x.shape)
+        return line.reshape(shape), sample.reshape(shape)
 
     def predicted_ref_pixel(self, x: ArrayLike, y: ArrayLike) -> tuple[F64, F64]:
         """Reference ``(col, row)`` of window pixels: the orthoimage *is* the prediction."""
@@ -288,16 +301,23 @@ class LatticeCache:
         for c, key in enumerate(todo):
             self._chunks[key] = (line[c], sample[c])
 
-    def nodes(self, window: RefWindow) -> tuple[F64, F64, F64, F64]:
+    def nodes(self, window: RefWindow, stride: int = 1) -> tuple[F64, F64, F64, F64]:
         """The lattice of a window: node ``(x, y)`` in window pixels, raw line and sample.
 
         The nodes cover the window with one node at or beyond each edge, so nothing in the
         window is extrapolated.
+
+        Args:
+            window: The window (any grid).
+            stride: Take every ``stride``-th node: a lattice of spacing ``stride * step``
+                (a coarse stage), made of the very nodes the finer stages use.
         """
         c0, r0, c1, r1 = window.bounds_px
-        s, n = self.step, self.chunk
-        j0, j1 = c0 // s, -(-c1 // s)
-        i0, i1 = r0 // s, -(-r1 // s)
+        k, n = max(1, int(stride)), self.chunk
+        s = self.step * k
+        # lattice indices (spacing s) -> node indices of the cache (spacing step)
+        j0, j1 = (c0 // s) * k, -(-c1 // s) * k
+        i0, i1 = (r0 // s) * k, -(-r1 // s) * k
         line = np.empty((i1 - i0 + 1, j1 - j0 + 1))
         sample = np.empty_like(line)
         chunks = [
@@ -311,8 +331,9 @@ class LatticeCache:
             dst = slice(a0 - i0, a1 - i0), slice(b0 - j0, b1 - j0)
             src = slice(a0 - ci * n, a1 - ci * n), slice(b0 - cj * n, b1 - cj * n)
             line[dst], sample[dst] = cl[src], cs[src]
-        lx, _ = window.from_ref_pixel(np.arange(j0, j1 + 1) * float(s), 0.0)
-        _, ly = window.from_ref_pixel(0.0, np.arange(i0, i1 + 1) * float(s))
+        line, sample = line[::k, ::k], sample[::k, ::k]
+        lx, _ = window.from_ref_pixel(np.arange(j0, j1 + 1, k) * float(self.step), 0.0)
+        _, ly = window.from_ref_pixel(0.0, np.arange(i0, i1 + 1, k) * float(self.step))
         return np.asarray(lx, np.float64), np.asarray(ly, np.float64), line, sample
 
 
@@ -345,6 +366,7 @@ def orthorectify(
     prefilter: float = 0.5,
     min_valid_fraction: float = 0.5,
     cache: LatticeCache | None = None,
+    stride: int = 1,
 ) -> OrthoTile:
     """Resample a CCD tile onto a reference-grid window through the camera and the DEM.
 
@@ -373,12 +395,15 @@ def orthorectify(
             (:meth:`~planetref.raster.image.CcdImage.read_block_mean_cached`), so
             overlapping windows and the two stages of a tile share that work. None: the
             window's own lattice and a direct read.
+        stride: With ``cache``: the lattice takes every ``stride``-th node of the cache
+            (spacing ``stride * cache.step`` reference px), so a coarse stage uses the
+            nodes of the fine ones.
 
     Returns:
         The orthorectified tile.
     """
     if cache is not None:
-        lx, ly, lat_line, lat_sample = cache.nodes(window)
+        lx, ly, lat_line, lat_sample = cache.nodes(window, stride)
     else:
         lx, ly, lat_line, lat_sample = _lattice(
             camera, ccd, ref, terrain, window, max(1, int(lattice_step))
@@ -435,8 +460,7 @@ def orthorectify(
 
     xs = np.arange(w, dtype=np.float64) + 0.5
     ys = np.arange(h, dtype=np.float64) + 0.5
-    gx, gy = np.meshgrid(xs, ys)
-    line, sample = blank.raw_coords(gx, gy)
+    line, sample = blank.raw_coords_grid(xs, ys)
     # Block (i, j) has its centre at raw (r0 + (i + 0.5) k, c0 + (j + 0.5) k); scipy puts
     # array element centres at integer coordinates.
     u = (line - r0) / k - 0.5

@@ -115,9 +115,10 @@ def _image_side(
         # reader's cache keeps on the reference grid, and their raw block means from its
         # block cache: each node is projected and each raw pixel read once per worker.
         # The lattice keeps its spacing in output pixels on coarse grids (8 coarse px by
-        # default) and its ground spacing on the reference and finer grids.
-        step = config.lattice_step_ref_px * max(1, round(stage_factor))
-        cache = lattice_cache(image, camera, tile.ccd, ref, terrain, step)
+        # default: every other node of the fine stages' lattice at a coarse factor of 2)
+        # and its ground spacing on the reference and finer grids. One cache per CCD
+        # serves both stages: each fill of it has a fixed cost.
+        cache = lattice_cache(image, camera, tile.ccd, ref, terrain, config.lattice_step_ref_px)
         return orthorectify(
             image,
             camera,
@@ -126,6 +127,7 @@ def _image_side(
             terrain,
             window,  # type: ignore[arg-type]  # a FineWindow offers the same interface
             cache=cache,
+            stride=max(1, round(stage_factor)),
         )
     return downsample_tile(image, tile, max(1, round(ratio * stage_factor)), camera, ref, terrain)
 

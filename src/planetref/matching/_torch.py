@@ -11,7 +11,7 @@ import re
 import threading
 import time
 from abc import abstractmethod
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from os import PathLike
 from typing import Any, ClassVar, Literal
 
@@ -28,6 +28,7 @@ __all__ = [
     "SparseLightGlueMatcher",
     "TorchMatcher",
     "build_lightglue",
+    "image_batch",
     "lightglue_state_dict",
     "load_into",
     "resolve_device",
@@ -38,23 +39,38 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     """Parse a device name and check that it can be used.
 
     Args:
-        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``, a ``torch.device`` or ``None``
-            (CPU).
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``, ``"auto"`` (the first CUDA
+            GPU when torch sees one, else the CPU), a ``torch.device`` or ``None`` (CPU).
 
     Returns:
         The device.
 
     Raises:
-        InputError: Unknown name, or a device this machine does not have.
+        InputError: Unknown name, or a device this machine does not have (one line saying
+            why and what to use instead).
     """
+    if isinstance(device, str) and device.strip().lower() == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         dev = torch.device("cpu" if device is None else device)
     except (RuntimeError, TypeError) as exc:
         raise InputError(f"not a torch device: {device!r} ({exc})", field="device") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("CUDA is not available on this machine", field="device")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "a CPU-only build" if torch.version.cuda is None else "no usable GPU"
+            raise InputError(
+                f"{device!r} requested but CUDA is not available on this machine (torch "
+                f"{torch.__version__}: {build}); use cpu or auto",
+                field="device",
+            )
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise InputError(
+                f"{device!r} requested but this machine has {torch.cuda.device_count()} "
+                "CUDA device(s)",
+                field="device",
+            )
     if dev.type == "mps" and not torch.backends.mps.is_available():
-        raise InputError("MPS is not available on this machine", field="device")
+        raise InputError("MPS is not available on this machine; use cpu or auto", field="device")
     if dev.type not in ("cpu", "cuda", "mps"):
         raise InputError(f"unsupported device type {dev.type!r}", field="device")
     return dev
@@ -177,6 +193,20 @@ def image_tensor(
     t = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
     if channels > 1:
         t = t.expand(1, channels, *image.shape).contiguous()
+    return t.to(device)
+
+
+def image_batch(
+    images: Sequence[NDArray[np.float32]], device: torch.device, channels: int = 1
+) -> torch.Tensor:
+    """``B`` arrays of one ``(H, W)`` shape -> ``(B, channels, H, W)`` float32 on ``device``."""
+    if len({im.shape for im in images}) != 1:
+        raise InputError(f"a batch needs images of one shape, got {[im.shape for im in images]}")
+    if len(images) == 1:
+        return image_tensor(images[0], device, channels)
+    t = torch.from_numpy(np.stack([np.asarray(im, np.float32) for im in images]))[:, None]
+    if channels > 1:
+        t = t.expand(len(images), channels, *images[0].shape).contiguous()
     return t.to(device)
 
 
@@ -388,25 +418,41 @@ class SparseLightGlueMatcher(TorchMatcher):
         """
 
     @abstractmethod
-    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
-        """Detect and describe on a normalised image.
+    def _extract_batch(
+        self, images: Sequence[NDArray[np.float32]]
+    ) -> list[dict[str, torch.Tensor]]:
+        """Detect and describe on normalised images, all of one shape, in one forward pass.
+
+        Each image's features do not depend on the others of the batch (to float
+        tolerance): one image at a time and a batch give the same features.
 
         Returns:
-            ``keypoints`` ``(N, 2)`` in the library's pixel-centre-at-integer frame of the
-            given image, ``descriptors`` ``(N, D)``, and for DoG features ``scales`` and
-            ``oris`` ``(N,)`` as LightGlue expects them.
+            Per image: ``keypoints`` ``(N, 2)`` in the library's pixel-centre-at-integer
+            frame of the given image, ``descriptors`` ``(N, D)``, and for DoG features
+            ``scales`` and ``oris`` ``(N,)`` as LightGlue expects them.
         """
 
-    def _features(self, image: NDArray[np.float32], valid: NDArray[np.bool_]) -> dict[str, Any]:
+    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
+        """:meth:`_extract_batch` of one image."""
+        return self._extract_batch([image])[0]
+
+    def _model_image(self, image: NDArray[np.float32]) -> tuple[NDArray[np.float32], float, float]:
+        """The image the network sees (downscaled beyond ``max_size``) and its scale factors."""
         h, w = image.shape
-        scale_x = scale_y = 1.0
-        model_image = image
         if self.max_size is not None and max(h, w) > self.max_size:
             s = self.max_size / max(h, w)
             size = (max(16, round(h * s)), max(16, round(w * s)))
-            model_image, scale_x, scale_y = resize_image(image, size)
-        with self._timed("forward"):
-            feats = self._extract(model_image)
+            return resize_image(image, size)
+        return image, 1.0, 1.0
+
+    def _keep_valid(
+        self,
+        feats: dict[str, torch.Tensor],
+        model: tuple[NDArray[np.float32], float, float],
+        valid: NDArray[np.bool_],
+    ) -> dict[str, Any]:
+        """Features of one image in planetref's corner frame, those on invalid pixels dropped."""
+        model_image, scale_x, scale_y = model
         kpts = feats["keypoints"].detach().to("cpu", torch.float64).numpy().reshape(-1, 2)
         # library frame (centres at integers) -> corner frame, then back to full resolution
         corner = (kpts + 0.5) / np.array([scale_x, scale_y])
@@ -417,6 +463,33 @@ class SparseLightGlueMatcher(TorchMatcher):
         out["image_size"] = (model_image.shape[1], model_image.shape[0])
         return out
 
+    def _features(self, image: NDArray[np.float32], valid: NDArray[np.bool_]) -> dict[str, Any]:
+        model = self._model_image(image)
+        with self._timed("forward"):
+            feats = self._extract(model[0])
+        return self._keep_valid(feats, model, valid)
+
+    def _features_batched(
+        self, images: Sequence[NDArray[np.float32]], valids: Sequence[NDArray[np.bool_]], batch: int
+    ) -> list[dict[str, Any]]:
+        """:meth:`_features` of many images: those of one model shape ``batch`` at a time."""
+        models = [self._model_image(im) for im in images]
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for i, m in enumerate(models):
+            groups.setdefault(m[0].shape, []).append(i)
+        feats: list[dict[str, torch.Tensor] | None] = [None] * len(images)
+        for members in groups.values():
+            for a in range(0, len(members), batch):
+                part = members[a : a + batch]
+                with self._timed("forward"):
+                    got = self._extract_batch([models[i][0] for i in part])
+                for i, f in zip(part, got, strict=True):
+                    feats[i] = f
+        return [
+            self._keep_valid(f, m, v)  # type: ignore[arg-type]  # every entry is set above
+            for f, m, v in zip(feats, models, valids, strict=True)
+        ]
+
     def _run(
         self,
         image0: NDArray[np.float32],
@@ -424,8 +497,41 @@ class SparseLightGlueMatcher(TorchMatcher):
         image1: NDArray[np.float32],
         valid1: NDArray[np.bool_],
     ) -> Matches:
-        f0 = self._features(image0, valid0)
-        f1 = self._features(image1, valid1)
+        return self._glue(self._features(image0, valid0), self._features(image1, valid1))
+
+    def _match_normalised_many(
+        self,
+        inputs: list[
+            tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]]
+        ],
+        batch_size: int,
+    ) -> list[Matches]:
+        """Features of all images in batches of one shape, then LightGlue pair by pair.
+
+        kornia's LightGlue runs the pairs of a batch one at a time when its adaptive
+        pruning is on (planetref's default), so only the detectors are batched.
+        """
+        if batch_size <= 1 or len(inputs) <= 1:
+            return [self._match_normalised(*x) for x in inputs]
+        if self._model is None:
+            self.build()
+        with torch.inference_mode():
+            images = [im for x in inputs for im in (x[0], x[2])]
+            valids = [v for x in inputs for v in (x[1], x[3])]
+            feats = self._features_batched(images, valids, batch_size)
+            out = [self._glue(feats[2 * i], feats[2 * i + 1]) for i in range(len(inputs))]
+        if self.polish == "ncc":
+            from planetref.matching.ncc import refine_matches_ncc
+
+            with self._timed("polish"):
+                out = [
+                    refine_matches_ncc(x[0], x[1], x[2], x[3], m)
+                    for x, m in zip(inputs, out, strict=True)
+                ]
+        return out
+
+    def _glue(self, f0: dict[str, Any], f1: dict[str, Any]) -> Matches:
+        """LightGlue on the features of two images."""
         if len(f0["corner"]) < 2 or len(f1["corner"]) < 2:
             return Matches.empty()
         data = {}

@@ -12,6 +12,7 @@ release asset, a raw state dict in the later ``transformers.<i>.*`` layout.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from os import PathLike
 from typing import Any, ClassVar, Literal
 
@@ -21,7 +22,7 @@ from numpy.typing import NDArray
 
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
-    image_tensor,
+    image_batch,
     load_into,
 )
 
@@ -90,6 +91,8 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
             aliked, self._checkpoint(ALIKED_WEIGHTS), what=ALIKED_WEIGHTS, derived=("dkd.hw_grid",)
         )
 
-    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
-        feats = self._model["extractor"](image_tensor(image, self.device, channels=3))[0]
-        return {"keypoints": feats.keypoints, "descriptors": feats.descriptors}
+    def _extract_batch(
+        self, images: Sequence[NDArray[np.float32]]
+    ) -> list[dict[str, torch.Tensor]]:
+        batch = self._model["extractor"](image_batch(images, self.device, channels=3))
+        return [{"keypoints": f.keypoints, "descriptors": f.descriptors} for f in batch]

@@ -394,49 +394,95 @@ class BaseMatcher(ABC):
         """
         self.timings = {}
         start = time.perf_counter()
+        inputs = self._normalised(image0, image1, mask0, mask1)
+        if inputs is None:
+            result = Matches.empty()
+        else:
+            result = self._valid_only(self._match_normalised(*inputs), inputs[1], inputs[3])
+        self._close_timings(time.perf_counter() - start)
+        return result
+
+    def _normalised(
+        self,
+        image0: ArrayLike,
+        image1: ArrayLike,
+        mask0: ArrayLike | None,
+        mask1: ArrayLike | None,
+    ) -> (
+        tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]] | None
+    ):
+        """Validated, robustly normalised ``(image0, valid0, image1, valid1)``; None if flat."""
         with self._timed("normalise"):
             img0, valid0 = prepare_image(image0, mask0, which="image0")
             img1, valid1 = prepare_image(image1, mask1, which="image1")
             if min(img0.shape) < MIN_SIDE or min(img1.shape) < MIN_SIDE:
-                flat = True
-            else:
-                norm0, flat0 = robust_normalise(img0, valid0)
-                norm1, flat1 = robust_normalise(img1, valid1)
-                flat = flat0 or flat1
-        if flat:
-            result = Matches.empty()
-        else:
-            result = self._match_normalised(norm0, valid0, norm1, valid1)
-            keep = keypoints_on_valid_pixels(result.keypoints0, valid0) & keypoints_on_valid_pixels(
-                result.keypoints1, valid1
-            )
-            if not keep.all():
-                result = result.select(keep)
-        total = time.perf_counter() - start
+                return None
+            norm0, flat0 = robust_normalise(img0, valid0)
+            norm1, flat1 = robust_normalise(img1, valid1)
+        if flat0 or flat1:
+            return None
+        return norm0, valid0, norm1, valid1
+
+    @staticmethod
+    def _valid_only(
+        result: Matches, valid0: NDArray[np.bool_], valid1: NDArray[np.bool_]
+    ) -> Matches:
+        """Drop every match whose keypoint lies on an invalid pixel in either image."""
+        keep = keypoints_on_valid_pixels(result.keypoints0, valid0) & keypoints_on_valid_pixels(
+            result.keypoints1, valid1
+        )
+        return result if keep.all() else result.select(keep)
+
+    def _close_timings(self, total: float) -> None:
         self.timings["total"] = total
         self.timings["other"] = max(
             0.0,
             total - sum(self.timings.get(k, 0.0) for k in ("normalise", "forward", "build")),
         )
-        return result
 
-    def match_many(self, pairs: Iterable[Sequence[Any]]) -> list[Matches]:
-        """Match several pairs with the same (already built) matcher.
+    def match_many(self, pairs: Iterable[Sequence[Any]], *, batch_size: int = 1) -> list[Matches]:
+        """Match several pairs with the same matcher.
 
         Args:
             pairs: Iterable of ``(image0, image1)`` or ``(image0, image1, mask0, mask1)``.
+            batch_size: Images of the same shape run through the network together, up to
+                this many at a time, where the matcher batches (the learned sparse
+                matchers' detectors); the results equal one pair at a time (to float
+                tolerance). Others match one pair at a time.
 
         Returns:
-            One :class:`Matches` per pair, in order.
+            One :class:`Matches` per pair, in order. :attr:`timings` then sums over all
+            pairs.
         """
-        out = []
+        if int(batch_size) < 1:
+            raise InputError(f"must be >= 1, got {batch_size}", field="batch_size")
+        pairs = list(pairs)
         for pair in pairs:
             if len(pair) not in (2, 4):
                 raise InputError(
                     f"each pair must be (image0, image1[, mask0, mask1]), got {len(pair)} items"
                 )
-            out.append(self.match(*pair))
+        start = time.perf_counter()
+        self.timings = {}
+        inputs = [
+            self._normalised(*pair, *((None, None) if len(pair) == 2 else ())) for pair in pairs
+        ]
+        done = self._match_normalised_many([x for x in inputs if x is not None], int(batch_size))
+        out, it = [], iter(done)
+        for x in inputs:
+            out.append(Matches.empty() if x is None else self._valid_only(next(it), x[1], x[3]))
+        self._close_timings(time.perf_counter() - start)
         return out
+
+    def _match_normalised_many(
+        self,
+        inputs: list[
+            tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]]
+        ],
+        batch_size: int,
+    ) -> list[Matches]:
+        """:meth:`_match_normalised` of several pairs (one at a time unless overridden)."""
+        return [self._match_normalised(*x) for x in inputs]
 
     @abstractmethod
     def _match_normalised(

@@ -13,6 +13,7 @@ is cvg/LightGlue's release asset, a raw state dict in the first-release layout
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from os import PathLike
 from typing import Any, ClassVar, Literal
 
@@ -23,7 +24,7 @@ from numpy.typing import NDArray
 from planetref.errors import WeightsError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
-    image_tensor,
+    image_batch,
     load_into,
     pad_to_multiple,
     unpadded,
@@ -89,15 +90,20 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
             raise WeightsError(f"{DISK_WEIGHTS}: expected a dict with an 'extractor' state dict")
         return load_into(DISK(desc_dim=128), raw["extractor"], what=DISK_WEIGHTS)
 
-    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
-        t = pad_to_multiple(image_tensor(image, self.device, channels=3), 16)
-        feats = self._model["extractor"](
+    def _extract_batch(
+        self, images: Sequence[NDArray[np.float32]]
+    ) -> list[dict[str, torch.Tensor]]:
+        t = pad_to_multiple(image_batch(images, self.device, channels=3), 16)
+        batch = self._model["extractor"](
             t, n=None, window_size=self.nms_window, score_threshold=self.score_threshold
-        )[0]
-        kpts, desc, scores = feats.keypoints, feats.descriptors, feats.detection_scores
-        inside = unpadded(kpts, image.shape)
-        kpts, desc, scores = kpts[inside], desc[inside], scores[inside]
-        if len(scores) > self.max_keypoints:
-            top = torch.topk(scores, self.max_keypoints).indices
-            kpts, desc = kpts[top], desc[top]
-        return {"keypoints": kpts, "descriptors": desc}
+        )
+        out = []
+        for feats in batch:
+            kpts, desc, scores = feats.keypoints, feats.descriptors, feats.detection_scores
+            inside = unpadded(kpts, images[0].shape)
+            kpts, desc, scores = kpts[inside], desc[inside], scores[inside]
+            if len(scores) > self.max_keypoints:
+                top = torch.topk(scores, self.max_keypoints).indices
+                kpts, desc = kpts[top], desc[top]
+            out.append({"keypoints": kpts, "descriptors": desc})
+        return out

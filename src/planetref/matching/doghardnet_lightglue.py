@@ -24,6 +24,7 @@ Checkpoints (neither is available on the development machines):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from os import PathLike
 from typing import Any, ClassVar, Literal
 
@@ -115,7 +116,13 @@ class DogHardNetLightGlueMatcher(SparseLightGlueMatcher):
         )
         return LAFDescriptor(hardnet, patch_size=32, grayscale_descriptor=True).eval()
 
-    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
+    def _extract_batch(
+        self, images: Sequence[NDArray[np.float32]]
+    ) -> list[dict[str, torch.Tensor]]:
+        # OpenCV's DoG detector takes one image at a time.
+        return [self._extract_one(image) for image in images]
+
+    def _extract_one(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
         from kornia.feature import laf_from_center_scale_ori
 
         sift = cv2.SIFT_create(

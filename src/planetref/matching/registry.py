@@ -31,7 +31,7 @@ def _factory(module: str, cls: str, *, learned: bool) -> Callable[..., Matcher]:
         target = getattr(importlib.import_module(f"planetref.matching.{module}"), cls)
         if learned:
             options = {"weights_dir": weights_dir, "device": device, **options}
-        elif str(device) != "cpu":
+        elif str(device) not in ("cpu", "auto"):
             raise InputError(
                 f"{target.name} runs on the CPU only, got device {device!r}", field="device"
             )

@@ -41,6 +41,7 @@ XFeat* (semi-dense)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from os import PathLike
 from typing import Any, ClassVar, Literal
 
@@ -53,6 +54,7 @@ from planetref.errors import InputError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
     TorchMatcher,
+    image_batch,
     image_tensor,
     load_into,
     pad_to_multiple,
@@ -120,12 +122,16 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
             self._checkpoint(XFEAT_WEIGHTS), self.max_keypoints, self.detection_threshold
         )
 
-    def _extract(self, image: NDArray[np.float32]) -> dict[str, torch.Tensor]:
-        t = pad_to_multiple(image_tensor(image, self.device), 32)
-        out = self._model["extractor"].detectAndCompute(t, top_k=self.max_keypoints)[0]
-        kpts = out["keypoints"].float()
-        inside = unpadded(kpts, image.shape)
-        return {"keypoints": kpts[inside], "descriptors": out["descriptors"][inside]}
+    def _extract_batch(
+        self, images: Sequence[NDArray[np.float32]]
+    ) -> list[dict[str, torch.Tensor]]:
+        t = pad_to_multiple(image_batch(images, self.device), 32)
+        out = []
+        for f in self._model["extractor"].detectAndCompute(t, top_k=self.max_keypoints):
+            kpts = f["keypoints"].float()
+            inside = unpadded(kpts, images[0].shape)
+            out.append({"keypoints": kpts[inside], "descriptors": f["descriptors"][inside]})
+        return out
 
 
 class XFeatStarMatcher(TorchMatcher):

@@ -80,6 +80,38 @@ def isis_valid_mask(
         return (data >= lo) & (data <= hi)
 
 
+def _block_sums(d: NDArray[np.float32], factor: int) -> NDArray[np.float64]:
+    """Block means of ``d`` over ``factor x factor`` blocks, zero-padded at the bottom/right.
+
+    The blocks that lie wholly in ``d`` are averaged in place (an OpenCV view, no copy); only
+    a trailing partial row or column of blocks is padded with zeros (so its mean is its sum
+    over ``factor**2``).
+    """
+    import cv2
+
+    h, w = d.shape
+    hb, wb = -(-h // factor), -(-w // factor)
+    hf, wf = h // factor, w // factor
+    out = np.zeros((hb, wb))
+
+    def area(a: NDArray[np.float32]) -> NDArray[np.float64]:
+        # INTER_AREA with an integer factor is the exact block mean, computed in float32
+        # by OpenCV much faster than numpy reductions.
+        ph, pw = (-a.shape[0]) % factor, (-a.shape[1]) % factor
+        if ph or pw:
+            a = np.pad(a, ((0, ph), (0, pw)))
+        size = (a.shape[1] // factor, a.shape[0] // factor)
+        return cv2.resize(a, size, interpolation=cv2.INTER_AREA).astype(np.float64)
+
+    if hf and wf:
+        out[:hf, :wf] = area(d[: hf * factor, : wf * factor])
+    if hb > hf:
+        out[hf:, :] = area(d[hf * factor :, :])
+    if wb > wf and hf:
+        out[:hf, wf:] = area(d[: hf * factor, wf * factor :])
+    return out
+
+
 def masked_block_mean(
     data: NDArray[np.floating],
     valid: NDArray[np.bool_],
@@ -105,19 +137,25 @@ def masked_block_mean(
         raise InputError(f"block factor must be >= 1, got {factor}")
     if factor == 1:
         return np.where(valid, data, 0).astype(np.float32), valid.copy()
-    import cv2
-
     h, w = data.shape
     hb, wb = -(-h // factor), -(-w // factor)
-    v = valid.astype(np.float32)
-    d = np.where(valid, data, 0).astype(np.float32)
-    if hb * factor != h or wb * factor != w:
-        pad = ((0, hb * factor - h), (0, wb * factor - w))
-        v, d = np.pad(v, pad), np.pad(d, pad)
-    # INTER_AREA with an integer factor is the exact block mean (of values and of the
-    # validity), computed in float32 by OpenCV much faster than numpy reductions.
-    s = cv2.resize(d, (wb, hb), interpolation=cv2.INTER_AREA).astype(np.float64)
-    n = cv2.resize(v, (wb, hb), interpolation=cv2.INTER_AREA).astype(np.float64)
+    all_valid = bool(valid.all())
+    if all_valid and data.dtype == np.float32:
+        d = data  # nothing to zero: no copy
+    else:
+        d = np.where(valid, data, 0).astype(np.float32)
+    s = _block_sums(d, factor)
+    if all_valid:
+        # Every whole block has the validity mean of a block of ones (1 or within an ulp
+        # of it in float32); only the trailing partial blocks need their own resize.
+        n = np.full((hb, wb), _block_sums(np.ones((factor, factor), np.float32), factor)[0, 0])
+        if hb * factor != h or wb * factor != w:
+            ones = np.ones((h - (hb - 1) * factor, w), np.float32)
+            n[-1:] = _block_sums(ones, factor)
+            ones = np.ones((h, w - (wb - 1) * factor), np.float32)
+            n[:, -1:] = _block_sums(ones, factor)
+    else:
+        n = _block_sums(valid.astype(np.float32), factor)
     # The pixels a trailing block really has, for its valid fraction.
     rows = np.minimum(factor, h - np.arange(hb) * factor)
     cols = np.minimum(factor, w - np.arange(wb) * factor)
@@ -261,7 +299,7 @@ class BandReader:
         v = self._valid(raw)
         dst = (slice(r0 - row0, r1 - row0), slice(c0 - col0, c1 - col0))
         with np.errstate(invalid="ignore", over="ignore"):
-            out[dst] = np.where(v, raw, 0).astype(np.float32)
+            out[dst] = raw if v.all() else np.where(v, raw, 0)
         valid[dst] = v
         return out, valid
 
