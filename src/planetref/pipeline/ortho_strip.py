@@ -36,7 +36,7 @@ import json
 import math
 import os
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -116,9 +116,9 @@ class PixelType:
         """Float values (NaN = no data) to the output type, nodata where NaN."""
         if self.lo is None:
             return values.astype(self.dtype, copy=False)
-        bad = np.isnan(values)
-        v = np.clip(np.rint(values), self.lo, self.hi)
-        v[bad] = self.nodata
+        v = np.rint(values)
+        np.clip(v, self.lo, self.hi, out=v)  # NaN stays NaN
+        v[np.isnan(values)] = self.nodata
         return v.astype(self.dtype)
 
 
@@ -379,6 +379,8 @@ def orthorectify_strip(
             if n_threads > 1
             else None
         )
+        writer = stack.enter_context(ThreadPoolExecutor(1, thread_name_prefix="mosaic"))
+        writing: Future[None] | None = None
         for r0 in range(0, m_grid.height, rows_per_block):
             r1 = min(m_grid.height, r0 + rows_per_block)
             m_val = m_dist = None
@@ -406,10 +408,17 @@ def orthorectify_strip(
                     rs = slice(a0 + j.row_off - r0, a1 + j.row_off - r0)
                     cs = slice(j.col_off, j.col_off + j.grid.width)
                     better = dist > m_dist[rs, cs]
-                    m_val[rs, cs] = np.where(better, val, m_val[rs, cs])
-                    m_dist[rs, cs] = np.where(better, dist, m_dist[rs, cs])
+                    np.copyto(m_val[rs, cs], val, where=better)
+                    np.copyto(m_dist[rs, cs], dist, where=better)
             if m_dst is not None and m_val is not None:
-                m_dst.write(ptype.cast(m_val), 1, window=Window(0, r0, m_grid.width, r1 - r0))
+                # The mosaic's block is written while the next block is resampled (one
+                # write at a time, in block order).
+                if writing is not None:
+                    writing.result()
+                win = Window(0, r0, m_grid.width, r1 - r0)
+                writing = writer.submit(_write_block, m_dst, ptype, m_val, win)
+        if writing is not None:
+            writing.result()
         if overviews:
             for ds in [*dst.values(), *([m_dst] if m_dst is not None else [])]:
                 factors = _overview_factors(ds.width, ds.height)
@@ -422,6 +431,10 @@ def orthorectify_strip(
         _write_digest(mosaic_path, digest)
     result.ccds = {j.ccd: targets[j.ccd] for j in jobs}
     return result
+
+
+def _write_block(ds: Any, ptype: PixelType, values: F32, window: Any) -> None:
+    ds.write(ptype.cast(values), 1, window=window)
 
 
 def _write_digest(path: Path, digest: str) -> None:

@@ -2,26 +2,42 @@
 
 Matplotlib's layout and PNG encoding cost a few CPU seconds per figure whatever the strip
 length, all in one Python thread. :class:`FigureJobs` draws them in one child process
-(started with ``spawn``, so nothing of the parent's threads or locks is inherited), in
-the order they are submitted, while the parent adjusts and writes the other outputs; the
-parent waits for them (:meth:`FigureJobs.wait`) before it writes its report. A figure
-never sinks a run: its error becomes a warning. Without a child process
-(``background=False``, or when none can be started) the figures are drawn at submission.
+(``python -m planetref.report.figure_worker``: a fresh interpreter, so nothing of the
+parent's threads or locks is inherited, and, unlike ``multiprocessing``'s ``spawn``, the
+caller's ``__main__`` script is never run again), in the order they are submitted, while
+the parent adjusts and writes the other outputs; the parent waits for them
+(:meth:`FigureJobs.wait`) before it writes its report. A figure never sinks a run: its
+error becomes a warning. Without a child process (``background=False``, or when none can
+be started) the figures are drawn at submission.
 
-The functions and their arguments travel by pickle: module-level functions and plain
-data (numpy arrays, dataclasses of them), not open rasters or cameras.
+Each task is pickled into a temporary file (so that submitting never waits for the
+child) and only its path goes down the pipe: functions must be module-level and the
+arguments plain data (numpy arrays, dataclasses of them), not open rasters or cameras.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
 from collections.abc import Callable
-from concurrent.futures import Future
+from pathlib import Path
 from typing import Any
 
 __all__ = ["FigureJobs"]
 
 log = logging.getLogger("planetref.report")
+
+
+def _child_env() -> dict[str, str]:
+    """The environment of the child: this one, with planetref's folder on PYTHONPATH."""
+    env = dict(os.environ)
+    here = str(Path(__file__).resolve().parents[2])  # the folder holding planetref/
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (here, env.get("PYTHONPATH", "")) if p)
+    return env
 
 
 class FigureJobs:
@@ -33,8 +49,10 @@ class FigureJobs:
 
     def __init__(self, background: bool = True) -> None:
         self.background = background
-        self._pool: Any = None
-        self._pending: list[tuple[str, Future[Any]]] = []
+        self._proc: subprocess.Popen[str] | None = None
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        self._pending: list[str] = []
+        self._n = 0
 
     def __enter__(self) -> FigureJobs:
         return self
@@ -42,26 +60,36 @@ class FigureJobs:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _executor(self) -> Any:
-        if self._pool is None and self.background:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
+    def _child(self) -> subprocess.Popen[str] | None:
+        if self._proc is None and self.background:
             try:
-                self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-            except (OSError, ValueError) as exc:  # pragma: no cover - no processes here
+                self._tmp = tempfile.TemporaryDirectory(prefix="planetref-figures-")
+                self._proc = subprocess.Popen(
+                    [sys.executable, "-m", "planetref.report.figure_worker"],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    text=True,
+                    env=_child_env(),
+                )
+            except OSError as exc:  # pragma: no cover - no processes here
                 log.info("figures drawn in this process (no child process: %s)", exc)
                 self.background = False
-        return self._pool
+        return self._proc
 
     def submit(self, label: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
         """Draw a figure: ``fn(*args, **kwargs)`` (``label`` names it in a warning)."""
-        pool = self._executor()
-        if pool is not None:
+        proc = self._child()
+        if proc is not None and proc.stdin is not None and self._tmp is not None:
+            self._n += 1
+            task = Path(self._tmp.name) / f"task{self._n:04d}.pickle"
             try:
-                self._pending.append((label, pool.submit(fn, *args, **kwargs)))
+                with task.open("wb") as fh:
+                    pickle.dump((fn, args, kwargs), fh, protocol=pickle.HIGHEST_PROTOCOL)
+                proc.stdin.write(f"{task}\n")
+                proc.stdin.flush()
+                self._pending.append(label)
                 return
-            except RuntimeError as exc:  # pragma: no cover - a broken pool
+            except (OSError, pickle.PicklingError, AttributeError, TypeError) as exc:
                 log.info("figure %s drawn in this process (%s)", label, exc)
         try:
             fn(*args, **kwargs)
@@ -71,17 +99,25 @@ class FigureJobs:
     def wait(self) -> None:
         """Wait for every submitted figure; each error is logged as a warning."""
         pending, self._pending = self._pending, []
-        for label, fut in pending:
-            try:
-                fut.result()
-            except Exception as exc:  # a figure never sinks a run
-                log.warning("no figure %s: %s", label, exc)
+        out = None if self._proc is None else self._proc.stdout
+        for label in pending:
+            reply = "" if out is None else out.readline().strip()
+            if reply != "ok":
+                why = reply.removeprefix("error ") or "the figure process ended"
+                log.warning("no figure %s: %s", label, why)
 
     def close(self) -> None:
         """Wait for the figures and end the child process."""
         try:
             self.wait()
         finally:
-            if self._pool is not None:
-                self._pool.shutdown(wait=True)
-                self._pool = None
+            if self._proc is not None:
+                if self._proc.stdin is not None:
+                    self._proc.stdin.close()
+                self._proc.wait()
+                if self._proc.stdout is not None:
+                    self._proc.stdout.close()
+                self._proc = None
+            if self._tmp is not None:
+                self._tmp.cleanup()
+                self._tmp = None
