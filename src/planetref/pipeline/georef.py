@@ -69,6 +69,7 @@ from planetref.pipeline.matchers import (
     matcher_weight_files,
 )
 from planetref.pipeline.networks import StripMcps, joint_network, mcp_ground_sigmas
+from planetref.pipeline.ortho_strip import GDAL_CACHE_MB
 from planetref.pipeline.rundir import RunDir, config_digest
 from planetref.threads import single_threaded_blas
 
@@ -200,6 +201,8 @@ def run_georef(
         PlanetrefError: Bad scene, reference or camera files, missing weights, no
             overlap, a strip without enough MCPs, a degenerate adjustment.
     """
+    import rasterio
+
     from planetref.execute import Executor, make_executor
     from planetref.pipeline.scene import load_manifest
     from planetref.report.figure_jobs import FigureJobs
@@ -238,6 +241,8 @@ def run_georef(
             weights=matcher_weight_files(matcher, weights_dir),
         )
         with run.logging_to_file(), contextlib.ExitStack() as stack:
+            # GDAL's block cache (default 5 % of the RAM) would keep every raw block read.
+            stack.enter_context(rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB))
             log.info(
                 "georef %s with %s into %s%s",
                 scene_file,

@@ -65,10 +65,11 @@ F32 = NDArray[np.float32]
 #: Round pixel sizes (times a power of ten) that :func:`round_gsd` chooses from.
 ROUND_STEPS = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 TILE = 256
-#: GDAL's block cache while writing (MB). GDAL's default, 5 % of the RAM, fills with the
-#: blocks of the files written and of their overviews, so the process grew with the strip
-#: length (hiric-strip: ~70 MB more for the mosaic's overviews alone); every block row
-#: here completes its tiles, so a small cache costs nothing.
+#: GDAL's block cache while writing (MB), and during a whole georef run. GDAL's default,
+#: 5 % of the RAM, fills with the blocks read and written (raw CCD lines, the outputs and
+#: their overviews), so the process grew with the strip length (hiric-strip: ~70 MB more
+#: for the mosaic's overviews alone); every block row here completes its tiles and every
+#: raw window is read once or twice, so a small cache costs nothing.
 GDAL_CACHE_MB = 64
 
 

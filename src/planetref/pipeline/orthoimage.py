@@ -312,9 +312,11 @@ def _compression() -> dict[str, Any]:
     GDAL's ZSTD codec is optional: a one-pixel GeoTIFF written in memory and read back
     tells whether this GDAL has it (rasterio's enum only lists the names GDAL may know).
     """
+    from affine import Affine
     from rasterio.io import MemoryFile
 
     profile = {"driver": "GTiff", "width": 1, "height": 1, "count": 1, "dtype": "uint8"}
+    profile["transform"] = Affine(2.0, 0.0, 0.0, 0.0, -2.0, 2.0)  # georeferenced: no warning
     try:
         with MemoryFile() as mem:
             with mem.open(**profile, compress="zstd") as ds:
