@@ -150,7 +150,10 @@ def test_overviews_are_internal(strip, tmp_path):
 
     try:
         with MemoryFile() as mem:
+            from affine import Affine
+
             one = {"driver": "GTiff", "width": 1, "height": 1, "count": 1, "dtype": "uint8"}
+            one["transform"] = Affine(2.0, 0.0, 0.0, 0.0, -2.0, 2.0)
             with mem.open(**one, compress="zstd") as t:
                 t.write(np.zeros((1, 1, 1), np.uint8))
             with mem.open() as t:
