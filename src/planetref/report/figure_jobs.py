@@ -33,10 +33,18 @@ log = logging.getLogger("planetref.report")
 
 
 def _child_env() -> dict[str, str]:
-    """The environment of the child: this one, with planetref's folder on PYTHONPATH."""
+    """The environment of the child: this one, with planetref's folder on PYTHONPATH.
+
+    An installed planetref (in a site-packages folder) is found anyway; a source checkout
+    that this process imports through ``sys.path`` is put on the child's PYTHONPATH.
+    """
+    import site
+
     env = dict(os.environ)
-    here = str(Path(__file__).resolve().parents[2])  # the folder holding planetref/
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (here, env.get("PYTHONPATH", "")) if p)
+    here = Path(__file__).resolve().parents[2]  # the folder holding planetref/
+    sites = {Path(p).resolve() for p in [*site.getsitepackages(), site.getusersitepackages()]}
+    if here not in sites:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(here), env.get("PYTHONPATH", "")) if p)
     return env
 
 
