@@ -1,38 +1,66 @@
-"""Where georef's time goes, in CPU seconds per stage (robust to a shared machine).
+"""Where georef's time goes: wall and CPU seconds per stage, and the outputs' share.
 
 Usage::
 
     python benchmarks/bench_outputs.py SCENE_DIR OUT_DIR [--matcher sift] [--threads 2]
+        [--profile FILE]
 
-Runs ``georef`` once under cProfile with a process-time clock and prints, as JSON, the
-wall-clock stage timings of report.json and the CPU seconds of each stage: matching,
-adjustment, and the outputs (adjusted cameras/RPC refits/reports, CSM ISDs, ASP/ISIS
-exports, orthoimages with mosaic and overviews, residual figure, matching figures), with
-the outputs' share of the total. CPU seconds of a single-threaded stage are what an idle
-machine would show as wall time; on a loaded machine wall shares mostly measure the
-other jobs. The orthoimages' threads make their wall time smaller than their CPU time.
+Runs ``georef`` once and prints, as JSON, the wall-clock and CPU seconds of each stage:
+matching (tiles and MCPs), adjustment, and the outputs (adjusted cameras/RPC refits/
+reports, CSM ISDs, ASP/ISIS exports, orthoimages with mosaic and overviews, residual
+figure, matching figures), with the outputs' share of the run's wall time and of its CPU
+time. Each stage is timed by wrapping its function (``time.process_time`` counts every
+thread of this process); CPU spent in child processes (``RUSAGE_CHILDREN``, e.g. a
+figure process) is added to the outputs and to the total. CPU seconds of a
+single-threaded stage are what an idle machine would show as wall time; on a loaded
+machine wall shares mostly measure the other jobs. ``--profile`` also runs cProfile
+(which inflates Python-heavy stages such as matplotlib several times).
+
+The run's peak memory is printed too: ``peak_rss_mb`` of this process and of its largest
+child (``ru_maxrss``).
 """
 
 from __future__ import annotations
 
 import argparse
-import cProfile
+import functools
+import importlib
 import json
-import pstats
+import resource
 import time
+from typing import Any
 
-#: Stage -> profiled functions (``module path:function``) whose cumulative CPU it is.
+#: Stage -> functions (``module:attribute``) whose time it is; each is wrapped where the
+#: pipeline looks it up (module globals of georef, or the module of a local import).
 STAGES = {
-    "matching": ("pipeline/georef.py:_match", "control.py:mcps_from_tiles"),
-    "adjustment": ("adjust/api.py:adjust",),
-    "adjustment_files": ("adjust/report.py:write_outputs",),
-    "isd": ("georef_outputs.py:camera_isds",),
-    "exports": ("georef_outputs.py:control_exports",),
-    "orthoimages": ("georef_outputs.py:orthoimages",),
-    "figure_residuals": ("georef_outputs.py:figure_residuals",),
-    "figures_matching": ("georef_outputs.py:figures_matching",),
+    "matching": ("planetref.pipeline.georef:_match", "planetref.control:mcps_from_tiles"),
+    "adjustment": ("planetref.adjust.api:adjust",),
+    "adjustment_files": ("planetref.adjust.report:write_outputs",),
+    "isd": ("planetref.pipeline.georef:camera_isds",),
+    "exports": ("planetref.pipeline.georef:control_exports",),
+    "orthoimages": ("planetref.pipeline.georef:orthoimages",),
+    "figure_residuals": ("planetref.pipeline.georef:figure_residuals",),
+    "figures_matching": ("planetref.pipeline.georef:figures_matching",),
 }
 NOT_OUTPUTS = ("matching", "adjustment")
+
+
+def _wrap(stage: str, fn: Any, acc: dict[str, list[float]]) -> Any:
+    @functools.wraps(fn)
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        w0, c0 = time.perf_counter(), time.process_time()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            acc[stage][0] += time.perf_counter() - w0
+            acc[stage][1] += time.process_time() - c0
+
+    return timed
+
+
+def _children_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 def main() -> int:
@@ -41,43 +69,56 @@ def main() -> int:
     ap.add_argument("out")
     ap.add_argument("--matcher", default="sift")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--profile", default=None, help="Also write the cProfile stats here.")
+    ap.add_argument("--profile", default=None, help="Also write cProfile stats here.")
     args = ap.parse_args()
 
     from planetref.threads import ThreadBudget, apply_thread_budget
 
     apply_thread_budget(ThreadBudget.resolve(args.threads))
-    from planetref.pipeline.georef import run_georef
+    from planetref.pipeline import georef
 
-    prof = cProfile.Profile(time.process_time)
-    w0, c0 = time.perf_counter(), time.process_time()
-    prof.enable()
-    out = run_georef(args.scene, args.matcher, args.out, progress=False, overwrite=True)
-    prof.disable()
-    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    acc = {stage: [0.0, 0.0] for stage in STAGES}
+    for stage, targets in STAGES.items():
+        for target in targets:
+            mod_name, attr = target.split(":")
+            mod = importlib.import_module(mod_name)
+            setattr(mod, attr, _wrap(stage, getattr(mod, attr), acc))
+
+    prof = None
     if args.profile:
+        import cProfile
+
+        prof = cProfile.Profile(time.process_time)
+    k0 = _children_cpu()
+    w0, c0 = time.perf_counter(), time.process_time()
+    if prof is not None:
+        prof.enable()
+    out = georef.run_georef(args.scene, args.matcher, args.out, progress=False, overwrite=True)
+    if prof is not None:
+        prof.disable()
         prof.dump_stats(args.profile)
-    cum: dict[str, float] = {}
-    for (path, _line, name), (_cc, _nc, _tt, ct, _callers) in pstats.Stats(prof).stats.items():
-        key = f"{path.split('/planetref/')[-1]}:{name}"
-        cum[key] = max(cum.get(key, 0.0), ct)
-    parts = {
-        stage: sum(v for k, v in cum.items() for f in funcs if k.endswith(f))
-        for stage, funcs in STAGES.items()
-    }
-    outputs = sum(v for k, v in parts.items() if k not in NOT_OUTPUTS)
+    wall, cpu_main = time.perf_counter() - w0, time.process_time() - c0
+    cpu_children = _children_cpu() - k0
+    cpu = cpu_main + cpu_children
+    wall_out = sum(v[0] for k, v in acc.items() if k not in NOT_OUTPUTS)
+    cpu_out = sum(v[1] for k, v in acc.items() if k not in NOT_OUTPUTS) + cpu_children
+    self_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    child_rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     print(
         json.dumps(
             {
-                "wall_s": wall,
-                "cpu_s": cpu,
-                "timing_s": out.report["timing_s"],
-                "cpu_s_per_stage": parts,
-                "cpu_outputs_s": outputs,
-                "cpu_outputs_share_pct": 100.0 * outputs / cpu,
-                "cpu_outputs_share_without_matching_figures_pct": 100.0
-                * (outputs - parts["figures_matching"])
-                / cpu,
+                "wall_s": round(wall, 2),
+                "cpu_s": round(cpu, 2),
+                "cpu_children_s": round(cpu_children, 2),
+                "timing_s": {k: round(v, 2) for k, v in out.report["timing_s"].items()},
+                "wall_s_per_stage": {k: round(v[0], 2) for k, v in acc.items()},
+                "cpu_s_per_stage": {k: round(v[1], 2) for k, v in acc.items()},
+                "wall_outputs_s": round(wall_out, 2),
+                "cpu_outputs_s": round(cpu_out, 2),
+                "wall_outputs_share_pct": round(100.0 * wall_out / wall, 1),
+                "cpu_outputs_share_pct": round(100.0 * cpu_out / cpu, 1),
+                "peak_rss_mb": round(self_rss, 1),
+                "peak_rss_children_mb": round(child_rss, 1),
                 "check": out.report.get("check"),
             },
             indent=1,

@@ -32,8 +32,10 @@ def _is_png(path, min_w=200, min_h=150):
 
 def test_strip_to_mcps_and_figures(scene, tmp_path):
     from planetref.matching import get_matcher
+    from planetref.report.tile_panels import PanelStore
 
     cfg = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2)
+    store = PanelStore()
     with ReferenceOrtho(scene.ortho_path) as ref:
         strip = match_strip(
             scene.init_cam,
@@ -44,6 +46,7 @@ def test_strip_to_mcps_and_figures(scene, tmp_path):
             cfg,
             progress=False,
             debug_tiles=["ccd1:r001c000"],
+            debug_sink=store.add,
         )
         table = mcps_from_tiles(strip, ref=ref, dem=scene.dem)
     assert len(table) > 100
@@ -54,6 +57,17 @@ def test_strip_to_mcps_and_figures(scene, tmp_path):
     tile = next(t for t in strip.tiles if t.tile_id == "ccd1:r001c000")
     panels = panels_from_tile(tile)
     assert [p.title.split(":")[0] for p in panels] == ["coarse", "fine"]
+    # The sink kept every drawable tile of the pass, with the very arrays a debug tile
+    # holds; the other tiles' results let their stage images go.
+    with store:
+        assert len(store) == sum(t.status == "ok" for t in strip.tiles)
+        kept = store.panels(tile.tile_id)
+        for a, b in zip(kept, panels, strict=True):
+            assert a.title == b.title
+            for f in ("image0", "valid0", "image1", "valid1", "keypoints0", "keypoints1"):
+                assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+            assert np.array_equal(a.inliers, b.inliers)
+    assert all(not t.debug for t in strip.tiles if t.tile_id != tile.tile_id)
     out = figure_tile_matches(panels, tmp_path / "fig" / "tile.png", title=tile.tile_id)
     _is_png(out)
 

@@ -48,6 +48,7 @@ def match_strip(
     progress: bool = True,
     raise_errors: bool = False,
     debug_tiles: Sequence[str] = (),
+    debug_sink: Callable[[TileResult], None] | None = None,
     coarse_matcher: MatcherLike | None = None,
     executor: Executor | None = None,
     sources: TileSources | None = None,
@@ -76,6 +77,10 @@ def match_strip(
         progress: Show a tqdm progress bar.
         raise_errors: Re-raise exceptions of a tile instead of recording status ``error``.
         debug_tiles: Tile ids whose stage images are kept (``result.debug``).
+        debug_sink: Called with every tile result matched in this process, its stage
+            images attached (``result.debug``), before it is recorded; the stage images
+            are dropped afterwards (except for ``debug_tiles``), so memory stays bounded.
+            Figures keep what they need from the matching pass instead of matching again.
         coarse_matcher: Matcher of the coarse stage (default: ``matcher``).
         executor: A :class:`planetref.execute.Executor` for the tiles (default: in this
             process, one after another). A parallel one sends each worker a
@@ -140,6 +145,14 @@ def match_strip(
             return m
 
         def match_here(t: Tile) -> TileResult:
+            r = _match_here(t)
+            if debug_sink is not None and r.debug:
+                debug_sink(r)
+                if t.tile_id not in debug_tiles:
+                    r.debug = []
+            return r
+
+        def _match_here(t: Tile) -> TileResult:
             try:
                 return match_tile(
                     t,
@@ -150,7 +163,7 @@ def match_strip(
                     matcher=instance("fine", matcher),
                     config=cfg,
                     ratio=plans[t.ccd].ratio,
-                    debug=t.tile_id in debug_tiles,
+                    debug=debug_sink is not None or t.tile_id in debug_tiles,
                     coarse_matcher=None
                     if coarse_matcher is None
                     else instance("coarse", coarse_matcher),

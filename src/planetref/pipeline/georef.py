@@ -25,7 +25,6 @@ import contextlib
 import logging
 import os
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,6 +42,7 @@ from planetref.pipeline.georef_outputs import (
     figures_matching,
     mcp_points,
     orthoimages,
+    timed,
 )
 from planetref.pipeline.georef_report import (
     adjustment_block,
@@ -69,6 +69,7 @@ from planetref.pipeline.matchers import (
     matcher_weight_files,
 )
 from planetref.pipeline.networks import StripMcps, joint_network, mcp_ground_sigmas
+from planetref.pipeline.ortho_strip import GDAL_CACHE_MB
 from planetref.pipeline.rundir import RunDir, config_digest
 from planetref.threads import single_threaded_blas
 
@@ -84,6 +85,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.raster.dem import GridTerrain
     from planetref.raster.image import CcdImage
     from planetref.raster.ortho import ReferenceOrtho
+    from planetref.report.figure_jobs import FigureJobs
+    from planetref.report.tile_panels import PanelStore
 
 __all__ = [
     "GeorefOutcome",
@@ -132,6 +135,7 @@ class StripJob:
         truth_cameras: True camera per strip id (simulated scenes), else empty.
         truth_dem: True DEM (simulated scenes), else None.
         timing: Seconds per step, summed over the strips (updated in place).
+        figures: Draws the figures in a child process while the run goes on.
         strip: The strip (None in the run-wide template that :meth:`for_strip` copies).
     """
 
@@ -147,6 +151,7 @@ class StripJob:
     truth_cameras: dict[str, Camera]
     truth_dem: GridTerrain | None
     timing: dict[str, float]
+    figures: FigureJobs
     strip: StripSpec | None = None
 
     def for_strip(self, strip: StripSpec) -> StripJob:
@@ -196,8 +201,11 @@ def run_georef(
         PlanetrefError: Bad scene, reference or camera files, missing weights, no
             overlap, a strip without enough MCPs, a degenerate adjustment.
     """
+    import rasterio
+
     from planetref.execute import Executor, make_executor
     from planetref.pipeline.scene import load_manifest
+    from planetref.report.figure_jobs import FigureJobs
     from planetref.report.georef import write_georef_markdown
 
     owned = executor is not None and not isinstance(executor, Executor)
@@ -232,7 +240,9 @@ def run_georef(
             inputs=[scene_file, *scene_input_files(manifest, root)],
             weights=matcher_weight_files(matcher, weights_dir),
         )
-        with run.logging_to_file():
+        with run.logging_to_file(), contextlib.ExitStack() as stack:
+            # GDAL's block cache (default 5 % of the RAM) would keep every raw block read.
+            stack.enter_context(rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB))
             log.info(
                 "georef %s with %s into %s%s",
                 scene_file,
@@ -266,6 +276,7 @@ def run_georef(
                 truth_cameras=truth_cams,
                 truth_dem=truth_dem,
                 timing={"matching": 0.0, "adjustment": 0.0, "outputs": 0.0},
+                figures=stack.enter_context(FigureJobs()),
             )
             campaign = None
             if cfg.campaign.adjust_together and len(manifest.strips) > 1:
@@ -279,6 +290,8 @@ def run_georef(
                     prep = _strip_mcps(sj)
                     with single_threaded_blas():  # RPC refits, reports, orthoimages
                         strips[s.id] = _adjust_strip(sj, prep)
+            with timed(job.timing, "figures"):  # the figures not drawn yet
+                job.figures.wait()
             job.timing["total"] = time.perf_counter() - t_start
             fe = cfg.frontend
             settings = {
@@ -302,8 +315,10 @@ def run_georef(
     return GeorefOutcome(report=report, run_dir=run.path, files=files)
 
 
-def _match(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> StripMatches:
-    """Match a strip's tiles, in process or on the job's parallel executor."""
+def _match(
+    job: StripJob, camera: Camera, images: dict[str, CcdImage], store: PanelStore
+) -> StripMatches:
+    """Match a strip's tiles, here (their stage images go to ``store``) or on the executor."""
     from planetref.frontend.strip import match_strip
     from planetref.frontend.tasks import TileSources
 
@@ -334,6 +349,7 @@ def _match(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> StripM
         coarse_matcher=coarse,
         executor=job.executor,
         sources=sources,
+        debug_sink=store.add,
     )
 
 
@@ -359,6 +375,7 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     """Match a strip's tiles, write its MCPs and draw its check points."""
     from planetref.control import mcps_from_tiles, write_mcps
     from planetref.frontend.stats import sdu_per_ccd
+    from planetref.report.tile_panels import PanelStore
 
     strip, cfg = job.spec, job.cfg
     camera, images = strip_cameras(job.manifest, job.root, strip)
@@ -367,7 +384,8 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     out: dict[str, Any] = {"files": {}}
 
     t0 = time.perf_counter()
-    matches = _match(job, camera, images)
+    store = PanelStore()  # Fig. 2's tiles from this pass (a temporary folder, removed below)
+    matches = _match(job, camera, images, store)
     table = mcps_from_tiles(matches, ref=job.ref, dem=job.dem)
     job.timing["matching"] += time.perf_counter() - t0
     log.info(
@@ -410,8 +428,8 @@ def _strip_mcps(job: StripJob) -> StripMcps:
         "drops": matches.drops(),
         "mcp_counts": table.counts.to_dict() if table.counts is not None else {},
     }
-    with single_threaded_blas(), _timed(job.timing, "figures"):  # figures are outputs
-        figures_matching(job, matches, table, sizes, images, camera)
+    with single_threaded_blas(), timed(job.timing, "figures"), store:  # figures are outputs
+        figures_matching(job, matches, table, sizes, images, camera, store)
     n = len(table)
     if n < cfg.mcp.min_mcps:
         raise MatchingError(
@@ -464,31 +482,19 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     dt = time.perf_counter() - t0  # adjusted cameras, RPC refits, residuals, reports
     job.timing["outputs"] += dt
     job.timing["outputs_adjustment_files"] = job.timing.get("outputs_adjustment_files", 0.0) + dt
-    with _timed(job.timing, "isd"):
+    with timed(job.timing, "isd"):
         out["files"]["isd"] = camera_isds(job, prep.id, result.cameras[prep.id])
-    with _timed(job.timing, "exports"):
+    with timed(job.timing, "exports"):
         out["files"]["exports"] = control_exports(
             job, f"{prep.id}_mcps", mcp_points(prep, cfg), (prep.id, "exports")
         )
+    with timed(job.timing, "figures"):  # drawn while the orthoimages are written
+        figure_residuals(job, prep.id, result, prep.sizes)
     if cfg.ortho.enabled:
-        with _timed(job.timing, "orthoimages"):
+        with timed(job.timing, "orthoimages"):
             out["files"]["ortho"] = orthoimages(job, prep.id, result.cameras[prep.id], prep.images)
-    with _timed(job.timing, "figures"):
-        figure_residuals(run, prep.id, result, prep.sizes)
     out["_residuals"] = (result.residual, result.inlier)
     return out
-
-
-@contextlib.contextmanager
-def _timed(timing: dict[str, float], part: str) -> Iterator[None]:
-    """Add the block's seconds to ``outputs`` and to ``outputs_<part>``."""
-    t0 = time.perf_counter()
-    try:
-        yield
-    finally:
-        dt = time.perf_counter() - t0
-        timing["outputs"] = timing.get("outputs", 0.0) + dt
-        timing[f"outputs_{part}"] = timing.get(f"outputs_{part}", 0.0) + dt
 
 
 def _adjust_together(
@@ -559,10 +565,10 @@ def _adjust_together(
         out["check"] = check_block(result, one, job.truth_dem) if one else None
         out["warnings"] = list(result.warnings)
         out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
+        figure_residuals(job, p.id, camera_view(result, ci), p.sizes)
         if cfg.ortho.enabled:
             out["files"]["ortho"] = orthoimages(job, p.id, result.cameras[p.id], p.images)
         out["_residuals"] = (result.residual[on], result.inlier[on])
-        figure_residuals(run, p.id, camera_view(result, ci), p.sizes)
         strips[p.id] = out
     exports = campaign_points(preps, ties, cfg)
     joint_exports = control_exports(job, "campaign", exports, ("campaign", "exports"))

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import time
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from planetref.errors import PlanetrefError
-from planetref.pipeline.rundir import RunDir
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
@@ -16,6 +18,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.frontend.result import StripMatches, TileResult
     from planetref.pipeline.georef import StripJob
     from planetref.raster.image import CcdImage
+    from planetref.report.tile_panels import PanelStore
 
 __all__ = [
     "camera_isds",
@@ -25,9 +28,22 @@ __all__ = [
     "figures_matching",
     "mcp_points",
     "orthoimages",
+    "timed",
 ]
 
 log = logging.getLogger("planetref.pipeline.georef")
+
+
+@contextlib.contextmanager
+def timed(timing: dict[str, float], part: str) -> Iterator[None]:
+    """Add the block's seconds to ``timing["outputs"]`` and to ``timing["outputs_<part>"]``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        dt = time.perf_counter() - t0
+        timing["outputs"] = timing.get("outputs", 0.0) + dt
+        timing[f"outputs_{part}"] = timing.get(f"outputs_{part}", 0.0) + dt
 
 
 def orthoimages(
@@ -137,56 +153,98 @@ def figures_matching(
     sizes: dict[str, tuple[int, int]],
     images: dict[str, CcdImage],
     camera: Camera,
+    store: PanelStore | None = None,
 ) -> None:
-    """The MCP distribution figure and the coarse/fine matches of the richest tile."""
+    """The MCP distribution figure and the coarse/fine matches of three tiles (Fig. 2).
+
+    Both are drawn by ``job.figures`` (a child process). Fig. 2's tiles come from
+    ``store`` (kept during matching); a tile not in it (matched by a parallel worker, or
+    read back from a resumed run's journal) is matched again here.
+    """
     from planetref.frontend.tile import match_tile
-    from planetref.report.figures_matching import draw_tile_selection, figure_mcp_distribution
+    from planetref.report.figures_matching import (
+        MatchPanel,
+        figure_mcp_distribution,
+        figure_tile_grid,
+        panels_from_tile,
+        tile_selection_rows,
+    )
 
     strip, run = job.spec.id, job.run
-    figure_mcp_distribution(
-        table,
+    columns = {k: np.asarray(table[k]) for k in ("ccd", "line", "sample")}
+    job.figures.submit(
+        f"{strip}_mcp_distribution",
+        figure_mcp_distribution,
+        columns,
         sizes,
         run.file("figures", f"{strip}_mcp_distribution.png"),
         ccd_order=list(sizes),
         title=f"{strip}: MCPs of {matches.matcher}",
     )
-    fine, coarse = job.matchers.built()
 
-    def rematch(t: TileResult) -> TileResult:
-        return match_tile(
-            t.tile,
-            image=images[t.tile.ccd],
-            camera=camera,
-            ref=job.ref,
-            terrain=job.dem,
-            matcher=fine,
-            config=job.cfg.frontend,
-            ratio=matches.plans[t.tile.ccd].ratio,
-            debug=True,
-            coarse_matcher=coarse,
+    def panels_of(t: TileResult) -> list[MatchPanel]:
+        kept = None if store is None else store.panels(t.tile_id)
+        if kept is not None:
+            return kept
+        fine, coarse = job.matchers.built()
+        return panels_from_tile(
+            match_tile(
+                t.tile,
+                image=images[t.tile.ccd],
+                camera=camera,
+                ref=job.ref,
+                terrain=job.dem,
+                matcher=fine,
+                config=job.cfg.frontend,
+                ratio=matches.plans[t.tile.ccd].ratio,
+                debug=True,
+                coarse_matcher=coarse,
+            )
         )
 
-    try:  # a figure must never sink a run
-        draw_tile_selection(
-            matches.tiles,
-            rematch,
-            run.file("figures", f"{strip}_tile_matches.png"),
-            title=f"{matches.matcher}, {strip}: tiles with the most, the median and the "
-            "fewest verified matches (rows); coarse and fine stage (columns)",
-        )
-    except PlanetrefError as exc:
-        log.warning("no tile-match figure for %s: %s", strip, exc)
+    rows = tile_selection_rows(matches.tiles, panels_of)
+    if not rows:
+        log.warning("no tile-match figure for %s: no tile to draw", strip)
+        return
+    job.figures.submit(
+        f"{strip}_tile_matches",
+        figure_tile_grid,
+        rows,
+        run.file("figures", f"{strip}_tile_matches.png"),
+        title=f"{matches.matcher}, {strip}: tiles with the most, the median and the "
+        "fewest verified matches (rows); coarse and fine stage (columns)",
+    )
 
 
 def figure_residuals(
-    run: RunDir, strip: str, result: Any, sizes: dict[str, tuple[int, int]]
+    job: StripJob, strip: str, result: Any, sizes: dict[str, tuple[int, int]]
 ) -> None:
-    """The residual-vector figure of a strip after adjustment."""
+    """The residual-vector figure of a strip after adjustment (drawn by ``job.figures``).
+
+    Only what the figure reads of the result travels to the figure process.
+    """
+    from types import SimpleNamespace
+
     from planetref.report.georef import figure_residual_vectors
 
-    figure_residual_vectors(
-        result,
-        sizes,
-        run.file("figures", f"{strip}_residuals.png"),
+    net = result.network
+    cid = net.camera_ids[0]
+    light = SimpleNamespace(
+        network=SimpleNamespace(
+            camera_ids=[cid],
+            obs_ccd=np.asarray(net.obs_ccd),
+            obs_line=np.asarray(net.obs_line),
+            obs_sample=np.asarray(net.obs_sample),
+        ),
+        cameras={cid: SimpleNamespace(ccd_names=list(result.cameras[cid].ccd_names))},
+        residual=np.asarray(result.residual),
+        status=np.asarray(result.status),
+    )
+    job.figures.submit(
+        f"{strip}_residuals",
+        figure_residual_vectors,
+        light,
+        dict(sizes),
+        job.run.file("figures", f"{strip}_residuals.png"),
         title=f"{strip}: residuals after adjustment (inliers)",
     )

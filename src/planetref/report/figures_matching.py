@@ -43,6 +43,7 @@ __all__ = [
     "figure_tile_matches",
     "panels_from_tile",
     "select_tiles",
+    "tile_selection_rows",
     "verified_count",
 ]
 
@@ -168,24 +169,17 @@ def select_tiles(tiles: Sequence[Any], n: int = 3) -> list[tuple[str, Any]]:
     return out
 
 
-def draw_tile_selection(
-    tiles: Sequence[Any],
-    rematch: Callable[[Any], Any],
-    path: str | PathLike[str],
-    *,
-    title: str = "",
-) -> Path | None:
-    """Fig. 2 of one matcher: re-match the tiles :func:`select_tiles` picks and draw them.
+def tile_selection_rows(
+    tiles: Sequence[Any], panels_of: Callable[[Any], list[MatchPanel]]
+) -> list[TileRow]:
+    """The rows of Fig. 2: the tiles :func:`select_tiles` picks, labelled, with their stages.
 
     Args:
         tiles: The strip's tile results.
-        rematch: Matches one tile result's tile again with ``debug=True`` and returns the
-            new :class:`~planetref.frontend.result.TileResult`.
-        path: Output PNG.
-        title: Figure title.
-
-    Returns:
-        The PNG path, or None if no tile could be drawn.
+        panels_of: A tile result's stages as panels: kept from the matching pass (see
+            :class:`~planetref.report.tile_panels.PanelStore`), or from matching its tile
+            again with ``debug=True`` (:func:`panels_from_tile`); may raise
+            :class:`~planetref.errors.PlanetrefError` (the tile is then left out).
     """
     rows = []
     for rule, t in select_tiles(tiles):
@@ -193,9 +187,25 @@ def draw_tile_selection(
         if getattr(t, "n_points", None) is not None:
             label += f", {int(t.n_points)} MCPs"
         try:
-            rows.append(TileRow(label, panels_from_tile(rematch(t))))
+            rows.append(TileRow(label, panels_of(t)))
         except PlanetrefError:
             continue
+    return rows
+
+
+def draw_tile_selection(
+    tiles: Sequence[Any],
+    panels_of: Callable[[Any], list[MatchPanel]],
+    path: str | PathLike[str],
+    *,
+    title: str = "",
+) -> Path | None:
+    """Fig. 2 of one matcher: draw the rows of :func:`tile_selection_rows`.
+
+    Returns:
+        The PNG path, or None if no tile could be drawn.
+    """
+    rows = tile_selection_rows(tiles, panels_of)
     if not rows:
         return None
     return figure_tile_grid(rows, path, title=title)
