@@ -125,6 +125,7 @@ def bench(
     weights_dir: Path | None,
     prep: str = "cached",
     device: str = "cpu",
+    max_tiles: int = 0,
 ) -> dict:
     import planetref.frontend.tile as tile_module
     from planetref.frontend.orthorectify import lattice_cache
@@ -149,6 +150,9 @@ def bench(
     readers = {c: CcdImage(p) for c, p in s["images"].items()}
     plans = {c: plan_tiles(s["init"], c, s["ref"], s["dem"], cfg) for c in readers}
     tiles = [(t, plans[c].ratio) for c in readers for t in plans[c].tiles]
+    if max_tiles > 0:
+        # Spread the measured tiles over the strip (every k-th tile).
+        tiles = tiles[:: max(1, len(tiles) // max_tiles)][:max_tiles]
     rows = []
     # "uncached": each window projects its own lattice and reads its raw pixels (the
     # preparation before the per-reader caches), for comparison in the same run.
@@ -176,6 +180,7 @@ def bench(
                 "tile": t.tile_id,
                 "status": r.status,
                 "mcps": r.n_points,
+                "ncp": r.ncp,
                 "total_s": tm.get("total", 0.0),
                 "match_s": tm.get("coarse_match", 0.0) + tm.get("fine_match", 0.0),
                 "forward_s": tm.get("forward", 0.0),
@@ -210,6 +215,8 @@ def bench(
         "mean_forward_s": sum_fwd / len(rows),
         "breakdown_s": mean,
         "mcps": sum(r["mcps"] for r in rows),
+        "ncp": sum(r["ncp"] for r in rows),
+        "fine_upsample": cfg.fine_upsample,
         "max_offset_error_px": max(errs) if errs else float("nan"),
         "rows": rows,
     }
@@ -237,6 +244,20 @@ def main(argv: list[str] | None = None) -> int:
         choices=["cached", "uncached"],
         help="tile preparation: per-reader caches (planetref's), or per window (before)",
     )
+    ap.add_argument(
+        "--fine-upsample",
+        nargs="+",
+        type=int,
+        default=None,
+        help="fine-stage grids to compare in one run (default: the config's)",
+    )
+    ap.add_argument(
+        "--defaults",
+        action="store_true",
+        help="planetref's default front-end settings (tile size, coarse stage, uncertainty) "
+        "instead of the small-scene ones (--tile is then ignored)",
+    )
+    ap.add_argument("--max-tiles", type=int, default=0, help="measure at most this many tiles")
     ap.add_argument("--json", action="store_true", help="print JSON only")
     ap.add_argument(
         "--clock",
@@ -266,9 +287,14 @@ def main(argv: list[str] | None = None) -> int:
     from planetref.matching.weights import missing_weights
 
     weights = args.weights_dir or (DEFAULT_WEIGHTS if DEFAULT_WEIGHTS.is_dir() else None)
-    cfg = FrontendConfig(
-        tile_size_ref_px=args.tile, coarse_factor=2, uncertainty_m=150.0, geometry=args.geometry
-    )
+    if args.defaults:
+        cfg = FrontendConfig(geometry=args.geometry)
+        args.tile = cfg.tile_size_ref_px
+    else:
+        cfg = FrontendConfig(
+            tile_size_ref_px=args.tile, coarse_factor=2, uncertainty_m=150.0, geometry=args.geometry
+        )
+    ups = args.fine_upsample or [cfg.fine_upsample]
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         root = args.scene or simulate(Path(tmp) / "scene")
@@ -284,8 +310,10 @@ def main(argv: list[str] | None = None) -> int:
             if missing:
                 skipped[name] = f"weights missing: {missing}"
                 continue
-            for prep in args.prep:
-                results.append(bench(name, s, cfg, weights, prep, args.device))
+            for up in ups:
+                c = cfg.model_copy(update={"fine_upsample": up})
+                for prep in args.prep:
+                    results.append(bench(name, s, c, weights, prep, args.device, args.max_tiles))
         s["ref"].close()
     if args.json:
         print(
@@ -307,7 +335,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("per tile, mean seconds (warm-up tile excluded); ratio = planetref / bare model")
     print(
-        f"{'matcher':<18}{'prep':<9}{'tiles':>6}{'ok':>4}{'MCPs':>7}{'planetref':>10}{'model':>8}"
+        f"{'matcher':<18}{'up':>3}{'prep':>7}{'tiles':>6}{'ok':>4}{'NCP':>7}{'MCPs':>7}"
+        f"{'planetref':>10}{'model':>8}"
         f"{'ratio':>7}{'prep-c':>8}{'prep-f':>8}{'match':>8}{'verify':>8}{'other':>8}"
         f"{'max err px':>11}"
     )
@@ -316,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
         match = b["coarse_match"] + b["fine_match"]
         other = r["mean_total_s"] - match - b["coarse_prepare"] - b["fine_prepare"] - b["verify"]
         print(
-            f"{r['matcher']:<18}{r['prep']:<9}{r['tiles']:>6}{r['ok']:>4}{r['mcps']:>7}"
+            f"{r['matcher']:<18}{r['fine_upsample']:>3}{r['prep']:>7}{r['tiles']:>6}{r['ok']:>4}"
+            f"{r['ncp']:>7}{r['mcps']:>7}"
             f"{r['mean_total_s']:>10.3f}{r['mean_forward_s']:>8.3f}{r['ratio']:>7.2f}"
             f"{b['coarse_prepare']:>8.3f}{b['fine_prepare']:>8.3f}{match:>8.3f}"
             f"{b['verify']:>8.3f}{other:>8.3f}{r['max_offset_error_px']:>11.3f}"

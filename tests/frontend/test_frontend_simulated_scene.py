@@ -20,7 +20,8 @@ from planetref.frontend.strip import match_strip
 # CCDs of 320 x 640 px at 2.5 m over a 5 m reference (160 x 320 reference px): 2 x 3
 # tiles of 128 reference px per CCD, 18 in all; the initial error is about 107 m
 # (21 reference pixels).
-CFG = FrontendConfig(tile_size_ref_px=128, coarse_factor=2, uncertainty_m=150.0)
+# Fine stage on the reference grid (fine_upsample = 1), where the asserted numbers were set.
+CFG = FrontendConfig(tile_size_ref_px=128, coarse_factor=2, uncertainty_m=150.0, fine_upsample=1)
 N_TILES = {"ccd1": 6, "ccd2": 6, "ccd3": 6}
 # The learned matchers run on CPU here: they match the middle CCD only (6 tiles).
 LEARNED_CCDS = ("ccd2",)

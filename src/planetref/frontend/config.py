@@ -93,7 +93,7 @@ class FrontendConfig(Settings):
     coarse_min_matches: int = Field(6, ge=3)
     coarse_radius_ref_px: float = Field(6.0, gt=0.0)
     fine_pad_ref_px: int = Field(16, ge=0)
-    fine_upsample: int = Field(1, ge=1, le=8)
+    fine_upsample: int = Field(2, ge=1, le=8)
     lattice_step_ref_px: int = Field(8, ge=1, le=64)
     dense_spacing_ref_px: int = Field(2, ge=1, le=64)
     ransac_model: RansacModel = "homography"
