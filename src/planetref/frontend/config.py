@@ -49,19 +49,30 @@ class FrontendConfig(Settings):
             differs from the coarse offset by more than this plus
             ``coarse_radius_ref_px`` cannot be right and are dropped (funnel stage
             ``coarse_gate``).
-        fine_upsample: Resolution of the fine stage: 1 matches on the reference grid
-            (the paper's 5 m); ``k > 1`` on a grid ``k`` times finer (the reference
-            resampled bicubically, the CCD image orthorectified at that pixel size, so
-            the image keeps detail the reference grid would average away). Thresholds
-            stay in reference pixels.
+        fine_upsample: Resolution of the fine stage, the same for every matcher: 1
+            matches on the reference grid (the paper's 5 m); ``k > 1`` on a grid ``k``
+            times finer (the reference resampled bicubically, the CCD image
+            orthorectified at that pixel size, so the image keeps detail the reference
+            grid would average away). Default 2 (2.5 m on a 5 m reference): the
+            detectors find about four times the keypoints per tile (their budgets are
+            their own defaults), which is where sparse matchers' density is bounded at 1.
+            Thresholds, the coarse stage and the tile plan stay in reference pixels;
+            the match positions and offsets are reported in reference pixels whatever
+            the grid. NCC: see ``dense_spacing_ref_px``. 1 is the cheaper choice (see
+            the README's Performance section for the cost per matcher).
         lattice_step_ref_px: Spacing of the exactly projected lattice that the
             orthorectification interpolates, reference px of the output grid.
         dense_spacing_ref_px: Grid spacing of the dense mode of area-based and
-            detector-free matchers (NCC, LoFTR), reference px of the fine stage: one
-            match per grid cell. Other matchers ignore it (their keypoint budgets are
-            their own defaults; the front end caps nothing). On hiric-strip, NCC gives
-            about 10-13 k correspondences per CCD at 3 (SDU 57-70 %) and 23-30 k at 2
-            (SDU 64-77 %).
+            detector-free matchers (NCC, LoFTR): one match per grid cell. It is defined
+            on the reference grid whatever ``fine_upsample`` is (a cell is
+            ``dense_spacing_ref_px * fine_upsample`` fine-grid pixels), so a finer fine
+            stage does not multiply NCC's template count; NCC's search radius is also
+            kept in reference pixels (the same ground search), while its template stays
+            ``2 * template_radius + 1`` fine-grid pixels (half the ground extent at 2).
+            Other matchers ignore it (their keypoint budgets are their own defaults; the
+            front end caps nothing). On hiric-strip at ``fine_upsample = 1``, NCC gives
+            about 10-13 k correspondences per CCD at 3 (SDU 57-70 %) and 27-35 k at 2
+            (SDU 70-84 %).
         ransac_model: Model verified per tile with OpenCV USAC_MAGSAC.
         ransac_threshold_ref_px: Inlier threshold, reference px.
         ransac_confidence: RANSAC confidence.

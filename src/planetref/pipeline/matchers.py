@@ -61,9 +61,11 @@ def matcher_options(
 
     Area-based NCC searches a fixed radius around each template, so its coarse-stage
     instance gets a radius that covers the a-priori uncertainty at the coarse scale; the
-    fine stage runs in dense mode: one template per ``dense_spacing_ref_px`` grid cell
-    (distances in pixels of the fine grid, i.e. times ``fine_upsample``). The other
-    matchers search the whole window with their own defaults and serve both stages.
+    fine stage runs in dense mode: one template per ``dense_spacing_ref_px`` grid cell.
+    Cell and search radius are set in reference pixels and passed in fine-grid pixels
+    (times ``fine_upsample``): the same template count and ground search on any fine
+    grid. The other matchers search the whole window with their own defaults and serve
+    both stages.
 
     Returns:
         ``(fine_options, coarse_options)``; ``coarse_options`` is None when the fine
