@@ -15,6 +15,29 @@ def shared_dir() -> Path | None:
     return SHARED_DIR if SHARED_DIR.is_dir() else None
 
 
+#: Front-end settings of the pipeline tests: the fine stage on the reference grid
+#: (``fine_upsample = 1``, the default before it became 2). The numbers those tests assert
+#: were set there, and a sift georef of the tiny scene costs several times the CPU at the
+#: default; the default grid is tested in tests/frontend/test_frontend_density.py.
+REF_GRID = {"frontend": {"fine_upsample": 1}}
+
+
+@pytest.fixture(scope="session")
+def ref_grid():
+    """A run configuration with the fine stage on the reference grid (see ``REF_GRID``)."""
+    from planetref.pipeline.config import config_from_mapping
+
+    return config_from_mapping(REF_GRID)
+
+
+@pytest.fixture(scope="session")
+def ref_grid_toml(tmp_path_factory) -> Path:
+    """``--config`` file of :data:`REF_GRID` for CLI runs."""
+    path = tmp_path_factory.mktemp("config") / "ref_grid.toml"
+    path.write_text("[frontend]\nfine_upsample = 1\n")
+    return path
+
+
 @pytest.fixture
 def shared() -> Path:
     """The ``../shared`` folder; skips the test when it is absent."""

@@ -38,9 +38,9 @@ def dask_local():
 
 
 @pytest.fixture(scope="module")
-def inprocess_run(scene, tmp_path_factory):
+def inprocess_run(scene, tmp_path_factory, ref_grid):
     out = tmp_path_factory.mktemp("exec") / "inprocess"
-    return run_georef(scene, "sift", out, progress=False)
+    return run_georef(scene, "sift", out, config=ref_grid, progress=False)
 
 
 def _journal(path):
@@ -77,8 +77,12 @@ def _assert_same_mcps(a, b):
             assert va == vb, name
 
 
-def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inprocess_run, dask_local):
-    out = run_georef(scene, "sift", tmp_path / "dask", progress=False, executor=dask_local)
+def test_dask_local_gives_identical_mcps_and_adjustment(
+    scene, tmp_path, inprocess_run, dask_local, ref_grid
+):
+    out = run_georef(
+        scene, "sift", tmp_path / "dask", config=ref_grid, progress=False, executor=dask_local
+    )
     a, b = inprocess_run.run_dir, out.run_dir
     _assert_same_mcps(a / "strip1" / "mcps.parquet", b / "strip1" / "mcps.parquet")
     ra, rb = inprocess_run.report, out.report
@@ -92,7 +96,9 @@ def test_dask_local_gives_identical_mcps_and_adjustment(scene, tmp_path, inproce
     )
 
 
-def test_killed_run_resumes_without_recomputing(scene, tmp_path, inprocess_run, dask_local):
+def test_killed_run_resumes_without_recomputing(
+    scene, tmp_path, inprocess_run, dask_local, ref_grid
+):
     # A run "killed" half-way: its journal holds the first half of the tiles.
     run = tmp_path / "resumed"
     shutil.copytree(inprocess_run.run_dir, run)
@@ -102,7 +108,7 @@ def test_killed_run_resumes_without_recomputing(scene, tmp_path, inprocess_run, 
     for d in half:  # a marker that only survives if these tiles are not matched again
         d["result"]["timings"] = {"total": -1.0}
     jpath.write_text("".join(json.dumps(d) + "\n" for d in half))
-    out = run_georef(scene, "sift", run, progress=False, executor=dask_local)
+    out = run_georef(scene, "sift", run, config=ref_grid, progress=False, executor=dask_local)
     after = _journal(jpath)
     assert after[: len(half)] == half  # kept as they were
     ids = [d["result"]["tile"]["tile_id"] for d in after]

@@ -12,6 +12,9 @@ from planetref.pipeline.georef import run_georef
 from planetref.simulate.config import load_config
 from planetref.simulate.scene import simulate_scene
 
+#: The fine stage on the reference grid, as the ``ref_grid`` fixture (tests/conftest.py).
+REF_GRID = {"frontend": {"fine_upsample": 1}}
+
 #: Two tiny strips 1.4 km apart across track: each is 2.3 km wide, so they share ~0.9 km.
 TWO_STRIPS = {
     "strips": [
@@ -29,10 +32,9 @@ def two_strip_scene(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def separate(two_strip_scene, tmp_path_factory):
-    return run_georef(
-        two_strip_scene, "sift", tmp_path_factory.mktemp("runs") / "separate", progress=False
-    )
+def separate(two_strip_scene, tmp_path_factory, ref_grid):
+    out = tmp_path_factory.mktemp("runs") / "separate"
+    return run_georef(two_strip_scene, "sift", out, config=ref_grid, progress=False)
 
 
 def _strip_blocks(report):
@@ -43,7 +45,7 @@ def _strip_blocks(report):
 
 
 def test_adjust_together_ties_the_strips(two_strip_scene, separate, tmp_path):
-    cfg = config_from_mapping({"campaign": {"adjust_together": True}})
+    cfg = config_from_mapping({"campaign": {"adjust_together": True}, **REF_GRID})
     out = run_georef(two_strip_scene, "sift", tmp_path / "together", config=cfg, progress=False)
     rep = out.report
     camp = rep["campaign"]
@@ -68,11 +70,13 @@ def test_adjust_together_ties_the_strips(two_strip_scene, separate, tmp_path):
     )
 
 
-def test_adjust_separately_is_the_default(two_strip_scene, separate, tmp_path):
-    off = config_from_mapping({"campaign": {"adjust_together": False}})
+def test_adjust_separately_is_the_default(two_strip_scene, separate, tmp_path, ref_grid):
     # The default campaign table leaves the run's configuration (and its digest) as before.
-    assert off.to_json() == GeorefConfig().to_json()
+    default = config_from_mapping({"campaign": {"adjust_together": False}})
+    assert default.to_json() == GeorefConfig().to_json()
     assert "campaign" not in GeorefConfig().to_json()
+    off = config_from_mapping({"campaign": {"adjust_together": False}, **REF_GRID})
+    assert off.to_json() == ref_grid.to_json()
     out = run_georef(two_strip_scene, "sift", tmp_path / "off", config=off, progress=False)
     assert "campaign" not in out.report
     assert "campaign" not in separate.report

@@ -14,7 +14,8 @@ from planetref.pipeline.config import config_from_mapping
 
 #: NCC's dense default (one template per 2 reference px) is what the demo and the README
 #: measure; the tests use a sparser grid so the default run stays fast on 2 cores.
-FAST_NCC = config_from_mapping({"frontend": {"dense_spacing_ref_px": 8}})
+#: Fine stage on the reference grid (fine_upsample = 1), as in the other pipeline tests.
+FAST_NCC = config_from_mapping({"frontend": {"dense_spacing_ref_px": 8, "fine_upsample": 1}})
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -122,19 +123,15 @@ def test_resolve_matchers(tmp_path):
         resolve_matchers("sift,nope", tmp_path)
 
 
-def test_demo_command_prints_both_tables(tmp_path):
-    r = CliRunner().invoke(
-        main,
-        ["-q", "demo", "--preset", "tiny", "--matchers", "sift", "--out", str(tmp_path / "demo")],
-    )
+def test_demo_command_prints_both_tables(tmp_path, ref_grid_toml):
+    args = ["-q", "demo", "--preset", "tiny", "--matchers", "sift", "--out", str(tmp_path / "demo")]
+    args += ["--config", str(ref_grid_toml)]
+    r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
     assert "## Matching" in r.stdout and "## Adjustment" in r.stdout
     assert "report:" in r.stdout and "figures:" in r.stdout
     # The scene is cached: a second run does not simulate again.
     scene = tmp_path / "demo" / "scene-tiny-seed0" / "scene.toml"
     stamp = scene.stat().st_mtime_ns
-    r = CliRunner().invoke(
-        main,
-        ["-q", "demo", "--preset", "tiny", "--matchers", "sift", "--out", str(tmp_path / "demo")],
-    )
+    r = CliRunner().invoke(main, args)
     assert r.exit_code == 0 and scene.stat().st_mtime_ns == stamp

@@ -62,7 +62,9 @@ MATCHERS = [
 
 
 @pytest.mark.parametrize("matcher", MATCHERS)
-def test_georef_reduces_true_error_below_reference_gsd(tiny_scene, tmp_path, weights_dir, matcher):
+def test_georef_reduces_true_error_below_reference_gsd(
+    tiny_scene, tmp_path, weights_dir, matcher, ref_grid
+):
     if matcher not in _present(weights_dir):
         pytest.skip(f"weights of {matcher} not present (set PLANETREF_WEIGHTS)")
     # XFeat*'s refinement head pulls matches towards its 8-px cell centres (several metres
@@ -70,10 +72,13 @@ def test_georef_reduces_true_error_below_reference_gsd(tiny_scene, tmp_path, wei
     # setting (the same for any matcher) instead of a default applied to XFeat* alone.
     # NCC's dense default (one template per 2 reference px, ~24k MCPs on tiny) is what the
     # demo and the README measure; here a sparser grid keeps the default run fast.
+    # All on the reference grid (fine_upsample = 1), where these bounds were set.
     config = {
-        "xfeat-star": config_from_mapping({"frontend": {"refine": {"method": "ncc"}}}),
-        "ncc": config_from_mapping({"frontend": {"dense_spacing_ref_px": 8}}),
-    }.get(matcher)
+        "xfeat-star": config_from_mapping(
+            {"frontend": {"refine": {"method": "ncc"}, "fine_upsample": 1}}
+        ),
+        "ncc": config_from_mapping({"frontend": {"dense_spacing_ref_px": 8, "fine_upsample": 1}}),
+    }.get(matcher, ref_grid)
     out = run_georef(
         tiny_scene,
         matcher,
@@ -150,11 +155,11 @@ def _check_standard_products(out, scene):
         assert p.split(str(run) + "/", 1)[1] in names  # recorded in the run manifest
 
 
-def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path):
+def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path, ref_grid):
     out = tmp_path / "run"
-    first = run_georef(tiny_scene, "sift", out, progress=False)
+    first = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
     journal = (out / "strip1" / "tiles.jsonl").read_text()
-    again = run_georef(tiny_scene, "sift", out, progress=False)
+    again = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
     assert (out / "strip1" / "tiles.jsonl").read_text() == journal  # nothing re-matched
     assert again.report["matching"] == first.report["matching"]
     # Another matcher into the same directory is refused without --overwrite...
@@ -169,10 +174,9 @@ def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path):
     assert (foreign / "precious.txt").read_text() == "keep me"
 
 
-def test_georef_cli(tiny_scene, tmp_path):
-    r = CliRunner().invoke(
-        main, ["-q", "georef", str(tiny_scene), "--matcher", "sift", "--out", str(tmp_path / "cli")]
-    )
+def test_georef_cli(tiny_scene, tmp_path, ref_grid_toml):
+    args = ["-q", "georef", str(tiny_scene), "--matcher", "sift", "--out", str(tmp_path / "cli")]
+    r = CliRunner().invoke(main, [*args, "--config", str(ref_grid_toml)])
     assert r.exit_code == 0, r.output
     doc = json.loads(r.stdout.strip().splitlines()[-1])
     assert doc["matcher"] == "sift" and doc["geoloc_rmse_m"] < 5.0
@@ -207,7 +211,7 @@ def test_corrupt_raster(tiny_scene, tmp_path):
     assert "ccd2.tif" in r.output and "Traceback" not in r.output
 
 
-def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path):
+def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path, ref_grid):
     scene = _copy_scene(tiny_scene, tmp_path / "holes")
     # A blank (textureless) block over part of ccd3.
     img = scene / "strips" / "strip1" / "ccd3.tif"
@@ -222,7 +226,7 @@ def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path):
         rows, cols = h.shape
         h[rows // 2 :, : cols // 2] = np.nan
         ds.write(h, 1)
-    out = run_georef(scene, "sift", tmp_path / "run", progress=False)
+    out = run_georef(scene, "sift", tmp_path / "run", config=ref_grid, progress=False)
     lost = out.report["matching"]["tiles_lost"]
     statuses = {t["status"] for t in lost}
     assert lost, "the blank block must cost at least one tile"
