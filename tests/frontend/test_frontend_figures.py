@@ -34,7 +34,8 @@ def test_strip_to_mcps_and_figures(scene, tmp_path):
     from planetref.matching import get_matcher
     from planetref.report.tile_panels import PanelStore
 
-    cfg = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2)
+    # Fine stage on the reference grid, as the other front-end tests (fast).
+    cfg = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2, fine_upsample=1)
     store = PanelStore()
     with ReferenceOrtho(scene.ortho_path) as ref:
         strip = match_strip(
