@@ -62,10 +62,10 @@ def matcher_options(
     Area-based NCC searches a fixed radius around each template, so its coarse-stage
     instance gets a radius that covers the a-priori uncertainty at the coarse scale; the
     fine stage runs in dense mode: one template per ``dense_spacing_ref_px`` grid cell.
-    Cell and search radius are set in reference pixels and passed in fine-grid pixels
-    (times ``fine_upsample``): the same template count and ground search on any fine
-    grid. The other matchers search the whole window with their own defaults and serve
-    both stages.
+    Cell, search radius and template radius are set in reference pixels and passed in
+    fine-grid pixels (times ``fine_upsample``): the same template count, template ground
+    size and ground search on any fine grid. The other matchers search the whole window
+    with their own defaults and serve both stages.
 
     Returns:
         ``(fine_options, coarse_options)``; ``coarse_options`` is None when the fine
@@ -86,8 +86,25 @@ def matcher_options(
     coarse_opts = {"spacing": 8, **options}
     coarse_opts["search_radius"] = max(coarse_radius, int(coarse_opts.get("search_radius", 0)))
     dense = fe.dense_spacing_ref_px * up
-    fine_opts = {"search_radius": fine_radius, "dense_spacing_px": dense, **options}
+    # The template keeps its ground size too (the fine grid is ``up`` times finer), so a
+    # finer grid adds detail to each template instead of halving the ground it sees.
+    template = int(options.get("template_radius", _ncc_default("template_radius"))) * up
+    fine_opts = {
+        "search_radius": fine_radius,
+        "dense_spacing_px": dense,
+        **options,
+        "template_radius": template,
+    }
     return fine_opts, coarse_opts
+
+
+def _ncc_default(option: str) -> Any:
+    """The NCC matcher's own default of one option (imports its module only)."""
+    import inspect
+
+    from planetref.matching.ncc import NccMatcher
+
+    return inspect.signature(NccMatcher).parameters[option].default
 
 
 def _loftr_is_dense() -> bool:
