@@ -12,22 +12,19 @@ unknown points are kept (tie arrays) for the Schur complement
 
 from __future__ import annotations
 
-import importlib
 import itertools
-import logging
 import math
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref._optional import optional_module
 from planetref.adjust.robust import robust_rho
 
 __all__ = ["LinearizationMixin"]
 
-log = logging.getLogger("planetref.adjust")
 
 F64 = NDArray[np.float64]
 
@@ -278,14 +275,9 @@ class LinearizationMixin:
         self._active_cache.clear()
 
 
-@cache
 def _compiled() -> Any:
     """The compiled accumulation, or ``None`` (numpy) when numba cannot be loaded."""
-    try:
-        return importlib.import_module("planetref.adjust._numba_normal")
-    except Exception as exc:  # any failure (no numba, a broken llvmlite): numpy
-        log.warning("compiled normal equations unavailable (%s): numpy is used", exc)
-        return None
+    return optional_module("planetref.adjust._numba_normal", "compiled normal equations")
 
 
 def _quadratic(w: F64, dx: F64) -> float:

@@ -8,22 +8,19 @@ mixed into :class:`~planetref.adjust.solver.BundleSolver`.
 
 from __future__ import annotations
 
-import importlib
-import logging
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
+from planetref._optional import optional_module
 from planetref.adjust.linearization import _Layout, _Linearization
 from planetref.errors import AdjustmentError
 
 __all__ = ["SchurMixin"]
 
-log = logging.getLogger("planetref.adjust")
 
 F64 = NDArray[np.float64]
 
@@ -294,11 +291,6 @@ def _first_singular(v: F64) -> int:
     return 0
 
 
-@cache
 def _compiled() -> Any:
     """The compiled point elimination, or ``None`` (numpy) when numba cannot be loaded."""
-    try:
-        return importlib.import_module("planetref.adjust._numba_schur")
-    except Exception as exc:  # any failure (no numba, a broken llvmlite): numpy
-        log.warning("compiled point elimination unavailable (%s): numpy is used", exc)
-        return None
+    return optional_module("planetref.adjust._numba_schur", "compiled point elimination")
