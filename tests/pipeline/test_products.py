@@ -228,21 +228,7 @@ def test_scene_manifest_datum_keys(tiny_scene, tmp_path):
     _, dem = open_reference(manifest, root)
     with rasterio.open(scene / manifest.reference.dem) as ds:
         crs, transform, shape = ds.crs, ds.transform, ds.shape
-    # A constant areoid of +150 m on the DEM's own grid (+ a 2-pixel margin).
-    t = transform @ rasterio.Affine.translation(-2, -2)
-    n = np.full((shape[0] + 4, shape[1] + 4), 150.0)
-    with rasterio.open(
-        scene / "reference" / "areoid.tif",
-        "w",
-        driver="GTiff",
-        width=n.shape[1],
-        height=n.shape[0],
-        count=1,
-        dtype="float64",
-        crs=crs,
-        transform=t,
-    ) as ds:
-        ds.write(n, 1)
+    _write_constant_areoid(scene / "reference" / "areoid.tif", crs, transform, shape)
     text = "\n".join(
         ln for ln in (scene / "scene.toml").read_text().splitlines() if "dem_datum" not in ln
     )
@@ -274,19 +260,7 @@ def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
     dem_file = scene / "reference" / "dem.tif"
     with rasterio.open(dem_file) as ds:
         crs, transform, shape = ds.crs, ds.transform, ds.shape
-    n = np.full((shape[0] + 4, shape[1] + 4), 150.0)
-    with rasterio.open(
-        scene / "reference" / "areoid.tif",
-        "w",
-        driver="GTiff",
-        width=n.shape[1],
-        height=n.shape[0],
-        count=1,
-        dtype="float64",
-        crs=crs,
-        transform=transform @ rasterio.Affine.translation(-2, -2),
-    ) as ds:
-        ds.write(n, 1)
+    _write_constant_areoid(scene / "reference" / "areoid.tif", crs, transform, shape)
     lines = [ln for ln in (scene / "scene.toml").read_text().splitlines() if "dem_datum" not in ln]
     text = "\n".join(lines) + "\n"
     head, rest = text.split("[reference]\n", 1)
@@ -300,3 +274,20 @@ def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
     assert len(h) >= 12
     assert np.max(np.abs(h - (dem.height(lon, lat) + 150.0))) < 1e-3
     assert out.report["adjustment"]["n_total"] > 0
+
+
+def _write_constant_areoid(path, crs, transform, shape, height_m=150.0):
+    """A constant areoid of ``height_m`` on the DEM's own grid, with a 2-pixel margin."""
+    n = np.full((shape[0] + 4, shape[1] + 4), height_m)
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=n.shape[1],
+        height=n.shape[0],
+        count=1,
+        dtype="float64",
+        crs=crs,
+        transform=transform @ rasterio.Affine.translation(-2, -2),
+    ) as ds:
+        ds.write(n, 1)
