@@ -12,8 +12,7 @@ import threading
 import time
 from abc import abstractmethod
 from collections.abc import Iterable, Mapping, Sequence
-from os import PathLike
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -22,6 +21,7 @@ from numpy.typing import NDArray
 
 from planetref.errors import InputError, WeightsError
 from planetref.matching.base import BaseMatcher, Matches, keypoints_on_valid_pixels
+from planetref.matching.options import LightGlueSettings, TorchSettings
 from planetref.matching.weights import load_checkpoint, require_weights, weights_dir
 
 __all__ = [
@@ -256,46 +256,36 @@ class TorchMatcher(BaseMatcher):
     """A matcher with a torch model built lazily, once per instance.
 
     Args:
-        weights_dir: Weights directory (see :func:`planetref.matching.weights.weights_dir`);
-            resolved when the matcher is created.
-        device: Torch device for inference (CPU by default).
-        verify_weights: Check each file's sha256 before loading it. Set ``False`` only for
-            checkpoints that are known not to be the official files (tests with random
-            weights in the official format).
-        polish: ``None`` (the network's own keypoints) or ``"ncc"``: refine every match by
-            local normalised cross-correlation
-            (:func:`~planetref.matching.ncc.refine_matches_ncc`: 15 px templates centred on
-            the image-0 pixel, +-3 px search), for sub-pixel accuracy; matches that do not
-            correlate are dropped.
+        settings: Weights directory, device, checksum check and polish (see
+            :class:`~planetref.matching.options.TorchSettings`); ``None``: the defaults.
 
     Raises:
         WeightsError: A weight file is missing (checked at construction, without hashing).
-        InputError: Unusable device.
+        InputError: Unusable device, or settings of the wrong type.
     """
 
     weight_files: ClassVar[tuple[str, ...]] = ()
+    settings_type: ClassVar[type[TorchSettings]] = TorchSettings
 
-    def __init__(
-        self,
-        *,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
-    ) -> None:
+    def __init__(self, settings: TorchSettings | None = None) -> None:
         super().__init__()
-        if polish not in (None, "ncc"):
-            raise InputError(f"must be None or 'ncc', got {polish!r}", field="polish")
-        self.polish = polish
-        self.weights_dir = weights_dir_resolved = _resolve_dir(weights_dir)
-        self.device = resolve_device(device)
-        self.verify_weights = bool(verify_weights)
-        require_weights(self.weight_files, weights_dir_resolved)
+        if settings is None:
+            settings = self.settings_type()
+        if not isinstance(settings, self.settings_type):
+            raise InputError(
+                f"{self.name} takes {self.settings_type.__name__}, got {type(settings).__name__}",
+                field="settings",
+            )
+        self.settings = settings
+        # resolved once, so that a later change of the environment does not move the files
+        self.weights_dir = weights_dir(settings.weights_dir)
+        self.device = resolve_device(settings.device)
+        require_weights(self.weight_files, self.weights_dir)
         self._model: Any = None
         self._lock = threading.Lock()
 
     def _checkpoint(self, name: str) -> Any:
-        return load_checkpoint(name, self.weights_dir, verify=self.verify_weights)
+        return load_checkpoint(name, self.weights_dir, verify=self.settings.verify_weights)
 
     def build(self) -> None:
         """Load the weights and build the model now (otherwise done on the first match)."""
@@ -320,7 +310,7 @@ class TorchMatcher(BaseMatcher):
             self.build()
         with torch.inference_mode():
             result = self._run(image0, valid0, image1, valid1)
-        if self.polish == "ncc":
+        if self.settings.polish == "ncc":
             from planetref.matching.ncc import refine_matches_ncc
 
             with self._timed("polish"):
@@ -338,11 +328,6 @@ class TorchMatcher(BaseMatcher):
         """Match normalised images under ``torch.inference_mode``."""
 
 
-def _resolve_dir(value: str | PathLike[str] | None) -> Any:
-    # resolve once so that a later change of the environment does not move the files
-    return weights_dir(value)
-
-
 class SparseLightGlueMatcher(TorchMatcher):
     """Detector/descriptor + LightGlue, the shared pipeline of the learned sparse matchers.
 
@@ -352,51 +337,17 @@ class SparseLightGlueMatcher(TorchMatcher):
     Keypoints on invalid pixels are dropped before LightGlue sees them.
 
     Args:
-        max_keypoints: Keypoint budget per image.
-        max_size: Images whose longer side exceeds this many pixels are downscaled (area
-            averaging) for the model; keypoints are mapped back exactly.
-        filter_threshold: LightGlue match score threshold.
-        depth_confidence: LightGlue early stopping (``-1`` disables; ``None`` keeps the
-            configuration's default).
-        width_confidence: LightGlue point pruning (``-1`` disables; ``None`` keeps default).
-        weights_dir: See :class:`TorchMatcher`.
-        device: See :class:`TorchMatcher`.
-        verify_weights: See :class:`TorchMatcher`.
-        polish: See :class:`TorchMatcher`.
+        settings: Keypoint budget, model image size, LightGlue thresholds, weights, device
+            and polish (see :class:`~planetref.matching.options.LightGlueSettings`);
+            ``None``: the defaults.
     """
 
+    settings_type: ClassVar[type[LightGlueSettings]] = LightGlueSettings
+    settings: LightGlueSettings
     #: key of ``kornia.feature.LightGlue.features`` (``"disk"``, ``"aliked"``, ...)
     lightglue_features: ClassVar[str] = ""
     #: cache file name of the LightGlue checkpoint (see :func:`build_lightglue`)
     lightglue_weights: ClassVar[str] = ""
-
-    def __init__(
-        self,
-        *,
-        max_keypoints: int = 4096,
-        max_size: int | None = 2048,
-        filter_threshold: float = 0.1,
-        depth_confidence: float | None = None,
-        width_confidence: float | None = None,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
-    ) -> None:
-        if int(max_keypoints) < 2:
-            raise InputError(f"must be >= 2, got {max_keypoints}", field="max_keypoints")
-        if max_size is not None and int(max_size) < 32:
-            raise InputError(f"must be >= 32 or None, got {max_size}", field="max_size")
-        super().__init__(
-            weights_dir=weights_dir, device=device, verify_weights=verify_weights, polish=polish
-        )
-        self.max_keypoints = int(max_keypoints)
-        self.max_size = None if max_size is None else int(max_size)
-        self.lightglue_conf: dict[str, Any] = {"filter_threshold": float(filter_threshold)}
-        if depth_confidence is not None:
-            self.lightglue_conf["depth_confidence"] = float(depth_confidence)
-        if width_confidence is not None:
-            self.lightglue_conf["width_confidence"] = float(width_confidence)
 
     def _build(self) -> dict[str, torch.nn.Module]:
         """Build ``{"extractor": ..., "matcher": LightGlue}`` on :attr:`device`."""
@@ -405,7 +356,7 @@ class SparseLightGlueMatcher(TorchMatcher):
             self.lightglue_features,
             self._checkpoint(self.lightglue_weights),
             what=self.lightglue_weights,
-            **self.lightglue_conf,
+            **self.settings.lightglue_overrides(),
         )
         return {"extractor": extractor.to(self.device), "matcher": matcher.to(self.device)}
 
@@ -439,8 +390,9 @@ class SparseLightGlueMatcher(TorchMatcher):
     def _model_image(self, image: NDArray[np.float32]) -> tuple[NDArray[np.float32], float, float]:
         """The image the network sees (downscaled beyond ``max_size``) and its scale factors."""
         h, w = image.shape
-        if self.max_size is not None and max(h, w) > self.max_size:
-            s = self.max_size / max(h, w)
+        max_size = self.settings.max_size
+        if max_size is not None and max(h, w) > max_size:
+            s = max_size / max(h, w)
             size = (max(16, round(h * s)), max(16, round(w * s)))
             return resize_image(image, size)
         return image, 1.0, 1.0
@@ -520,7 +472,7 @@ class SparseLightGlueMatcher(TorchMatcher):
             valids = [v for x in inputs for v in (x[1], x[3])]
             feats = self._features_batched(images, valids, batch_size)
             out = [self._glue(feats[2 * i], feats[2 * i + 1]) for i in range(len(inputs))]
-        if self.polish == "ncc":
+        if self.settings.polish == "ncc":
             from planetref.matching.ncc import refine_matches_ncc
 
             with self._timed("polish"):

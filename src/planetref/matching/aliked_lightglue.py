@@ -13,8 +13,7 @@ release asset, a raw state dict in the later ``transformers.<i>.*`` layout.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from os import PathLike
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -25,6 +24,7 @@ from planetref.matching._torch import (
     image_batch,
     load_into,
 )
+from planetref.matching.options import LightGlueSettings
 
 __all__ = ["AlikedLightGlueMatcher"]
 
@@ -36,12 +36,12 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
     """ALIKED-N16 + LightGlue, a learned sparse matcher.
 
     Args:
-        max_keypoints: Keypoint budget per image.
+        settings: Keypoint budget, model image size, LightGlue thresholds, weights, device,
+            polish (see :class:`~planetref.matching.options.LightGlueSettings`).
         detection_threshold: ALIKED score threshold; a value ``<= 0`` selects top-k mode
             (the ``max_keypoints`` strongest maxima), which suits low-contrast Mars scenes
             better than the upstream threshold of 0.2.
         nms_radius: ALIKED NMS radius, pixels.
-        **kwargs: See :class:`~planetref.matching._torch.SparseLightGlueMatcher`.
     """
 
     name: ClassVar[str] = "aliked-lightglue"
@@ -51,30 +51,12 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
 
     def __init__(
         self,
+        settings: LightGlueSettings | None = None,
         *,
-        max_keypoints: int = 4096,
         detection_threshold: float = 0.0,
         nms_radius: int = 2,
-        max_size: int | None = 2048,
-        filter_threshold: float = 0.1,
-        depth_confidence: float | None = None,
-        width_confidence: float | None = None,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
     ) -> None:
-        super().__init__(
-            max_keypoints=max_keypoints,
-            max_size=max_size,
-            filter_threshold=filter_threshold,
-            depth_confidence=depth_confidence,
-            width_confidence=width_confidence,
-            weights_dir=weights_dir,
-            device=device,
-            verify_weights=verify_weights,
-            polish=polish,
-        )
+        super().__init__(settings)
         self.detection_threshold = float(detection_threshold)
         self.nms_radius = int(nms_radius)
 
@@ -83,7 +65,7 @@ class AlikedLightGlueMatcher(SparseLightGlueMatcher):
 
         aliked = ALIKED(
             "aliked-n16",
-            max_num_keypoints=self.max_keypoints,
+            max_num_keypoints=self.settings.max_keypoints,
             detection_threshold=self.detection_threshold,
             nms_radius=self.nms_radius,
         )

@@ -18,16 +18,18 @@ This module imports neither torch nor OpenCV.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planetref.errors import InputError
+from planetref.matching.options import TorchSettings, split_options
 
 __all__ = [
     "PARADIGMS",
@@ -359,9 +361,37 @@ class BaseMatcher(ABC):
     """
 
     name: ClassVar[str] = "base"
+    #: type of the settings value the constructor takes first (``None``: keywords only)
+    settings_type: ClassVar[type[TorchSettings] | None] = None
 
     def __init__(self) -> None:
         self.timings: dict[str, float] = {}
+
+    @classmethod
+    def option_names(cls) -> tuple[str, ...]:
+        """The flat option names :meth:`from_options` accepts (registry/configuration keys).
+
+        The fields of :attr:`settings_type`, then the constructor's keyword-only arguments.
+        """
+        shared = [] if cls.settings_type is None else [f.name for f in fields(cls.settings_type)]
+        own = [
+            p.name
+            for p in inspect.signature(cls).parameters.values()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY
+        ]
+        return (*shared, *own)
+
+    @classmethod
+    def from_options(cls, **options: Any) -> BaseMatcher:
+        """Build the matcher from flat options (see :meth:`option_names`).
+
+        Keys that are fields of :attr:`settings_type` make the settings value; the others are
+        passed as the constructor's own keywords.
+        """
+        if cls.settings_type is None:
+            return cls(**options)
+        settings, own = split_options(cls.settings_type, options)
+        return cls(settings, **own)  # type: ignore[call-arg]  # settings-taking subclasses
 
     @contextlib.contextmanager
     def _timed(self, key: str) -> Iterator[None]:

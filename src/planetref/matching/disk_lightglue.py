@@ -14,8 +14,7 @@ is cvg/LightGlue's release asset, a raw state dict in the first-release layout
 from __future__ import annotations
 
 from collections.abc import Sequence
-from os import PathLike
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ from planetref.matching._torch import (
     pad_to_multiple,
     unpadded,
 )
+from planetref.matching.options import LightGlueSettings
 
 __all__ = ["DiskLightGlueMatcher"]
 
@@ -40,12 +40,11 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
     """DISK + LightGlue, a learned sparse matcher.
 
     Args:
-        max_keypoints: DISK keypoints kept per image (strongest maxima).
+        settings: Keypoint budget (DISK keeps the strongest maxima), model image size,
+            LightGlue thresholds, weights, device, polish (see
+            :class:`~planetref.matching.options.LightGlueSettings`).
         nms_window: DISK non-maximum suppression window, pixels.
         score_threshold: DISK heatmap threshold (maxima strictly above it are kept).
-        **kwargs: See :class:`~planetref.matching._torch.SparseLightGlueMatcher`
-            (``max_size``, ``filter_threshold``, ``depth_confidence``, ``width_confidence``,
-            ``weights_dir``, ``device``, ``verify_weights``, ``polish``).
     """
 
     name: ClassVar[str] = "disk-lightglue"
@@ -55,30 +54,12 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
 
     def __init__(
         self,
+        settings: LightGlueSettings | None = None,
         *,
-        max_keypoints: int = 4096,
         nms_window: int = 5,
         score_threshold: float = 0.0,
-        max_size: int | None = 2048,
-        filter_threshold: float = 0.1,
-        depth_confidence: float | None = None,
-        width_confidence: float | None = None,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
     ) -> None:
-        super().__init__(
-            max_keypoints=max_keypoints,
-            max_size=max_size,
-            filter_threshold=filter_threshold,
-            depth_confidence=depth_confidence,
-            width_confidence=width_confidence,
-            weights_dir=weights_dir,
-            device=device,
-            verify_weights=verify_weights,
-            polish=polish,
-        )
+        super().__init__(settings)
         self.nms_window = int(nms_window)
         self.score_threshold = float(score_threshold)
 
@@ -102,8 +83,8 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
             kpts, desc, scores = feats.keypoints, feats.descriptors, feats.detection_scores
             inside = unpadded(kpts, images[0].shape)
             kpts, desc, scores = kpts[inside], desc[inside], scores[inside]
-            if len(scores) > self.max_keypoints:
-                top = torch.topk(scores, self.max_keypoints).indices
+            if len(scores) > self.settings.max_keypoints:
+                top = torch.topk(scores, self.settings.max_keypoints).indices
                 kpts, desc = kpts[top], desc[top]
             out.append({"keypoints": kpts, "descriptors": desc})
         return out

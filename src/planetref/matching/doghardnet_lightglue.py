@@ -25,8 +25,7 @@ Checkpoints (neither is available on the development machines):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from os import PathLike
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -39,6 +38,7 @@ from planetref.matching._torch import (
     image_tensor,
     load_into,
 )
+from planetref.matching.options import LightGlueSettings
 from planetref.matching.sift import to_uint8
 
 __all__ = ["DogHardNetLightGlueMatcher", "hardnet_state_dict"]
@@ -64,11 +64,12 @@ class DogHardNetLightGlueMatcher(SparseLightGlueMatcher):
     """DoG + HardNet + LightGlue, a learned sparse matcher.
 
     Args:
-        max_keypoints: DoG keypoints kept per image (strongest responses).
+        settings: Keypoint budget (DoG keeps the strongest responses), model image size,
+            LightGlue thresholds, weights, device, polish (see
+            :class:`~planetref.matching.options.LightGlueSettings`).
         contrast_threshold: OpenCV SIFT ``contrastThreshold`` of the DoG detector.
         edge_threshold: OpenCV SIFT ``edgeThreshold``.
         n_octave_layers: OpenCV SIFT ``nOctaveLayers`` (4, as cvg/LightGlue's DoGHardNet).
-        **kwargs: See :class:`~planetref.matching._torch.SparseLightGlueMatcher`.
     """
 
     name: ClassVar[str] = "doghardnet-lightglue"
@@ -78,31 +79,13 @@ class DogHardNetLightGlueMatcher(SparseLightGlueMatcher):
 
     def __init__(
         self,
+        settings: LightGlueSettings | None = None,
         *,
-        max_keypoints: int = 4096,
         contrast_threshold: float = 0.01,
         edge_threshold: float = 10.0,
         n_octave_layers: int = 4,
-        max_size: int | None = 2048,
-        filter_threshold: float = 0.1,
-        depth_confidence: float | None = None,
-        width_confidence: float | None = None,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
     ) -> None:
-        super().__init__(
-            max_keypoints=max_keypoints,
-            max_size=max_size,
-            filter_threshold=filter_threshold,
-            depth_confidence=depth_confidence,
-            width_confidence=width_confidence,
-            weights_dir=weights_dir,
-            device=device,
-            verify_weights=verify_weights,
-            polish=polish,
-        )
+        super().__init__(settings)
         self.contrast_threshold = float(contrast_threshold)
         self.edge_threshold = float(edge_threshold)
         self.n_octave_layers = int(n_octave_layers)
@@ -126,7 +109,7 @@ class DogHardNetLightGlueMatcher(SparseLightGlueMatcher):
         from kornia.feature import laf_from_center_scale_ori
 
         sift = cv2.SIFT_create(
-            nfeatures=self.max_keypoints,
+            nfeatures=self.settings.max_keypoints,
             nOctaveLayers=self.n_octave_layers,
             contrastThreshold=self.contrast_threshold,
             edgeThreshold=self.edge_threshold,

@@ -19,8 +19,7 @@ accepted too). Every key of ``kornia.feature.LoFTR`` must be present.
 from __future__ import annotations
 
 import copy
-from os import PathLike
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ from numpy.typing import NDArray
 from planetref.errors import InputError, WeightsError
 from planetref.matching._torch import TorchMatcher, image_tensor, load_into, resize_image
 from planetref.matching.base import Matches
+from planetref.matching.options import TorchSettings
 
 __all__ = ["LoftrMatcher", "loftr_state_dict"]
 
@@ -61,12 +61,10 @@ class LoftrMatcher(TorchMatcher):
     """LoFTR outdoor matcher.
 
     Args:
+        settings: Weights, device, polish (see
+            :class:`~planetref.matching.options.TorchSettings`).
         max_size: Longer side, pixels, of the images fed to the network (downscaled above).
         confidence_threshold: Coarse matching threshold (LoFTR's ``match_coarse.thr``).
-        weights_dir: See :class:`~planetref.matching._torch.TorchMatcher`.
-        device: See :class:`~planetref.matching._torch.TorchMatcher`.
-        verify_weights: See :class:`~planetref.matching._torch.TorchMatcher`.
-        polish: See :class:`~planetref.matching._torch.TorchMatcher`.
     """
 
     name: ClassVar[str] = "loftr"
@@ -74,13 +72,10 @@ class LoftrMatcher(TorchMatcher):
 
     def __init__(
         self,
+        settings: TorchSettings | None = None,
         *,
         max_size: int = 1024,
         confidence_threshold: float = 0.2,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
     ) -> None:
         if int(max_size) < 32:
             raise InputError(f"must be >= 32, got {max_size}", field="max_size")
@@ -88,9 +83,7 @@ class LoftrMatcher(TorchMatcher):
             raise InputError(
                 f"must be in [0, 1), got {confidence_threshold}", field="confidence_threshold"
             )
-        super().__init__(
-            weights_dir=weights_dir, device=device, verify_weights=verify_weights, polish=polish
-        )
+        super().__init__(settings)
         self.max_size = int(max_size)
         self.confidence_threshold = float(confidence_threshold)
 

@@ -7,7 +7,6 @@ Each factory imports its module only when called, so importing the registry (or 
 from __future__ import annotations
 
 import importlib
-import inspect
 from collections.abc import Callable
 from os import PathLike
 from typing import Any, NamedTuple
@@ -35,18 +34,14 @@ def _factory(module: str, cls: str, *, learned: bool) -> Callable[..., Matcher]:
             raise InputError(
                 f"{target.name} runs on the CPU only, got device {device!r}", field="device"
             )
-        accepted = [
-            p.name
-            for p in inspect.signature(target).parameters.values()
-            if p.kind is inspect.Parameter.KEYWORD_ONLY
-        ]
-        unknown = sorted(set(options) - set(accepted))
+        accepted = set(target.option_names())
+        unknown = sorted(set(options) - accepted)
         if unknown:
             raise InputError(
                 f"unknown option(s) {', '.join(unknown)} for matcher {target.name!r}; "
-                f"valid options: {', '.join(sorted(set(accepted) - {'weights_dir', 'device'}))}"
+                f"valid options: {', '.join(sorted(accepted - {'weights_dir', 'device'}))}"
             )
-        return target(**options)
+        return target.from_options(**options)
 
     make.__name__ = f"make_{cls}"
     make.__doc__ = f"Build :class:`planetref.matching.{module}.{cls}` (imported on call)."

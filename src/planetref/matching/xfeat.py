@@ -42,8 +42,7 @@ XFeat* (semi-dense)
 from __future__ import annotations
 
 from collections.abc import Sequence
-from os import PathLike
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -61,6 +60,7 @@ from planetref.matching._torch import (
     unpadded,
 )
 from planetref.matching.base import Matches, keypoints_on_valid_pixels
+from planetref.matching.options import LightGlueSettings, TorchSettings
 
 __all__ = ["XFeatLighterGlueMatcher", "XFeatStarMatcher"]
 
@@ -80,9 +80,9 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
     """XFeat sparse keypoints + LighterGlue, a learned sparse matcher.
 
     Args:
-        max_keypoints: Keypoint budget per image.
+        settings: Keypoint budget, model image size, LightGlue thresholds, weights, device,
+            polish (see :class:`~planetref.matching.options.LightGlueSettings`).
         detection_threshold: XFeat keypoint-heatmap threshold.
-        **kwargs: See :class:`~planetref.matching._torch.SparseLightGlueMatcher`.
     """
 
     name: ClassVar[str] = "xfeat-lighterglue"
@@ -92,34 +92,16 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
 
     def __init__(
         self,
+        settings: LightGlueSettings | None = None,
         *,
-        max_keypoints: int = 4096,
         detection_threshold: float = 0.05,
-        max_size: int | None = 2048,
-        filter_threshold: float = 0.1,
-        depth_confidence: float | None = None,
-        width_confidence: float | None = None,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
-        polish: Literal["ncc"] | None = None,
     ) -> None:
-        super().__init__(
-            max_keypoints=max_keypoints,
-            max_size=max_size,
-            filter_threshold=filter_threshold,
-            depth_confidence=depth_confidence,
-            width_confidence=width_confidence,
-            weights_dir=weights_dir,
-            device=device,
-            verify_weights=verify_weights,
-            polish=polish,
-        )
+        super().__init__(settings)
         self.detection_threshold = float(detection_threshold)
 
     def _build_extractor(self) -> Any:
         return _build_xfeat(
-            self._checkpoint(XFEAT_WEIGHTS), self.max_keypoints, self.detection_threshold
+            self._checkpoint(XFEAT_WEIGHTS), self.settings.max_keypoints, self.detection_threshold
         )
 
     def _extract_batch(
@@ -127,7 +109,7 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
     ) -> list[dict[str, torch.Tensor]]:
         t = pad_to_multiple(image_batch(images, self.device), 32)
         out = []
-        for f in self._model["extractor"].detectAndCompute(t, top_k=self.max_keypoints):
+        for f in self._model["extractor"].detectAndCompute(t, top_k=self.settings.max_keypoints):
             kpts = f["keypoints"].float()
             inside = unpadded(kpts, images[0].shape)
             out.append({"keypoints": kpts[inside], "descriptors": f["descriptors"][inside]})
@@ -143,11 +125,8 @@ class XFeatStarMatcher(TorchMatcher):
             the others share the rest equally (XFeat*'s 0.6 / 1.3 recipe by default).
         fine_confidence: Minimum confidence of the refinement head (XFeat* uses 0.25).
         max_size: Longer image sides above this many pixels scale all ``scales`` down.
-        polish: ``None`` (XFeat* as published) or ``"ncc"`` (see
-            :class:`~planetref.matching._torch.TorchMatcher`).
-        weights_dir: See :class:`~planetref.matching._torch.TorchMatcher`.
-        device: See :class:`~planetref.matching._torch.TorchMatcher`.
-        verify_weights: See :class:`~planetref.matching._torch.TorchMatcher`.
+        settings: Weights, device, polish (``None``: XFeat* as published) (see
+            :class:`~planetref.matching.options.TorchSettings`).
     """
 
     name: ClassVar[str] = "xfeat-star"
@@ -158,24 +137,19 @@ class XFeatStarMatcher(TorchMatcher):
 
     def __init__(
         self,
+        settings: TorchSettings | None = None,
         *,
         top_k: int = 8000,
         scales: tuple[float, ...] = (0.6, 1.3),
         fine_confidence: float = 0.25,
         max_size: int | None = 2048,
-        polish: Literal["ncc"] | None = None,
-        weights_dir: str | PathLike[str] | None = None,
-        device: str | torch.device | None = "cpu",
-        verify_weights: bool = True,
     ) -> None:
         if int(top_k) < 2:
             raise InputError(f"must be >= 2, got {top_k}", field="top_k")
         scales = tuple(float(s) for s in scales)
         if not scales or any(not (0.05 <= s <= 8.0) for s in scales):
             raise InputError(f"scales must be in [0.05, 8], got {scales}", field="scales")
-        super().__init__(
-            weights_dir=weights_dir, device=device, verify_weights=verify_weights, polish=polish
-        )
+        super().__init__(settings)
         self.top_k = int(top_k)
         self.scales = scales
         self.fine_confidence = float(fine_confidence)
