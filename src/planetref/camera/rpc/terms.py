@@ -7,7 +7,8 @@ normalised ground coordinates ``L`` (longitude), ``P`` (latitude) and ``H`` (hei
 
 Each function returns the terms (or their derivative with respect to one coordinate)
 stacked on a new last axis of length 20, so ``terms @ coefficients`` evaluates the
-polynomials.
+polynomials. The terms and the three derivatives are all generated from :data:`TERMS`, so
+the calculus is written once.
 """
 
 from __future__ import annotations
@@ -17,129 +18,65 @@ from numpy.typing import NDArray
 
 __all__: list[str] = []
 
+#: The 20 monomials in RPC00B order, each the product of its letters (left to right).
+TERMS: tuple[str, ...] = (
+    *("", "L", "P", "H", "LP", "LH", "PH", "LL", "PP", "HH"),
+    *("PLH", "LLL", "LPP", "LHH", "LLP", "PPP", "PHH", "LLH", "PPH", "HHH"),
+)
+
+
+def _monomials(
+    L: NDArray[np.float64],
+    P: NDArray[np.float64],
+    H: NDArray[np.float64],
+    wrt: str | None = None,
+) -> NDArray[np.float64]:
+    """The 20 terms, or their derivatives with respect to ``wrt`` (``"L"``, ``"P"``, ``"H"``).
+
+    The derivative of a monomial is its exponent of ``wrt`` times the monomial with one
+    factor ``wrt`` fewer (zero when it has none).
+    """
+    L, P, H = np.broadcast_arrays(L, P, H)
+    value = {"L": L, "P": P, "H": H}
+    columns = []
+    for term in TERMS:
+        power = 1
+        if wrt is not None:
+            power = term.count(wrt)
+            term = term.replace(wrt, "", 1)
+        if power == 0:
+            columns.append(np.zeros_like(L))
+        elif not term:
+            columns.append(np.ones_like(L))
+        elif len(term) == 3 and len(set(term)) == 1:
+            columns.append(value[term[0]] ** 3)
+        else:
+            product = value[term[0]] if power == 1 else power * value[term[0]]
+            for name in term[1:]:
+                product = product * value[name]
+            columns.append(product)
+    return np.stack(columns, axis=-1)
+
 
 def _terms(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    return np.stack(
-        [
-            np.ones_like(L),
-            L,
-            P,
-            H,
-            L * P,
-            L * H,
-            P * H,
-            L * L,
-            P * P,
-            H * H,
-            P * L * H,
-            L**3,
-            L * P * P,
-            L * H * H,
-            L * L * P,
-            P**3,
-            P * H * H,
-            L * L * H,
-            P * P * H,
-            H**3,
-        ],
-        axis=-1,
-    )
+    return _monomials(L, P, H)
 
 
 def _terms_dl(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack(
-        [
-            z,
-            o,
-            z,
-            z,
-            P,
-            H,
-            z,
-            2 * L,
-            z,
-            z,
-            P * H,
-            3 * L * L,
-            P * P,
-            H * H,
-            2 * L * P,
-            z,
-            z,
-            2 * L * H,
-            z,
-            z,
-        ],
-        axis=-1,
-    )
+    return _monomials(L, P, H, "L")
 
 
 def _terms_dp(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack(
-        [
-            z,
-            z,
-            o,
-            z,
-            L,
-            z,
-            H,
-            z,
-            2 * P,
-            z,
-            L * H,
-            z,
-            2 * L * P,
-            z,
-            L * L,
-            3 * P * P,
-            H * H,
-            z,
-            2 * P * H,
-            z,
-        ],
-        axis=-1,
-    )
+    return _monomials(L, P, H, "P")
 
 
 def _terms_dh(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    L, P, H = np.broadcast_arrays(L, P, H)
-    z, o = np.zeros_like(L), np.ones_like(L)
-    return np.stack(
-        [
-            z,
-            z,
-            z,
-            o,
-            z,
-            L,
-            P,
-            z,
-            z,
-            2 * H,
-            P * L,
-            z,
-            z,
-            2 * L * H,
-            z,
-            z,
-            2 * P * H,
-            L * L,
-            P * P,
-            3 * H * H,
-        ],
-        axis=-1,
-    )
+    return _monomials(L, P, H, "H")
