@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from planetref.errors import InputError
-from planetref.matching import get_matcher
+from planetref.matching import MATCHERS, get_matcher
 from planetref.matching.options import LightGlueSettings, TorchSettings, split_options
 
 TORCH_KEYS = ["weights_dir", "device", "verify_weights", "polish"]
@@ -87,6 +87,8 @@ def test_flat_option_names_are_unchanged(name):
     }[name]
     target = getattr(importlib.import_module(f"planetref.matching.{module}"), cls)
     assert sorted(target.option_names()) == sorted(FLAT_KEYS[name])
+    # the registry lists the weight files the class loads (availability, downloads)
+    assert MATCHERS[name].weights == target.weight_files and target.name == name
 
 
 def test_get_matcher_builds_settings_and_own_options(shared_weights):

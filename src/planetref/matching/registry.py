@@ -12,7 +12,7 @@ from os import PathLike
 from typing import Any, NamedTuple
 
 from planetref.errors import InputError
-from planetref.matching.base import Matcher, MatcherSpec
+from planetref.matching.base import Matcher, MatcherSpec, Paradigm
 from planetref.matching.weights import missing_weights, resolve_weight
 
 __all__ = ["MATCHERS", "MatcherAvailability", "available_matchers", "get_matcher"]
@@ -48,63 +48,77 @@ def _factory(module: str, cls: str, *, learned: bool) -> Callable[..., Matcher]:
     return make
 
 
+def _spec(
+    name: str, paradigm: Paradigm, target: str, description: str, weights: tuple[str, ...] = ()
+) -> MatcherSpec:
+    """A registry entry; ``target`` is ``"<module>.<class>"`` inside ``planetref.matching``.
+
+    A matcher with weight files is a learned (torch) one: its factory passes it the weights
+    directory and the device.
+    """
+    module, cls = target.split(".")
+    factory = _factory(module, cls, learned=bool(weights))
+    return MatcherSpec(name, description, paradigm, weights, factory)
+
+
 MATCHERS: dict[str, MatcherSpec] = {
-    "sift": MatcherSpec(
-        name="sift",
-        description="OpenCV SIFT, Lowe ratio test and mutual check",
-        paradigm="handcrafted",
-        weights=(),
-        factory=_factory("sift", "SiftMatcher", learned=False),
-    ),
-    "doghardnet-lightglue": MatcherSpec(
-        name="doghardnet-lightglue",
-        description="DoG keypoints, HardNet descriptors, LightGlue (doghardnet)",
-        paradigm="learned sparse",
-        weights=("checkpoint_liberty_with_aug.pth", "doghardnet_v0-1_arxiv-pth"),
-        factory=_factory("doghardnet_lightglue", "DogHardNetLightGlueMatcher", learned=True),
-    ),
-    "disk-lightglue": MatcherSpec(
-        name="disk-lightglue",
-        description="DISK (depth) keypoints and descriptors, LightGlue (disk)",
-        paradigm="learned sparse",
-        weights=("depth-save.pth", "disk_lightglue_v0-1_arxiv-pth"),
-        factory=_factory("disk_lightglue", "DiskLightGlueMatcher", learned=True),
-    ),
-    "loftr": MatcherSpec(
-        name="loftr",
-        description="LoFTR (outdoor), detector-free coarse-to-fine transformer matching",
-        paradigm="detector-free dense",
-        weights=("loftr_outdoor.ckpt",),
-        factory=_factory("loftr", "LoftrMatcher", learned=True),
-    ),
-    "aliked-lightglue": MatcherSpec(
-        name="aliked-lightglue",
-        description="ALIKED-N16 keypoints and descriptors, LightGlue (aliked)",
-        paradigm="learned sparse",
-        weights=("aliked-n16.pth", "aliked_lightglue_v0-1_arxiv-pth"),
-        factory=_factory("aliked_lightglue", "AlikedLightGlueMatcher", learned=True),
-    ),
-    "xfeat-lighterglue": MatcherSpec(
-        name="xfeat-lighterglue",
-        description="XFeat sparse keypoints, LighterGlue (LightGlue xfeat)",
-        paradigm="learned sparse",
-        weights=("xfeat.pt", "xfeat-lighterglue.pt"),
-        factory=_factory("xfeat", "XFeatLighterGlueMatcher", learned=True),
-    ),
-    "xfeat-star": MatcherSpec(
-        name="xfeat-star",
-        description="XFeat* semi-dense coarse matching with learned sub-cell refinement",
-        paradigm="semi-dense",
-        weights=("xfeat.pt",),
-        factory=_factory("xfeat", "XFeatStarMatcher", learned=True),
-    ),
-    "ncc": MatcherSpec(
-        name="ncc",
-        description="Normalised cross-correlation of grid templates, sub-pixel peak fit",
-        paradigm="area-based",
-        weights=(),
-        factory=_factory("ncc", "NccMatcher", learned=False),
-    ),
+    spec.name: spec
+    for spec in (
+        _spec(
+            "sift",
+            "handcrafted",
+            "sift.SiftMatcher",
+            "OpenCV SIFT, Lowe ratio test and mutual check",
+        ),
+        _spec(
+            "doghardnet-lightglue",
+            "learned sparse",
+            "doghardnet_lightglue.DogHardNetLightGlueMatcher",
+            "DoG keypoints, HardNet descriptors, LightGlue (doghardnet)",
+            ("checkpoint_liberty_with_aug.pth", "doghardnet_v0-1_arxiv-pth"),
+        ),
+        _spec(
+            "disk-lightglue",
+            "learned sparse",
+            "disk_lightglue.DiskLightGlueMatcher",
+            "DISK (depth) keypoints and descriptors, LightGlue (disk)",
+            ("depth-save.pth", "disk_lightglue_v0-1_arxiv-pth"),
+        ),
+        _spec(
+            "loftr",
+            "detector-free dense",
+            "loftr.LoftrMatcher",
+            "LoFTR (outdoor), detector-free coarse-to-fine transformer matching",
+            ("loftr_outdoor.ckpt",),
+        ),
+        _spec(
+            "aliked-lightglue",
+            "learned sparse",
+            "aliked_lightglue.AlikedLightGlueMatcher",
+            "ALIKED-N16 keypoints and descriptors, LightGlue (aliked)",
+            ("aliked-n16.pth", "aliked_lightglue_v0-1_arxiv-pth"),
+        ),
+        _spec(
+            "xfeat-lighterglue",
+            "learned sparse",
+            "xfeat.XFeatLighterGlueMatcher",
+            "XFeat sparse keypoints, LighterGlue (LightGlue xfeat)",
+            ("xfeat.pt", "xfeat-lighterglue.pt"),
+        ),
+        _spec(
+            "xfeat-star",
+            "semi-dense",
+            "xfeat.XFeatStarMatcher",
+            "XFeat* semi-dense coarse matching with learned sub-cell refinement",
+            ("xfeat.pt",),
+        ),
+        _spec(
+            "ncc",
+            "area-based",
+            "ncc.NccMatcher",
+            "Normalised cross-correlation of grid templates, sub-pixel peak fit",
+        ),
+    )
 }
 
 
