@@ -20,7 +20,12 @@ import torch.nn.functional as F
 from numpy.typing import NDArray
 
 from planetref.errors import InputError, WeightsError
-from planetref.matching.base import BaseMatcher, Matches, keypoints_on_valid_pixels
+from planetref.matching.base import (
+    BaseMatcher,
+    Matches,
+    NormalisedPair,
+    keypoints_on_valid_pixels,
+)
 from planetref.matching.options import LightGlueSettings, TorchSettings
 from planetref.matching.weights import load_checkpoint, require_weights, weights_dir
 
@@ -306,25 +311,24 @@ class TorchMatcher(BaseMatcher):
         image1: NDArray[np.float32],
         valid1: NDArray[np.bool_],
     ) -> Matches:
+        pair = NormalisedPair(image0, valid0, image1, valid1)
         if self._model is None:
             self.build()
         with torch.inference_mode():
-            result = self._run(image0, valid0, image1, valid1)
-        if self.settings.polish == "ncc":
-            from planetref.matching.ncc import refine_matches_ncc
+            result = self._run(pair)
+        return self._polished([pair], [result])[0]
 
-            with self._timed("polish"):
-                result = refine_matches_ncc(image0, valid0, image1, valid1, result)
-        return result
+    def _polished(self, pairs: Sequence[NormalisedPair], results: list[Matches]) -> list[Matches]:
+        """The results, each refined by NCC when :attr:`settings` ask for ``polish="ncc"``."""
+        if self.settings.polish != "ncc":
+            return results
+        from planetref.matching.ncc import refine_matches_ncc
+
+        with self._timed("polish"):
+            return [refine_matches_ncc(*p, m) for p, m in zip(pairs, results, strict=True)]
 
     @abstractmethod
-    def _run(
-        self,
-        image0: NDArray[np.float32],
-        valid0: NDArray[np.bool_],
-        image1: NDArray[np.float32],
-        valid1: NDArray[np.bool_],
-    ) -> Matches:
+    def _run(self, pair: NormalisedPair) -> Matches:
         """Match normalised images under ``torch.inference_mode``."""
 
 
@@ -442,21 +446,13 @@ class SparseLightGlueMatcher(TorchMatcher):
             for f, m, v in zip(feats, models, valids, strict=True)
         ]
 
-    def _run(
-        self,
-        image0: NDArray[np.float32],
-        valid0: NDArray[np.bool_],
-        image1: NDArray[np.float32],
-        valid1: NDArray[np.bool_],
-    ) -> Matches:
-        return self._glue(self._features(image0, valid0), self._features(image1, valid1))
+    def _run(self, pair: NormalisedPair) -> Matches:
+        return self._glue(
+            self._features(pair.image0, pair.valid0), self._features(pair.image1, pair.valid1)
+        )
 
     def _match_normalised_many(
-        self,
-        inputs: list[
-            tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]]
-        ],
-        batch_size: int,
+        self, inputs: list[NormalisedPair], batch_size: int
     ) -> list[Matches]:
         """Features of all images in batches of one shape, then LightGlue pair by pair.
 
@@ -468,19 +464,11 @@ class SparseLightGlueMatcher(TorchMatcher):
         if self._model is None:
             self.build()
         with torch.inference_mode():
-            images = [im for x in inputs for im in (x[0], x[2])]
-            valids = [v for x in inputs for v in (x[1], x[3])]
+            images = [im for x in inputs for im in (x.image0, x.image1)]
+            valids = [v for x in inputs for v in (x.valid0, x.valid1)]
             feats = self._features_batched(images, valids, batch_size)
             out = [self._glue(feats[2 * i], feats[2 * i + 1]) for i in range(len(inputs))]
-        if self.settings.polish == "ncc":
-            from planetref.matching.ncc import refine_matches_ncc
-
-            with self._timed("polish"):
-                out = [
-                    refine_matches_ncc(x[0], x[1], x[2], x[3], m)
-                    for x, m in zip(inputs, out, strict=True)
-                ]
-        return out
+        return self._polished(inputs, out)
 
     def _glue(self, f0: dict[str, Any], f1: dict[str, Any]) -> Matches:
         """LightGlue on the features of two images."""

@@ -23,7 +23,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar, Literal, Protocol, runtime_checkable
+from typing import Any, ClassVar, Literal, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,6 +37,7 @@ __all__ = [
     "Matcher",
     "MatcherSpec",
     "Matches",
+    "NormalisedPair",
     "Paradigm",
     "keypoints_on_valid_pixels",
     "prepare_image",
@@ -346,6 +347,19 @@ def keypoints_on_valid_pixels(
 # --------------------------------------------------------------------------- base class
 
 
+class NormalisedPair(NamedTuple):
+    """Two images robustly normalised to ``[0, 1]`` (invalid pixels filled) and their masks.
+
+    What :meth:`BaseMatcher._match_normalised` receives (unpacked) and the torch matchers'
+    ``_run`` receives whole.
+    """
+
+    image0: NDArray[np.float32]
+    valid0: NDArray[np.bool_]
+    image1: NDArray[np.float32]
+    valid1: NDArray[np.bool_]
+
+
 class BaseMatcher(ABC):
     """Shared input handling for planetref matchers.
 
@@ -428,7 +442,7 @@ class BaseMatcher(ABC):
         if inputs is None:
             result = Matches.empty()
         else:
-            result = self._valid_only(self._match_normalised(*inputs), inputs[1], inputs[3])
+            result = self._valid_only(self._match_normalised(*inputs), inputs.valid0, inputs.valid1)
         self._close_timings(time.perf_counter() - start)
         return result
 
@@ -438,9 +452,7 @@ class BaseMatcher(ABC):
         image1: ArrayLike,
         mask0: ArrayLike | None,
         mask1: ArrayLike | None,
-    ) -> (
-        tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]] | None
-    ):
+    ) -> NormalisedPair | None:
         """Validated, robustly normalised ``(image0, valid0, image1, valid1)``; None if flat."""
         with self._timed("normalise"):
             img0, valid0 = prepare_image(image0, mask0, which="image0")
@@ -451,7 +463,7 @@ class BaseMatcher(ABC):
             norm1, flat1 = robust_normalise(img1, valid1)
         if flat0 or flat1:
             return None
-        return norm0, valid0, norm1, valid1
+        return NormalisedPair(norm0, valid0, norm1, valid1)
 
     @staticmethod
     def _valid_only(
@@ -500,16 +512,14 @@ class BaseMatcher(ABC):
         done = self._match_normalised_many([x for x in inputs if x is not None], int(batch_size))
         out, it = [], iter(done)
         for x in inputs:
-            out.append(Matches.empty() if x is None else self._valid_only(next(it), x[1], x[3]))
+            out.append(
+                Matches.empty() if x is None else self._valid_only(next(it), x.valid0, x.valid1)
+            )
         self._close_timings(time.perf_counter() - start)
         return out
 
     def _match_normalised_many(
-        self,
-        inputs: list[
-            tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.float32], NDArray[np.bool_]]
-        ],
-        batch_size: int,
+        self, inputs: list[NormalisedPair], batch_size: int
     ) -> list[Matches]:
         """:meth:`_match_normalised` of several pairs (one at a time unless overridden)."""
         return [self._match_normalised(*x) for x in inputs]

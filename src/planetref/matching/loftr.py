@@ -21,13 +21,11 @@ from __future__ import annotations
 import copy
 from typing import Any, ClassVar
 
-import numpy as np
 import torch
-from numpy.typing import NDArray
 
 from planetref.errors import InputError, WeightsError
 from planetref.matching._torch import TorchMatcher, image_tensor, load_into, resize_image
-from planetref.matching.base import Matches
+from planetref.matching.base import Matches, NormalisedPair
 from planetref.matching.options import TorchSettings
 
 __all__ = ["LoftrMatcher", "loftr_state_dict"]
@@ -124,15 +122,9 @@ class LoftrMatcher(TorchMatcher):
         s = min(1.0, self.max_size / max(h, w))
         return max(8, round(h * s / 8) * 8), max(8, round(w * s / 8) * 8)
 
-    def _run(
-        self,
-        image0: NDArray[np.float32],
-        valid0: NDArray[np.bool_],
-        image1: NDArray[np.float32],
-        valid1: NDArray[np.bool_],
-    ) -> Matches:
-        r0, sx0, sy0 = resize_image(image0, self._network_size(image0.shape))
-        r1, sx1, sy1 = resize_image(image1, self._network_size(image1.shape))
+    def _run(self, pair: NormalisedPair) -> Matches:
+        r0, sx0, sy0 = resize_image(pair.image0, self._network_size(pair.image0.shape))
+        r1, sx1, sy1 = resize_image(pair.image1, self._network_size(pair.image1.shape))
         data = {"image0": image_tensor(r0, self.device), "image1": image_tensor(r1, self.device)}
         with self._timed("forward"):
             out = self._model(data)

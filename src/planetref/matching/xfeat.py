@@ -59,7 +59,7 @@ from planetref.matching._torch import (
     pad_to_multiple,
     unpadded,
 )
-from planetref.matching.base import Matches, keypoints_on_valid_pixels
+from planetref.matching.base import Matches, NormalisedPair, keypoints_on_valid_pixels
 from planetref.matching.options import LightGlueSettings, TorchSettings
 
 __all__ = ["XFeatLighterGlueMatcher", "XFeatStarMatcher"]
@@ -215,15 +215,9 @@ class XFeatStarMatcher(TorchMatcher):
             return np.empty((0, 2)), torch.empty(0, 64, device=self.device), np.empty((0, 2))
         return np.concatenate(anchors), torch.cat(feats), np.concatenate(cell_px)
 
-    def _run(
-        self,
-        image0: NDArray[np.float32],
-        valid0: NDArray[np.bool_],
-        image1: NDArray[np.float32],
-        valid1: NDArray[np.bool_],
-    ) -> Matches:
-        a0, f0, px0 = self._cells(image0, valid0)
-        a1, f1, px1 = self._cells(image1, valid1)
+    def _run(self, pair: NormalisedPair) -> Matches:
+        a0, f0, px0 = self._cells(pair.image0, pair.valid0)
+        a1, f1, px1 = self._cells(pair.image1, pair.valid1)
         if len(a0) < 2 or len(a1) < 2:
             return Matches.empty()
         with self._timed("forward"):
