@@ -126,6 +126,22 @@ def _ographic_to_ocentric(lat_g: NDArray[np.float64], ell: Ellipsoid) -> NDArray
     return np.arctan2(ratio * np.sin(lat_g), np.cos(lat_g))
 
 
+def _latitude_as(
+    lat_deg: ArrayLike, source: str, target: str, ell: Ellipsoid
+) -> NDArray[np.float64]:
+    """A latitude in degrees of kind ``source`` as one of kind ``target``, in degrees.
+
+    Only planetocentric <-> planetographic converts (for points on the ellipsoid surface);
+    any other pair returns the latitude unchanged (via radians and back).
+    """
+    lat = np.radians(np.asarray(lat_deg, float))
+    if (source, target) == ("planetocentric", "planetographic"):
+        lat = _ocentric_to_ographic(lat, ell)
+    elif (source, target) == ("planetographic", "planetocentric"):
+        lat = _ographic_to_ocentric(lat, ell)
+    return np.degrees(lat)
+
+
 def lonlat_to_xyz(
     lon_deg: ArrayLike,
     lat_deg: ArrayLike,
@@ -390,10 +406,7 @@ class CrsGround:
             lon, lat = self._to_lonlat.transform(x, y)
             return np.asarray(lon, float), np.asarray(lat, float)
         sign, kind = self._geographic
-        lat = np.radians(y)
-        if kind == "planetocentric":
-            lat = _ocentric_to_ographic(lat, self.ellipsoid)
-        return sign * x, np.degrees(lat)
+        return sign * x, _latitude_as(y, kind, "planetographic", self.ellipsoid)
 
     def _geodetic_to_map(
         self, lon: ArrayLike, lat: ArrayLike
@@ -403,10 +416,7 @@ class CrsGround:
             x, y = self._from_lonlat.transform(lon, lat)
             return np.asarray(x, float), np.asarray(y, float)
         sign, kind = self._geographic
-        lat_r = np.radians(lat)
-        if kind == "planetocentric":
-            lat_r = _ographic_to_ocentric(lat_r, self.ellipsoid)
-        return sign * wrap_longitude(lon), np.degrees(lat_r)
+        return sign * wrap_longitude(lon), _latitude_as(lat, "planetographic", kind, self.ellipsoid)
 
     def map_to_xyz(self, x: ArrayLike, y: ArrayLike, height_m: ArrayLike) -> NDArray[np.float64]:
         """Map coordinates (CRS units, x/easting first) and heights (m) to XYZ (m)."""
@@ -425,17 +435,12 @@ class CrsGround:
         self, lon_deg: ArrayLike, lat_deg: ArrayLike, latitude: LatitudeKind = "planetocentric"
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Longitude/latitude (degrees, east-positive) to map coordinates."""
-        lat = np.radians(np.asarray(lat_deg, float))
-        if latitude == "planetocentric":
-            lat = _ocentric_to_ographic(lat, self.ellipsoid)
-        return self._geodetic_to_map(np.asarray(lon_deg, float), np.degrees(lat))
+        lat = _latitude_as(lat_deg, latitude, "planetographic", self.ellipsoid)
+        return self._geodetic_to_map(np.asarray(lon_deg, float), lat)
 
     def map_to_lonlat(
         self, x: ArrayLike, y: ArrayLike, latitude: LatitudeKind = "planetocentric"
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Map coordinates to longitude/latitude in degrees (east-positive, [-180, 180))."""
         lon, lat = self._map_to_geodetic(x, y)
-        lat = np.radians(lat)
-        if latitude == "planetocentric":
-            lat = _ographic_to_ocentric(lat, self.ellipsoid)
-        return wrap_longitude(lon), np.degrees(lat)
+        return wrap_longitude(lon), _latitude_as(lat, "planetographic", latitude, self.ellipsoid)
