@@ -29,6 +29,7 @@ __all__ = [
     "ThreadBudget",
     "apply_thread_budget",
     "available_cores",
+    "compute_threads",
     "scheduler_workers",
     "single_threaded_blas",
     "worker_threads",
@@ -48,6 +49,23 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # pragma: no cover - non-Linux
         return max(1, os.cpu_count() or 1)
+
+
+def compute_threads(requested: int | None = None) -> int:
+    """Threads of planetref's own compiled kernels (the adjustment's chunk pool).
+
+    ``requested`` when given; otherwise ``OMP_NUM_THREADS`` when set (what
+    :func:`apply_thread_budget` grants each process: ``--threads 1`` means one thread,
+    and a pool worker gets its share), else the cores this process may use.
+    """
+    if requested is not None:
+        if requested < 1:
+            raise InputError(f"threads must be >= 1, got {requested}", field="threads")
+        return int(requested)
+    env = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if env.isdigit() and int(env) >= 1:
+        return min(int(env), available_cores())
+    return available_cores()
 
 
 def worker_threads(threads: int, n_workers: int) -> int:

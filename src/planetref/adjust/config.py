@@ -439,6 +439,10 @@ class SolverConfig(Settings):
             (before any rejection), later rounds are plain least squares on the inliers,
             as the seed's rule defines the solution; ``all``: every round is robust.
         chunk_size: Observations evaluated at once (memory/speed trade-off).
+        threads: Threads evaluating and accumulating chunks in parallel (``None``: the
+            process's thread budget, :func:`planetref.threads.compute_threads`). Each
+            thread sums its own contiguous share of the chunks; the shares are added
+            in order, so a given thread count gives the same numbers every run.
         min_rcond: Reciprocal condition number of the (Jacobi-scaled) reduced normal
             matrix below which the problem is declared degenerate.
     """
@@ -454,6 +458,7 @@ class SolverConfig(Settings):
     loss_threshold: float = Field(3.0, gt=0.0)
     loss_rounds: Literal["first", "all"] = "first"
     chunk_size: int = Field(8192, ge=256)
+    threads: int | None = Field(None, ge=1)
     min_rcond: float = Field(1e-14, gt=0.0, lt=1.0)
 
 

@@ -14,14 +14,20 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planetref._optional import optional_module
 from planetref.adjust.robust import robust_rho
+from planetref.threads import compute_threads
+
+if TYPE_CHECKING:
+    from planetref.adjust.models import Evaluation
 
 __all__ = ["LinearizationMixin"]
 
@@ -129,50 +135,52 @@ class LinearizationMixin:
         a_t = np.zeros((n_tie, 2, q))
         b_t = np.zeros((n_tie, 2, 3))
         gpat_t = np.zeros(n_tie, np.intp)
-        cs = self.cfg.chunk_size
         thr = self.threshold
         thr_l = thr if np.ndim(thr) == 0 else np.asarray(thr)[lay.obs]
         pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[lay.point]
         robust = self.loss != "linear"
-        for mi, ccd, a0, b0 in lay.ranges:
-            model = self.models[mi]
-            x = c[self.offsets[mi] : self.offsets[mi + 1]]
-            for a in range(a0, b0, cs):
-                b = min(a + cs, b0)
-                ev = model.evaluate(
-                    x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
-                )
-                if ev.line_rate is not None:
-                    rate[a:b] = ev.line_rate
-                res = r[a:b]
-                np.subtract(ev.line, lay.line[a:b], out=res[:, 0])
-                np.subtract(ev.sample, lay.sample[a:b], out=res[:, 1])
-                w0 = lay.w0[a:b]
-                s = np.einsum("mr,mr->m", res * res, w0)
-                ok = ev.valid
-                we = weight[a:b]
-                if robust:
-                    _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else thr_l[a:b])
-                    np.multiply(w0, rw[:, None], out=we)
-                else:
-                    we[:] = w0
-                if not np.all(ok):
-                    we[~ok] = 0.0
-                    s[~ok] = np.inf
-                res_ok = np.where(ok[:, None], res, 0.0)
-                valid[a:b], s_all[a:b] = ok, s
-                line[a:b], sample[a:b] = ev.line, ev.sample
-                gp = ev.pattern + self.pat_offsets[mi]
-                d = ev.d_params
-                qm = d.shape[2]
-                self._accumulate(n_cc, g_c, d, we, we * res_ok, gp, qm)
-                if n_tie:
-                    tp = tie_pos[a:b]
-                    is_t = tp >= 0
-                    if np.any(is_t):
-                        a_t[tp[is_t], :, :qm] = d[is_t]
-                        b_t[tp[is_t]] = ev.d_ground[is_t]
-                        gpat_t[tp[is_t]] = gp[is_t]
+        parts = self.chunk_parts(lay)
+        # One normal matrix per thread (its contiguous share of the chunks), summed in
+        # order below; every other output is a disjoint slice of the layout.
+        acc = [(n_cc, g_c)] + [(np.zeros_like(n_cc), np.zeros_like(g_c)) for _ in parts[1:]]
+
+        def work(k: int, mi: int, a: int, b: int, ev: Evaluation) -> None:
+            if ev.line_rate is not None:
+                rate[a:b] = ev.line_rate
+            res = r[a:b]
+            np.subtract(ev.line, lay.line[a:b], out=res[:, 0])
+            np.subtract(ev.sample, lay.sample[a:b], out=res[:, 1])
+            w0 = lay.w0[a:b]
+            s = np.einsum("mr,mr->m", res * res, w0)
+            ok = ev.valid
+            we = weight[a:b]
+            if robust:
+                _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else thr_l[a:b])
+                np.multiply(w0, rw[:, None], out=we)
+            else:
+                we[:] = w0
+            if not np.all(ok):
+                we[~ok] = 0.0
+                s[~ok] = np.inf
+            res_ok = np.where(ok[:, None], res, 0.0)
+            valid[a:b], s_all[a:b] = ok, s
+            line[a:b], sample[a:b] = ev.line, ev.sample
+            gp = ev.pattern + self.pat_offsets[mi]
+            d = ev.d_params
+            qm = d.shape[2]
+            self._accumulate(acc[k][0], acc[k][1], d, we, we * res_ok, gp, qm)
+            if n_tie:
+                tp = tie_pos[a:b]
+                is_t = tp >= 0
+                if np.any(is_t):
+                    a_t[tp[is_t], :, :qm] = d[is_t]
+                    b_t[tp[is_t]] = ev.d_ground[is_t]
+                    gpat_t[tp[is_t]] = gp[is_t]
+
+        self.map_chunks(lay, parts, c, pxyz, work)
+        for n_k, g_k in acc[1:]:
+            n_cc += n_k
+            g_c += g_k
         if robust:
             rho, _ = robust_rho(np.where(valid, s_all, 0.0), self.loss, thr_l)
         else:
@@ -203,6 +211,66 @@ class LinearizationMixin:
             rate,
             lay.obs,
         )
+
+    def chunk_parts(self, lay: _Layout) -> list[list[tuple[int, int, int, int]]]:
+        """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares per thread.
+
+        ``cfg.chunk_size`` observations per chunk, never across a (camera, CCD) range;
+        as many shares as :func:`~planetref.threads.compute_threads` grants (at most one
+        per chunk), balanced by observation count.
+        """
+        cs = self.cfg.chunk_size
+        chunks = [
+            (mi, ccd, a, min(a + cs, b0))
+            for mi, ccd, a0, b0 in lay.ranges
+            for a in range(a0, b0, cs)
+        ]
+        n = max(1, min(compute_threads(self.cfg.threads), len(chunks)))
+        if n == 1:
+            return [chunks]
+        m = len(lay.obs)
+        share = np.minimum(np.array([a for _, _, a, _ in chunks]) * n // max(m, 1), n - 1)
+        return [[ch for ch, k in zip(chunks, share, strict=True) if k == j] for j in range(n)]
+
+    def map_chunks(
+        self,
+        lay: _Layout,
+        parts: list[list[tuple[int, int, int, int]]],
+        c: F64,
+        pxyz: F64,
+        work: Callable[[int, int, int, int, Evaluation], None],
+    ) -> None:
+        """Evaluate the models (projection and partials) chunk by chunk over a layout.
+
+        The one loop over the observations that the linearisation and the redundancy
+        numbers share: ``work(share, model, start, stop, evaluation)`` is called for
+        every chunk of ``parts`` (:meth:`chunk_parts`), each share in its own thread
+        (the compiled kernels release the GIL). ``work`` must write only to its rows
+        ``start:stop`` and to accumulators of its own share.
+
+        Args:
+            lay: The layout (observed lines, guesses).
+            parts: The shares of chunks.
+            c: Global camera vector.
+            pxyz: Ground coordinates of every layout row, ``(M, 3)``.
+            work: The per-chunk consumer.
+        """
+
+        def run(k: int) -> None:
+            for mi, ccd, a, b in parts[k]:
+                x = c[self.offsets[mi] : self.offsets[mi + 1]]
+                ev = self.models[mi].evaluate(
+                    x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
+                )
+                work(k, mi, a, b, ev)
+
+        if len(parts) == 1:
+            run(0)
+            return
+        # Threads that end with the call: nothing is left running for a later fork.
+        with ThreadPoolExecutor(len(parts), thread_name_prefix="planetref-adjust") as ex:
+            for f in [ex.submit(run, k) for k in range(len(parts))]:
+                f.result()
 
     def _accumulate(
         self, n_cc: F64, g_c: F64, d: F64, we: F64, wr: F64, gp: NDArray[np.intp], qm: int

@@ -25,11 +25,15 @@ numbers are in :mod:`planetref.adjust.variance`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.solver import BundleSolver
+
+if TYPE_CHECKING:
+    from planetref.adjust.models import Evaluation
 
 __all__ = ["Redundancy", "redundancy"]
 
@@ -131,35 +135,30 @@ def redundancy(
     v_all = np.zeros((n, 2))
     h = np.zeros((n, 2, 2))
     pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[pt]
-    cs = solver.cfg.chunk_size
-    for mi, ccd, a0, b0 in lay.ranges:
-        model = solver.models[mi]
-        x = c[solver.offsets[mi] : solver.offsets[mi + 1]]
-        for a in range(a0, b0, cs):
-            b = min(a + cs, b0)
-            ev = model.evaluate(
-                x, pxyz[a:b], ccd, lay.line_guess[a:b], rate_guess=lay.rate_guess[a:b]
-            )
-            ok = ev.valid
-            every = bool(np.all(ok))
-            d = ev.d_params if every else np.where(ok[:, None, None], ev.d_params, 0.0)
-            gp = ev.pattern + solver.pat_offsets[mi]
-            np.subtract(ev.line, lay.line[a:b], out=v_all[a:b, 0])
-            np.subtract(ev.sample, lay.sample[a:b], out=v_all[a:b, 1])
-            if not every:
-                v_all[a:b][~ok] = 0.0
-            fixed = ~unknown_pt[a:b]
-            if np.all(fixed):
-                h[a:b] = _diag_cofactor(solver, d, gp, cofactor)
-            elif np.any(fixed):
-                fx = np.flatnonzero(fixed)
-                h[a + fx] = _diag_cofactor(solver, d[fx], gp[fx], cofactor)
-            tu = tpos[a:b]
-            is_u = tu >= 0
-            if np.any(is_u):
-                a_u[tu[is_u], :, : d.shape[2]] = d[is_u]
-                gpat_u[tu[is_u]] = gp[is_u]
-                b_u[tu[is_u]] = np.where(ok[is_u, None, None], ev.d_ground[is_u], 0.0)
+
+    def work(_k: int, mi: int, a: int, b: int, ev: Evaluation) -> None:
+        ok = ev.valid
+        every = bool(np.all(ok))
+        d = ev.d_params if every else np.where(ok[:, None, None], ev.d_params, 0.0)
+        gp = ev.pattern + solver.pat_offsets[mi]
+        np.subtract(ev.line, lay.line[a:b], out=v_all[a:b, 0])
+        np.subtract(ev.sample, lay.sample[a:b], out=v_all[a:b, 1])
+        if not every:
+            v_all[a:b][~ok] = 0.0
+        fixed = ~unknown_pt[a:b]
+        if np.all(fixed):
+            h[a:b] = _diag_cofactor(solver, d, gp, cofactor)
+        elif np.any(fixed):
+            fx = np.flatnonzero(fixed)
+            h[a + fx] = _diag_cofactor(solver, d[fx], gp[fx], cofactor)
+        tu = tpos[a:b]
+        is_u = tu >= 0
+        if np.any(is_u):
+            a_u[tu[is_u], :, : d.shape[2]] = d[is_u]
+            gpat_u[tu[is_u]] = gp[is_u]
+            b_u[tu[is_u]] = np.where(ok[is_u, None, None], ev.d_ground[is_u], 0.0)
+
+    solver.map_chunks(lay, solver.chunk_parts(lay), c, pxyz, work)
     pairs = _PairG(solver, a_u, gpat_u, cofactor)
     # Observations of unknown points, sorted by point (positions into obs; ``tpos``
     # maps them into the kept partials).

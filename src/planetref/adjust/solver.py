@@ -42,6 +42,8 @@ F64 = NDArray[np.float64]
 _STEP_FLOOR_SIGMA = 1e-6
 #: Relative cost decrease below which a robust (IRLS) run stops.
 _IRLS_FTOL = 1e-9
+#: Precision of a projection (px): the kernels converge to ~1e-9 px whatever the guesses.
+_PROJECTION_PX = 1e-9
 
 
 @dataclass
@@ -443,6 +445,19 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 if step <= cfg.xtol:
                     rep.converged, rep.reason = True, "step below xtol"
                     break
+            elif np.isfinite(new.cost) and max(pred, -actual) <= _cost_resolution(lin):
+                # Neither the predicted gain nor the rise is above what the projections
+                # can resolve in the cost: the comparison says nothing, while the step
+                # is the (nearly) Gauss-Newton step of an almost linear problem. Take it
+                # and stop (rejecting it would leave the solution wherever the cost's
+                # rounding noise happened to stop it).
+                it += 1
+                c, xyz, lin = c_new, xyz_new, new
+                lay.line_guess[:] = np.where(new.valid, new.line, saved)
+                lay.rate_guess[:] = np.where(new.valid, new.rate, np.nan)
+                rep.history.append((it, lin.cost, lam))
+                rep.converged, rep.reason = True, "step gain below the cost's resolution"
+                break
             else:
                 lay.line_guess[:] = saved
                 lay.rate_guess[:] = saved_rate
@@ -472,6 +487,17 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         rep.seconds = time.perf_counter() - t_start
         rep.cpu_seconds = time.process_time() - c_start
         return c, xyz, rep, lin, stats
+
+
+def _cost_resolution(lin: _Linearization) -> float:
+    """Three standard deviations of the cost's noise from the projections' precision.
+
+    ``cost = 0.5 sum w r^2`` moves by ``sum w r delta`` when every projection moves by an
+    independent ``delta`` of :data:`_PROJECTION_PX`: ``sd = _PROJECTION_PX
+    sqrt(sum (w r)^2)``.
+    """
+    wr = lin.weight * np.where(lin.valid[:, None], lin.r, 0.0)
+    return 3.0 * _PROJECTION_PX * float(np.sqrt(np.sum(wr * wr)))
 
 
 def _camera_gradient(lin: _Linearization, solver: BundleSolver, c: F64) -> F64:
