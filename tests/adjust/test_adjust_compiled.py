@@ -61,6 +61,12 @@ def test_linearisation_compiled_equals_numpy_reference():
     assert np.all(np.abs(a.g_c[act] - b.g_c[act]) <= 1e-10 * g_scale)
     assert np.abs(a.r - b.r).max() < 1e-9
     assert a.cost == pytest.approx(b.cost, rel=1e-12)
+    # The per-slot matrices (one per CCD here) add up to the normal matrix.
+    assert a.slot_n.shape[0] == 3
+    s_scale = np.abs(b.slot_n).max()
+    assert np.abs(a.slot_n - b.slot_n).max() <= 1e-12 * s_scale
+    p = fast.n_params
+    assert np.allclose(b.slot_n.sum(axis=0)[:p, :p], b.n_cc[:p, :p], rtol=1e-12, atol=0)
     # Only the active columns are accumulated: the fixed ones' rows stay zero.
     fixed = np.flatnonzero(fast.mode == 2)
     assert fixed.size and not np.any(a.n_cc[fixed]) and not np.any(b.n_cc[fixed])

@@ -28,6 +28,9 @@ def accumulate(
     act_n: Any,
     act_loc: Any,
     act_col: Any,
+    slot: Any,
+    slot_n: F64,
+    col_off: int,
 ) -> None:
     """Add the observations' normal equations to ``n_cc`` and ``g_c`` (in place).
 
@@ -41,10 +44,16 @@ def accumulate(
         act_n: Active columns per pattern ``(n_pat,)``.
         act_loc: Their local (pattern) indices ``(n_pat, q)``.
         act_col: Their global columns ``(n_pat, q)``.
+        slot: Per observation, its slot (``-1``: none) ``(m,)``.
+        slot_n: Per slot, ``A^T W A`` of its observations over the model's own columns
+            (global column - ``col_off``) ``(n_slot, P_m + 1, P_m + 1)``; added to in
+            place.
+        col_off: The model's first global column.
 
     Runs of equal patterns (observations sorted by line) are summed in a small dense
-    block over the pattern's active columns, added to ``n_cc`` once per run; each
-    observation adds its two rows (line, sample) in one rank-2 update.
+    block over the pattern's active columns, added to ``n_cc`` (and to the slot's
+    matrix) once per run; each observation adds its two rows (line, sample) in one
+    rank-2 update. A run also ends where the slot changes.
     """
     m = d.shape[0]
     q = act_loc.shape[1]
@@ -53,21 +62,27 @@ def accumulate(
     v0 = np.empty(q)
     v1 = np.empty(q)
     cur = -1
+    cur_s = -1
     na = 0
     for i in range(m + 1):
         g = gp[i] if i < m else -1
-        if g != cur:
+        sl = slot[i] if i < m else -1
+        if g != cur or sl != cur_s:
             if cur >= 0:
                 for a in range(na):
                     ca = act_col[cur, a]
                     g_c[ca] += gb[a]
                     gb[a] = 0.0
                     for b in range(na):
-                        n_cc[ca, act_col[cur, b]] += blk[a, b]
+                        cb = act_col[cur, b]
+                        n_cc[ca, cb] += blk[a, b]
+                        if cur_s >= 0:
+                            slot_n[cur_s, ca - col_off, cb - col_off] += blk[a, b]
                         blk[a, b] = 0.0
             if i == m:
                 break
             cur = g
+            cur_s = sl
             na = act_n[g]
         w0, w1 = we[i, 0], we[i, 1]
         r0, r1 = wr[i, 0], wr[i, 1]

@@ -226,7 +226,7 @@ def _adjust(
     # Variance components on the final inliers (plain least squares), then the residuals
     # of the final solution.
     c, xyz, stats, vce = variance_components(
-        solver, c, xyz, np.flatnonzero(inlier), xyz_start, stats, cfg.variance, progress
+        solver, c, xyz, np.flatnonzero(inlier), xyz_start, stats, cfg.variance, progress, lin
     )
     if cfg.variance.enabled:
         if not vce.converged:

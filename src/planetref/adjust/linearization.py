@@ -53,6 +53,8 @@ class _Linearization:
     r_t: F64  # (Mt, 2) residuals in the order of a_t (0 where invalid)
     rate: F64  # (M,) the models' line-rate hints (NaN if none)
     obs: NDArray[np.intp]  # network observation index of each row
+    slot_n: F64  # (n_slot, P_m + 1, P_m + 1) A^T W A per slot (see _Layout.slot)
+    loss: str  # the loss its weights were made with
     seconds: float = 0.0  # wall and CPU time of a linearisation made by ``linearize``
     cpu_seconds: float = 0.0
 
@@ -75,6 +77,17 @@ class _Layout:
     fixed_xyz: F64 | None  # (M, 3) when every point is fixed
     line_guess: F64
     rate_guess: F64
+    #: Per row, the slot of an observation of a fixed point: one per (point kind,
+    #: camera, CCD), the image groups of the variance components; -1 for observations
+    #: of unknown points (or when the slot matrices would be too large).
+    slot: NDArray[np.intp]
+    slot_obs: NDArray[np.intp]  # one network observation of each slot
+    slot_size: int  # P_m + 1 of the largest model
+
+
+#: Largest total size of the per-slot normal matrices (bytes); beyond it the redundancy
+#: numbers are computed from a fresh evaluation instead.
+_SLOT_BYTES = 64 * 2**20
 
 
 class LinearizationMixin:
@@ -97,7 +110,9 @@ class LinearizationMixin:
             a += len(pos)
         net = self.net
         point = net.obs_point[obs]
-        fixed = np.all(self.point_fixed[point])
+        fixed_rows = self.point_fixed[point]
+        fixed = np.all(fixed_rows)
+        slot, slot_obs, size = self._slots(obs, point, fixed_rows)
         return _Layout(
             obs,
             ranges,
@@ -108,7 +123,31 @@ class LinearizationMixin:
             net.point_xyz[point] if fixed else None,
             self.line_guess[obs],
             self.rate_guess[obs],
+            slot,
+            slot_obs,
+            size,
         )
+
+    def _slots(
+        self, obs: NDArray[np.intp], point: NDArray[np.intp], fixed_rows: NDArray[np.bool_]
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:
+        """Slots of the rows of a layout (see :attr:`_Layout.slot`), one observation each."""
+        net = self.net
+        _, kind = net.point_kind_codes
+        base = max(len(cam.ccd_names) for cam in net.cameras)
+        n_img = len(net.cameras) * base
+        key = kind[point].astype(np.int64) * n_img + net.obs_camera[obs] * base + net.obs_ccd[obs]
+        size = int(np.max(np.diff(self.offsets), initial=0)) + 1
+        present = np.bincount(key[fixed_rows], minlength=1) > 0
+        n_slot = int(np.count_nonzero(present))
+        if n_slot * size * size * 8 > _SLOT_BYTES or not np.any(fixed_rows):
+            return np.full(len(obs), -1, np.intp), np.zeros(0, np.intp), size
+        dense = np.cumsum(present) - 1
+        slot = np.where(fixed_rows, dense[np.where(fixed_rows, key, 0)], -1).astype(np.intp)
+        slot_obs = np.zeros(n_slot, np.intp)
+        on = np.flatnonzero(fixed_rows)[::-1]
+        slot_obs[slot[on]] = obs[on]  # an observation of each slot
+        return slot, slot_obs, size
 
     def _linearize(
         self,
@@ -132,6 +171,8 @@ class LinearizationMixin:
         rate = np.full(m, np.nan)
         n_cc = np.zeros((p + 1, p + 1))
         g_c = np.zeros(p + 1)
+        n_slot, size = len(lay.slot_obs), lay.slot_size
+        slot_n = np.zeros((n_slot, size, size))
         a_t = np.zeros((n_tie, 2, q))
         b_t = np.zeros((n_tie, 2, 3))
         gpat_t = np.zeros(n_tie, np.intp)
@@ -142,7 +183,9 @@ class LinearizationMixin:
         parts = self.chunk_parts(lay)
         # One normal matrix per thread (its contiguous share of the chunks), summed in
         # order below; every other output is a disjoint slice of the layout.
-        acc = [(n_cc, g_c)] + [(np.zeros_like(n_cc), np.zeros_like(g_c)) for _ in parts[1:]]
+        acc = [(n_cc, g_c, slot_n)] + [
+            (np.zeros_like(n_cc), np.zeros_like(g_c), np.zeros_like(slot_n)) for _ in parts[1:]
+        ]
 
         def work(k: int, mi: int, a: int, b: int, ev: Evaluation) -> None:
             if ev.line_rate is not None:
@@ -168,7 +211,9 @@ class LinearizationMixin:
             gp = ev.pattern + self.pat_offsets[mi]
             d = ev.d_params
             qm = d.shape[2]
-            self._accumulate(acc[k][0], acc[k][1], d, we, we * res_ok, gp, qm)
+            n_k, g_k, s_k = acc[k]
+            sl = (lay.slot[a:b], s_k, int(self.offsets[mi]))
+            self._accumulate(n_k, g_k, d, we, we * res_ok, gp, qm, sl)
             if n_tie:
                 tp = tie_pos[a:b]
                 is_t = tp >= 0
@@ -178,9 +223,10 @@ class LinearizationMixin:
                     gpat_t[tp[is_t]] = gp[is_t]
 
         self.map_chunks(lay, parts, c, pxyz, work)
-        for n_k, g_k in acc[1:]:
+        for n_k, g_k, s_k in acc[1:]:
             n_cc += n_k
             g_c += g_k
+            slot_n += s_k
         if robust:
             rho, _ = robust_rho(np.where(valid, s_all, 0.0), self.loss, thr_l)
         else:
@@ -210,6 +256,8 @@ class LinearizationMixin:
             np.where(valid[inv, None], r[inv], 0.0),
             rate,
             lay.obs,
+            slot_n,
+            self.loss,
         )
 
     def chunk_parts(self, lay: _Layout) -> list[list[tuple[int, int, int, int]]]:
@@ -273,9 +321,22 @@ class LinearizationMixin:
                 f.result()
 
     def _accumulate(
-        self, n_cc: F64, g_c: F64, d: F64, we: F64, wr: F64, gp: NDArray[np.intp], qm: int
+        self,
+        n_cc: F64,
+        g_c: F64,
+        d: F64,
+        we: F64,
+        wr: F64,
+        gp: NDArray[np.intp],
+        qm: int,
+        slots: tuple[NDArray[np.intp], F64, int],
     ) -> None:
         """``N += sum A^T W A`` and ``g += sum A^T W r``, per run of equal patterns.
+
+        ``slots``: ``(slot of each row, slot matrices, the model's first column)``; each
+        run's block is also added to its slot's matrix (model-local columns), from which
+        the redundancy numbers of the observations of fixed points are summed
+        (:mod:`~planetref.adjust.redundancy`).
 
         Runs are contiguous (observations sorted by line), so every product works on
         views; the few observations whose window differs from their neighbours' simply
@@ -285,12 +346,16 @@ class LinearizationMixin:
         (:mod:`~planetref.adjust._numba_normal`) runs when numba is available and
         ``compiled_normal`` is set; this numpy code is its reference.
         """
+        slot, slot_n, off = slots
         fn = self.normal_kernels()
         if fn is not None:
-            fn.accumulate(n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col)
+            fn.accumulate(
+                n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col, slot, slot_n, off
+            )
             return
         m = len(gp)
-        cut = np.concatenate([[0], np.flatnonzero(np.diff(gp)) + 1, [m]])
+        change = (np.diff(gp) != 0) | (np.diff(slot) != 0)
+        cut = np.concatenate([[0], np.flatnonzero(change) + 1, [m]])
         for a, b in itertools.pairwise(cut):
             loc, cols = self._active_columns(int(gp[a]), qm)
             if len(cols) == 0:
@@ -298,6 +363,8 @@ class LinearizationMixin:
             da = d[a:b] if loc is None else d[a:b][:, :, loc]
             blk = np.tensordot(da, da * we[a:b, :, None], axes=([0, 1], [0, 1]))
             n_cc[np.ix_(cols, cols)] += blk
+            if slot[a] >= 0:
+                slot_n[slot[a]][np.ix_(cols - off, cols - off)] += blk
             # Columns within a pattern are distinct, so a fancy-index add is exact.
             g_c[cols] += np.tensordot(da, wr[a:b], axes=([0, 1], [0, 1]))
 

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.adjust.linearization import _Layout, _Linearization
 from planetref.adjust.solver import BundleSolver
 
 if TYPE_CHECKING:
@@ -63,6 +64,10 @@ class Redundancy:
         constraint_r: Redundancy of the smoothing constraints (sum).
         constraint_vtpv: Their ``v^T P v``.
         constraint_n: Their number of equations.
+        slot_obs: One network observation of each slot (point kind, camera, CCD) whose
+            observations of fixed points are summed in :attr:`slot_r`, ``(s,)``.
+        slot_r: The sums of their redundancy numbers (their rows of :attr:`obs_r` are
+            0), ``(s,)``; empty when every observation has its own numbers.
     """
 
     obs: NDArray[np.intp]
@@ -81,6 +86,8 @@ class Redundancy:
     constraint_r: float
     constraint_vtpv: float
     constraint_n: int
+    slot_obs: NDArray[np.intp]
+    slot_r: F64
 
     @property
     def obs_order(self) -> NDArray[np.intp]:
@@ -90,7 +97,26 @@ class Redundancy:
     @property
     def total(self) -> float:
         """Sum of all redundancy numbers (the degrees of freedom)."""
-        return float(self.obs_r.sum() + self.point_r.sum() + self.camera_r + self.constraint_r)
+        return float(self.image_total + self.point_r.sum() + self.camera_r + self.constraint_r)
+
+    @property
+    def image_total(self) -> float:
+        """Sum of the redundancy numbers of the image equations."""
+        return float(self.obs_r.sum() + self.slot_r.sum())
+
+    def image_sums(self, group_of: NDArray[np.intp], n_groups: int) -> F64:
+        """Redundancy of the image equations per group, ``(n_groups,)``.
+
+        ``group_of``: per network observation its group (``-1``: none). A slot lies in
+        one group (groups never split a point kind, camera or CCD).
+        """
+        rg = group_of[self.obs]
+        on = rg >= 0
+        r = np.bincount(rg[on], weights=self.obs_r.sum(axis=1)[on], minlength=n_groups)
+        if len(self.slot_r):
+            sg = group_of[self.slot_obs]
+            r += np.bincount(sg[sg >= 0], weights=self.slot_r[sg >= 0], minlength=n_groups)
+        return r
 
 
 def redundancy(
@@ -100,8 +126,18 @@ def redundancy(
     obs: NDArray[np.intp],
     xyz0: F64,
     cofactor: F64,
+    lin: _Linearization | None = None,
 ) -> Redundancy:
     """Redundancy numbers of every equation at a solution (plain least-squares weights).
+
+    With ``lin``, the solver's linearisation at exactly this solution (plain
+    least-squares loss, the current weights), nothing is evaluated again: the
+    observations of fixed points are summed per slot (point kind, camera, CCD) as
+    ``r_s = n_s - tr(Q N_s)`` from the slot matrices ``N_s`` that the linearisation
+    accumulated (:attr:`Redundancy.slot_r`; their per-observation numbers stay 0), and
+    the observations of unknown points take their partials from the linearisation's
+    tie arrays. Without it (or when ``lin`` does not qualify), the models are
+    evaluated again and every observation gets its own numbers (the reference).
 
     Args:
         solver: The solver (models, weights, priors).
@@ -111,21 +147,67 @@ def redundancy(
         xyz0: A-priori point coordinates.
         cofactor: ``S^-1`` of the camera parameters (zero rows for fixed ones),
             ``(n_params, n_params)``.
+        lin: The final linearisation of ``obs`` at ``(c, xyz)``, or ``None``.
 
     Returns:
         The :class:`Redundancy`.
     """
     # The solver's layout of these observations: contiguous (camera, CCD) ranges with
     # the per-observation data gathered once (the redundancy follows its order).
-    lay = solver._structure(np.asarray(obs, np.intp)).lay
+    st = solver._structure(np.asarray(obs, np.intp))
+    lay = st.lay
     obs = lay.obs
-    n = len(obs)
-    q = solver.q
     w = solver.obs_w0[obs]
-    pt = lay.point
-    unknown_pt = ~solver.point_fixed[pt]
+    if _reusable(solver, lin, lay):
+        v_all = np.where(lin.valid[:, None], lin.r, 0.0)
+        h = np.zeros((len(obs), 2, 2))
+        tpos, a_u, gpat_u, b_u = st.tie_pos, lin.a_t, lin.gpat_t, lin.b_t
+        slot_r = _slot_redundancy(solver, lin, lay, cofactor)
+    else:
+        v_all, h, tpos, a_u, gpat_u, b_u = _evaluate(solver, c, xyz, lay, cofactor)
+        slot_r = np.zeros(0)
+    eqs = (v_all, h, w, slot_r)
+    return _finish(solver, (c, xyz, xyz0), lay, cofactor, eqs, (tpos, a_u, gpat_u, b_u))
+
+
+def _reusable(solver: BundleSolver, lin: _Linearization | None, lay: _Layout) -> bool:
+    """Whether a linearisation can stand in for a fresh evaluation (see :func:`redundancy`)."""
+    return (
+        lin is not None
+        and lin.loss == "linear"
+        and len(lin.slot_n) == len(lay.slot_obs)
+        and np.array_equal(lin.obs, lay.obs)
+        and np.array_equal(lin.weight, np.where(lin.valid[:, None], lay.w0, 0.0))
+    )
+
+
+def _slot_redundancy(solver: BundleSolver, lin: _Linearization, lay: _Layout, cofactor: F64) -> F64:
+    """``r_s = n_s - tr(Q N_s)`` per slot (its equations less their cofactor trace)."""
+    on = lay.slot >= 0
+    n_eq = 2.0 * np.bincount(lay.slot[on], minlength=len(lay.slot_obs))
+    out = np.empty(len(lay.slot_obs))
+    # One model per camera, in the network's order.
+    for s_i, mi in enumerate(solver.net.obs_camera[lay.slot_obs]):
+        a, b = int(solver.offsets[mi]), int(solver.offsets[mi + 1])
+        out[s_i] = n_eq[s_i] - float(np.sum(cofactor[a:b, a:b] * lin.slot_n[s_i, : b - a, : b - a]))
+    return out
+
+
+def _evaluate(
+    solver: BundleSolver, c: F64, xyz: F64, lay: _Layout, cofactor: F64
+) -> tuple[F64, F64, NDArray[np.intp], F64, NDArray[np.intp], F64]:
+    """The reference: evaluate the models again over the layout.
+
+    Returns ``(v, h, tpos, a_u, gpat_u, b_u)``: residuals ``(n, 2)``, ``A_i Q A_i^T`` of
+    the observations of fixed points ``(n, 2, 2)``, and for those of unknown points their
+    rows in the kept partials (``-1`` elsewhere), camera partials, patterns and ground
+    partials.
+    """
+    n = len(lay.obs)
+    q = solver.q
+    unknown_pt = ~solver.point_fixed[lay.point]
     # Observations of fixed points need only their own G_ii, computed chunk by chunk;
-    # the partials of those of unknown points are kept for the pairs below.
+    # the partials of those of unknown points are kept for the pairs.
     t_all = np.flatnonzero(unknown_pt)
     tpos = np.full(n, -1, np.intp)
     tpos[t_all] = np.arange(len(t_all))
@@ -134,7 +216,7 @@ def redundancy(
     b_u = np.zeros((len(t_all), 2, 3))
     v_all = np.zeros((n, 2))
     h = np.zeros((n, 2, 2))
-    pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[pt]
+    pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[lay.point]
 
     def work(_k: int, mi: int, a: int, b: int, ev: Evaluation) -> None:
         ok = ev.valid
@@ -159,6 +241,29 @@ def redundancy(
             b_u[tu[is_u]] = np.where(ok[is_u, None, None], ev.d_ground[is_u], 0.0)
 
     solver.map_chunks(lay, solver.chunk_parts(lay), c, pxyz, work)
+    return v_all, h, tpos, a_u, gpat_u, b_u
+
+
+def _finish(
+    solver: BundleSolver,
+    sol: tuple[F64, F64, F64],
+    lay: _Layout,
+    cofactor: F64,
+    eqs: tuple[F64, F64, F64, F64],
+    kept: tuple[NDArray[np.intp], F64, NDArray[np.intp], F64],
+) -> Redundancy:
+    """The pairs of observations of unknown points, the point and camera priors.
+
+    ``sol``: ``(c, xyz, xyz0)``; ``eqs``: ``(v, h, w, slot_r)`` of the image equations
+    (``slot_r`` empty: every observation has its own ``h``); ``kept``: ``(tpos, a_u,
+    gpat_u, b_u)`` (see :func:`_evaluate`).
+    """
+    c, xyz, xyz0 = sol
+    v_all, h, w, slot_r = eqs
+    tpos, a_u, gpat_u, b_u = kept
+    obs = lay.obs
+    pt = lay.point
+    t_all = np.flatnonzero(~solver.point_fixed[pt])
     pairs = _PairG(solver, a_u, gpat_u, cofactor)
     # Observations of unknown points, sorted by point (positions into obs; ``tpos``
     # maps them into the kept partials).
@@ -197,6 +302,8 @@ def redundancy(
         + np.matmul(np.matmul(bt, qjj[loc]), btt)
     )
     obs_r = 1.0 - w * np.stack([h[:, 0, 0], h[:, 1, 1]], axis=1)
+    if len(slot_r):
+        obs_r[lay.slot >= 0] = 0.0  # summed per slot instead
     # Priors of weighted points, in their sigma frames.
     pw_axis = solver.point_prior_axis_w[unknown]
     has = np.any(pw_axis > 0, axis=1)
@@ -234,6 +341,8 @@ def redundancy(
         constraint_r=con_r,
         constraint_vtpv=con_vtpv,
         constraint_n=len(solver.con_w),
+        slot_obs=lay.slot_obs if len(slot_r) else np.zeros(0, np.intp),
+        slot_r=slot_r,
     )
 
 

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import VarianceConfig
+from planetref.adjust.linearization import _Linearization
 from planetref.adjust.redundancy import Redundancy, redundancy
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
@@ -148,7 +149,7 @@ def _image_sums(
     vtpv = np.bincount(
         rg[on], weights=np.sum(red.obs_w * red.obs_v**2, axis=1)[on], minlength=len(groups)
     )
-    r = np.bincount(rg[on], weights=red.obs_r.sum(axis=1)[on], minlength=len(groups))
+    r = red.image_sums(group_of, len(groups))
     return {
         g.name: (float(vtpv[i]), float(r[i]), 2 * len(g.obs))
         for i, g in enumerate(groups)
@@ -197,7 +198,7 @@ class VceResult:
         """Equations and redundancy of real observations and of pseudo-observations."""
         red = self.redundancy
         real_n = 2 * len(red.obs)
-        real_r = float(red.obs_r.sum())
+        real_r = red.image_total
         real_vtpv = float(np.sum(red.obs_w * red.obs_v**2))
         pseudo_n = red.camera_n + red.constraint_n
         pseudo_r = red.camera_r + red.constraint_r
@@ -233,6 +234,7 @@ def variance_components(
     stats: dict[str, Any],
     cfg: VarianceConfig,
     progress: Callable[[str], None] | None = None,
+    lin: _Linearization | None = None,
 ) -> tuple[F64, F64, dict[str, Any], VceResult]:
     """Estimate the variance components by re-weighting and re-adjusting.
 
@@ -245,6 +247,9 @@ def variance_components(
         stats: The solver's statistics of that solution.
         cfg: VCE settings (``enabled`` False: only the redundancy and factors).
         progress: Optional progress callback.
+        lin: The solver's final linearisation of ``obs`` at ``(c, xyz)`` (spares the
+            redundancy numbers a pass over the observations; see
+            :func:`~planetref.adjust.redundancy.redundancy`).
 
     Returns:
         ``(c, xyz, stats, VceResult)`` of the final solution (the solver keeps the
@@ -259,7 +264,7 @@ def variance_components(
     stopped = ""
     group_of = _image_group_of(solver, groups)
     while True:
-        red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"])
+        red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"], lin)
         image = _image_sums(groups, red, group_of)
         table = []
         factors: dict[str, float] = {}
@@ -340,7 +345,9 @@ def variance_components(
         )
         try:
             # Positive re-weighting cannot change the rank: no rank check again.
-            c_new, xyz_new, _rep, _lin, stats_new = solver.run(c, xyz, obs, xyz0, check_rank=False)
+            c_new, xyz_new, _rep, lin_new, stats_new = solver.run(
+                c, xyz, obs, xyz0, check_rank=False
+            )
         except AdjustmentError as exc:
             solver.cfg = base_cfg
             # Keep the last good solution and its weights.
@@ -350,7 +357,7 @@ def variance_components(
             log.warning("variance components %s", stopped)
             break
         solver.cfg = base_cfg
-        c, xyz, stats = c_new, xyz_new, stats_new
+        c, xyz, stats, lin = c_new, xyz_new, stats_new, lin_new
     for row in table:
         row["sigma_scale"] = scale[row["group"]]
         row["note"] = confounded.get(row["group"], "")
