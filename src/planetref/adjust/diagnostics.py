@@ -88,15 +88,21 @@ def point_table(
     d_enu = np.zeros((n, 3))
     d_enu[~ok0] = np.nan
     cof_pts = np.array([j for j in cofactor if ok0[j]], np.intp)
-    rot = np.flatnonzero(moved | np.isin(np.arange(n), cof_pts))
-    enu = np.full((n, 3, 3), np.nan)
-    enu[rot] = enu_rotation(xyz0[rot])
+    need = moved.copy()
+    need[cof_pts] = True
+    # ENU rotations of the points that moved or have a cofactor block only.
+    rot = np.flatnonzero(need)
+    at = np.full(n, -1, np.intp)
+    at[rot] = np.arange(len(rot))
+    enu = enu_rotation(xyz0[rot]) if len(rot) else np.zeros((0, 3, 3))
     mv = np.flatnonzero(moved)
-    d_enu[mv] = np.einsum("pij,pj->pi", enu[mv], d[mv])
+    d_enu[mv] = np.einsum("pij,pj->pi", enu[at[mv]], d[mv])
     post = np.zeros((n, 3))
-    for j in cof_pts:
-        q = cofactor[int(j)]
-        post[j] = sigma0 * np.sqrt(np.maximum(np.diag(enu[j] @ q @ enu[j].T), 0.0))
+    if len(cof_pts):
+        e = enu[at[cof_pts]]
+        q = np.stack([cofactor[int(j)] for j in cof_pts])
+        var = np.einsum("pij,pjk,pik->pi", e, q, e)  # diag(E Q E^T)
+        post[cof_pts] = sigma0 * np.sqrt(np.maximum(var, 0.0))
     d_frame = np.einsum("pij,pj->pi", frame, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         norm = np.where(

@@ -227,7 +227,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         net = self.net
         base = max(len(cam.ccd_names) for cam in net.cameras)
         key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
-        order = np.lexsort((net.obs_line[obs], key))
+        # lexsort((line, key)) in two stable passes: the lines, then the (few) group
+        # keys as small integers (a radix sort); the same permutation, ~3x faster.
+        order = np.argsort(net.obs_line[obs], kind="stable")
+        small = key[order].astype(np.uint16 if key.max(initial=0) < 2**16 else np.int64)
+        order = order[np.argsort(small, kind="stable")]
         ks = key[order]
         cut = np.flatnonzero(np.diff(ks)) + 1
         out = []
