@@ -40,6 +40,11 @@ planetref solve (before scipy runs); ``--no-scipy`` skips scipy (e.g. at 1e6).
 ``--n-tie K`` makes K of the points free tie points seen in the 16-pixel overlaps of
 neighbouring CCDs (2 observations each, eliminated by the Schur complement).
 
+Threads: the adjustment evaluates and accumulates its chunks in
+:func:`planetref.threads.compute_threads` threads (``OMP_NUM_THREADS`` when set, else the
+cores), printed as ``threads``; ``OMP_NUM_THREADS`` also sets scipy's BLAS threads, so
+both sides run under the same thread count (compare ``OMP_NUM_THREADS=1`` and ``=2``).
+
 The projection-and-partials kernel runs compiled (numba) when numba imports, else on
 numpy. ``kernel_compiled_s`` / ``kernel_numpy_s`` (CPU) time one full evaluation (projection
 and partials of every observation from the observed lines, warm) with each, in the same
@@ -67,6 +72,7 @@ from planetref.adjust import Network, adjust, linearization, schur
 from planetref.camera.linescan import compiled
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.geometry.geodesy import ray_ellipsoid_intersection
+from planetref.threads import compute_threads
 
 
 def peak_rss_mb() -> float:
@@ -236,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {
         "n_obs": args.n_obs,
         "n_tie_points": args.n_tie,
+        "threads": compute_threads(),
         "planetref_s": round(planetref_s, 3),
         "planetref_cpu_s": round(planetref_cpu, 3),
         "scipy_s": None,

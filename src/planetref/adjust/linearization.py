@@ -162,12 +162,13 @@ class LinearizationMixin:
         p = self.n_params
         m = len(lay.obs)
         q = self.q
-        r = np.full((m, 2), np.nan)
-        valid = np.zeros(m, bool)
-        line = np.full(m, np.nan)
-        sample = np.full(m, np.nan)
-        s_all = np.full(m, np.inf)
-        weight = np.zeros((m, 2))
+        # Every row is written by its chunk.
+        r = np.empty((m, 2))
+        valid = np.empty(m, bool)
+        line = np.empty(m)
+        sample = np.empty(m)
+        s_all = np.empty(m)
+        weight = np.empty((m, 2))
         rate = np.full(m, np.nan)
         n_cc = np.zeros((p + 1, p + 1))
         g_c = np.zeros(p + 1)
@@ -202,10 +203,12 @@ class LinearizationMixin:
                 np.multiply(w0, rw[:, None], out=we)
             else:
                 we[:] = w0
-            if not np.all(ok):
+            if np.all(ok):
+                res_ok = res
+            else:
                 we[~ok] = 0.0
                 s[~ok] = np.inf
-            res_ok = np.where(ok[:, None], res, 0.0)
+                res_ok = np.where(ok[:, None], res, 0.0)
             valid[a:b], s_all[a:b] = ok, s
             line[a:b], sample[a:b] = ev.line, ev.sample
             gp = ev.pattern + self.pat_offsets[mi]
