@@ -151,3 +151,24 @@ def test_redundancy_from_the_final_linearisation_equals_a_fresh_evaluation():
     lin.loss = "huber"
     again = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"], lin)
     assert len(again.slot_r) == 0 and np.array_equal(again.obs_r, ref.obs_r)
+
+
+def test_threaded_projection_equals_one_thread():
+    net, _, _ = mcp_problem(900, seed=5)
+    obs = np.arange(0, net.n_obs, 2)[::-1]  # any order: results come back in obs order
+    out = []
+    for n in (1, 3):
+        solver = _solver(net, n)
+        out.append(solver.project(solver.x0, net.point_xyz, obs))
+    (l1, s1, v1), (l3, s3, v3) = out
+    assert v1.all() and np.array_equal(v1, v3)
+    assert np.array_equal(l1, l3) and np.array_equal(s1, s3)
+    # Against the linearisation's projections of the same observations.
+    solver = _solver(net, 1)
+    st = solver._structure(np.arange(net.n_obs))
+    lin = solver._linearize(
+        solver.x0, net.point_xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, net.point_xyz
+    )
+    at = np.empty(net.n_obs, np.intp)
+    at[lin.obs] = np.arange(net.n_obs)
+    assert np.abs(l3 - lin.line[at[obs]]).max() < 1e-8

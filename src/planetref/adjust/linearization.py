@@ -29,7 +29,7 @@ from planetref.threads import compute_threads
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
 
-__all__ = ["LinearizationMixin"]
+__all__ = ["LinearizationMixin", "run_shares", "thread_shares"]
 
 
 F64 = NDArray[np.float64]
@@ -267,8 +267,7 @@ class LinearizationMixin:
         """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares per thread.
 
         ``cfg.chunk_size`` observations per chunk, never across a (camera, CCD) range;
-        as many shares as :func:`~planetref.threads.compute_threads` grants (at most one
-        per chunk), balanced by observation count.
+        see :func:`thread_shares`.
         """
         cs = self.cfg.chunk_size
         chunks = [
@@ -276,12 +275,7 @@ class LinearizationMixin:
             for mi, ccd, a0, b0 in lay.ranges
             for a in range(a0, b0, cs)
         ]
-        n = max(1, min(compute_threads(self.cfg.threads), len(chunks)))
-        if n == 1:
-            return [chunks]
-        m = len(lay.obs)
-        share = np.minimum(np.array([a for _, _, a, _ in chunks]) * n // max(m, 1), n - 1)
-        return [[ch for ch, k in zip(chunks, share, strict=True) if k == j] for j in range(n)]
+        return thread_shares(chunks, len(lay.obs), compute_threads(self.cfg.threads))
 
     def map_chunks(
         self,
@@ -296,8 +290,8 @@ class LinearizationMixin:
         The one loop over the observations that the linearisation and the redundancy
         numbers share: ``work(share, model, start, stop, evaluation)`` is called for
         every chunk of ``parts`` (:meth:`chunk_parts`), each share in its own thread
-        (the compiled kernels release the GIL). ``work`` must write only to its rows
-        ``start:stop`` and to accumulators of its own share.
+        (:func:`run_shares`). ``work`` must write only to its rows ``start:stop`` and to
+        accumulators of its own share.
 
         Args:
             lay: The layout (observed lines, guesses).
@@ -315,13 +309,7 @@ class LinearizationMixin:
                 )
                 work(k, mi, a, b, ev)
 
-        if len(parts) == 1:
-            run(0)
-            return
-        # Threads that end with the call: nothing is left running for a later fork.
-        with ThreadPoolExecutor(len(parts), thread_name_prefix="planetref-adjust") as ex:
-            for f in [ex.submit(run, k) for k in range(len(parts))]:
-                f.result()
+        run_shares(len(parts), run)
 
     def _accumulate(
         self,
@@ -411,6 +399,34 @@ class LinearizationMixin:
             self.act_loc[g, : len(loc)] = loc
             self.act_col[g, : len(loc)] = cols[g, loc]
         self._active_cache.clear()
+
+
+def thread_shares(
+    chunks: list[tuple[int, int, int, int]], m: int, threads: int
+) -> list[list[tuple[int, int, int, int]]]:
+    """Chunks ``(model, ccd, start, stop)`` over ``m`` rows in contiguous shares.
+
+    As many shares as ``threads`` (at most one per chunk), balanced by row count.
+    """
+    n = max(1, min(threads, len(chunks)))
+    if n == 1:
+        return [chunks]
+    share = np.minimum(np.array([a for _, _, a, _ in chunks]) * n // max(m, 1), n - 1)
+    return [[ch for ch, k in zip(chunks, share, strict=True) if k == j] for j in range(n)]
+
+
+def run_shares(n: int, run: Callable[[int], None]) -> None:
+    """``run(k)`` for ``k < n``, each in its own thread (in this one when ``n == 1``).
+
+    The compiled kernels release the GIL. The threads end with the call: nothing is
+    left running for a later fork (no OpenMP or other threading runtime is started).
+    """
+    if n == 1:
+        run(0)
+        return
+    with ThreadPoolExecutor(n, thread_name_prefix="planetref-adjust") as ex:
+        for f in [ex.submit(run, k) for k in range(n)]:
+            f.result()
 
 
 def _compiled() -> Any:

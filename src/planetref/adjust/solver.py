@@ -26,13 +26,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import SolverConfig
-from planetref.adjust.linearization import LinearizationMixin, _Linearization
+from planetref.adjust.linearization import (
+    LinearizationMixin,
+    _Linearization,
+    run_shares,
+    thread_shares,
+)
 from planetref.adjust.models import AdjustableCamera, Evaluation
 from planetref.adjust.problem import Network
 from planetref.adjust.robust import robust_rho
 from planetref.adjust.schur import SchurMixin, _Structure
 from planetref.adjust.statistics import StatisticsMixin
 from planetref.errors import AdjustmentError
+from planetref.threads import compute_threads
 
 __all__ = ["BundleSolver", "LmReport", "robust_rho"]
 
@@ -258,14 +264,20 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         sample = np.full(m, np.nan)
         valid = np.zeros(m, bool)
         cs = self.cfg.chunk_size
-        for mi, ccd, pos in self._groups(obs):
-            model = self.models[mi]
-            x = c[self.offsets[mi] : self.offsets[mi + 1]]
-            for a in range(0, len(pos), cs):
-                sel = pos[a : a + cs]
+        groups = self._groups(obs)
+        pos = np.concatenate([g[2] for g in groups]) if groups else np.zeros(0, np.intp)
+        chunks, a0 = [], 0
+        for mi, ccd, g in groups:
+            chunks += [(mi, ccd, a, min(a + cs, a0 + len(g))) for a in range(a0, a0 + len(g), cs)]
+            a0 += len(g)
+        parts = thread_shares(chunks, m, compute_threads(self.cfg.threads))
+
+        def run(k: int) -> None:
+            for mi, ccd, a, b in parts[k]:
+                sel = pos[a:b]
                 o = obs[sel]
-                ev = model.evaluate(
-                    x,
+                ev = self.models[mi].evaluate(
+                    c[self.offsets[mi] : self.offsets[mi + 1]],
                     xyz[self.net.obs_point[o]],
                     ccd,
                     self.line_guess[o],
@@ -273,7 +285,9 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                     partials=False,
                 )
                 line[sel], sample[sel], valid[sel] = ev.line, ev.sample, ev.valid
-                self._remember(o, ev)
+                self._remember(o, ev)  # disjoint rows per chunk
+
+        run_shares(len(parts), run)
         return line, sample, valid
 
     def _remember(self, o: NDArray[np.intp], ev: Evaluation) -> None:
