@@ -71,6 +71,9 @@ class LineScanParameterization:
         self.compiled_partials = True
         self.config = config
         self._kernel = camera.kernel
+        #: The EO polynomials of the last node values (a pass evaluates every chunk
+        #: of a CCD at the same parameters): ``(nodes, poly)``.
+        self._poly: tuple[F64, F64] | None = None
         n = camera.n_nodes
         self._n_nodes = n
         self._k = self._kernel.k
@@ -189,7 +192,7 @@ class LineScanParameterization:
         nodes, io, c = self._split(np.asarray(x, np.float64), ccd)
         p = np.asarray(xyz, np.float64)
         kern = self._kernel
-        poly = kern.eo_poly(nodes)
+        poly = self._eo_poly(nodes)
         guess = np.array(line_guess, np.float64)
         m = len(p)
         if not partials:
@@ -230,6 +233,15 @@ class LineScanParameterization:
             dp[bad] = 0.0
             dg[bad] = 0.0
         return Evaluation(line, samp, valid, pattern, dp, dg, rate)
+
+    def _eo_poly(self, nodes: F64) -> F64:
+        """:meth:`~planetref.camera.linescan.kernel.LineScanKernel.eo_poly`, kept per nodes."""
+        last = self._poly
+        if last is not None and np.array_equal(last[0], nodes):
+            return last[1]
+        poly = self._kernel.eo_poly(nodes)
+        self._poly = (nodes.copy(), poly)
+        return poly
 
     def build(self, x: F64) -> LineScanCamera:
         """The strip with parameters ``x`` (native camera)."""
