@@ -175,3 +175,28 @@ def test_fit_rpc_command_round_trip(camera_file, tmp_path):
     got = json.loads(r.stdout)
     assert got["line"] == pytest.approx(200.5, abs=1e-3)
     assert got["sample"] == pytest.approx(100.5, abs=1e-3)
+
+
+def test_warnings_are_one_log_line(shared):
+    # A Python warning (here: HRSC's line-scan-rate table outruns its ephemeris) is one
+    # "WARNING" line naming the file, not Python's "path:line: UserWarning" plus a code line;
+    # -q silences it like every other warning.
+    isd = shared / "data" / "ale" / "mexhrsc_isd.json"
+    args = ["camera", "image-to-ground", str(isd), "--line", "10", "--sample", "10"]
+    for flags, expect_lines in (([], 1), (["-q"], 0)):
+        r = subprocess.run(
+            [sys.executable, "-m", "planetref", *flags, *args],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert r.returncode == 0, r.stderr
+        lines = r.stderr.splitlines()
+        assert len(lines) == expect_lines, r.stderr
+        if lines:
+            assert lines[0].startswith("WARNING planetref.warnings: ")
+            assert str(isd) in lines[0] and "usgscsm extrapolates" in lines[0]
+            assert "UserWarning" not in lines[0] and ".py:" not in lines[0]
+        out = json.loads(r.stdout)
+        # The point itself: 25.97 N 78.21 E on the ellipsoid (HRSC over Nili Fossae).
+        assert abs(out["lat_deg"] - 25.9722448) < 1e-6 and abs(out["lon_deg"] - 78.2110398) < 1e-6

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import logging
 import sys
+import warnings
 from typing import Any
 
 import click
@@ -101,6 +102,36 @@ def _configure_logging(verbosity: int) -> None:
     root.setLevel(level)
 
 
+def _warning_as_log_line(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: Any = None,
+    line: str | None = None,
+) -> None:
+    """Show a Python warning as one log line (no source path or code line)."""
+    text = _one_line(str(message))
+    if not issubclass(category, UserWarning) or category.__module__ != "builtins":
+        text = f"{category.__name__}: {text}"
+    logging.getLogger("planetref.warnings").warning("%s", text)
+
+
+def _route_warnings(ctx: click.Context) -> None:
+    """Show warnings as one ``WARNING`` line while the command runs.
+
+    Like every other message they go to stderr (and to the run's log); the previous
+    handler is restored when the command ends.
+    """
+    previous = warnings.showwarning
+    warnings.showwarning = _warning_as_log_line
+
+    def restore() -> None:
+        warnings.showwarning = previous
+
+    ctx.call_on_close(restore)
+
+
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="planetref")
 @click.option("-v", "--verbose", count=True, help="More output (-vv: debug, with tracebacks).")
@@ -112,3 +143,4 @@ def main(ctx: click.Context, verbose: int, quiet: int) -> None:
     ctx.obj["verbosity"] = verbose - quiet
     ctx.obj["quiet"] = quiet > 0
     _configure_logging(verbose - quiet)
+    _route_warnings(ctx)
