@@ -155,12 +155,29 @@ def _check_standard_products(out, scene):
         assert p.split(str(run) + "/", 1)[1] in names  # recorded in the run manifest
 
 
-def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path, ref_grid):
+def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path, ref_grid, monkeypatch):
+    import planetref.frontend.tile
+
     out = tmp_path / "run"
     first = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
     journal = (out / "strip1" / "tiles.jsonl").read_text()
+    # Fig. 2's three tiles (best, median, worst of 6) stay in the run folder, recorded.
+    panels = sorted(p.name for p in (out / "strip1" / "tile_panels").iterdir())
+    assert len(panels) == 3 and all(p.endswith(".npz") for p in panels)
+    listed = json.loads((out / "run.json").read_text())["files"]
+    assert {f"strip1/tile_panels/{p}" for p in panels} <= set(listed)
+    fig2 = (out / "figures" / "strip1_tile_matches.png").read_bytes()
+    # The resumed run draws Fig. 2 from them: no tile is matched again, not even for it.
+    calls = []
+    real = planetref.frontend.tile.match_tile
+    monkeypatch.setattr(
+        planetref.frontend.tile, "match_tile", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
     again = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
     assert (out / "strip1" / "tiles.jsonl").read_text() == journal  # nothing re-matched
+    assert calls == []
+    assert (out / "figures" / "strip1_tile_matches.png").read_bytes() == fig2
+    assert sorted(p.name for p in (out / "strip1" / "tile_panels").iterdir()) == panels
     assert again.report["matching"] == first.report["matching"]
     # Another matcher into the same directory is refused without --overwrite...
     with pytest.raises(InputError, match="another run"):

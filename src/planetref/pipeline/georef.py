@@ -8,6 +8,8 @@ Run directory layout::
 
     run.json, config.json, planetref.log, report.json, report.md
     <strip>/tiles.jsonl              per-tile matching journal (resume)
+    <strip>/tile_panels/*.npz        stage images of the tiles Fig. 2 draws (all tiles matched
+                                     in this process until it is drawn, so a resume keeps them)
     <strip>/mcps.parquet, mcps.gpkg  matched control points
     <strip>/adjustment/...           adjusted cameras, RPCs, residuals, per-strip report
     <strip>/adjustment/isd/*.json    adjusted native camera as USGS CSM ISDs (one per CCD)
@@ -375,6 +377,7 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     """Match a strip's tiles, write its MCPs and draw its check points."""
     from planetref.control import mcps_from_tiles, write_mcps
     from planetref.frontend.stats import sdu_per_ccd
+    from planetref.report.figures_matching import select_tiles
     from planetref.report.tile_panels import PanelStore
 
     strip, cfg = job.spec, job.cfg
@@ -384,7 +387,8 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     out: dict[str, Any] = {"files": {}}
 
     t0 = time.perf_counter()
-    store = PanelStore()  # Fig. 2's tiles from this pass (a temporary folder, removed below)
+    # Fig. 2's tiles, kept in the run folder as they are matched (a resumed run finds them).
+    store = PanelStore(persistent=job.run.path / strip.id / "tile_panels")
     matches = _match(job, camera, images, store)
     table = mcps_from_tiles(matches, ref=job.ref, dem=job.dem)
     job.timing["matching"] += time.perf_counter() - t0
@@ -430,6 +434,7 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     }
     with single_threaded_blas(), timed(job.timing, "figures"), store:  # figures are outputs
         figures_matching(job, matches, table, sizes, images, camera, store)
+        store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
         raise MatchingError(

@@ -4,20 +4,27 @@ Fig. 2 draws the tiles with the most, the median and the fewest verified matches
 are known only when every tile is matched. Matching them again to draw them cost more
 than the rest of the figures (hiric-strip, SIFT: three tiles, ~10 CPU-s of ~20). A
 :class:`PanelStore` instead receives every tile as it is matched (``match_strip``'s
-``debug_sink``), writes its stages to a temporary folder (uncompressed ``.npz``, one file
-per tile, ~1-3 MB) and lets them go, so memory does not grow with the strip; the figure
-then reads back the three it draws. Tiles matched elsewhere (parallel workers, a resumed
-run's journal) are not in the store: the figure matches those again, as before.
+``debug_sink``), writes its stages to a folder (uncompressed ``.npz``, one file per tile,
+~1-3 MB, written atomically) and lets them go, so memory does not grow with the strip; the
+figure then reads back the three it draws. A run keeps the store in its run folder
+(``persistent``), so a resumed run, whose tiles come back from the journal, finds the
+stages of the tiles matched before it was stopped; after the figure is drawn, only its
+tiles are kept (:meth:`PanelStore.keep_only`). Tiles matched by parallel workers are not
+in the store: the figure matches those again.
 """
 
 from __future__ import annotations
 
+import re
 import tempfile
+import zipfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from planetref.atomic import atomic_path
 from planetref.report.figures_matching import MatchPanel
 
 __all__ = ["PanelStore"]
@@ -25,20 +32,49 @@ __all__ = ["PanelStore"]
 _FIELDS = ("image0", "valid0", "image1", "valid1", "keypoints0", "keypoints1", "inliers")
 
 
-class PanelStore:
-    """Stage images and matches per tile id, on disk in a temporary folder.
+def _file_name(tile_id: str) -> str:
+    """A tile's file name (tile ids such as ``ccd1:r001c000`` hold a colon)."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", tile_id) + ".npz"
 
-    Use as a context manager (or call :meth:`close`): the folder is removed at the end.
+
+class PanelStore:
+    """Stage images and matches per tile id, on disk.
+
+    Use as a context manager (or call :meth:`close`): a temporary folder is removed at the
+    end; a persistent one is left as it is.
 
     Args:
         folder: Parent of the temporary folder (default: the system's temporary folder).
+        persistent: A folder that outlives the store (a run folder's): tiles already in it
+            (kept by an earlier, stopped run) are found again, and nothing is removed at
+            :meth:`close`.
     """
 
-    def __init__(self, folder: str | Path | None = None) -> None:
-        # A TemporaryDirectory removes itself when collected, even if close() is missed.
-        self._tmp = tempfile.TemporaryDirectory(prefix="planetref-panels-", dir=folder)
-        self._dir = Path(self._tmp.name)
+    def __init__(
+        self, folder: str | Path | None = None, *, persistent: str | Path | None = None
+    ) -> None:
         self._files: dict[str, Path] = {}
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        if persistent is None:
+            # A TemporaryDirectory removes itself when collected, even if close() is missed.
+            self._tmp = tempfile.TemporaryDirectory(prefix="planetref-panels-", dir=folder)
+            self._dir = Path(self._tmp.name)
+            return
+        self._dir = Path(persistent)
+        for path in sorted(self._dir.glob("*.npz")) if self._dir.is_dir() else []:
+            if path.name.startswith("."):
+                continue  # an atomic write's temporary file cut short
+            tile_id = self._stored_id(path)
+            if tile_id is not None and _file_name(tile_id) == path.name:
+                self._files[tile_id] = path
+
+    @staticmethod
+    def _stored_id(path: Path) -> str | None:
+        try:
+            with np.load(path) as z:
+                return str(z["tile_id"])
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None
 
     def __enter__(self) -> PanelStore:
         return self
@@ -61,19 +97,31 @@ class PanelStore:
         stages = getattr(result, "debug", None) or []
         if getattr(result, "status", "ok") != "ok" or not stages:
             return
-        arrays: dict[str, Any] = {"stages": np.array([s.stage for s in stages])}
+        tile_id = str(result.tile_id)
+        arrays: dict[str, Any] = {
+            "tile_id": np.array(tile_id),
+            "stages": np.array([s.stage for s in stages]),
+        }
         for i, s in enumerate(stages):
             for f in _FIELDS:
                 arrays[f"{i}_{f}"] = np.asarray(getattr(s, f))
-        path = self._dir / f"tile{len(self._files):06d}.npz"
-        np.savez(path, **arrays)
-        self._files[str(result.tile_id)] = path
+        path = self._dir / _file_name(tile_id)
+        with atomic_path(path) as tmp:
+            np.savez(tmp, **arrays)
+        self._files[tile_id] = path
 
     def panels(self, tile_id: str) -> list[MatchPanel] | None:
         """The stages of a tile as figure panels, or None if it was not kept."""
         path = self._files.get(tile_id)
         if path is None:
             return None
+        try:
+            return self._read(path)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None  # damaged: the figure matches the tile again
+
+    @staticmethod
+    def _read(path: Path) -> list[MatchPanel]:
         with np.load(path) as z:
             return [
                 MatchPanel(
@@ -89,7 +137,14 @@ class PanelStore:
                 for i, stage in enumerate(z["stages"])
             ]
 
+    def keep_only(self, tile_ids: Iterable[str]) -> None:
+        """Remove the files of every tile but ``tile_ids`` (e.g. those a figure drew)."""
+        keep = set(tile_ids)
+        for tile_id in [t for t in self._files if t not in keep]:
+            self._files.pop(tile_id).unlink(missing_ok=True)
+
     def close(self) -> None:
-        """Remove the temporary folder."""
+        """Remove a temporary folder (a persistent one keeps its files)."""
         self._files.clear()
-        self._tmp.cleanup()
+        if self._tmp is not None:
+            self._tmp.cleanup()
