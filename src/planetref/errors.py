@@ -93,6 +93,19 @@ class AdjustmentError(PlanetrefError, RuntimeError):
     """The bundle adjustment is degenerate, diverged or cannot start."""
 
 
+def library_reason(exc: BaseException) -> str:
+    """The first line of what a library said about an error.
+
+    rasterio raises ``RasterioIOError("Read failed. See previous exception for details.")``
+    with GDAL's own message (which block, which file) as its cause: that one is used.
+    """
+    for e in (exc.__cause__, exc):
+        text = str(e).strip() if e is not None else ""
+        if text:
+            return text.splitlines()[0]
+    return type(exc).__name__
+
+
 __all__ = [
     "AdjustmentError",
     "CrsError",
@@ -105,4 +118,5 @@ __all__ = [
     "RunDirError",
     "UnsupportedFormatError",
     "WeightsError",
+    "library_reason",
 ]

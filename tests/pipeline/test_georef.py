@@ -215,6 +215,7 @@ def test_reference_without_overlap(tiny_scene, tmp_path):
     )
     assert r.exit_code == 1
     assert "do not overlap the reference" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "run").exists()  # checked before the run folder is claimed
 
 
 def test_corrupt_raster(tiny_scene, tmp_path):
@@ -226,6 +227,25 @@ def test_corrupt_raster(tiny_scene, tmp_path):
     )
     assert r.exit_code == 1
     assert "ccd2.tif" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "run").exists()  # a bad image leaves no run folder behind
+
+
+@pytest.mark.parametrize("name", ["ortho.tif", "dem.tif"])
+def test_truncated_reference(tiny_scene, tmp_path, name):
+    # A truncated GeoTIFF opens (its header is whole): the reference ortho used to fail
+    # every tile with "RasterioIOError: Read failed" and no file name, after the run
+    # folder was claimed. Now: one line naming the file and GDAL's reason, nothing written.
+    scene = _copy_scene(tiny_scene, tmp_path / "scene")
+    path = scene / "reference" / name
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    r = CliRunner().invoke(
+        main, ["-q", "georef", str(scene), "--matcher", "sift", "--out", str(tmp_path / "run")]
+    )
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and str(path) in lines[0] and "IReadBlock failed" in lines[0]
+    assert not (tmp_path / "run").exists()
 
 
 def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path, ref_grid):

@@ -57,6 +57,7 @@ from planetref.pipeline.georef_report import (
 from planetref.pipeline.inputs import (
     check_body,
     check_overlap,
+    check_strips,
     open_reference,
     scene_input_files,
     scene_path,
@@ -218,11 +219,13 @@ def run_georef(
         scene_file = scene_path(scene)
         manifest, root = load_manifest(scene_file)
         # Inputs checked and matchers built before the run folder is claimed, so a failed
-        # start (unknown matcher, missing weights, unreadable reference) leaves nothing behind.
+        # start (unknown matcher, missing weights, unreadable reference, camera or image, no
+        # overlap) leaves nothing behind.
         ref, dem = open_reference(manifest, root)
         body = manifest.body.ellipsoid()
         check_body(body, ref, "reference ortho")
         check_body(body, dem, "reference DEM", manifest.resolve(root, manifest.reference.dem))
+        check_strips(manifest, root, ref, dem)
         ref_gsd = float(np.mean(ref.ground_sampling_m()))
         pair = matcher_recipes(matcher, cfg, ref_gsd, weights_dir=weights_dir)
         if matchers is not None:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from planetref.errors import InputError, PlanetrefError
+from planetref.errors import InputError, PlanetrefError, library_reason
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
@@ -26,6 +26,7 @@ __all__ = [
     "MARS_SEMI_MAJOR_M",
     "check_body",
     "check_overlap",
+    "check_strips",
     "open_reference",
     "scene_input_files",
     "scene_path",
@@ -87,9 +88,33 @@ def open_reference(manifest: SceneManifest, root: Path) -> tuple[ReferenceOrtho,
     ortho_path = manifest.resolve(root, spec.ortho)
     dem_path = manifest.resolve(root, spec.dem)
     ref = ReferenceOrtho(ortho_path, band=spec.ortho_band)
+    _check_readable(ortho_path, spec.ortho_band, "reference ortho")
     areoid = None if spec.areoid is None else manifest.resolve(root, spec.areoid)
     dem = open_reference_dem(dem_path, band=spec.dem_band, datum=spec.dem_datum, areoid=areoid)
     return ref, dem  # type: ignore[return-value]
+
+
+def _check_readable(path: Path, band: int, what: str) -> None:
+    """Fail now, naming the file, on a raster that opens but cannot be read to its end.
+
+    A truncated GeoTIFF opens fine (its header is whole) and fails on its first missing
+    block, which would otherwise fail every tile of a run with a message naming no file.
+    Its first and last rows of blocks are read (GDAL writes blocks in row order).
+    """
+    import rasterio
+    from rasterio.windows import Window
+
+    try:
+        with rasterio.open(path) as ds:
+            rows = min(ds.height, max(1, ds.block_shapes[band - 1][0]))
+            for row0 in (0, ds.height - rows):
+                ds.read(band, window=Window(0, row0, ds.width, rows))
+    except Exception as exc:
+        raise InputError(
+            f"cannot read the {what} to its end ({library_reason(exc)}); is the file "
+            "truncated or damaged?",
+            path=path,
+        ) from None
 
 
 def strip_cameras(
@@ -183,6 +208,23 @@ def check_overlap(
         "their rays miss the reference DEM); check the scene's reference and "
         "cameras"
     )
+
+
+def check_strips(
+    manifest: SceneManifest, root: Path, ref: ReferenceOrtho, dem: GridTerrain
+) -> None:
+    """Open every strip's camera and CCD images and check that they overlap the reference.
+
+    Run before a run folder is claimed, so that a bad camera or image file, or a strip
+    that misses the reference, leaves nothing behind (the images are closed again).
+    """
+    for strip in manifest.strips:
+        camera, images = strip_cameras(manifest, root, strip)
+        try:
+            check_overlap(camera, images, ref, dem, strip.id)
+        finally:
+            for image in images.values():
+                image.close()
 
 
 def truth_inputs(

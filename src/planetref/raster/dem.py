@@ -32,7 +32,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.errors import CrsError, InputError, MissingFileError, UnsupportedFormatError
+from planetref.errors import (
+    CrsError,
+    InputError,
+    MissingFileError,
+    UnsupportedFormatError,
+    library_reason,
+)
 from planetref.geometry.geodesy import (
     Ellipsoid,
     ray_ellipsoid_intersection,
@@ -202,7 +208,9 @@ class GridTerrain:
                 nodata = ds.nodatavals[band - 1]
                 transform, crs = ds.transform, ds.crs
         except RasterioIOError as exc:
-            raise UnsupportedFormatError(f"cannot read raster ({exc})", path=p) from None
+            raise UnsupportedFormatError(
+                f"cannot read raster ({library_reason(exc)})", path=p
+            ) from None
         if not np.issubdtype(data.dtype, np.floating):
             data = data.astype(np.float32 if data.itemsize <= 2 else np.float64)
         if nodata is not None and np.isfinite(nodata):
