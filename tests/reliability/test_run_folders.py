@@ -273,3 +273,13 @@ def test_the_error_line_also_goes_to_the_run_log(tmp_path: Path) -> None:
     )
     # and the lock was released with the error
     RunDir(tmp_path / "run", "georef", {"matcher": "sift"}).finish()
+
+
+def test_an_output_folder_that_cannot_be_created(tmp_path: Path) -> None:
+    # planetref simulate notes.txt/scene: the folder cannot be made under a file. One line
+    # naming it and why (was "FileNotFoundError: [Errno ...]"), the file left as it was.
+    blocker = tmp_path / "notes.txt"
+    blocker.write_text("mine")
+    r = run_cli("simulate", blocker / "scene", "--preset", "tiny")
+    one_line_error(r, str(blocker / "scene"), "cannot create the output folder")
+    assert blocker.read_text() == "mine"

@@ -38,7 +38,7 @@ from typing import Any
 from planetref import __version__
 from planetref.atomic import json_safe, watch_outputs
 from planetref.atomic import write_json_atomic as _write_json
-from planetref.errors import InputError, RunDirError
+from planetref.errors import InputError, OutputError, RunDirError
 
 __all__ = [
     "FORMAT",
@@ -254,7 +254,12 @@ class RunDir:
         self.inputs = {str(p.resolve()): file_fingerprint(p) for p in inputs}
         self.weights = {Path(w).name: file_fingerprint(w, full=True)["sha256"] for w in weights}
         self._inspect()  # refuse a foreign folder before creating anything in it
-        self.path.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(
+                f"cannot create the output folder ({exc.strerror or exc})", path=self.path
+            ) from None
         self._lock = _Lock(self.path)
         try:
             previous = self._inspect()
