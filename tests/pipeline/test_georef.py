@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -272,3 +273,32 @@ def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path, ref_gr
     assert "nan_dem" in counts
     md = (out.run_dir / "report.md").read_text()
     assert "Tiles without MCPs" in md
+
+
+def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
+    # A DEM holding only its northern rows: the strip still overlaps it (the run goes on)
+    # but part of each CCD's footprint has no terrain, and a new user is told how much.
+    from planetref.pipeline.inputs import check_strips, open_reference
+    from planetref.pipeline.scene import load_manifest
+
+    scene = _copy_scene(tiny_scene, tmp_path / "scene")
+    dem = scene / "reference" / "dem.tif"
+    with rasterio.open(dem) as ds:
+        profile, data = ds.profile, ds.read(1)
+    profile["height"] = data.shape[0] // 2
+    with rasterio.open(dem, "w", **profile) as ds:
+        ds.write(data[: data.shape[0] // 2], 1)
+    manifest, root = load_manifest(scene / "scene.toml")
+    ref, terrain = open_reference(manifest, root)
+    with caplog.at_level("WARNING", logger="planetref"), ref:
+        check_strips(manifest, root, ref, terrain)
+    (msg,) = [r.getMessage() for r in caplog.records if "footprint" in r.getMessage()]
+    shares = [int(v) for v in re.findall(r"ccd\d (\d+) %", msg)]
+    assert len(shares) == 3 and all(30 <= v <= 70 for v in shares), msg
+    # The whole DEM: no warning.
+    manifest, root = load_manifest(tiny_scene / "scene.toml")
+    ref, terrain = open_reference(manifest, root)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="planetref"), ref:
+        check_strips(manifest, root, ref, terrain)
+    assert not [r for r in caplog.records if "footprint" in r.getMessage()]

@@ -56,7 +56,6 @@ from planetref.pipeline.georef_report import (
 )
 from planetref.pipeline.inputs import (
     check_body,
-    check_overlap,
     check_strips,
     open_reference,
     scene_input_files,
@@ -384,8 +383,7 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     from planetref.report.tile_panels import PanelStore
 
     strip, cfg = job.spec, job.cfg
-    camera, images = strip_cameras(job.manifest, job.root, strip)
-    check_overlap(camera, images, job.ref, job.dem, strip.id)
+    camera, images = strip_cameras(job.manifest, job.root, strip)  # checked by check_strips
     sizes = {c: camera.image_size(c) for c in images}
     out: dict[str, Any] = {"files": {}}
 

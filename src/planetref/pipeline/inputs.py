@@ -7,6 +7,7 @@ whose footprint misses the reference.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -35,6 +36,8 @@ __all__ = [
 ]
 
 MARS_SEMI_MAJOR_M = 3396190.0
+
+log = logging.getLogger(__name__)
 
 
 def scene_path(scene: str | os.PathLike[str]) -> Path:
@@ -190,24 +193,42 @@ def check_overlap(
     dem: GridTerrain,
     strip: str,
 ) -> None:
-    """Refuse a strip whose footprint misses the reference ortho entirely."""
+    """Refuse a strip whose footprint misses the reference entirely; warn when it is partial.
+
+    A grid of image points of every CCD (pixel centres, 9 lines x 5 samples) is projected
+    through the DEM into the reference ortho. None covered is an error; some not covered
+    is a warning naming the share per CCD: those parts can get no MCPs, and a strip end
+    beyond the DEM or the ortho is then held only by the weak-node rule.
+    """
     from planetref.frontend.geometry import image_to_ref_pixel
 
     check_body(camera.ellipsoid, ref, "reference ortho")
     check_body(camera.ellipsoid, dem, "reference DEM")
+    outside: dict[str, float] = {}
     for ccd in images:
         n_lines, n_samples = camera.image_size(ccd)
-        t = np.linspace(0, 1, 5)
-        line = np.concatenate([t * n_lines, t * n_lines])
-        sample = np.concatenate([np.zeros(5), np.full(5, n_samples)])
-        col, row = image_to_ref_pixel(camera, ccd, line, sample, ref, dem)
-        if np.any(np.isfinite(col)) and np.any(ref.contains_pixel(col, row)):
-            return
-    raise InputError(
-        f"strip {strip}: its images do not overlap the reference ortho (or "
-        "their rays miss the reference DEM); check the scene's reference and "
-        "cameras"
-    )
+        line, sample = np.meshgrid(
+            np.linspace(0.5, n_lines - 0.5, 9), np.linspace(0.5, n_samples - 0.5, 5)
+        )
+        col, row = image_to_ref_pixel(camera, ccd, line.ravel(), sample.ravel(), ref, dem)
+        covered = np.isfinite(col) & np.isfinite(row)
+        covered[covered] = ref.contains_pixel(col[covered], row[covered])
+        outside[ccd] = float(np.mean(~covered))
+    if all(v == 1.0 for v in outside.values()):
+        raise InputError(
+            f"strip {strip}: its images do not overlap the reference ortho (or "
+            "their rays miss the reference DEM); check the scene's reference and "
+            "cameras"
+        )
+    partial = {c: v for c, v in outside.items() if v > 0}
+    if partial:
+        log.warning(
+            "strip %s: part of its footprint lies outside the reference ortho or DEM "
+            "(share of a 9 x 5 grid of image points per CCD: %s); those parts get no "
+            "matched control points",
+            strip,
+            ", ".join(f"{c} {100 * v:.0f} %" for c, v in partial.items()),
+        )
 
 
 def check_strips(
