@@ -95,11 +95,20 @@ def atomic_path(
         The temporary path to write to.
 
     Raises:
-        OutputError: The write failed (disk full, permissions, a GDAL or Arrow write
-            error); the message names ``path``.
+        OutputError: ``path`` is a read-only file (no write bit in its mode, whoever runs
+            planetref), or the write failed (disk full, permissions, a GDAL or Arrow
+            write error); the message names ``path``.
     """
     target = Path(path)
     absolute = Path(os.path.abspath(target))
+    if target.is_file() and not target.stat().st_mode & 0o222:
+        # The mode bits, not os.access: root may replace anything, but a file marked
+        # read-only for everyone (an archive, shared data) is not planetref's to replace.
+        raise OutputError(
+            f"the file is read-only (mode {target.stat().st_mode & 0o777:o}); planetref "
+            "does not replace it",
+            path=target,
+        )
     watchers = _WATCHERS.get()
     for w in watchers:
         w.check_output(absolute)

@@ -51,7 +51,11 @@ def run_cli(*args: str) -> Any:
 def one_line_error(result: Any, *needles: str) -> str:
     """Assert the command failed with exactly one ``Error:`` line holding ``needles``."""
     assert result.exit_code == 1, (result.exit_code, result.stdout, result.stderr)
+    # Warnings before the error are log lines of their own ("WARNING name: ..."), also
+    # Python's warnings (the CLI logs them as one line each).
     lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert all(ln.startswith("WARNING ") for ln in lines[:-1]), lines
+    lines = lines[-1:]
     assert len(lines) == 1 and lines[0].startswith("Error: "), lines
     for needle in needles:
         assert needle in lines[0], (needle, lines[0])

@@ -283,3 +283,23 @@ def test_an_output_folder_that_cannot_be_created(tmp_path: Path) -> None:
     r = run_cli("simulate", blocker / "scene", "--preset", "tiny")
     one_line_error(r, str(blocker / "scene"), "cannot create the output folder")
     assert blocker.read_text() == "mine"
+
+
+def test_a_read_only_file_is_never_replaced(tmp_path: Path) -> None:
+    # Every planetref write goes through atomic_path: a file marked read-only for everyone
+    # (shared data, an archive) is refused by its mode bits, so even root does not replace it.
+    from planetref.atomic import write_bytes_atomic
+    from planetref.errors import OutputError
+
+    target = tmp_path / "archive.tif"
+    target.write_bytes(b"original")
+    target.chmod(0o444)
+    with pytest.raises(OutputError, match="read-only") as info:
+        write_bytes_atomic(target, b"new")
+    assert str(target) in str(info.value)
+    assert target.read_bytes() == b"original" and [p.name for p in tmp_path.iterdir()] == [
+        "archive.tif"
+    ]
+    target.chmod(0o644)
+    write_bytes_atomic(target, b"new")
+    assert target.read_bytes() == b"new"

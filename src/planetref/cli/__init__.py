@@ -110,7 +110,13 @@ def _warning_as_log_line(
     file: Any = None,
     line: str | None = None,
 ) -> None:
-    """Show a Python warning as one log line (no source path or code line)."""
+    """Show a Python warning as one log line (no source path or code line).
+
+    rasterio's ``NotGeoreferencedWarning`` is dropped: raw CCD images and the images of
+    ``match`` have no georeference by nature.
+    """
+    if category.__name__ == "NotGeoreferencedWarning":
+        return
     text = _one_line(str(message))
     if not issubclass(category, UserWarning) or category.__module__ != "builtins":
         text = f"{category.__name__}: {text}"

@@ -240,6 +240,7 @@ def fit_rpc_command(
     cam = load_camera(camera_file)
     _check_height(cam, lo, "height-range")
     _check_height(cam, hi, "height-range")
+    _check_rpc_raster_size(out, cam, ccd)
     rpc, report = fit_rpc(cam, ccd=ccd, height_range_m=(lo, hi), grid=grid)
     if not (math.isfinite(report.fit_rms_px) and math.isfinite(report.check_rms_px)):
         raise GeometryError(
@@ -257,6 +258,37 @@ def fit_rpc_command(
         "check_max_ground_m": report.check_max_ground_m,
     }
     click.echo(json.dumps(json_safe(doc), allow_nan=False))
+
+
+def _check_rpc_raster_size(out: str, cam: Any, ccd: str | None) -> None:
+    """Refuse to embed RPCs in an existing GeoTIFF whose pixels are not the camera's image.
+
+    RPCs in a GeoTIFF describe that file's pixels: a fit to a camera of another size (e.g.
+    a CTX ISD's 11264 x 5000 lines into a 1024 x 1024 crop) would silently give the image
+    a wrong geolocation.
+    """
+    from pathlib import Path
+
+    p = Path(out)
+    if p.suffix.lower() not in (".tif", ".tiff") or not p.is_file():
+        return
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    try:
+        with rasterio.open(p) as ds:
+            shape = (ds.height, ds.width)
+    except RasterioError:
+        return  # write_rpc reports an unreadable GeoTIFF itself
+    name = ccd or cam.ccd_names[0]
+    size = tuple(int(v) for v in cam.image_size(name))
+    if shape != size:
+        raise InputError(
+            f"--out is a {shape[0]} x {shape[1]} raster but CCD {name} of the camera is "
+            f"{size[0]} x {size[1]} (lines x samples): RPCs embedded in it would describe "
+            "other pixels; write a NAME.RPB or NAME_RPC.TXT instead",
+            path=p,
+        )
 
 
 def _check_rpc_output(camera_file: str, out: str, overwrite: bool) -> None:

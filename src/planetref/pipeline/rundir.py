@@ -149,6 +149,14 @@ def check_output_file(
         raise InputError(f"{option} is a folder, a file is expected", path=p)
     if (p.exists() or p.is_symlink()) and not overwrite:
         raise InputError(f"{option} exists; pass --overwrite to replace it", path=p)
+    if p.is_file() and not p.stat().st_mode & 0o222:
+        # Checked on the mode bits, not os.access: root may write anywhere, but a file
+        # marked read-only for everyone is someone's statement that it must not change.
+        raise InputError(
+            f"{option} is a read-only file (mode {p.stat().st_mode & 0o777:o}); planetref "
+            "does not replace it, even with --overwrite",
+            path=p,
+        )
     return p
 
 
