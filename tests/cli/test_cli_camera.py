@@ -140,11 +140,18 @@ def test_console_script_runs():
 def test_behind_camera_point_is_reported(camera_file):
     cam, path = camera_file
     s, _ = cam.exterior([256.0])
+    # A point 20 % beyond the satellite is refused for its height (checked before any
+    # projection, as --lat/--lon/--height are)...
     r = CliRunner().invoke(
         main, ["camera", "ground-to-image", str(path), "--xyz", *map(str, (1.2 * s[0]).tolist())]
     )
-    assert r.exit_code == 1 and "cannot be projected" in r.output
+    assert r.exit_code == 1 and "--xyz: the point's height" in r.output
     assert np.isfinite(s).all()
+    # ...and a ground point on the far side, behind the camera, cannot be projected.
+    r = CliRunner().invoke(
+        main, ["camera", "ground-to-image", str(path), "--lat", "20", "--lon", "-106"]
+    )
+    assert r.exit_code == 1 and "cannot be projected" in r.output
 
 
 def test_fit_rpc_command_round_trip(camera_file, tmp_path):
@@ -238,3 +245,16 @@ def test_warnings_are_one_log_line(shared):
         out = json.loads(r.stdout)
         # The point itself: 25.97 N 78.21 E on the ellipsoid (HRSC over Nili Fossae).
         assert abs(out["lat_deg"] - 25.9722448) < 1e-6 and abs(out["lon_deg"] - 78.2110398) < 1e-6
+
+
+def test_far_points_give_the_error_alone(shared):
+    # A point far outside the CTX image (and the body's centre) used to print numpy's
+    # "overflow encountered in multiply" / "divide by zero" before the error line.
+    ctx = shared / "data" / "csm" / "ctxLineScan.json"
+    r = run("camera", "ground-to-image", ctx, "--lat", 0, "--lon", 0, "--height", 0)
+    assert r.exit_code == 1 and "outside the image (0 to 11264)" in r.output
+    r2 = run("camera", "ground-to-image", ctx, "--xyz", 0, 0, 0)
+    assert r2.exit_code == 1 and "--xyz: the point's height -3.3762e+06 m" in r2.output
+    for res in (r, r2):
+        lines = [ln for ln in res.output.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "Warning" not in res.output, res.output

@@ -9,6 +9,7 @@ RPCs; longitudes are east-positive degrees.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from typing import Any
 
@@ -47,8 +48,9 @@ def load_camera(path: str) -> Any:
 def _check_height(cam: Any, height: float, name: str = "height") -> None:
     limit = HEIGHT_LIMIT_FRACTION * float(cam.ellipsoid.semi_major_m)
     if abs(height) > limit:
+        what = "--xyz: the point's height" if name == "xyz" else f"--{name}"
         raise InputError(
-            f"--{name} {height:g} m is outside the physically meaningful range "
+            f"{what} {height:g} m is outside the physically meaningful range "
             f"[-{limit:.0f}, {limit:.0f}] m (1 % of the body's radius) of the camera's body"
         )
 
@@ -171,20 +173,22 @@ def ground_to_image(
             raise InputError(f"--lat must be within [-90, 90], got {lat}")
         _check_height(cam, height)
         point = lonlat_to_xyz(lon, lat, height, cam.ellipsoid, cam.latitude_kind)
+    if by_xyz:
+        with np.errstate(all="ignore"):  # the body's centre has no height: refused below
+            height = float(xyz_to_lonlat(point, cam.ellipsoid, cam.latitude_kind)[2])
+        _check_height(cam, height if math.isfinite(height) else -math.inf, "xyz")
     ip = cam.ground_to_image(point[None, :], ccd=ccd)
     if not bool(ip.valid[0]):
         raise GeometryError(
             "the point cannot be projected into the image (behind the camera "
             "or outside the camera's time span)"
         )
-    if by_xyz:
-        _check_height(cam, float(xyz_to_lonlat(point, cam.ellipsoid, cam.latitude_kind)[2]), "xyz")
     out = {"line": float(ip.line[0]), "sample": float(ip.sample[0])}
     if not (math.isfinite(out["line"]) and math.isfinite(out["sample"])):
         raise GeometryError("the point cannot be projected into the image (no finite result)")
     _check_in_image(cam, ccd, out["line"], out["sample"], extrapolate, "the point projects to")
     if not bool(ip.in_image[0]):
-        click.echo("warning: the point projects outside the image", err=True)
+        logging.getLogger("planetref.camera").warning("the point projects outside the image")
     click.echo(json.dumps(out))
 
 

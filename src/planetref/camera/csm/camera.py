@@ -430,7 +430,10 @@ class CsmLineScanCamera:
         isd = self._isd
         pos, _, rot = self._exterior(self.image_time(line))
         cam = np.einsum("mji,mj->mi", rot, xyz - pos)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        # Points far outside the field of view (a line guess far from the solution) give
+        # huge focal-plane coordinates: the distortion iteration overflows there and falls
+        # back to no distortion (as usgscsm does); not a user-facing event.
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             scale = self._focal_length / cam[:, 2]
             fx, fy = cam[:, 0] * scale, cam[:, 1] * scale
             dx, dy = _apply_distortion(
