@@ -149,7 +149,8 @@ def test_behind_camera_point_is_reported(camera_file):
     assert np.isfinite(s).all()
     # ...and a ground point on the far side, behind the camera, cannot be projected.
     r = CliRunner().invoke(
-        main, ["camera", "ground-to-image", str(path), "--lat", "20", "--lon", "-106"]
+        main,
+        ["camera", "ground-to-image", str(path), "--lat", "20", "--lon", "-106", "--height", "0"],
     )
     assert r.exit_code == 1 and "cannot be projected" in r.output
 
