@@ -259,3 +259,12 @@ def test_far_points_give_the_error_alone(shared):
     for res in (r, r2):
         lines = [ln for ln in res.output.splitlines() if ln.strip()]
         assert len(lines) == 1 and "Warning" not in res.output, res.output
+
+
+def test_simulate_help_names_every_preset():
+    from planetref.simulate.config import available_presets
+
+    r = run("simulate", "--help")
+    text = " ".join(r.output.split())
+    for name in available_presets():
+        assert f"{name} (" in text, name

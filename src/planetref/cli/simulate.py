@@ -55,16 +55,13 @@ def simulate_run(
     return result
 
 
-def _preset_names() -> str:
-    from planetref.simulate.config import available_presets
-
-    return ", ".join(available_presets())
-
-
 @click.command("simulate")
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option(
-    "--preset", default="hiric-strip", show_default=True, help="Scene preset (tiny, hiric-strip)."
+    "--preset",
+    default="hiric-strip",
+    show_default=True,
+    help="Scene preset: tiny (quick), hiric-strip (the demo's), hiric (HiRIC-sized).",
 )
 @click.option(
     "--difficulty",
