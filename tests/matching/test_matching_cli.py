@@ -153,7 +153,15 @@ def test_match_command_errors(pair_tifs, tmp_path):
     assert "loftr_outdoor.ckpt" in msg and "http" in msg
     blank = tmp_path / "blank.tif"
     _write_tif(blank, np.full((64, 64), 5.0))
-    assert "no verified matches" in run(str(blank), str(blank), "--out", out)
+    # A constant or empty image is named before any matching (was "no verified matches").
+    assert f"{blank}: the image is constant (5 at every valid pixel)" in run(
+        str(blank), str(pair_tifs[1]), "--out", out
+    )
+    empty = tmp_path / "nan.tif"
+    _write_tif(empty, np.full((64, 64), np.nan))
+    assert f"{empty}: the image has no valid pixel" in run(
+        str(pair_tifs[0]), str(empty), "--out", out
+    )
     assert "Invalid value" in run(
         str(pair_tifs[0]), str(pair_tifs[1]), "--matcher", "superglue", "--out", out
     )

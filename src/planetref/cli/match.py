@@ -17,7 +17,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.atomic import atomic_path
-from planetref.errors import InputError, MatchingError, MissingFileError, PlanetrefError
+from planetref.errors import (
+    InputError,
+    MatchingError,
+    MissingFileError,
+    PlanetrefError,
+    library_reason,
+)
 from planetref.matching.registry import MATCHERS, available_matchers, get_matcher
 
 __all__ = ["match_command", "matchers_command", "read_band", "write_matches_csv"]
@@ -54,11 +60,19 @@ def read_band(path: str | os.PathLike[str]) -> tuple[NDArray[np.float32], NDArra
             band = ds.read(1)
             gdal_mask = ds.read_masks(1) > 0
     except RasterioError as exc:
-        raise InputError(f"not a readable raster ({exc})", path=p) from None
+        raise InputError(f"not a readable raster ({library_reason(exc)})", path=p) from None
     image = band.astype(np.float32, copy=False)
     valid = gdal_mask & np.isfinite(image)
     if np.issubdtype(band.dtype, np.floating):
         valid &= image > ISIS_SPECIAL_BELOW
+    if not valid.any():
+        raise InputError("the image has no valid pixel (all nodata, NaN or ISIS special)", path=p)
+    values = image[valid]
+    if float(values.max()) == float(values.min()):
+        raise InputError(
+            f"the image is constant ({float(values[0]):g} at every valid pixel): nothing to match",
+            path=p,
+        )
     return image, valid
 
 
