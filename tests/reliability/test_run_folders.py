@@ -303,3 +303,23 @@ def test_a_read_only_file_is_never_replaced(tmp_path: Path) -> None:
     target.chmod(0o644)
     write_bytes_atomic(target, b"new")
     assert target.read_bytes() == b"new"
+
+
+def test_adjust_configuration_errors_name_their_source(tmp_path: Path) -> None:
+    # planetref adjust network.toml --config my.toml: a bad key in my.toml used to be
+    # reported against network.toml; an [adjust] table (as in georef's --config) was
+    # refused as "unknown key 'adjust'" instead of being read.
+    net = REPO.parent / "shared" / "data" / "ctx_syrtis" / "network.toml"
+    if not net.is_file():
+        pytest.skip("../shared/data/ctx_syrtis is absent")
+    out = tmp_path / "run"
+    mine = tmp_path / "my.toml"
+    mine.write_text('[adjust.solver]\nlos = "huber"\n')
+    r = run_cli("adjust", net, "--out", out, "--config", mine)
+    one_line_error(r, f"{mine}: invalid adjustment configuration", "unknown key 'solver.los'")
+    r = run_cli("adjust", net, "--out", out, "--tie-sigma", "-5")
+    line = one_line_error(r, "invalid option value", "tie_apriori_sigma_m", "-5.0")
+    assert str(net) not in line
+    r = run_cli("adjust", net, "--out", out, "--set", "solver.loss=3")
+    one_line_error(r, "(after --set)", "'solver.loss'")
+    assert not out.exists()

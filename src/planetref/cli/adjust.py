@@ -49,7 +49,18 @@ def _load_config_file(path: Path) -> dict[str, Any]:
         raise InputError("the configuration is nested too deeply", path=path) from None
     if not isinstance(data, dict):
         raise InputError("the configuration must be a table", path=path)
-    return data.get("adjustment", data) if isinstance(data.get("adjustment"), dict) else data
+    for table in ("adjustment", "adjust"):  # the network file's table, georef's table
+        if isinstance(data.get(table), dict):
+            return data[table]
+    return data
+
+
+def _validated(cfg: dict[str, Any], source: Path | None, what: str) -> None:
+    """Check the configuration as layered so far, naming where the layer came from."""
+    from planetref.adjust.config import AdjustConfig
+    from planetref.settings import validate_settings
+
+    validate_settings(AdjustConfig, cfg, source=None if source is None else str(source), what=what)
 
 
 def _set(cfg: dict[str, Any], assignment: str) -> None:
@@ -127,7 +138,8 @@ def _toml_safe(obj: Any) -> Any:
     "config_file",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Configuration file (TOML or JSON), over the network's.",
+    help="Configuration file (TOML or JSON), over the network's: the keys of its "
+    "[adjustment] table, at the top level or inside [adjustment] or [adjust].",
 )
 @click.option(
     "--solve",
@@ -210,8 +222,10 @@ def adjust_command(
     cfg: dict[str, Any] = (
         dict(doc.get("adjustment", {})) if isinstance(doc.get("adjustment"), dict) else {}
     )
+    _validated(cfg, network, "adjustment configuration ([adjustment] table)")
     if config_file is not None:
         cfg = deep_merge(cfg, _load_config_file(config_file))
+        _validated(cfg, config_file, "adjustment configuration")
     if solve is not None:
         _apply_solve(cfg, solve)
     if loss is not None:
@@ -233,8 +247,11 @@ def adjust_command(
         cfg.setdefault("solver", {})["max_iterations"] = max_iterations
     if rpc_bias is not None:
         cfg.setdefault("rpc", {})["bias"] = rpc_bias
+    _validated(cfg, None, "option value (--solve, --loss, --sigma-px, --tie-sigma, ...)")
     for a in assignments:
         _set(cfg, a)
+    if assignments:
+        _validated(cfg, None, "adjustment configuration (after --set)")
     nf = read_network(network, config=cfg)
     resolved = nf.config.model_dump(mode="json")
     # The inputs are read and checked before the folder is claimed (nothing is left
