@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from planetref.camera.io import load_camera
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.cli import main
 from planetref.geometry.geodesy import xyz_to_lonlat
@@ -268,3 +269,21 @@ def test_simulate_help_names_every_preset():
     text = " ".join(r.output.split())
     for name in available_presets():
         assert f"{name} (" in text, name
+
+
+def test_fit_rpc_avoids_a_pole_on_a_real_ctx_image(shared, tmp_path):
+    # G21 (19,456 CTX lines): fit_rpc's default regularisation put a denominator zero near
+    # the image (check max 1452.7 px, min |D| 5e-5); the regularisation ladder keeps
+    # 1.23 px, and what remains above 1 px is said on stderr.
+    isd = shared / "data" / "ctx_syrtis" / "G21_026491_2001_XN_20N286W.lev1.json"
+    out = tmp_path / "g21.RPB"
+    r = run("camera", "fit-rpc", isd, "--out", out, "--height-range", -4000, 0)
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.stdout)
+    assert rep["check_max_px"] < 1.5 and rep["check_rms_px"] < 0.7, rep
+    assert "WARNING planetref.camera" in r.stderr and "max 1.23 px" in r.stderr
+    # The RPC written agrees with the ISD at a ground point inside the image.
+    cam = load_camera(isd)
+    xyz = cam.image_to_ground([9000.5], [2500.5], -2000.0)[0]
+    got = json.loads(run("camera", "ground-to-image", out, "--xyz", *xyz).stdout)
+    assert np.hypot(got["line"] - 9000.5, got["sample"] - 2500.5) < 1.5

@@ -45,6 +45,10 @@ def load_camera(path: str) -> Any:
         raise InputError("the file is nested too deeply to be a camera file", path=path) from None
 
 
+#: ``camera fit-rpc`` warns when the RPC misses the camera by more than this (pixels).
+RPC_WARN_MAX_PX = 1.0
+
+
 def _check_height(cam: Any, height: float, name: str = "height") -> None:
     limit = HEIGHT_LIMIT_FRACTION * float(cam.ellipsoid.semi_major_m)
     if abs(height) > limit:
@@ -235,7 +239,8 @@ def fit_rpc_command(
 
     Output: the fit report (RMS/max error in pixels on the fitting and check grids).
     """
-    from planetref.camera.rpc import RpcBody, fit_rpc, write_rpc
+    from planetref.camera.rpc import RpcBody, write_rpc
+    from planetref.camera.rpc.stable import fit_rpc_stable
 
     lo, hi = height_range
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
@@ -245,7 +250,7 @@ def fit_rpc_command(
     _check_height(cam, lo, "height-range")
     _check_height(cam, hi, "height-range")
     _check_rpc_raster_size(out, cam, ccd)
-    rpc, report = fit_rpc(cam, ccd=ccd, height_range_m=(lo, hi), grid=grid)
+    rpc, report = fit_rpc_stable(cam, ccd=ccd, height_range_m=(lo, hi), grid=grid)
     if not (math.isfinite(report.fit_rms_px) and math.isfinite(report.check_rms_px)):
         raise GeometryError(
             f"the RPC fit failed (fit RMS {report.fit_rms_px}, check RMS "
@@ -253,6 +258,17 @@ def fit_rpc_command(
             f"{lo:g} to {hi:g} m somewhere on the grid; nothing was written",
         )
     path = write_rpc(rpc, out, body=RpcBody(cam.ellipsoid, cam.latitude_kind))
+    if report.check_max_px > RPC_WARN_MAX_PX:
+        logging.getLogger("planetref.camera").warning(
+            "%s: the RPC reproduces the camera to %.3g px RMS only (max %.3g px on the check "
+            "grid): a third-order RPC cannot follow this camera over its whole image and "
+            "%g to %g m; use the rigorous camera, or a narrower --height-range",
+            path,
+            report.check_rms_px,
+            report.check_max_px,
+            lo,
+            hi,
+        )
     doc = {
         "out": str(path),
         "fit_rms_px": report.fit_rms_px,
