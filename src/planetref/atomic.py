@@ -15,6 +15,7 @@ import contextvars
 import json
 import os
 import tempfile
+import urllib.error
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Protocol
@@ -70,6 +71,8 @@ def _umask() -> int:
 def _write_failed(exc: BaseException) -> bool:
     if isinstance(exc, PlanetrefError):
         return False
+    if isinstance(exc, urllib.error.URLError | ConnectionError | TimeoutError):
+        return False  # the source failed (a download), not the write
     if isinstance(exc, OSError):
         return True
     return type(exc).__module__.split(".")[0] in _WRITER_MODULES

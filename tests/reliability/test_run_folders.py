@@ -323,3 +323,16 @@ def test_adjust_configuration_errors_name_their_source(tmp_path: Path) -> None:
     r = run_cli("adjust", net, "--out", out, "--set", "solver.loss=3")
     one_line_error(r, "(after --set)", "'solver.loss'")
     assert not out.exists()
+
+
+def test_a_failed_download_is_not_a_failed_write(tmp_path: Path) -> None:
+    # planetref weights download: with no network the error read "cannot write the file
+    # (URLError: ... Name or service not known)"; the source failed, not the disk.
+    import urllib.error
+
+    from planetref.atomic import atomic_path
+
+    target = tmp_path / "w.ckpt"
+    with pytest.raises(urllib.error.URLError), atomic_path(target):
+        raise urllib.error.URLError("Name or service not known")
+    assert list(tmp_path.iterdir()) == []  # nothing left behind
