@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_outputs.py SCENE_DIR OUT_DIR [--matcher sift] [--threads 2]
-        [--profile FILE]
+        [--config FILE] [--profile FILE]
 
 Runs ``georef`` once and prints, as JSON, the wall-clock and CPU seconds of each stage:
 matching (tiles and MCPs), adjustment, and the outputs (adjusted cameras/RPC refits/
@@ -69,6 +69,7 @@ def main() -> int:
     ap.add_argument("out")
     ap.add_argument("--matcher", default="sift")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--config", default=None, help="georef configuration TOML (e.g. fine_upsample).")
     ap.add_argument("--profile", default=None, help="Also write cProfile stats here.")
     args = ap.parse_args()
 
@@ -76,6 +77,9 @@ def main() -> int:
 
     apply_thread_budget(ThreadBudget.resolve(args.threads))
     from planetref.pipeline import georef
+    from planetref.pipeline.config import load_config
+
+    cfg = load_config(args.config)
 
     acc = {stage: [0.0, 0.0] for stage in STAGES}
     for stage, targets in STAGES.items():
@@ -93,7 +97,9 @@ def main() -> int:
     w0, c0 = time.perf_counter(), time.process_time()
     if prof is not None:
         prof.enable()
-    out = georef.run_georef(args.scene, args.matcher, args.out, progress=False, overwrite=True)
+    out = georef.run_georef(
+        args.scene, args.matcher, args.out, config=cfg, progress=False, overwrite=True
+    )
     if prof is not None:
         prof.disable()
         prof.dump_stats(args.profile)
@@ -107,6 +113,7 @@ def main() -> int:
     print(
         json.dumps(
             {
+                "fine_upsample": cfg.frontend.fine_upsample,
                 "wall_s": round(wall, 2),
                 "cpu_s": round(cpu, 2),
                 "cpu_children_s": round(cpu_children, 2),

@@ -231,12 +231,25 @@ class LatticeProjector:
     def block(self, r0: int, r1: int) -> tuple[F64, F64]:
         """Dense ``(line, sample)`` of the pixel centres of output rows ``r0:r1``.
 
+        :meth:`block_lattice` interpolated by :func:`bilinear_lattice`.
+
+        Returns:
+            Two ``(r1 - r0, width)`` float64 arrays, NaN where the projection fails.
+        """
+        lat_l, lat_s, ir, fr, ic, fc = self.block_lattice(r0, r1)
+        return bilinear_lattice(lat_l, ir, fr, ic, fc), bilinear_lattice(lat_s, ir, fr, ic, fc)
+
+    def block_lattice(self, r0: int, r1: int) -> tuple[F64, F64, Any, F64, Any, F64]:
+        """The lattice of output rows ``r0:r1`` and where each pixel centre falls in it.
+
         The lattice steps along rows and along columns are refined separately (a line-scan
         camera's mapping bends mostly with time, i.e. along one direction): a direction
         whose error bound exceeds half of ``max_error_px`` is halved (the larger first).
 
         Returns:
-            Two ``(r1 - r0, width)`` float64 arrays, NaN where the projection fails.
+            ``(lat_line, lat_sample, ir, fr, ic, fc)``: the lattice's lines and samples
+            (NaN where the projection fails) and the cells and fractions of the rows and
+            columns of the pixel centres (see :func:`bilinear_lattice`).
         """
         s = self.settings
         width = self.grid.width
@@ -289,7 +302,7 @@ class LatticeProjector:
         self.steps_used.append((step_r, step_c))
         ir, fr = _cell((centres_r - r0) / step_r, n_r)
         ic, fc = _cell(centres_c / step_c, n_c)
-        return bilinear_lattice(lat_l, ir, fr, ic, fc), bilinear_lattice(lat_s, ir, fr, ic, fc)
+        return lat_l, lat_s, ir, fr, ic, fc
 
     @staticmethod
     def _coarse_guess(rows: F64, cols: F64, lines: F64) -> Any:
