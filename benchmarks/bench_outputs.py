@@ -9,12 +9,22 @@ Runs ``georef`` once and prints, as JSON, the wall-clock and CPU seconds of each
 matching (tiles and MCPs), adjustment, and the outputs (adjusted cameras/RPC refits/
 reports, CSM ISDs, ASP/ISIS exports, orthoimages with mosaic and overviews, residual
 figure, matching figures), with the outputs' share of the run's wall time and of its CPU
-time. Each stage is timed by wrapping its function (``time.process_time`` counts every
-thread of this process); CPU spent in child processes (``RUSAGE_CHILDREN``, e.g. a
-figure process) is added to the outputs and to the total. CPU seconds of a
-single-threaded stage are what an idle machine would show as wall time; on a loaded
-machine wall shares mostly measure the other jobs. ``--profile`` also runs cProfile
-(which inflates Python-heavy stages such as matplotlib several times).
+time.
+
+- Outputs' wall time: the pipeline's own ``timing_s["outputs"]`` (the outputs' parts
+  run partly at the same time, so per-stage wall times overlap and do not add up; it
+  includes waiting for the figure process at the end).
+- Per-stage CPU: ``time.process_time`` (every thread of this process) while the stage
+  runs, and ``time.thread_time`` of the thread that runs it (``cpu_thread_s_per_stage``;
+  exact for a single-threaded stage even when others run beside it).
+- Outputs' CPU: this process's CPU while a strip's outputs are written (the adjustment's
+  CPU taken out), plus the matching figures, plus CPU spent in child processes
+  (``RUSAGE_CHILDREN``, the figure process).
+
+CPU seconds of a single-threaded stage are what an idle machine would show as wall time;
+on a loaded machine wall shares mostly measure the other jobs. ``--config`` reads a
+georef configuration (e.g. ``[frontend] fine_upsample = 1``). ``--profile`` also runs
+cProfile (which inflates Python-heavy stages such as matplotlib several times).
 
 The run's peak memory is printed too: ``peak_rss_mb`` of this process and of its largest
 child (``ru_maxrss``).
@@ -43,17 +53,20 @@ STAGES = {
     "figures_matching": ("planetref.pipeline.georef:figures_matching",),
 }
 NOT_OUTPUTS = ("matching", "adjustment")
+#: A strip's adjustment and outputs (its CPU less the adjustment's is the outputs' CPU).
+BLOCK = "planetref.pipeline.georef:_adjust_strip"
 
 
 def _wrap(stage: str, fn: Any, acc: dict[str, list[float]]) -> Any:
     @functools.wraps(fn)
     def timed(*args: Any, **kwargs: Any) -> Any:
-        w0, c0 = time.perf_counter(), time.process_time()
+        w0, c0, t0 = time.perf_counter(), time.process_time(), time.thread_time()
         try:
             return fn(*args, **kwargs)
         finally:
             acc[stage][0] += time.perf_counter() - w0
             acc[stage][1] += time.process_time() - c0
+            acc[stage][2] += time.thread_time() - t0
 
     return timed
 
@@ -69,7 +82,7 @@ def main() -> int:
     ap.add_argument("out")
     ap.add_argument("--matcher", default="sift")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--config", default=None, help="georef configuration TOML (e.g. fine_upsample).")
+    ap.add_argument("--config", default=None, help="georef config TOML.")
     ap.add_argument("--profile", default=None, help="Also write cProfile stats here.")
     args = ap.parse_args()
 
@@ -81,8 +94,8 @@ def main() -> int:
 
     cfg = load_config(args.config)
 
-    acc = {stage: [0.0, 0.0] for stage in STAGES}
-    for stage, targets in STAGES.items():
+    acc = {stage: [0.0, 0.0, 0.0] for stage in [*STAGES, "block"]}
+    for stage, targets in [*STAGES.items(), ("block", (BLOCK,))]:
         for target in targets:
             mod_name, attr = target.split(":")
             mod = importlib.import_module(mod_name)
@@ -106,8 +119,9 @@ def main() -> int:
     wall, cpu_main = time.perf_counter() - w0, time.process_time() - c0
     cpu_children = _children_cpu() - k0
     cpu = cpu_main + cpu_children
-    wall_out = sum(v[0] for k, v in acc.items() if k not in NOT_OUTPUTS)
-    cpu_out = sum(v[1] for k, v in acc.items() if k not in NOT_OUTPUTS) + cpu_children
+    stages = {k: v for k, v in acc.items() if k != "block"}
+    wall_out = float(out.report["timing_s"].get("outputs", 0.0))
+    cpu_out = acc["block"][1] - acc["adjustment"][1] + acc["figures_matching"][1] + cpu_children
     self_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     child_rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
     print(
@@ -118,8 +132,9 @@ def main() -> int:
                 "cpu_s": round(cpu, 2),
                 "cpu_children_s": round(cpu_children, 2),
                 "timing_s": {k: round(v, 2) for k, v in out.report["timing_s"].items()},
-                "wall_s_per_stage": {k: round(v[0], 2) for k, v in acc.items()},
-                "cpu_s_per_stage": {k: round(v[1], 2) for k, v in acc.items()},
+                "wall_s_per_stage": {k: round(v[0], 2) for k, v in stages.items()},
+                "cpu_s_per_stage": {k: round(v[1], 2) for k, v in stages.items()},
+                "cpu_thread_s_per_stage": {k: round(v[2], 2) for k, v in stages.items()},
                 "wall_outputs_s": round(wall_out, 2),
                 "cpu_outputs_s": round(cpu_out, 2),
                 "wall_outputs_share_pct": round(100.0 * wall_out / wall, 1),

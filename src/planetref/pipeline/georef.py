@@ -27,6 +27,7 @@ import contextlib
 import logging
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -44,6 +45,7 @@ from planetref.pipeline.georef_outputs import (
     figures_matching,
     mcp_points,
     orthoimages,
+    part_timed,
     timed,
 )
 from planetref.pipeline.georef_report import (
@@ -474,31 +476,38 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     job.timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
-    adj_files = write_outputs(
-        result,
-        run.file(prep.id, "adjustment"),
-        truth=truth,
-        terrain=job.truth_dem if job.truth_dem is not None else job.dem,
-        plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
-    )
-    out["files"]["adjustment"] = adj_files
-    out["adjustment"] = result_block(result)
-    out["check"] = check_block(result, truth, job.truth_dem) if truth else None
-    out["warnings"] = list(result.warnings)
-    dt = time.perf_counter() - t0  # adjusted cameras, RPC refits, residuals, reports
-    job.timing["outputs"] += dt
-    job.timing["outputs_adjustment_files"] = job.timing.get("outputs_adjustment_files", 0.0) + dt
-    with timed(job.timing, "isd"):
-        out["files"]["isd"] = camera_isds(job, prep.id, result.cameras[prep.id])
-    with timed(job.timing, "exports"):
-        out["files"]["exports"] = control_exports(
-            job, f"{prep.id}_mcps", mcp_points(prep, cfg), (prep.id, "exports")
-        )
-    with timed(job.timing, "figures"):  # drawn while the orthoimages are written
-        figure_residuals(job, prep.id, result, prep.sizes)
-    if cfg.ortho.enabled:
-        with timed(job.timing, "orthoimages"):
-            out["files"]["ortho"] = orthoimages(job, prep.id, result.cameras[prep.id], prep.images)
+    camera = result.cameras[prep.id]
+
+    def beside() -> tuple[dict[str, Any], list[str]]:
+        # Adjusted cameras, RPC refits, residuals, reports, then the CSM ISDs: one thread
+        # beside the orthoimages (single-threaded BLAS; see planetref.threads).
+        with part_timed(job.timing, "adjustment_files"):
+            files = write_outputs(
+                result,
+                run.file(prep.id, "adjustment"),
+                truth=truth,
+                terrain=job.truth_dem if job.truth_dem is not None else job.dem,
+                plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
+            )
+        with part_timed(job.timing, "isd"):
+            return files, camera_isds(job, prep.id, camera)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="outputs") as pool:
+        side = pool.submit(beside)
+        out["adjustment"] = result_block(result)
+        out["check"] = check_block(result, truth, job.truth_dem) if truth else None
+        out["warnings"] = list(result.warnings)
+        with part_timed(job.timing, "exports"):
+            out["files"]["exports"] = control_exports(
+                job, f"{prep.id}_mcps", mcp_points(prep, cfg), (prep.id, "exports")
+            )
+        with part_timed(job.timing, "figures"):  # drawn while the orthoimages are written
+            figure_residuals(job, prep.id, result, prep.sizes)
+        if cfg.ortho.enabled:
+            with part_timed(job.timing, "orthoimages"):
+                out["files"]["ortho"] = orthoimages(job, prep.id, camera, prep.images)
+        out["files"]["adjustment"], out["files"]["isd"] = side.result()
+    job.timing["outputs"] += time.perf_counter() - t0
     out["_residuals"] = (result.residual, result.inlier)
     return out
 

@@ -28,6 +28,7 @@ __all__ = [
     "figures_matching",
     "mcp_points",
     "orthoimages",
+    "part_timed",
     "timed",
 ]
 
@@ -44,6 +45,21 @@ def timed(timing: dict[str, float], part: str) -> Iterator[None]:
         dt = time.perf_counter() - t0
         timing["outputs"] = timing.get("outputs", 0.0) + dt
         timing[f"outputs_{part}"] = timing.get(f"outputs_{part}", 0.0) + dt
+
+
+@contextlib.contextmanager
+def part_timed(timing: dict[str, float], part: str) -> Iterator[None]:
+    """Add the block's seconds to ``timing["outputs_<part>"]`` only.
+
+    For parts that run at the same time as others (their union is timed once into
+    ``timing["outputs"]`` by the caller).
+    """
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        key = f"outputs_{part}"
+        timing[key] = timing.get(key, 0.0) + time.perf_counter() - t0
 
 
 def orthoimages(

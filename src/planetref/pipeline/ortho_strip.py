@@ -239,9 +239,7 @@ def _resample(job: _CcdJob, r0: int, r1: int, want_dist: bool) -> tuple[F32, F32
     return empty, (dist if want_dist else None)
 
 
-def _resample_reference(
-    job: _CcdJob, r0: int, r1: int, want_dist: bool
-) -> tuple[F32, F32 | None]:
+def _resample_reference(job: _CcdJob, r0: int, r1: int, want_dist: bool) -> tuple[F32, F32 | None]:
     """:func:`_resample` in numpy and OpenCV (``bilinear_lattice``, ``cv2.remap``)."""
     import cv2
 
@@ -441,7 +439,7 @@ def orthorectify_strip(
             def one(job: _CcdJob, a0: int, a1: int) -> tuple[F32, F32 | None]:
                 val, dist = _resample(job, a0, a1, m_dst is not None)
                 win = Window(0, a0, job.grid.width, a1 - a0)
-                dst[job.ccd].write(ptype.cast(val), 1, window=win)
+                dst[job.ccd].write(_cast(ptype, val), 1, window=win)
                 return val, dist
 
             if pool is not None and len(todo) > 1:
@@ -478,8 +476,18 @@ def orthorectify_strip(
     return result
 
 
+def _cast(ptype: PixelType, values: F32) -> NDArray[Any]:
+    """``ptype.cast(values)``, by the compiled kernel for integer types when there is one."""
+    k = _kernel() if ptype.lo is not None else None
+    if k is None or values.ndim != 2:
+        return ptype.cast(values)
+    out = np.empty(values.shape, ptype.dtype)
+    k.cast_block(values, ptype.lo, ptype.hi, ptype.nodata, out)
+    return out
+
+
 def _write_block(ds: Any, ptype: PixelType, values: F32, window: Any) -> None:
-    ds.write(ptype.cast(values), 1, window=window)
+    ds.write(_cast(ptype, values), 1, window=window)
 
 
 def _write_digest(path: Path, digest: str) -> None:
