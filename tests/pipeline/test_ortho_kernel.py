@@ -141,3 +141,34 @@ def test_compiled_orthoimages_equal_the_reference(tiny_scene, tmp_path, monkeypa
     old, _ = run("reference")
     assert np.array_equal(new, old)
     assert 0.3 < np.mean(new != nodata) < 1.0
+
+
+def test_raw_windows_reuse_the_previous_window():
+    """Overlapping windows (forwards, backwards, nested, disjoint) equal direct reads."""
+    from planetref.raster.image import CcdImage
+
+    rng = np.random.default_rng(5)
+    arr = rng.integers(0, 4000, (300, 23)).astype(np.uint16)
+    arr[rng.random(arr.shape) < 0.02] = 0  # nodata -> NaN
+    image = CcdImage(arr, nodata=0)
+    job = ortho_strip._CcdJob("c", image, None, 0, 0, None, 300, 23, read_align=16)
+    reads = []
+    real = image.read
+
+    def counted(r, c, h, w):
+        reads.append(h)
+        return real(r, c, h, w)
+
+    image.read = counted
+    windows = [(0, 50), (20, 90), (60, 120), (130, 170), (100, 150), (90, 140), (95, 130)]
+    windows += [(280, 300), (270, 295)]
+    for lo, hi in windows:
+        raw, valid = real(lo, 0, hi - lo, 23)
+        want = np.where(valid, raw, np.float32(np.nan)).astype(np.float32)
+        got = job.raw(lo, hi)
+        assert got.flags.c_contiguous and got.dtype == np.float32
+        np.testing.assert_array_equal(got, want)
+    # Runs aligned to 16 lines: [0, 64), [64, 96), [96, 128), [128, 176) (disjoint),
+    # [96, 128) (moving up), [80, 96), nothing (inside), [272, 300) (the image's end),
+    # [256, 272).
+    assert reads == [64, 32, 32, 48, 32, 16, 28, 16]

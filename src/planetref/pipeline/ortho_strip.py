@@ -160,6 +160,53 @@ class _CcdJob:
     projector: LatticeProjector
     n_lines: int
     n_samples: int
+    #: Raw lines are read in whole runs of this many (the input's tile height, 256 for
+    #: the simulator's and most tiled GeoTIFFs): a tile is decoded once.
+    read_align: int = TILE
+    #: The raw lines kept from the last read, ``(first line, float32, NaN where invalid)``.
+    last_raw: tuple[int, F32] | None = None
+
+    def raw(self, l_lo: int, l_hi: int) -> F32:
+        """Raw lines ``l_lo:l_hi`` (all samples) as float32, NaN where invalid.
+
+        Consecutive blocks' windows overlap (hiric-strip: each line falls in ~2.1
+        windows). Lines are read in runs aligned to :attr:`read_align` and kept until a
+        window no longer needs them, so each line is read and decoded about once.
+        """
+        k = max(1, int(self.read_align))
+        up = min(self.n_lines, -(-l_hi // k) * k)
+        down = max(0, (l_lo // k) * k)
+        if self.last_raw is not None:
+            p0, prev = self.last_raw
+            p1 = p0 + len(prev)
+            if p0 <= l_lo and l_hi <= p1:
+                return prev[l_lo - p0 : l_hi - p0]
+            if p0 <= l_lo < p1:  # the window starts inside the kept lines
+                kept = self._join(prev[l_lo - p0 :], self._read(p1, up))
+                self.last_raw = (l_lo, kept)
+                return kept[: l_hi - l_lo]
+            if p0 < l_hi <= p1:  # it ends inside them (blocks moving up the image)
+                kept = self._join(self._read(down, p0), prev[: l_hi - p0])
+                self.last_raw = (down, kept)
+                return kept[l_lo - down :]
+        kept = self._read(down, up)
+        self.last_raw = (down, kept)
+        return kept[l_lo - down : l_hi - down]
+
+    def _read(self, a: int, b: int) -> F32:
+        if b <= a:
+            return np.empty((0, self.n_samples), np.float32)
+        raw, valid = self.image.read(a, 0, b - a, self.n_samples)
+        raw = np.asarray(raw, np.float32)
+        return raw if valid.all() else np.where(valid, raw, np.float32(np.nan))
+
+    @staticmethod
+    def _join(head: F32, tail: F32) -> F32:
+        if not len(tail):
+            return np.ascontiguousarray(head)
+        if not len(head):
+            return np.ascontiguousarray(tail)
+        return np.concatenate([head, tail], axis=0)
 
 
 def _strip_digest(
@@ -230,10 +277,7 @@ def _resample(job: _CcdJob, r0: int, r1: int, want_dist: bool) -> tuple[F32, F32
     l_hi = min(job.n_lines, int(np.ceil(hi)) + 2)
     if l_hi <= l_lo:
         return empty, (np.full_like(empty, -np.inf) if want_dist else None)
-    raw, valid = job.image.read(l_lo, 0, l_hi - l_lo, job.n_samples)
-    if not valid.all():
-        raw = np.where(valid, raw, np.float32(np.nan))
-    raw = np.ascontiguousarray(raw, dtype=np.float32)
+    raw = job.raw(l_lo, l_hi)
     dist = np.empty(shape, np.float32) if want_dist else empty
     k.resample_bilinear(raw, l_lo, ml, ms, job.n_lines, job.n_samples, empty, dist, want_dist)
     return empty, (dist if want_dist else None)
@@ -310,7 +354,8 @@ def orthorectify_strip(
         settings: Lattice and block settings.
         resume: Keep existing outputs whose inputs digest matches.
         overviews: Build internal overviews.
-        threads: CCDs resampled at once (default: OpenCV's thread budget, see
+        threads: CCDs resampled at once, and GDAL's threads for compressing tiles and
+            computing overviews (default: OpenCV's thread budget, see
             :mod:`planetref.threads`); the output does not depend on it.
 
     Returns:
@@ -330,6 +375,7 @@ def orthorectify_strip(
     s = settings or OrthoSettings()
     if threads is None:
         threads = cv2.getNumThreads()
+    gdal_threads = max(1, int(threads or 1))
     rows_per_block = max(TILE, (int(s.block_rows) // TILE) * TILE)
     g = float(gsd_m)
     dtypes = {np.dtype(getattr(im, "dtype", np.float32)) for im in images.values()}
@@ -398,6 +444,8 @@ def orthorectify_strip(
             "blockysize": TILE,
             "BIGTIFF": "IF_SAFER",
             **_compression(),
+            # GDAL compresses the tiles in this many threads of its own (no GIL).
+            "num_threads": str(gdal_threads),
         }
 
     for p in every:
@@ -405,7 +453,15 @@ def orthorectify_strip(
         if d.exists():
             d.unlink()
     with contextlib.ExitStack() as stack:
-        stack.enter_context(rasterio.Env(GDAL_PAM_ENABLED="NO", GDAL_CACHEMAX=GDAL_CACHE_MB))
+        # GDAL_NUM_THREADS: the overviews are computed and compressed in GDAL's threads
+        # (rasterio holds the GIL during build_overviews; pixels are the same).
+        stack.enter_context(
+            rasterio.Env(
+                GDAL_PAM_ENABLED="NO",
+                GDAL_CACHEMAX=GDAL_CACHE_MB,
+                GDAL_NUM_THREADS=str(gdal_threads),
+            )
+        )
         dst: dict[str, Any] = {}
         for j in jobs:
             tmp = stack.enter_context(atomic_path(targets[j.ccd]))
