@@ -168,6 +168,10 @@ def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path, ref_grid, monkey
     listed = json.loads((out / "run.json").read_text())["files"]
     assert {f"strip1/tile_panels/{p}" for p in panels} <= set(listed)
     fig2 = (out / "figures" / "strip1_tile_matches.png").read_bytes()
+    kept = sorted((out / "strip1" / "adjustment" / "isd").glob("*.json"))
+    kept += sorted((out / "strip1" / "ortho").glob("*.tif"))
+    assert len(kept) == 3 + 4  # ISDs, orthoimages and mosaic
+    stamps = [p.stat().st_mtime_ns for p in kept]
     # The resumed run draws Fig. 2 from them: no tile is matched again, not even for it.
     calls = []
     real = planetref.frontend.tile.match_tile
@@ -179,6 +183,8 @@ def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path, ref_grid, monkey
     assert calls == []
     assert (out / "figures" / "strip1_tile_matches.png").read_bytes() == fig2
     assert sorted(p.name for p in (out / "strip1" / "tile_panels").iterdir()) == panels
+    # The same adjusted camera: ISDs and orthoimages are kept, not written again.
+    assert [p.stat().st_mtime_ns for p in kept] == stamps
     assert again.report["matching"] == first.report["matching"]
     # Another matcher into the same directory is refused without --overwrite...
     with pytest.raises(InputError, match="another run"):

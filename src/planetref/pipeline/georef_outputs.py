@@ -99,8 +99,12 @@ def camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
     the native camera to 1e-3 pixel (the sampling and agreement reached are recorded in
     the ISD under ``planetref``). Other
     camera kinds (CSM, RPC) already have their own files in ``adjustment/cameras``.
+    A digest of the camera and the settings (``<strip>.inputs.sha256`` next to the ISDs)
+    lets a resumed run keep ISDs whose camera did not change.
     """
+    from planetref.atomic import atomic_path
     from planetref.camera.csm import write_linescan_isds
+    from planetref.camera.csm.export import isd_file_name
     from planetref.camera.linescan import LineScanCamera
 
     if not isinstance(camera, LineScanCamera):
@@ -110,7 +114,35 @@ def camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
     # An adjusted strip's nodes bend its trajectory at every Lagrange window switch, so
     # 1e-3 px needs an ephemeris every 1-2 lines (hiric-strip: 1 line, 2.9e-4 px);
     # starting at 4 lines skips the coarser tries that cannot reach it.
-    return [str(p) for p in write_linescan_isds(camera, folder, strip, lines_per_sample=4.0)]
+    lps = 4.0
+    stamp = job.run.file(strip, "adjustment", "isd", f"{strip}.inputs.sha256")
+    digest = _isd_digest(camera, lps)
+    paths = [folder / isd_file_name(strip, c) for c in camera.ccd_names]
+    if stamp.is_file() and stamp.read_text(encoding="utf-8").strip() == digest:
+        if all(p.is_file() for p in paths):
+            return [str(p) for p in paths]
+    stamp.unlink(missing_ok=True)
+    written = write_linescan_isds(camera, folder, strip, lines_per_sample=lps)
+    with atomic_path(stamp) as tmp:
+        tmp.write_text(digest + "\n", encoding="utf-8")
+    return [str(p) for p in written]
+
+
+def _isd_digest(camera: Camera, lines_per_sample: float) -> str:
+    """SHA-256 of what a strip's ISDs are made from (the camera, the sampling, the code)."""
+    import hashlib
+    import json
+
+    from planetref import __version__
+
+    doc = {
+        "camera": camera.to_dict(),  # type: ignore[attr-defined]
+        "lines_per_sample": lines_per_sample,
+        "tolerance_px": 1e-3,
+        "version": __version__,
+    }
+    blob = json.dumps(doc, sort_keys=True, default=repr).encode()
+    return hashlib.sha256(blob).hexdigest()
 
 
 def control_exports(
