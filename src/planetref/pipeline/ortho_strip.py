@@ -354,8 +354,8 @@ def orthorectify_strip(
         settings: Lattice and block settings.
         resume: Keep existing outputs whose inputs digest matches.
         overviews: Build internal overviews.
-        threads: CCDs resampled at once, and GDAL's threads for compressing tiles and
-            computing overviews (default: OpenCV's thread budget, see
+        threads: CCDs resampled at once, and GDAL's threads computing overviews
+            (default: OpenCV's thread budget, see
             :mod:`planetref.threads`); the output does not depend on it.
 
     Returns:
@@ -444,8 +444,6 @@ def orthorectify_strip(
             "blockysize": TILE,
             "BIGTIFF": "IF_SAFER",
             **_compression(),
-            # GDAL compresses the tiles in this many threads of its own (no GIL).
-            "num_threads": str(gdal_threads),
         }
 
     for p in every:
@@ -453,15 +451,7 @@ def orthorectify_strip(
         if d.exists():
             d.unlink()
     with contextlib.ExitStack() as stack:
-        # GDAL_NUM_THREADS: the overviews are computed and compressed in GDAL's threads
-        # (rasterio holds the GIL during build_overviews; pixels are the same).
-        stack.enter_context(
-            rasterio.Env(
-                GDAL_PAM_ENABLED="NO",
-                GDAL_CACHEMAX=GDAL_CACHE_MB,
-                GDAL_NUM_THREADS=str(gdal_threads),
-            )
-        )
+        stack.enter_context(rasterio.Env(GDAL_PAM_ENABLED="NO", GDAL_CACHEMAX=GDAL_CACHE_MB))
         dst: dict[str, Any] = {}
         for j in jobs:
             tmp = stack.enter_context(atomic_path(targets[j.ccd]))
@@ -522,7 +512,13 @@ def orthorectify_strip(
             for ds in [*dst.values(), *([m_dst] if m_dst is not None else [])]:
                 factors = _overview_factors(ds.width, ds.height)
                 if factors:
-                    ds.build_overviews(factors, Resampling.average)
+                    # Overviews are computed and compressed in GDAL's own threads (the
+                    # same pixels; rasterio holds the GIL meanwhile). The tiles of the full
+                    # resolution are compressed in the writing thread: the CCDs are
+                    # written in parallel already, and GDAL's threads there cost ~15 %
+                    # more CPU (hiric-strip: 8.8 vs 7.6 CPU-s).
+                    with rasterio.Env(GDAL_NUM_THREADS=str(gdal_threads)):
+                        ds.build_overviews(factors, Resampling.average)
                     ds.update_tags(ns="rio_overview", resampling="average")
     for p in targets.values() if len(jobs) == len(targets) else [targets[j.ccd] for j in jobs]:
         _write_digest(p, digest)
