@@ -29,9 +29,10 @@ of them, in one pass over block rows of a common north-up grid:
   are sampled bilinearly in compiled kernels that release the GIL
   (:mod:`planetref.pipeline._ortho_kernel`; the numpy/OpenCV path
   :func:`_resample_reference` is their reference and the fallback without numba, with
-  the same pixels), so the CCDs of a block row run in ``threads`` threads; each raw line
-  is read and decoded about once (runs aligned to the input's tiles, kept while the next
-  block needs them), and GDAL computes the overviews in ``threads`` threads of its own.
+  the same pixels on OpenCV 5, whereas OpenCV 4 quantises positions to 1/32 pixel), so
+  the CCDs of a block row run in ``threads`` threads; each raw line is read and decoded
+  about once (runs aligned to the input's tiles, kept while the next block needs them),
+  and GDAL computes the overviews in ``threads`` threads of its own.
 * **Resume.** A digest of the inputs (cameras, images, DEM, CRS, grid, settings) is
   written next to each file; a re-run with the same digest keeps the files.
 """
