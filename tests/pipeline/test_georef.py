@@ -171,6 +171,8 @@ def test_rerun_resumes_and_never_clobbers(tiny_scene, tmp_path, ref_grid, monkey
     kept = sorted((out / "strip1" / "adjustment" / "isd").glob("*.json"))
     kept += sorted((out / "strip1" / "ortho").glob("*.tif"))
     assert len(kept) == 3 + 4  # ISDs, orthoimages and mosaic
+    # ISDs written beside the orthoimages (another thread) are recorded as the run's.
+    assert {f"strip1/adjustment/isd/{p.name}" for p in kept[:3]} <= set(listed)
     stamps = [p.stat().st_mtime_ns for p in kept]
     # The resumed run draws Fig. 2 from them: no tile is matched again, not even for it.
     calls = []

@@ -24,6 +24,7 @@ Run directory layout::
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import logging
 import os
 import time
@@ -43,6 +44,7 @@ from planetref.pipeline.georef_outputs import (
     control_exports,
     figure_residuals,
     figures_matching,
+    isd_files,
     mcp_points,
     orthoimages,
     part_timed,
@@ -496,9 +498,11 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
             return camera_isds(job, prep.id, camera)
 
     # The CSM ISDs in one thread beside the orthoimages (single-threaded BLAS; the
-    # orthoimages' kernels release the GIL).
+    # orthoimages' kernels release the GIL). Their files are recorded in the run folder
+    # here, and the thread runs in this context (its atomic writes are watched).
+    isd_files(job, prep.id, camera)
     with ThreadPoolExecutor(1, thread_name_prefix="isd") as pool:
-        isd = pool.submit(isds)
+        isd = pool.submit(contextvars.copy_context().run, isds)
         with part_timed(job.timing, "exports"):
             out["files"]["exports"] = control_exports(
                 job, f"{prep.id}_mcps", mcp_points(prep, cfg), (prep.id, "exports")

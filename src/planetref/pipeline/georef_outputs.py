@@ -6,6 +6,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -26,6 +27,7 @@ __all__ = [
     "control_exports",
     "figure_residuals",
     "figures_matching",
+    "isd_files",
     "mcp_points",
     "orthoimages",
     "part_timed",
@@ -104,20 +106,16 @@ def camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
     """
     from planetref.atomic import atomic_path
     from planetref.camera.csm import write_linescan_isds
-    from planetref.camera.csm.export import isd_file_name
-    from planetref.camera.linescan import LineScanCamera
 
-    if not isinstance(camera, LineScanCamera):
+    paths, stamp = isd_files(job, strip, camera)
+    if stamp is None:  # not a native line-scan camera
         return []
-    folder = job.run.file(strip, "adjustment", "isd")
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = stamp.parent
     # An adjusted strip's nodes bend its trajectory at every Lagrange window switch, so
     # 1e-3 px needs an ephemeris every 1-2 lines (hiric-strip: 1 line, 2.9e-4 px);
     # starting at 4 lines skips the coarser tries that cannot reach it.
     lps = 4.0
-    stamp = job.run.file(strip, "adjustment", "isd", f"{strip}.inputs.sha256")
     digest = _isd_digest(camera, lps)
-    paths = [folder / isd_file_name(strip, c) for c in camera.ccd_names]
     if stamp.is_file() and stamp.read_text(encoding="utf-8").strip() == digest:
         if all(p.is_file() for p in paths):
             return [str(p) for p in paths]
@@ -126,6 +124,26 @@ def camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
     with atomic_path(stamp) as tmp:
         tmp.write_text(digest + "\n", encoding="utf-8")
     return [str(p) for p in written]
+
+
+def isd_files(job: StripJob, strip: str, camera: Camera) -> tuple[list[Path], Path | None]:
+    """Record a strip's ISD files and digest in the run folder; ``(ISD paths, digest path)``.
+
+    Called before :func:`camera_isds` runs in another thread, so that the run folder's
+    record (not thread-safe) changes only in the calling thread. Nothing for a camera
+    that is not a native line-scan camera (``([], None)``).
+    """
+    from planetref.camera.csm.export import isd_file_name
+    from planetref.camera.linescan import LineScanCamera
+
+    if not isinstance(camera, LineScanCamera):
+        return [], None
+    folder = job.run.file(strip, "adjustment", "isd")
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = [
+        job.run.file(strip, "adjustment", "isd", isd_file_name(strip, c)) for c in camera.ccd_names
+    ]
+    return paths, job.run.file(strip, "adjustment", "isd", f"{strip}.inputs.sha256")
 
 
 def _isd_digest(camera: Camera, lines_per_sample: float) -> str:
