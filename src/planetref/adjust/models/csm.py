@@ -214,14 +214,17 @@ class CsmParameterization:
             ]
         return []
 
-    def weaken(self, issues: list[CoverageIssue]) -> list[str]:
+    def weaken(self, issues: list[CoverageIssue]) -> tuple[CsmParameterization, list[str]]:
         """Too few observations for an image's correction: always an error.
+
+        Returns:
+            ``(self, [])`` when there are no issues.
 
         Raises:
             AdjustmentError: Naming the image and the counts.
         """
         if not issues:
-            return []
+            return self, []
         i = issues[0]
         raise AdjustmentError(
             f"image {self.camera_id!r}: {i.count} observation(s) cannot "
