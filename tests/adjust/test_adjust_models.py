@@ -178,6 +178,29 @@ def test_csm_parameterization_on_a_real_isd():
     np.testing.assert_allclose(
         ev.d_ground, ev2.d_ground, rtol=1e-5, atol=1e-6 * np.abs(ev.d_ground).max()
     )
+    # The implicit partials agree with central differences of full ground_to_image
+    # solves (an independent route: each perturbed camera's own secant search).
+    h = 0.1
+    ref = np.zeros((60, 2, 6))
+    for j in range(6):
+        step = np.zeros(6)
+        step[j] = h
+        a, b = par.build(x + step).ground_to_image(xyz), par.build(x - step).ground_to_image(xyz)
+        ref[:, 0, j], ref[:, 1, j] = (a.line - b.line) / (2 * h), (a.sample - b.sample) / (2 * h)
+    cam_x = par.build(x)
+    ref_g = np.zeros((60, 2, 3))
+    for k in range(3):
+        a, b = (
+            cam_x.ground_to_image(xyz + h * np.eye(3)[k]),
+            cam_x.ground_to_image(xyz - h * np.eye(3)[k]),
+        )
+        ref_g[:, 0, k], ref_g[:, 1, k] = (
+            (a.line - b.line) / (2 * h),
+            (a.sample - b.sample) / (2 * h),
+        )
+    assert np.all(ev.valid) and np.abs(ref).max() > 0.3 and np.abs(ref_g).max() > 0.15
+    np.testing.assert_allclose(ev.d_params, ref, rtol=0, atol=1e-8)  # px per usgscsm m
+    np.testing.assert_allclose(ev.d_ground, ref_g, rtol=0, atol=1e-8)  # px per m
     phys = par.physical(x)
     assert phys["omega_rad"] == pytest.approx(30.0 / cam.flying_height_m)
     assert phys["kappa_rate_rad_s"] == pytest.approx(-5.0 / (cam.half_swath_m * cam.half_time_s))
