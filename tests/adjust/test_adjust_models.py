@@ -109,6 +109,40 @@ def test_coverage_flags_unobserved_nodes(cam):
     assert issues[0].label.split()[1] == "3" and issues[0].count == 1
 
 
+@pytest.mark.parametrize("how", ["weight", "smooth"])
+def test_weaken_returns_a_new_model_and_leaves_this_one(cam, how):
+    cfg = LineScanParameters(min_obs_per_node=5, weak_nodes=how)
+    par = LineScanParameterization("s", cam, cfg)
+    mode0, sigma0 = par.mode.copy(), par.sigma.copy()
+    issues = par.coverage(np.zeros(200, np.intp), np.linspace(10, N_LINES / 2, 200))
+    new, messages = par.weaken(issues)
+    assert new is not par and messages and "weak node" in messages[0]
+    # The original parameterisation is untouched.
+    np.testing.assert_array_equal(par.mode, mode0)
+    np.testing.assert_array_equal(par.sigma, sigma0)
+    assert par.constraints is None
+    weak = [j for i in issues for j in i.indices if mode0[j] != 2]
+    assert len(weak) == 18  # nodes 3, 4, 5 x 6 parameters
+    if how == "weight":
+        assert np.all(new.mode[weak] == 1)
+        pos = [j for j in weak if j % 6 < 3]
+        att = [j for j in weak if j % 6 >= 3]
+        np.testing.assert_array_equal(new.sigma[pos], cfg.weak_node_position_sigma_m)
+        np.testing.assert_array_equal(new.sigma[att], cfg.weak_node_attitude_sigma_rad)
+        assert new.constraints is None
+    else:
+        np.testing.assert_array_equal(new.mode, mode0)
+        a, w = new.constraints
+        assert a.shape == (18, len(par.x0)) and w.shape == (18,)
+        # Node 5's X position: d5 - 2 d4 + d3 = 0 (towards the middle of the strip).
+        row = a[np.flatnonzero(a[:, 30])[0]]
+        assert (row[30], row[24], row[18]) == (1.0, -2.0, 1.0)
+        assert np.count_nonzero(row) == 3
+        np.testing.assert_allclose(w[0], 1.0 / cfg.weak_node_smooth_sigma_m**2)
+    # No issues: the same model, no messages.
+    assert par.weaken([]) == (par, [])
+
+
 def test_csm_parameterization_on_a_real_isd():
     data = shared_data()
     pytest.importorskip("planetref.camera.csm", reason="the CSM camera module is missing")
@@ -144,6 +178,29 @@ def test_csm_parameterization_on_a_real_isd():
     np.testing.assert_allclose(
         ev.d_ground, ev2.d_ground, rtol=1e-5, atol=1e-6 * np.abs(ev.d_ground).max()
     )
+    # The implicit partials agree with central differences of full ground_to_image
+    # solves (an independent route: each perturbed camera's own secant search).
+    h = 0.1
+    ref = np.zeros((60, 2, 6))
+    for j in range(6):
+        step = np.zeros(6)
+        step[j] = h
+        a, b = par.build(x + step).ground_to_image(xyz), par.build(x - step).ground_to_image(xyz)
+        ref[:, 0, j], ref[:, 1, j] = (a.line - b.line) / (2 * h), (a.sample - b.sample) / (2 * h)
+    cam_x = par.build(x)
+    ref_g = np.zeros((60, 2, 3))
+    for k in range(3):
+        a, b = (
+            cam_x.ground_to_image(xyz + h * np.eye(3)[k]),
+            cam_x.ground_to_image(xyz - h * np.eye(3)[k]),
+        )
+        ref_g[:, 0, k], ref_g[:, 1, k] = (
+            (a.line - b.line) / (2 * h),
+            (a.sample - b.sample) / (2 * h),
+        )
+    assert np.all(ev.valid) and np.abs(ref).max() > 0.3 and np.abs(ref_g).max() > 0.15
+    np.testing.assert_allclose(ev.d_params, ref, rtol=0, atol=1e-8)  # px per usgscsm m
+    np.testing.assert_allclose(ev.d_ground, ref_g, rtol=0, atol=1e-8)  # px per m
     phys = par.physical(x)
     assert phys["omega_rad"] == pytest.approx(30.0 / cam.flying_height_m)
     assert phys["kappa_rate_rad_s"] == pytest.approx(-5.0 / (cam.half_swath_m * cam.half_time_s))

@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 import pytest
-from adjust_synth import N_LINES, N_SAMPLES, ground_points, perturb, true_strip
+from adjust_synth import N_LINES, N_SAMPLES, ground_points, perturb, shared_data, true_strip
 from click.testing import CliRunner
 
 from planetref.adjust import adjust
@@ -147,6 +147,62 @@ def test_measures_errors_name_file_row_column(tmp_path, hook, message):
     with pytest.raises(InputError, match=message) as exc:
         read_network(path)
     assert "measures.csv" in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("convention", "line", "sample", "message"),
+    [
+        # ISIS: the image spans 0.5 .. n + 0.5; 1 px beyond an edge is refused.
+        ("isis", N_LINES + 0.5 + 1.01, 100.0, r"row 2: line 3001.51 is outside .*0.5 to 3000.5"),
+        ("isis", 100.0, -0.51, r"row 2: sample -0.51 is outside .*0.5 to 512.5"),
+        ("csm", -1.01, 100.0, r"row 2: line -1.01 is outside .*0 to 3000\)"),
+        ("csm", 100.0, N_SAMPLES + 1.01, r"row 2: sample 513.01 is outside .*0 to 512\)"),
+    ],
+)
+def test_measure_outside_its_image_is_refused(tmp_path, convention, line, sample, message):
+    def hook(h, r):
+        return h, [[*r[0][:6], sample, line], *r[1:]]
+
+    path, _ = write_network(tmp_path, n_mcp=20, n_tie=0, convention=convention, rows_hook=hook)
+    with pytest.raises(InputError, match=message) as exc:
+        read_network(path)
+    assert "measures.csv" in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("convention", "line", "sample"),
+    [("isis", N_LINES + 1.49, -0.49), ("csm", -0.99, N_SAMPLES + 0.99)],
+)
+def test_measure_within_a_pixel_of_the_edge_is_kept(tmp_path, convention, line, sample):
+    def hook(h, r):
+        return h, [[*r[0][:6], sample, line], *r[1:]]
+
+    path, _ = write_network(tmp_path, n_mcp=20, n_tie=0, convention=convention, rows_hook=hook)
+    net = read_network(path).network
+    shift = 0.5 if convention == "isis" else 0.0
+    assert net.obs_line[0] == pytest.approx(line - shift)
+    assert net.obs_sample[0] == pytest.approx(sample - shift)
+
+
+def test_real_ctx_measure_outside_its_image_is_refused(tmp_path):
+    """The audit's case: one CTX measure set to line 999999 was silently an outlier."""
+    src = shared_data() / "ctx_syrtis"
+    for f in src.iterdir():
+        (tmp_path / f.name).write_bytes(f.read_bytes())
+    with open(tmp_path / "measures.csv", newline="") as fh:
+        rows = list(csv.reader(fh))
+    rows[5][rows[0].index("line")] = "999999"  # file row 6
+    with open(tmp_path / "measures.csv", "w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    r = CliRunner().invoke(
+        adjust_command, [str(tmp_path / "network.toml"), "--out", str(tmp_path / "out")]
+    )
+    assert r.exit_code != 0
+    assert isinstance(r.exception, InputError)
+    msg = str(r.exception)
+    assert "measures.csv" in msg and "row 6: line 999999 is outside image" in msg
+    assert "'MRO/CTX/0884541979:200' (0.5 to 52224.5)" in msg
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
 def test_network_file_errors(tmp_path):

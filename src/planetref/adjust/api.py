@@ -155,10 +155,10 @@ def _adjust(
     # Every parameter group must be observed (or be weighted, if so configured).
     for i, model in enumerate(models):
         sel = usable & (net.obs_camera == i)
-        issues = model.coverage(net.obs_ccd[sel], net.obs_line[sel])
-        for msg in model.weaken(issues):
+        models[i], messages = model.weaken(model.coverage(net.obs_ccd[sel], net.obs_line[sel]))
+        for msg in messages:
             warn(msg)
-    solver.refresh_modes()
+    solver.set_models(models)
 
     # Weighted MCPs: their residuals (metrics, outlier rule) are those of the reference
     # ground point through the adjusted camera, as with fixed MCPs; the adjusted point

@@ -125,6 +125,33 @@ def _bool(text: str, path: Path, row: int) -> bool:
     raise InputError(f"row {row}: expected true/false, got {text!r}", path=path, field="check")
 
 
+def _check_in_image(
+    measure: tuple[float, float],
+    size: tuple[int, int],
+    convention: str,
+    path: Path,
+    row: int,
+    image_id: str,
+) -> None:
+    """Refuse a measure that lies more than 1 px outside its image.
+
+    ``measure`` is ``(line, sample)`` as written in the file; ``size`` is the image's
+    ``(n_lines, n_samples)``. In planetref's convention the image spans ``0 .. n`` (pixel
+    edges); in ISIS's it spans ``0.5 .. n + 0.5``. The 1 px margin accepts sub-pixel
+    measures on the border pixels of either convention.
+    """
+    shift = 0.5 if convention == "isis" else 0.0
+    for name, value, n in (("line", measure[0], size[0]), ("sample", measure[1], size[1])):
+        v = value - shift  # planetref convention
+        if not -1.0 <= v <= n + 1.0:
+            lo, hi = f"{shift:g}", f"{n + shift:g}"
+            raise InputError(
+                f"row {row}: {name} {value:g} is outside image {image_id!r} ({lo} to {hi})",
+                path=path,
+                field=name,
+            )
+
+
 def read_network(
     path: str | os.PathLike[str], config: AdjustConfig | dict[str, Any] | None = None
 ) -> NetworkFile:
@@ -328,11 +355,16 @@ def _read_measures(
         if not (s_line > 0 and s_samp > 0):
             raise InputError(f"row {rn}: measure sigmas must be > 0", path=path, field="sigma_px")
         cam_id, ccd = image_map[image_id]
+        meas_l = _float(get("line"), path, rn, "line")
+        meas_s = _float(get("sample"), path, rn, "sample")
+        _check_in_image(
+            (meas_l, meas_s), cameras[cam_id].image_size(ccd), convention, path, rn, image_id
+        )
         obs_cam.append(cam_id)
         obs_ccd.append(ccd)
         obs_pt.append(pid)
-        line.append(_float(get("line"), path, rn, "line"))
-        sample.append(_float(get("sample"), path, rn, "sample"))
+        line.append(meas_l)
+        sample.append(meas_s)
         sig.append((s_line, s_samp))
         check.append(_bool(get("check"), path, rn) if "check" in col else False)
         ids.append(get("measure_id").strip() or f"row{rn}")

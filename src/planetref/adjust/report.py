@@ -39,6 +39,7 @@ from planetref.adjust.report_md import MODE_NAMES, report_md, top_correlations
 from planetref.adjust.result import AdjustmentResult
 from planetref.atomic import json_safe, write_bytes_atomic, write_text_atomic
 from planetref.camera.linescan import LineScanCamera
+from planetref.camera.rpc.stable import fit_rpc_stable
 from planetref.errors import PlanetrefError
 from planetref.geometry.geodesy import xyz_to_lonlat
 from planetref.metrics import geolocation_error
@@ -378,7 +379,9 @@ def _write_camera(
         for ccd in cam.ccd_names:
             suffix = "" if len(cam.ccd_names) == 1 else f"_{safe_name(ccd)}"
             try:
-                model, fit = _best_rpc(cam, hr, None if len(cam.ccd_names) == 1 else ccd)
+                model, fit = fit_rpc_stable(
+                    cam, height_range_m=hr, ccd=None if len(cam.ccd_names) == 1 else ccd
+                )
             except PlanetrefError as exc:
                 log.warning("camera %s CCD %s: no RPC (%s)", cid, ccd, exc)
                 reports[ccd] = {"error": str(exc)}
@@ -393,27 +396,6 @@ def _write_camera(
                 "height_range_m": list(hr),
             }
     return paths, reports
-
-
-def _best_rpc(cam: Any, height_range: tuple[float, float], ccd: str | None) -> tuple[Any, Any]:
-    """Fit an RPC, strengthening the regularisation while the fit is poorly behaved.
-
-    An adjusted strip's mapping is a smooth but not exactly rational function; with
-    ``fit_rpc``'s default (very weak) Tikhonov term the least-squares rational fit can
-    then place a pole of the denominator near the image (``min |D|`` ~ 1e-4, errors of
-    tens of pixels). Stronger regularisation keeps ``D`` near 1 at a cost of hundredths
-    of a pixel; the fit with the smallest maximum check error is kept.
-    """
-    from planetref.camera.rpc import fit_rpc
-
-    best = None
-    for reg in (1e-12, 1e-9, 1e-6, 1e-4):
-        model, fit = fit_rpc(cam, height_range_m=height_range, ccd=ccd, regularization=reg)
-        if best is None or fit.check_max_px < best[1].check_max_px:
-            best = (model, fit)
-        if fit.check_max_px < 0.05 and fit.min_abs_denominator > 0.5:
-            break
-    return best  # type: ignore[return-value]
 
 
 def _write_plots(result: AdjustmentResult, folder: Path) -> list[Path]:

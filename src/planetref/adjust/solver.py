@@ -173,8 +173,23 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         self.obs_w0 = 1.0 / self.obs_sigma**2  # (M, 2), line then sample
         self._structure_cache = None
 
+    def set_models(self, models: list[AdjustableCamera]) -> None:
+        """Adjust with other parameterisations of the same cameras (weak groups weighted).
+
+        Args:
+            models: One per camera, same order and parameter counts as at construction.
+
+        Raises:
+            ValueError: A model's parameter count differs (a programming error).
+        """
+        sizes = [len(m.x0) for m in models]
+        if sizes != list(np.diff(self.offsets)):
+            raise ValueError(f"parameter counts {sizes} differ from {list(np.diff(self.offsets))}")
+        self.models = list(models)
+        self.refresh_modes()
+
     def refresh_modes(self) -> None:
-        """Re-read modes and sigmas from the models (after weak groups were weighted)."""
+        """Read modes, sigmas and constraints from the models."""
         self.mode = (
             np.concatenate([m.mode for m in self.models]) if self.n_params else np.zeros(0, np.int8)
         )

@@ -11,6 +11,7 @@ and rates so that one evaluation costs about one pass over the model.
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import replace
 
@@ -300,14 +301,19 @@ class LineScanParameterization:
                 )
         return issues
 
-    def weaken(self, issues: list[CoverageIssue]) -> list[str]:
+    def weaken(self, issues: list[CoverageIssue]) -> tuple[LineScanParameterization, list[str]]:
         """Weight weak nodes towards their initial values, or raise (config ``weak_nodes``).
+
+        Returns:
+            ``(model, warnings)``: a new parameterisation with the weak nodes weighted
+            (``weak_nodes = "weight"``) or smoothed (``"smooth"``), this one unchanged;
+            ``self`` when there are no issues.
 
         Raises:
             AdjustmentError: With ``weak_nodes = "error"``, naming every weak node.
         """
         if not issues:
-            return []
+            return self, []
         cfg = self.config
         listing = ", ".join(f"{i.label}: {i.count} < {i.required}" for i in issues)
         if cfg.weak_nodes == "error":
@@ -317,7 +323,7 @@ class LineScanParameterization:
                 f"linescan.weak_nodes = 'weight'"
             )
         if cfg.weak_nodes == "smooth" and self._n_nodes >= 3:
-            self._smooth(issues)
+            new = self._with(self.mode, self.sigma, self._smooth(issues))
             # Nodes placed beyond the imaged lines (the margin) have no observations by
             # design: that is no news. Only weak nodes inside the image are worth a warning.
             n_lines = max(c.n_lines for c in self.camera.ccds)
@@ -335,29 +341,39 @@ class LineScanParameterization:
                     margin,
                 )
             if not inside:
-                return []
+                return new, []
             listing = ", ".join(f"{i.label}: {i.count} < {i.required}" for i in inside)
-            return [
+            return new, [
                 f"strip {self.camera_id!r}: weak node(s) inside the image follow the "
                 f"corrections of their neighbours ({listing}); more matches near them "
                 "(smaller tiles, another matcher) or fewer nodes would determine them"
             ]
+        mode, sigma = self.mode.copy(), self.sigma.copy()
         for issue in issues:
             for j in issue.indices:
-                if self.mode[j] == 2:
+                if mode[j] == 2:
                     continue
-                self.mode[j] = 1
-                self.sigma[j] = (
+                mode[j] = 1
+                sigma[j] = (
                     cfg.weak_node_position_sigma_m
                     if j % 6 < 3
                     else cfg.weak_node_attitude_sigma_rad
                 )
-        return [
+        return self._with(mode, sigma, self.constraints), [
             f"strip {self.camera_id!r}: weighted weak node(s) towards their initial "
             f"values ({listing})"
         ]
 
-    def _smooth(self, issues: list[CoverageIssue]) -> None:
+    def _with(
+        self, mode: NDArray[np.int8], sigma: F64, constraints: tuple[F64, F64] | None
+    ) -> LineScanParameterization:
+        """A copy with other modes, sigmas and constraints (the camera etc. are shared)."""
+        new = copy.copy(self)
+        new.mode, new.sigma, new.constraints = mode, sigma, constraints
+        new._poly = None
+        return new
+
+    def _smooth(self, issues: list[CoverageIssue]) -> tuple[F64, F64] | None:
         """Zero-second-difference constraints on the corrections of weak nodes.
 
         Each weak node ``i`` gets, per parameter, ``d_i - 2 d_j + d_k = 0`` with ``d`` the
@@ -382,10 +398,11 @@ class LineScanParameterization:
                 rows.append(row)
                 sig = cfg.weak_node_smooth_sigma_m if c < 3 else cfg.weak_node_smooth_sigma_rad
                 weights.append(1.0 / sig**2)
-        if rows:
-            a = np.array(rows)
-            w = np.array(weights)
-            if self.constraints is not None:
-                a = np.vstack([self.constraints[0], a])
-                w = np.concatenate([self.constraints[1], w])
-            self.constraints = (a, w)
+        if not rows:
+            return self.constraints
+        a = np.array(rows)
+        w = np.array(weights)
+        if self.constraints is not None:
+            a = np.vstack([self.constraints[0], a])
+            w = np.concatenate([self.constraints[1], w])
+        return a, w

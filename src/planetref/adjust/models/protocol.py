@@ -126,8 +126,14 @@ class AdjustableCamera(Protocol):
         """Parameter groups that the observations (CCD index, line) leave weak."""
         ...
 
-    def weaken(self, issues: list[CoverageIssue]) -> list[str]:
-        """Give weak groups an a-priori weight; returns warning messages."""
+    def weaken(self, issues: list[CoverageIssue]) -> tuple[AdjustableCamera, list[str]]:
+        """Deal with weak groups (weight, constrain or refuse them).
+
+        Returns:
+            ``(model, warnings)``: the parameterisation to adjust with (a new one when
+            weak groups got weights or constraints; this one is never changed) and the
+            warning messages.
+        """
         ...
 
 

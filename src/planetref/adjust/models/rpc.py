@@ -180,14 +180,17 @@ class RpcParameterization:
                 issues.append(CoverageIssue(label, tuple(int(i) for i in free), count, need))
         return issues
 
-    def weaken(self, issues: list[CoverageIssue]) -> list[str]:
+    def weaken(self, issues: list[CoverageIssue]) -> tuple[RpcParameterization, list[str]]:
         """Too few observations for an image's bias: always an error.
+
+        Returns:
+            ``(self, [])`` when there are no issues.
 
         Raises:
             AdjustmentError: Naming the image, the counts and a smaller bias model.
         """
         if not issues:
-            return []
+            return self, []
         i = issues[0]
         raise AdjustmentError(
             f"RPC {i.label}: {i.count} observation(s) cannot determine its "
