@@ -40,6 +40,7 @@ from planetref.frontend.geometry import (
     map_to_ground,
     project_to_image,
 )
+from planetref.frontend.lineguide import LineGuide
 from planetref.frontend.tiles import Tile
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
@@ -55,6 +56,7 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
+_UNSET = object()  # a lazily built attribute not built yet
 
 
 class ImageSide(Protocol):
@@ -247,6 +249,7 @@ class LatticeCache:
         self.camera, self.ccd, self.ref, self.terrain = camera, ccd, ref, terrain
         self.step, self.chunk = int(step), int(chunk)
         self._chunks: dict[tuple[int, int], tuple[F64, F64]] = {}
+        self._guide: LineGuide | object | None = _UNSET
 
     def matches(self, camera: Camera, ccd: str, ref: ReferenceOrtho, terrain: Terrain) -> bool:
         """Whether this cache serves these inputs (the very same objects)."""
@@ -257,25 +260,72 @@ class LatticeCache:
             and self.terrain is terrain
         )
 
-    def _fill(self, wanted: list[tuple[int, int]]) -> None:
-        """Project the missing chunks among ``wanted``, together (a call has a fixed cost).
-
-        Each node's result depends on its own chunk only, not on which chunks are
-        projected with it (tile order, scheduler): every chunk gets its starting lines
-        from an affine fit to nine probes of its own, projected without a guess, and the
-        projection iterates every point on its own. (Vectorised arithmetic over arrays of
-        other lengths leaves ~1e-12 px, as the warm-started line searches of the
-        adjustment do.)
-        """
-        todo = [c for c in wanted if c not in self._chunks]
-        if not todo:
-            return
+    def _chunk_nodes(self, todo: list[tuple[int, int]]) -> tuple[F64, F64]:
+        """Reference ``(col, row)`` of the nodes of chunks, ``(m * chunk * chunk,)`` each."""
         n, s, m = self.chunk, float(self.step), len(todo)
         k = np.arange(n, dtype=np.float64)
         ci = np.array([c[0] for c in todo], np.float64)[:, None, None]
         cj = np.array([c[1] for c in todo], np.float64)[:, None, None]
         col = np.broadcast_to((cj * n + k[None, None, :]) * s, (m, n, n)).ravel()
         row = np.broadcast_to((ci * n + k[None, :, None]) * s, (m, n, n)).ravel()
+        return col, row
+
+    def _fill(self, wanted: list[tuple[int, int]]) -> None:
+        """Project the missing chunks among ``wanted``, together (a call has a fixed cost).
+
+        Each node's result depends on that node only, not on which chunks are projected
+        with it (tile order, scheduler): with a line guide (:meth:`_line_guide`), every
+        node starts from the guide's line at its own position and the compiled projection
+        iterates every point on its own; without one, :meth:`_fill_probed`.
+        """
+        todo = [c for c in wanted if c not in self._chunks]
+        if not todo:
+            return
+        guide = self._line_guide()
+        if guide is None:
+            line, sample = self._fill_probed(todo)
+        else:
+            line, sample = self._fill_guided(todo, guide)
+        n, m = self.chunk, len(todo)
+        line, sample = line.reshape(m, n, n), sample.reshape(m, n, n)
+        for c, key in enumerate(todo):
+            self._chunks[key] = (line[c], sample[c])
+
+    def _line_guide(self) -> LineGuide | None:
+        """The CCD's line guide (built on first use), or None for cameras without a span."""
+        if self._guide is _UNSET:
+            self._guide = LineGuide.build(self.camera, self.ccd, self.ref, self.terrain)
+        return self._guide  # type: ignore[return-value]
+
+    def _fill_guided(self, todo: list[tuple[int, int]], guide: LineGuide) -> tuple[F64, F64]:
+        """Every node projected from the guide's starting line (see :class:`LineGuide`).
+
+        Nodes inside the guide's table whose guided projection fails get the bracketed
+        search (the guide never loses a node that search finds); nodes outside it whose
+        guided projection fails lie past the searchable lines and stay NaN.
+        """
+        col, row = self._chunk_nodes(todo)
+        mx, my = self.ref.pixel_to_map(col, row)
+        xyz, *_ = map_to_ground(self.ref, self.terrain, mx, my)
+        guess, inside = guide(col, row)
+        line, sample = project_to_image(self.camera, self.ccd, xyz, guess)
+        retry = inside & ~np.isfinite(line) & np.all(np.isfinite(xyz), axis=1)
+        if retry.any():
+            line[retry], sample[retry] = project_to_image(self.camera, self.ccd, xyz[retry])
+        return line, sample
+
+    def _fill_probed(self, todo: list[tuple[int, int]]) -> tuple[F64, F64]:
+        """Nodes projected from an affine fit to nine probes of their own chunk.
+
+        Every chunk gets its starting lines from an affine fit to nine probes of its own,
+        projected without a guess (a bracketed line search); chunks with fewer than three
+        projected probes are searched node by node. (Vectorised arithmetic over arrays of
+        other lengths leaves ~1e-12 px, as the warm-started line searches of the
+        adjustment do.) The reference of :meth:`_fill_guided`, and the way for cameras
+        without a line span.
+        """
+        n, m = self.chunk, len(todo)
+        col, row = self._chunk_nodes(todo)
         mx, my = self.ref.pixel_to_map(col, row)
         xyz, *_ = map_to_ground(self.ref, self.terrain, mx, my)
         ends = (0, n // 2, n - 1)
@@ -297,9 +347,7 @@ class LatticeCache:
         for sel, g in ((guided, guess[guided]), (~guided, None)):
             if sel.any():
                 line[sel], sample[sel] = project_to_image(self.camera, self.ccd, xyz[sel], g)
-        line, sample = line.reshape(m, n, n), sample.reshape(m, n, n)
-        for c, key in enumerate(todo):
-            self._chunks[key] = (line[c], sample[c])
+        return line, sample
 
     def nodes(self, window: RefWindow, stride: int = 1) -> tuple[F64, F64, F64, F64]:
         """The lattice of a window: node ``(x, y)`` in window pixels, raw line and sample.
