@@ -89,6 +89,29 @@ def _fractional_index(nodes: F64, q: F64) -> F64:
     return np.where(q > hi, len(nodes) - 1 + (q - hi) / d1, idx)
 
 
+def _linear_weights(f: F64, n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], F64]:
+    """Lower and upper node and the upper weight of fractional indices.
+
+    Node indices beyond the ends are clamped to them, as scipy's ``mode="nearest"`` does.
+    """
+    lo = np.floor(f)
+    i0 = lo.astype(np.intp)
+    return np.clip(i0, 0, n - 1), np.clip(i0 + 1, 0, n - 1), f - lo
+
+
+def _separable_bilinear(grid: F64, fy: F64, fx: F64) -> F64:
+    """Bilinear values of ``grid`` at every ``(fy[i], fx[j])`` (fractional node indices).
+
+    Both neighbours of a point enter with their weights, so a NaN node makes every value
+    around it NaN, as in scipy's ``map_coordinates(order=1, mode="nearest")``.
+    """
+    ny, nx = grid.shape
+    y0, y1, ty = _linear_weights(fy, ny)
+    x0, x1, tx = _linear_weights(fx, nx)
+    rows = grid[:, x0] * (1.0 - tx) + grid[:, x1] * tx  # (ny, len(fx))
+    return rows[y0] * (1.0 - ty)[:, None] + rows[y1] * ty[:, None]
+
+
 @dataclass
 class OrthoTile:
     """A CCD tile resampled onto a reference-grid window.
@@ -130,12 +153,17 @@ class OrthoTile:
     def raw_coords_grid(self, xs: F64, ys: F64) -> tuple[F64, F64]:
         """:meth:`raw_coords` of the grid ``xs x ys``, ``(len(ys), len(xs))`` (same values).
 
-        The lattice's fractional indices are separable: computed once per column and row.
+        The lattice's fractional indices are separable, and so is the bilinear
+        interpolation: the lattice rows are interpolated at every column first, then those
+        rows at every row, two gathers of whole rows instead of four gathers of points. A
+        value is NaN where one of its four nodes is (as in :meth:`raw_coords`, whose values
+        it equals to rounding, ~1e-13 px).
         """
         fx = _fractional_index(self.lattice_x, np.asarray(xs, np.float64))
         fy = _fractional_index(self.lattice_y, np.asarray(ys, np.float64))
-        coords = np.vstack([np.repeat(fy, len(fx)), np.tile(fx, len(fy))])
-        return self._interpolate(coords, (len(fy), len(fx)))
+        return _separable_bilinear(self.lattice_line, fy, fx), _separable_bilinear(
+            self.lattice_sample, fy, fx
+        )
 
     def _interpolate(self, coords: F64, shape: tuple[int, ...]) -> tuple[F64, F64]:
         """Bilinear lattice line and sample at fractional ``(row, col)`` node indices."""

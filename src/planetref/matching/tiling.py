@@ -64,13 +64,14 @@ def deduplicate(matches: Matches, radius: float = 0.5) -> Matches:
 
     order = np.argsort(-matches.confidence, kind="stable")
     pts = np.column_stack([matches.keypoints0, matches.keypoints1])[order]
-    tree = cKDTree(pts)
+    # Greedy in confidence order: a match survives unless a more confident survivor lies
+    # within the radius. Only the close pairs need visiting (in order of their first one).
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
     removed = np.zeros(len(pts), bool)
-    for i in range(len(pts)):
-        if removed[i]:
-            continue
-        for j in tree.query_ball_point(pts[i], radius):
-            if j > i:
+    if len(pairs):
+        pairs = np.sort(pairs, axis=1)
+        for i, j in pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))].tolist():
+            if not removed[i]:
                 removed[j] = True
     return matches.select(order[~removed])
 

@@ -276,6 +276,14 @@ class BandReader:
             valid &= raw != nd
         return valid
 
+    def _raw(self, r0: int, c0: int, r1: int, c1: int) -> NDArray[Any]:
+        """The stored pixels of rows ``[r0, r1)``, columns ``[c0, c1)`` (inside the raster)."""
+        if self._array is not None:
+            return self._array[r0:r1, c0:c1]
+        from rasterio.windows import Window
+
+        return self._ds.read(self.band, window=Window(c0, r0, c1 - c0, r1 - r0))
+
     def _read_window(
         self, row0: int, col0: int, height: int, width: int
     ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
@@ -283,19 +291,21 @@ class BandReader:
         row0, col0, height, width = int(row0), int(col0), int(height), int(width)
         if height <= 0 or width <= 0:
             raise InputError(f"window size must be positive, got {height} x {width}")
-        out = np.zeros((height, width), np.float32)
-        valid = np.zeros((height, width), bool)
         rows, cols = self._shape
         r0, r1 = max(row0, 0), min(row0 + height, rows)
         c0, c1 = max(col0, 0), min(col0 + width, cols)
+        if (r0, c0, r1, c1) == (row0, col0, row0 + height, col0 + width):
+            # Wholly inside: the converted pixels are the output (no zeroed copy).
+            raw = self._raw(r0, c0, r1, c1)
+            v = self._valid(raw)
+            with np.errstate(invalid="ignore", over="ignore"):
+                data = raw if v.all() else np.where(v, raw, 0)
+                return data.astype(np.float32), v
+        out = np.zeros((height, width), np.float32)
+        valid = np.zeros((height, width), bool)
         if r0 >= r1 or c0 >= c1:
             return out, valid
-        if self._array is not None:
-            raw = self._array[r0:r1, c0:c1]
-        else:
-            from rasterio.windows import Window
-
-            raw = self._ds.read(self.band, window=Window(c0, r0, c1 - c0, r1 - r0))
+        raw = self._raw(r0, c0, r1, c1)
         v = self._valid(raw)
         dst = (slice(r0 - row0, r1 - row0), slice(c0 - col0, c1 - col0))
         with np.errstate(invalid="ignore", over="ignore"):
