@@ -28,6 +28,7 @@ Invalid pixels are set to 0 in the returned data; never use them without the mas
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections import OrderedDict
 from os import PathLike
@@ -112,6 +113,12 @@ def _block_sums(d: NDArray[np.float32], factor: int) -> NDArray[np.float64]:
     return out
 
 
+@functools.cache
+def _unit_block(factor: int) -> bool:
+    """Whether OpenCV's area mean of a ``factor x factor`` block of ones is exactly 1."""
+    return bool(_block_sums(np.ones((factor, factor), np.float32), factor)[0, 0] == 1.0)
+
+
 def masked_block_mean(
     data: NDArray[np.floating],
     valid: NDArray[np.bool_],
@@ -140,6 +147,37 @@ def masked_block_mean(
     h, w = data.shape
     hb, wb = -(-h // factor), -(-w // factor)
     all_valid = bool(valid.all())
+    hf, wf = h // factor, w // factor
+    if (
+        all_valid
+        and data.dtype == np.float32
+        and hf
+        and wf
+        and _unit_block(factor)
+        and min_valid_fraction <= 1.0 + 1e-6
+    ):
+        # Whole blocks of valid pixels: their count is exactly 1, so their mean is the
+        # area resize itself (the float64 division below by 1.0 returns it unchanged);
+        # only a trailing partial row or column of blocks takes the general way.
+        import cv2
+
+        mean = np.empty((hb, wb), np.float32)
+        ok = np.ones((hb, wb), bool)
+        mean[:hf, :wf] = cv2.resize(
+            data[: hf * factor, : wf * factor], (wf, hf), interpolation=cv2.INTER_AREA
+        )
+        if hb > hf:
+            mean[hf:], ok[hf:] = masked_block_mean(
+                data[hf * factor :], valid[hf * factor :], factor, min_valid_fraction
+            )
+        if wb > wf:
+            mean[:hf, wf:], ok[:hf, wf:] = masked_block_mean(
+                data[: hf * factor, wf * factor :],
+                valid[: hf * factor, wf * factor :],
+                factor,
+                min_valid_fraction,
+            )
+        return mean, ok
     if all_valid and data.dtype == np.float32:
         d = data  # nothing to zero: no copy
     else:
