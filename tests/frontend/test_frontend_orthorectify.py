@@ -270,8 +270,9 @@ def test_raw_coords_grid_equals_pointwise(setup):
     additions (~1e-13 px); a value is NaN exactly where scipy's is (every node with a
     weight, even 0, enters), also at points on the last node and beyond the ends.
     """
-    from planetref.frontend.orthorectify import _separable_bilinear
     from scipy import ndimage
+
+    from planetref.frontend.resample import separable_bilinear
 
     scene, ref, plan, img = setup
     fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
@@ -289,7 +290,7 @@ def test_raw_coords_grid_equals_pointwise(setup):
     fy, fx = np.r_[np.linspace(-1.5, 6.5, 33), 5.0, 2.0], np.r_[np.linspace(-1.2, 5.3, 27), 4.0]
     coords = np.vstack([np.repeat(fy, len(fx)), np.tile(fx, len(fy))])
     want = ndimage.map_coordinates(grid, coords, order=1, mode="nearest", prefilter=False)
-    got = _separable_bilinear(grid, fy, fx).ravel()
+    got = separable_bilinear(grid, fy, fx).ravel()
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     assert 0 < np.isnan(want).sum() < want.size
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)

@@ -41,6 +41,7 @@ from planetref.frontend.geometry import (
     project_to_image,
 )
 from planetref.frontend.lineguide import LineGuide
+from planetref.frontend.resample import bilinear_blocks, separable_bilinear
 from planetref.frontend.tiles import Tile
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
@@ -87,29 +88,6 @@ def _fractional_index(nodes: F64, q: F64) -> F64:
     d1 = nodes[-1] - nodes[-2]
     idx = np.where(q < lo, (q - lo) / d0, idx)
     return np.where(q > hi, len(nodes) - 1 + (q - hi) / d1, idx)
-
-
-def _linear_weights(f: F64, n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], F64]:
-    """Lower and upper node and the upper weight of fractional indices.
-
-    Node indices beyond the ends are clamped to them, as scipy's ``mode="nearest"`` does.
-    """
-    lo = np.floor(f)
-    i0 = lo.astype(np.intp)
-    return np.clip(i0, 0, n - 1), np.clip(i0 + 1, 0, n - 1), f - lo
-
-
-def _separable_bilinear(grid: F64, fy: F64, fx: F64) -> F64:
-    """Bilinear values of ``grid`` at every ``(fy[i], fx[j])`` (fractional node indices).
-
-    Both neighbours of a point enter with their weights, so a NaN node makes every value
-    around it NaN, as in scipy's ``map_coordinates(order=1, mode="nearest")``.
-    """
-    ny, nx = grid.shape
-    y0, y1, ty = _linear_weights(fy, ny)
-    x0, x1, tx = _linear_weights(fx, nx)
-    rows = grid[:, x0] * (1.0 - tx) + grid[:, x1] * tx  # (ny, len(fx))
-    return rows[y0] * (1.0 - ty)[:, None] + rows[y1] * ty[:, None]
 
 
 @dataclass
@@ -161,7 +139,7 @@ class OrthoTile:
         """
         fx = _fractional_index(self.lattice_x, np.asarray(xs, np.float64))
         fy = _fractional_index(self.lattice_y, np.asarray(ys, np.float64))
-        return _separable_bilinear(self.lattice_line, fy, fx), _separable_bilinear(
+        return separable_bilinear(self.lattice_line, fy, fx), separable_bilinear(
             self.lattice_sample, fy, fx
         )
 
@@ -542,13 +520,7 @@ def orthorectify(
     u = (line - r0) / k - 0.5
     v = (sample - c0) / k - 0.5
     finite = np.isfinite(u) & np.isfinite(v)
-    coords = np.vstack([np.where(finite, u, -10.0).ravel(), np.where(finite, v, -10.0).ravel()])
-    out = ndimage.map_coordinates(
-        block, coords, order=1, mode="constant", cval=0.0, prefilter=False
-    ).reshape(h, w)
-    vfrac = ndimage.map_coordinates(
-        block_valid.astype(np.float32), coords, order=1, mode="constant", cval=0.0, prefilter=False
-    ).reshape(h, w)
+    out, vfrac = bilinear_blocks(block, block_valid, u, v)
     inside = finite & (line >= l_lo) & (line < l_hi) & (sample >= s_lo) & (sample < s_hi)
     valid = inside & (vfrac > 1.0 - 1e-4)
     blank.image = np.where(valid, out, 0.0).astype(np.float32)
