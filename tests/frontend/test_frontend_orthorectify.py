@@ -294,3 +294,59 @@ def test_raw_coords_grid_equals_pointwise(setup):
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     assert 0 < np.isnan(want).sum() < want.size
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_guided_lattice_equals_probed_search(setup):
+    """The line guide changes no node: the same valid nodes, the same lines and samples.
+
+    Every node of a region reaching past both strip ends and both CCD sides is projected
+    from the guide's starting line (compiled) and, as the reference, from affine fits to
+    bracket-searched probes (the numpy line search); both converge to the camera's root.
+    """
+    from planetref.frontend.orthorectify import LatticeCache
+
+    scene, ref, _, _ = setup
+    cache = LatticeCache(scene.init_cam, "ccd1", ref, scene.dem, 8, chunk=4)
+    guide = cache._line_guide()
+    assert guide is not None
+    rows, cols = ref.shape
+    n = cache.chunk * cache.step
+    todo = [(i, j) for i in range(-1, rows // n + 2) for j in range(-1, cols // n + 2)]
+    line, sample = cache._fill_guided(todo, guide)
+    ref_line, ref_sample = cache._fill_probed(todo)
+    ok = np.isfinite(line)
+    np.testing.assert_array_equal(ok, np.isfinite(ref_line))
+    assert 0.2 < ok.mean() < 0.95  # the region reaches well beyond the image
+    n_lines, n_samples = scene.init_cam.image_size("ccd1")
+    assert line[ok].min() < 0 < n_lines < line[ok].max()
+    assert sample[ok].min() < 0 < n_samples < sample[ok].max()
+    np.testing.assert_allclose(line[ok], ref_line[ok], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(sample[ok], ref_sample[ok], rtol=0, atol=1e-8)
+    # A guide's start is within a few lines of the root inside its table.
+    col, row = cache._chunk_nodes(todo)
+    start, inside = guide(col, row)
+    assert np.abs(start - line)[inside & ok].max() < 5.0
+
+
+def test_compiled_block_sampling_equals_scipy():
+    """The compiled bilinear sampling gives scipy's float32 values and valid fractions."""
+    from planetref._optional import optional_module
+    from planetref.frontend.resample import bilinear_blocks, bilinear_blocks_numpy
+
+    if optional_module("planetref.frontend._numba_resample", "compiled resampling") is None:
+        pytest.skip("numba is not available: only the scipy way runs")
+    rng = np.random.default_rng(5)
+    block = rng.uniform(0.0, 4000.0, (40, 37)).astype(np.float32)
+    valid = rng.uniform(size=block.shape) > 0.05
+    y, x = np.mgrid[0:90, 0:80].astype(np.float64)
+    u = 0.47 * y + 0.03 * x - 2.2 + rng.normal(0.0, 1e-3, y.shape)
+    v = 0.49 * x - 0.02 * y - 1.3
+    # NaN, infinity, exactly on the last centres, just beyond them, on the first ones
+    u[1, 1], u[2, 2], v[3, 3] = np.nan, np.inf, np.nan
+    u[4, 4], v[5, 5], u[6, 6], v[7, 7], u[8, 8] = 39.0, 36.0, 39.0 + 1e-9, -1e-12, 0.0
+    got, got_frac = bilinear_blocks(block, valid, u, v)
+    want, want_frac = bilinear_blocks_numpy(block, valid, u, v)
+    assert got.dtype == want.dtype == np.float32 and got.shape == u.shape
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got_frac, want_frac)
+    assert 0.2 < np.mean(got_frac > 1 - 1e-4) < 0.9

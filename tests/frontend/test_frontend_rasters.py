@@ -177,3 +177,37 @@ def test_ref_window_geometry():
     np.testing.assert_allclose(p.from_ref_pixel(*p.to_ref_pixel(3.3, 1.1)), (3.3, 1.1))
     with pytest.raises(InputError):
         RefWindow(0, 0, 0, 3)
+
+
+@pytest.mark.parametrize("factor", [2, 5, 11])
+def test_block_mean_of_whole_valid_blocks_equals_general_way(factor: int) -> None:
+    """All-valid float32 data (whole blocks straight from the area resize) equal the
+    general way (float64 input: counts, division, validity) bit for bit, partial blocks too.
+    """
+    rng = np.random.default_rng(factor)
+    for h, w in [(6 * factor, 4 * factor), (6 * factor + 1, 4 * factor + factor - 1)]:
+        data = rng.uniform(0, 4000, (h, w)).astype(np.float32)
+        valid = np.ones((h, w), bool)
+        for frac in (0.5, 1.0):
+            fast, ok_fast = masked_block_mean(data, valid, factor, frac)
+            slow, ok_slow = masked_block_mean(data.astype(np.float64), valid, factor, frac)
+            assert fast.dtype == slow.dtype == np.float32
+            np.testing.assert_array_equal(ok_fast, ok_slow)
+            np.testing.assert_array_equal(fast, slow)
+
+
+def test_window_inside_equals_window_across_the_edge():
+    """A window wholly inside the image (read without a zeroed copy) equals the same
+    pixels of a window that crosses the edge; no-data pixels are 0 and invalid in both."""
+    rng = np.random.default_rng(2)
+    data = rng.integers(0, 4000, (30, 40)).astype(np.uint16)
+    data[4, 5] = 7
+    img = CcdImage(data, nodata=7)
+    inside, v_inside = img.read(0, 0, 12, 15)
+    across, v_across = img.read(-2, -3, 14, 18)
+    assert inside.dtype == np.float32 and v_inside.dtype == bool
+    np.testing.assert_array_equal(inside, across[2:, 3:])
+    np.testing.assert_array_equal(v_inside, v_across[2:, 3:])
+    assert not v_inside[4, 5] and inside[4, 5] == 0.0 and v_inside.sum() == 12 * 15 - 1
+    inside[0, 0] = -1.0  # the result is a copy: the array behind the reader is untouched
+    assert img.read(0, 0, 1, 1)[0][0, 0] == float(data[0, 0])

@@ -122,3 +122,34 @@ def test_tiles_cover_and_dedup():
     d = deduplicate(m, 0.5)
     assert len(d) == 2
     assert d.confidence.tolist() == [0.9, 0.1]
+
+
+def test_deduplicate_equals_greedy_reference():
+    """Visiting only close pairs keeps exactly the greedy survivors (confidence order)."""
+    from scipy.spatial import cKDTree
+
+    def greedy(m: Matches, radius: float) -> Matches:
+        order = np.argsort(-m.confidence, kind="stable")
+        pts = np.column_stack([m.keypoints0, m.keypoints1])[order]
+        tree = cKDTree(pts)
+        removed = np.zeros(len(pts), bool)
+        for i in range(len(pts)):
+            if not removed[i]:
+                for j in tree.query_ball_point(pts[i], radius):
+                    removed[j] |= j > i
+        return m.select(order[~removed])
+
+    rng = np.random.default_rng(11)
+    n_removed = 0
+    for _ in range(40):
+        n = int(rng.integers(2, 200))
+        k0 = np.round(rng.uniform(0, 15, (n, 2)), 1)  # coarse grid: many near-duplicates
+        k1 = k0 + np.round(rng.uniform(0, 2, (n, 2)), 1)
+        m = Matches(k0, k1, np.round(rng.uniform(0, 1, n), 1))
+        for radius in (1e-3, 0.5, 1.5):
+            got, want = deduplicate(m, radius), greedy(m, radius)
+            np.testing.assert_array_equal(got.keypoints0, want.keypoints0)
+            np.testing.assert_array_equal(got.keypoints1, want.keypoints1)
+            np.testing.assert_array_equal(got.confidence, want.confidence)
+            n_removed += n - len(got)
+    assert n_removed > 100
