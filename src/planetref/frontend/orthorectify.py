@@ -232,7 +232,9 @@ class LatticeCache:
     reference grid, so every window (any coarsening, any fine grid) takes its lattice
     from the same nodes: a tile's neighbours and its coarse stage reuse the projections
     instead of repeating them. Chunks of ``chunk x chunk`` nodes are projected when a
-    window first needs them and kept (a node costs 16 bytes).
+    window first needs them and kept (a node costs 16 bytes). Each node starts from the
+    CCD's :class:`~planetref.frontend.lineguide.LineGuide` (built once per cache), so no
+    fill pays for a bracketed line search, not even for nodes past the strip's ends.
 
     Args:
         camera: The initial camera.
