@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+from scipy.spatial import QhullError
 
 from planetref.camera.base import Camera, Terrain
 from planetref.frontend.geometry import image_to_ref_pixel
@@ -80,7 +81,7 @@ class LineGuide:
         pts = np.column_stack([col[ok], row[ok]])
         try:
             linear = LinearNDInterpolator(pts, grid_l.ravel()[ok])
-        except Exception:  # degenerate table (collinear points): no guide
+        except QhullError:  # a degenerate table (collinear points): no guide
             return None
         return cls((float(lo), float(hi)), linear, NearestNDInterpolator(pts, grid_l.ravel()[ok]))
 
