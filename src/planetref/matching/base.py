@@ -316,8 +316,10 @@ def robust_normalise(
             return np.zeros(image.shape, np.float32), True
     out = np.where(valid, image, lo).astype(np.float64)
     out = np.clip((out - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
-    fill = float(np.median(np.clip((values.astype(np.float64) - lo) / (hi - lo), 0.0, 1.0)))
-    out[~valid] = fill
+    invalid = ~valid
+    if invalid.any():  # the fill (a median over the valid pixels) only where it is used
+        fill = float(np.median(np.clip((values.astype(np.float64) - lo) / (hi - lo), 0.0, 1.0)))
+        out[invalid] = fill
     return out, False
 
 
