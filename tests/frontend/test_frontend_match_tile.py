@@ -348,3 +348,39 @@ def test_config_from_toml(tmp_path):
     f.write_text("[frontend]\ntile_sise = 128\n")
     with pytest.raises(InputError, match="valid keys: tile_size_ref_px"):
         FrontendConfig.from_toml(f)
+
+
+def test_robust_translation_equals_pairwise_reference():
+    """The consensus equals the plain pairwise-distance formulation, bit for bit.
+
+    Quantised displacements put many distances exactly on the radius and make counts and
+    weight sums tie; more than 2000 displacements exercise the strided candidates.
+    """
+
+    def reference(d, radius, w):
+        n = len(d)
+        w = np.ones(n) if w is None else w
+        cand = np.arange(n) if n <= 2000 else np.linspace(0, n - 1, 2000).astype(np.intp)
+        dist2 = np.sum((d[cand][:, None, :] - d[None, :, :]) ** 2, axis=-1)
+        close = dist2 <= radius * radius
+        counts, wsum = close.sum(axis=1), close.astype(np.float64) @ w
+        top = np.flatnonzero(counts == counts.max())
+        best = cand[top[np.argmax(wsum[top])]]
+        inl = np.sum((d - d[best]) ** 2, axis=1) <= radius * radius
+        off = np.median(d[inl], axis=0)
+        inl = np.sum((d - off) ** 2, axis=1) <= radius * radius
+        return np.median(d[inl], axis=0), inl
+
+    rng = np.random.default_rng(8)
+    for n, radius in ((40, 0.5), (40, 1.0), (600, 0.5), (600, 1.0), (2050, 1.0)):
+        k = int(0.6 * n)
+        true = rng.normal(0, 0.4, (k, 2)) + np.array([2.1, -0.7])
+        d = np.r_[true, rng.uniform(-15, 15, (n - k, 2))]
+        d = np.round(d, 1)
+        w = np.round(rng.uniform(0, 1, n), 1)
+        for weights in (None, w):
+            off, inl = robust_translation(d, radius, weights)
+            want_off, want_inl = reference(d, radius, weights)
+            np.testing.assert_array_equal(off, want_off)
+            np.testing.assert_array_equal(inl, want_inl)
+            assert inl.sum() > 0.15 * n

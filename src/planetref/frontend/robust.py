@@ -45,11 +45,15 @@ def robust_translation(
     cand = np.arange(n) if n <= 2000 else np.linspace(0, n - 1, 2000).astype(np.intp)
     best, best_score = -1, (-1, -np.inf)
     r2 = radius * radius
+    x, y = d[:, 0], d[:, 1]
     for a in range(0, len(cand), 256):
         c = cand[a : a + 256]
-        dist2 = np.sum((d[c][:, None, :] - d[None, :, :]) ** 2, axis=-1)
-        close = dist2 <= r2
-        counts = close.sum(axis=1)
+        # dx^2 + dy^2 per coordinate (the same sums as over a last axis of length 2,
+        # without its (256, N, 2) temporaries)
+        dx = x[c][:, None] - x[None, :]
+        dy = y[c][:, None] - y[None, :]
+        close = dx * dx + dy * dy <= r2
+        counts = np.count_nonzero(close, axis=1)
         wsum = close @ w
         # The chunk's best: most neighbours, then the largest weight, then the first.
         top = np.flatnonzero(counts == counts.max())
