@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -36,6 +38,39 @@ def ref_grid_toml(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("config") / "ref_grid.toml"
     path.write_text("[frontend]\nfine_upsample = 1\n")
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """The ``tiny`` preset simulated once per session (seed 0); read-only: copy to modify."""
+    from planetref.simulate.config import load_config
+    from planetref.simulate.scene import simulate_scene
+
+    out = tmp_path_factory.mktemp("scenes") / "tiny"
+    simulate_scene(load_config("tiny", seed=0), out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def _tiny_sift_session(tiny_scene, tmp_path_factory, ref_grid):
+    from planetref.pipeline.georef import run_georef
+
+    out = tmp_path_factory.mktemp("runs") / "tiny_sift"
+    return run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
+
+
+@pytest.fixture
+def tiny_sift_run(_tiny_sift_session):
+    """``run_georef(tiny_scene, "sift", config=ref_grid)``, run once per session.
+
+    Each test gets its own copy of the report and file lists; the run folder is shared and
+    read-only (copy it, as ``shutil.copytree``, before running into it again).
+    """
+    return dataclasses.replace(
+        _tiny_sift_session,
+        report=copy.deepcopy(_tiny_sift_session.report),
+        files=copy.deepcopy(_tiny_sift_session.files),
+    )
 
 
 @pytest.fixture

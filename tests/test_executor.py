@@ -17,15 +17,12 @@ from planetref.execute import (
     make_executor,
 )
 from planetref.pipeline.georef import run_georef
-from planetref.simulate.config import load_config
-from planetref.simulate.scene import simulate_scene
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    out = tmp_path_factory.mktemp("exec") / "tiny"
-    simulate_scene(load_config("tiny", seed=0), out)
-    return out
+def scene(tiny_scene):
+    """The session's tiny scene (tests/conftest.py), simulated once for all test files."""
+    return tiny_scene
 
 
 @pytest.fixture(scope="module")
@@ -37,10 +34,10 @@ def dask_local():
     ex.close()
 
 
-@pytest.fixture(scope="module")
-def inprocess_run(scene, tmp_path_factory, ref_grid):
-    out = tmp_path_factory.mktemp("exec") / "inprocess"
-    return run_georef(scene, "sift", out, config=ref_grid, progress=False)
+@pytest.fixture
+def inprocess_run(tiny_sift_run):
+    """The in-process sift run of the tiny scene (``ref_grid``), shared with test_georef."""
+    return tiny_sift_run
 
 
 def _journal(path):

@@ -46,21 +46,13 @@ def _load(root):
     }
 
 
-def _simulate(tmp_path_factory, name, overrides=None):
-    sim = pytest.importorskip("planetref.simulate")
-    try:
-        cfg = sim.load_config("tiny", overrides)
-    except Exception as exc:  # the simulator is still being written by others
-        pytest.skip(f"tiny preset unavailable: {exc}")
-    out = tmp_path_factory.mktemp(name)
-    sim.simulate_scene(cfg, out / "scene")
-    return _load(out / "scene")
-
-
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """The ``tiny`` preset as shipped (reference and images under different suns)."""
-    s = _simulate(tmp_path_factory, "tiny")
+def tiny(tiny_scene):
+    """The ``tiny`` preset as shipped (reference and images under different suns).
+
+    The session's simulation (tests/conftest.py: seed 0, the preset's own seed), read only.
+    """
+    s = _load(tiny_scene)
     yield s
     s["ref"].close()
 

@@ -3,36 +3,73 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
 
 from planetref.cli import main
 from planetref.errors import InputError
-from planetref.pipeline.compare import resolve_matchers, run_compare
-from planetref.pipeline.config import config_from_mapping
+from planetref.matching.weights import NO_PACKAGES_ENV_VAR
+from planetref.pipeline.compare import resolve_matchers
+from planetref.pipeline.config import config_from_mapping, load_config
 
 #: NCC's dense default (one template per 2 reference px) is what the demo and the README
 #: measure; the tests use a sparser grid so the default run stays fast on 2 cores.
 #: Fine stage on the reference grid (fine_upsample = 1), as in the other pipeline tests.
 FAST_NCC = config_from_mapping({"frontend": {"dense_spacing_ref_px": 8, "fine_upsample": 1}})
+FAST_NCC_TOML = "[frontend]\ndense_spacing_ref_px = 8\nfine_upsample = 1\n"
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
-def test_compare_tables_and_figures(tiny_scene, tmp_path, monkeypatch, no_weight_packages):
-    # An empty weights folder: every learned matcher is skipped, with the missing files.
-    empty = tmp_path / "no-weights"
+@dataclass(frozen=True)
+class DemoRuns:
+    """``planetref demo`` run twice into one folder (the second finds the cached scene)."""
+
+    base: Path
+    first: Result
+    second: Result
+    scene_mtime_ns: tuple[int, int]  # scene.toml after the first and after the second run
+
+    @property
+    def compare_dir(self) -> Path:
+        return self.base / "compare-tiny-seed0"
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> DemoRuns:
+    """``planetref demo`` on the tiny preset, run twice; both runs done before any test reads.
+
+    One compare of sift, ncc and disk-lightglue with an empty weights folder (every learned
+    matcher is skipped, with the missing files) and only that folder counting
+    (``PLANETREF_NO_WEIGHT_PACKAGES``), NCC on the sparser grid: what
+    ``test_compare_tables_and_figures`` checks, through the command a user types (which
+    calls ``run_compare``), so that the tiny compare runs once instead of twice.
+    """
+    root = tmp_path_factory.mktemp("demo")
+    config = root / "fast_ncc.toml"
+    config.write_text(FAST_NCC_TOML)
+    assert load_config(config) == FAST_NCC
+    empty = root / "no-weights"
     empty.mkdir()
-    out = run_compare(
-        tiny_scene,
-        "sift,ncc,disk-lightglue",
-        tmp_path / "cmp",
-        config=FAST_NCC,
-        weights_dir=empty,
-        progress=False,
-    )
-    rep = json.loads((out.run_dir / "report.json").read_text())
+    base = root / "demo"
+    args = ["-q", "demo", "--preset", "tiny", "--matchers", "sift,ncc,disk-lightglue"]
+    args += ["--out", str(base), "--config", str(config), "--weights-dir", str(empty)]
+    runner = CliRunner(env={NO_PACKAGES_ENV_VAR: "1"})
+    first = runner.invoke(main, args)
+    scene = base / "scene-tiny-seed0" / "scene.toml"
+    stamp = scene.stat().st_mtime_ns if scene.is_file() else -1
+    second = runner.invoke(main, args)
+    again = scene.stat().st_mtime_ns if scene.is_file() else -2
+    return DemoRuns(base, first, second, (stamp, again))
+
+
+def test_compare_tables_and_figures(demo):
+    assert demo.first.exit_code == 0, demo.first.output
+    run_dir = demo.compare_dir
+    rep = json.loads((run_dir / "report.json").read_text())
     assert set(rep) == {"scene", "runs", "skipped"}
     assert set(rep["runs"]) == {"sift", "ncc"}
     assert (
@@ -46,18 +83,18 @@ def test_compare_tables_and_figures(tiny_scene, tmp_path, monkeypatch, no_weight
         warnings = [w for s in run["strips"].values() for w in s["warnings"]]
         assert not any("weak node" in w for w in warnings), warnings
         adj = json.loads(
-            (out.run_dir / "runs" / name / "strip1" / "adjustment" / "report.json").read_text()
+            (run_dir / "runs" / name / "strip1" / "adjustment" / "report.json").read_text()
         )
         assert not any("RPC" in w for w in adj.get("output_warnings", [])), adj
-    md = (out.run_dir / "report.md").read_text()
+    md = (run_dir / "report.md").read_text()
     assert "## Matching" in md and "## Adjustment" in md and "Skipped" in md
     for name in ("RMSE", "Mean", "Max X", "Max Y", "Min X", "Min Y", "OR (%)"):
         assert name in md
     assert "ccd1 NCP" in md and "ccd3 SDU (%)" in md
-    header = (out.run_dir / "adjustment.csv").read_text().splitlines()[0]
+    header = (run_dir / "adjustment.csv").read_text().splitlines()[0]
     assert header.startswith("Matcher,Strip,RMSE,Mean,Max X,Max Y,Min X,Min Y,OR (%)")
-    assert len((out.run_dir / "matching.csv").read_text().splitlines()) == 3
-    figs = out.run_dir / "figures"
+    assert len((run_dir / "matching.csv").read_text().splitlines()) == 3
+    figs = run_dir / "figures"
     expected = ["headline.png"] + [
         f"{m}_strip1_{k}.png"
         for m in ("sift", "ncc")
@@ -65,7 +102,7 @@ def test_compare_tables_and_figures(tiny_scene, tmp_path, monkeypatch, no_weight
     ]
     for name in expected:
         assert (figs / name).read_bytes()[:8] == PNG, name
-    _check_report_html(out.run_dir, expected)
+    _check_report_html(run_dir, expected)
 
 
 def _check_report_html(run_dir, expected):
@@ -123,15 +160,13 @@ def test_resolve_matchers(tmp_path):
         resolve_matchers("sift,nope", tmp_path)
 
 
-def test_demo_command_prints_both_tables(tmp_path, ref_grid_toml):
-    args = ["-q", "demo", "--preset", "tiny", "--matchers", "sift", "--out", str(tmp_path / "demo")]
-    args += ["--config", str(ref_grid_toml)]
-    r = CliRunner().invoke(main, args)
+def test_demo_command_prints_both_tables(demo):
+    r = demo.first
     assert r.exit_code == 0, r.output
     assert "## Matching" in r.stdout and "## Adjustment" in r.stdout
     assert "report:" in r.stdout and "figures:" in r.stdout
     # The scene is cached: a second run does not simulate again.
-    scene = tmp_path / "demo" / "scene-tiny-seed0" / "scene.toml"
-    stamp = scene.stat().st_mtime_ns
-    r = CliRunner().invoke(main, args)
-    assert r.exit_code == 0 and scene.stat().st_mtime_ns == stamp
+    stamp, again = demo.scene_mtime_ns
+    assert stamp > 0
+    assert demo.second.exit_code == 0, demo.second.output
+    assert again == stamp
