@@ -182,7 +182,7 @@ class LinearizationMixin:
         pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[lay.point]
         robust = self.loss != "linear"
         parts = self.chunk_parts(lay)
-        # One normal matrix per thread (its contiguous share of the chunks), summed in
+        # One normal matrix per share (contiguous chunks; not per thread), summed in
         # order below; every other output is a disjoint slice of the layout.
         acc = [(n_cc, g_c, slot_n)] + [
             (np.zeros_like(n_cc), np.zeros_like(g_c), np.zeros_like(slot_n)) for _ in parts[1:]
@@ -264,7 +264,7 @@ class LinearizationMixin:
         )
 
     def chunk_parts(self, lay: _Layout) -> list[list[tuple[int, int, int, int]]]:
-        """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares per thread.
+        """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares.
 
         ``cfg.chunk_size`` observations per chunk, never across a (camera, CCD) range;
         see :func:`thread_shares`.
@@ -275,7 +275,7 @@ class LinearizationMixin:
             for mi, ccd, a0, b0 in lay.ranges
             for a in range(a0, b0, cs)
         ]
-        return thread_shares(chunks, len(lay.obs), compute_threads(self.cfg.threads))
+        return thread_shares(chunks, len(lay.obs))
 
     def map_chunks(
         self,
@@ -289,7 +289,7 @@ class LinearizationMixin:
 
         The one loop over the observations that the linearisation and the redundancy
         numbers share: ``work(share, model, start, stop, evaluation)`` is called for
-        every chunk of ``parts`` (:meth:`chunk_parts`), each share in its own thread
+        every chunk of ``parts`` (:meth:`chunk_parts`), the shares in ``--threads`` threads
         (:func:`run_shares`). ``work`` must write only to its rows ``start:stop`` and to
         accumulators of its own share.
 
@@ -309,7 +309,7 @@ class LinearizationMixin:
                 )
                 work(k, mi, a, b, ev)
 
-        run_shares(len(parts), run)
+        run_shares(len(parts), run, compute_threads(self.cfg.threads))
 
     def _accumulate(
         self,
@@ -401,30 +401,39 @@ class LinearizationMixin:
         self._active_cache.clear()
 
 
+#: Shares of chunks per pass, whatever the thread count: each share sums its own
+#: accumulators and the shares are added in order, so the numbers do not depend on
+#: ``--threads`` (a dask worker with one thread gives the in-process result bit for bit).
+SHARES = 8
+
+
 def thread_shares(
-    chunks: list[tuple[int, int, int, int]], m: int, threads: int
+    chunks: list[tuple[int, int, int, int]], m: int
 ) -> list[list[tuple[int, int, int, int]]]:
     """Chunks ``(model, ccd, start, stop)`` over ``m`` rows in contiguous shares.
 
-    As many shares as ``threads`` (at most one per chunk), balanced by row count.
+    :data:`SHARES` shares (at most one per chunk), balanced by row count; the split
+    depends on the chunks only, never on the thread count.
     """
-    n = max(1, min(threads, len(chunks)))
+    n = max(1, min(SHARES, len(chunks)))
     if n == 1:
         return [chunks]
     share = np.minimum(np.array([a for _, _, a, _ in chunks]) * n // max(m, 1), n - 1)
     return [[ch for ch, k in zip(chunks, share, strict=True) if k == j] for j in range(n)]
 
 
-def run_shares(n: int, run: Callable[[int], None]) -> None:
-    """``run(k)`` for ``k < n``, each in its own thread (in this one when ``n == 1``).
+def run_shares(n: int, run: Callable[[int], None], threads: int) -> None:
+    """``run(k)`` for ``k < n`` in ``min(threads, n)`` threads (in this one for 1).
 
     The compiled kernels release the GIL. The threads end with the call: nothing is
     left running for a later fork (no OpenMP or other threading runtime is started).
     """
-    if n == 1:
-        run(0)
+    workers = max(1, min(threads, n))
+    if workers == 1:
+        for k in range(n):
+            run(k)
         return
-    with ThreadPoolExecutor(n, thread_name_prefix="planetref-adjust") as ex:
+    with ThreadPoolExecutor(workers, thread_name_prefix="planetref-adjust") as ex:
         for f in [ex.submit(run, k) for k in range(n)]:
             f.result()
 

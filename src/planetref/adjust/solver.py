@@ -285,7 +285,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         for mi, ccd, g in groups:
             chunks += [(mi, ccd, a, min(a + cs, a0 + len(g))) for a in range(a0, a0 + len(g), cs)]
             a0 += len(g)
-        parts = thread_shares(chunks, m, compute_threads(self.cfg.threads))
+        parts = thread_shares(chunks, m)
 
         def run(k: int) -> None:
             for mi, ccd, a, b in parts[k]:
@@ -302,7 +302,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 line[sel], sample[sel], valid[sel] = ev.line, ev.sample, ev.valid
                 self._remember(o, ev)  # disjoint rows per chunk
 
-        run_shares(len(parts), run)
+        run_shares(len(parts), run, compute_threads(self.cfg.threads))
         return line, sample, valid
 
     def _remember(self, o: NDArray[np.intp], ev: Evaluation) -> None:
