@@ -55,6 +55,7 @@ from planetref.pipeline.georef_report import (
     camera_view,
     check_block,
     combined_report,
+    matching_block,
     result_block,
     rmse_px,
 )
@@ -382,7 +383,6 @@ def _worker_dem(job: StripJob) -> Path:
 def _strip_mcps(job: StripJob) -> StripMcps:
     """Match a strip's tiles, write its MCPs and draw its check points."""
     from planetref.control import mcps_from_tiles, write_mcps
-    from planetref.frontend.stats import sdu_per_ccd
     from planetref.report.figures_matching import select_tiles
     from planetref.report.tile_panels import PanelStore
 
@@ -410,33 +410,11 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     out["files"]["mcps"] = [
         str(p) for p in (written if isinstance(written, list | tuple) else [written])
     ]
-    statuses = matches.status_counts()
-    lost = [
-        {"tile": t.tile_id, "status": t.status, "message": t.message}
-        for t in matches.tiles
-        if t.status != "ok"
-    ]
-    for item in lost:
+    out["matching"] = matching_block(matches, table, sizes)
+    for item in out["matching"]["tiles_lost"]:
         log.warning(
             "strip %s tile %s: %s %s", strip.id, item["tile"], item["status"], item["message"]
         )
-    # NCP: every correspondence that passed a tile's verification, before any thinning
-    # (equal to the MCPs written unless max_mcps_per_tile thinned some tiles).
-    ncp = matches.ncp_per_ccd()
-    sdu = sdu_per_ccd(table, sizes)
-    out["matching"] = {
-        "ccds": {c: {"ncp": int(ncp.get(c, 0)), "sdu_pct": float(sdu[c])} for c in images},
-        "ncp": int(sum(ncp.values())),
-        "n_mcps": len(table),
-        "tiles_total": len(matches.tiles),
-        "tiles_failed": len(matches.tiles) - statuses.get("ok", 0),
-        "tiles_thinned": sum(t.thinned for t in matches.tiles),
-        "tile_status": statuses,
-        "tiles_lost": lost,
-        "funnel": matches.funnel(),
-        "drops": matches.drops(),
-        "mcp_counts": table.counts.to_dict() if table.counts is not None else {},
-    }
     with single_threaded_blas(), timed(job.timing, "figures"), store:  # figures are outputs
         figures_matching(job, matches, table, sizes, images, camera, store)
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
@@ -444,7 +422,8 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     if n < cfg.mcp.min_mcps:
         raise MatchingError(
             f"strip {strip.id}: only {n} matched control points with matcher "
-            f"{matches.matcher} ({statuses}); at least {cfg.mcp.min_mcps} are needed. "
+            f"{matches.matcher} ({out['matching']['tile_status']}); "
+            f"at least {cfg.mcp.min_mcps} are needed. "
             "See planetref.log for why tiles failed"
         )
     rng = np.random.default_rng(cfg.mcp.seed)

@@ -18,9 +18,57 @@ from planetref import __version__
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
+    from planetref.control import McpTable
+    from planetref.frontend.result import StripMatches
     from planetref.raster.dem import GridTerrain
 
-__all__ = ["adjustment_block", "camera_view", "check_block", "combined_report", "rmse_px"]
+__all__ = [
+    "adjustment_block",
+    "camera_view",
+    "check_block",
+    "combined_report",
+    "matching_block",
+    "rmse_px",
+]
+
+
+def matching_block(
+    matches: StripMatches, table: McpTable, sizes: Mapping[str, tuple[int, int]]
+) -> dict[str, Any]:
+    """The ``matching`` block of one strip: NCP and SDU per CCD, tiles, funnel, drops.
+
+    NCP counts every correspondence that passed a tile's verification, before any thinning
+    (equal to the MCPs written unless ``max_mcps_per_tile`` thinned some tiles); SDU is
+    over the MCPs written (:func:`planetref.frontend.stats.sdu_per_ccd`).
+
+    Args:
+        matches: The strip's tile results.
+        table: The MCPs written.
+        sizes: ``(lines, samples)`` of each CCD image.
+    """
+    from planetref.frontend.stats import sdu_per_ccd
+
+    statuses = matches.status_counts()
+    ncp = matches.ncp_per_ccd()
+    sdu = sdu_per_ccd(table, sizes)
+    lost = [
+        {"tile": t.tile_id, "status": t.status, "message": t.message}
+        for t in matches.tiles
+        if t.status != "ok"
+    ]
+    return {
+        "ccds": {c: {"ncp": int(ncp.get(c, 0)), "sdu_pct": float(sdu[c])} for c in sizes},
+        "ncp": int(sum(ncp.values())),
+        "n_mcps": len(table),
+        "tiles_total": len(matches.tiles),
+        "tiles_failed": len(matches.tiles) - statuses.get("ok", 0),
+        "tiles_thinned": sum(t.thinned for t in matches.tiles),
+        "tile_status": statuses,
+        "tiles_lost": lost,
+        "funnel": matches.funnel(),
+        "drops": matches.drops(),
+        "mcp_counts": table.counts.to_dict() if table.counts is not None else {},
+    }
 
 
 def camera_view(result: Any, index: int) -> Any:
