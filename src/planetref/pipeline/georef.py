@@ -52,7 +52,6 @@ from planetref.pipeline.georef_outputs import (
 )
 from planetref.pipeline.georef_report import (
     adjustment_block,
-    camera_view,
     check_block,
     combined_report,
     matching_block,
@@ -565,7 +564,7 @@ def _adjust_together(
         out["check"] = check_block(result, one, job.truth_dem) if one else None
         out["warnings"] = list(result.warnings)
         out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
-        figure_residuals(job, p.id, camera_view(result, ci), p.sizes)
+        figure_residuals(job, p.id, result, p.sizes, ci)
         if cfg.ortho.enabled:
             out["files"]["ortho"] = orthoimages(job, p.id, result.cameras[p.id], p.images)
         out["_residuals"] = (result.residual[on], result.inlier[on])

@@ -38,30 +38,29 @@ log = logging.getLogger("planetref.pipeline.georef")
 
 
 @contextlib.contextmanager
-def timed(timing: dict[str, float], part: str) -> Iterator[None]:
-    """Add the block's seconds to ``timing["outputs"]`` and to ``timing["outputs_<part>"]``."""
+def _seconds(timing: dict[str, float], *keys: str) -> Iterator[None]:
+    """Add the block's wall seconds to each of ``timing[key]``."""
     t0 = time.perf_counter()
     try:
         yield
     finally:
         dt = time.perf_counter() - t0
-        timing["outputs"] = timing.get("outputs", 0.0) + dt
-        timing[f"outputs_{part}"] = timing.get(f"outputs_{part}", 0.0) + dt
+        for key in keys:
+            timing[key] = timing.get(key, 0.0) + dt
 
 
-@contextlib.contextmanager
-def part_timed(timing: dict[str, float], part: str) -> Iterator[None]:
+def timed(timing: dict[str, float], part: str) -> contextlib.AbstractContextManager[None]:
+    """Add the block's seconds to ``timing["outputs"]`` and to ``timing["outputs_<part>"]``."""
+    return _seconds(timing, "outputs", f"outputs_{part}")
+
+
+def part_timed(timing: dict[str, float], part: str) -> contextlib.AbstractContextManager[None]:
     """Add the block's seconds to ``timing["outputs_<part>"]`` only.
 
     For parts that run at the same time as others (their union is timed once into
     ``timing["outputs"]`` by the caller).
     """
-    t0 = time.perf_counter()
-    try:
-        yield
-    finally:
-        key = f"outputs_{part}"
-        timing[key] = timing.get(key, 0.0) + time.perf_counter() - t0
+    return _seconds(timing, f"outputs_{part}")
 
 
 def orthoimages(
@@ -283,33 +282,20 @@ def figures_matching(
 
 
 def figure_residuals(
-    job: StripJob, strip: str, result: Any, sizes: dict[str, tuple[int, int]]
+    job: StripJob, strip: str, result: Any, sizes: dict[str, tuple[int, int]], index: int = 0
 ) -> None:
-    """The residual-vector figure of a strip after adjustment (drawn by ``job.figures``).
+    """The residual-vector figure of camera ``index`` of a result (drawn by ``job.figures``).
 
-    Only what the figure reads of the result travels to the figure process.
+    Only what the figure reads of the result travels to the figure process
+    (:func:`~planetref.pipeline.georef_report.camera_view`).
     """
-    from types import SimpleNamespace
-
+    from planetref.pipeline.georef_report import camera_view
     from planetref.report.georef import figure_residual_vectors
 
-    net = result.network
-    cid = net.camera_ids[0]
-    light = SimpleNamespace(
-        network=SimpleNamespace(
-            camera_ids=[cid],
-            obs_ccd=np.asarray(net.obs_ccd),
-            obs_line=np.asarray(net.obs_line),
-            obs_sample=np.asarray(net.obs_sample),
-        ),
-        cameras={cid: SimpleNamespace(ccd_names=list(result.cameras[cid].ccd_names))},
-        residual=np.asarray(result.residual),
-        status=np.asarray(result.status),
-    )
     job.figures.submit(
         f"{strip}_residuals",
         figure_residual_vectors,
-        light,
+        camera_view(result, index),
         dict(sizes),
         job.run.file("figures", f"{strip}_residuals.png"),
         title=f"{strip}: residuals after adjustment (inliers)",

@@ -72,23 +72,26 @@ def matching_block(
 
 
 def camera_view(result: Any, index: int) -> Any:
-    """The observations of one camera of a joint result, as the residual figure reads it."""
+    """One camera's observations and residuals, just what the residual figure reads.
+
+    Plain arrays and the CCD names only (no camera model), so the view is cheap to send
+    to the figure process; works for a one-camera result and for a joint one alike.
+    """
     from types import SimpleNamespace
 
     net = result.network
-    on = net.obs_camera == index
+    on = np.asarray(net.obs_camera) == index
     cid = net.camera_ids[index]
-    sub = SimpleNamespace(
-        camera_ids=(cid,),
-        obs_ccd=net.obs_ccd[on],
-        obs_line=net.obs_line[on],
-        obs_sample=net.obs_sample[on],
-    )
     return SimpleNamespace(
-        network=sub,
-        cameras={cid: result.cameras[cid]},
-        residual=result.residual[on],
-        status=result.status[on],
+        network=SimpleNamespace(
+            camera_ids=[cid],
+            obs_ccd=np.asarray(net.obs_ccd)[on],
+            obs_line=np.asarray(net.obs_line)[on],
+            obs_sample=np.asarray(net.obs_sample)[on],
+        ),
+        cameras={cid: SimpleNamespace(ccd_names=list(result.cameras[cid].ccd_names))},
+        residual=np.asarray(result.residual)[on],
+        status=np.asarray(result.status)[on],
     )
 
 
