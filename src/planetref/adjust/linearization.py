@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -29,7 +29,7 @@ from planetref.threads import compute_threads
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
 
-__all__ = ["LinearizationMixin", "run_shares", "thread_shares"]
+__all__ = ["LinearizationMixin", "chunk_shares", "run_shares"]
 
 
 F64 = NDArray[np.float64]
@@ -267,15 +267,9 @@ class LinearizationMixin:
         """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares.
 
         ``cfg.chunk_size`` observations per chunk, never across a (camera, CCD) range;
-        see :func:`thread_shares`.
+        see :func:`chunk_shares`.
         """
-        cs = self.cfg.chunk_size
-        chunks = [
-            (mi, ccd, a, min(a + cs, b0))
-            for mi, ccd, a0, b0 in lay.ranges
-            for a in range(a0, b0, cs)
-        ]
-        return thread_shares(chunks, len(lay.obs))
+        return chunk_shares(lay.ranges, self.cfg.chunk_size)
 
     def map_chunks(
         self,
@@ -407,14 +401,21 @@ class LinearizationMixin:
 SHARES = 8
 
 
-def thread_shares(
-    chunks: list[tuple[int, int, int, int]], m: int
+def chunk_shares(
+    ranges: Iterable[tuple[int, int, int, int]], chunk_size: int
 ) -> list[list[tuple[int, int, int, int]]]:
-    """Chunks ``(model, ccd, start, stop)`` over ``m`` rows in contiguous shares.
+    """Contiguous row ranges ``(model, ccd, start, stop)`` as chunks in contiguous shares.
 
-    :data:`SHARES` shares (at most one per chunk), balanced by row count; the split
-    depends on the chunks only, never on the thread count.
+    Chunks of at most ``chunk_size`` rows, never across a range; :data:`SHARES` shares
+    (at most one per chunk), balanced by row count; the split depends on the ranges
+    only, never on the thread count.
     """
+    chunks = [
+        (mi, ccd, a, min(a + chunk_size, b0))
+        for mi, ccd, a0, b0 in ranges
+        for a in range(a0, b0, chunk_size)
+    ]
+    m = chunks[-1][3] if chunks else 0
     n = max(1, min(SHARES, len(chunks)))
     if n == 1:
         return [chunks]

@@ -29,8 +29,8 @@ from planetref.adjust.config import SolverConfig
 from planetref.adjust.linearization import (
     LinearizationMixin,
     _Linearization,
+    chunk_shares,
     run_shares,
-    thread_shares,
 )
 from planetref.adjust.models import AdjustableCamera, Evaluation
 from planetref.adjust.problem import Network
@@ -278,14 +278,14 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         line = np.full(m, np.nan)
         sample = np.full(m, np.nan)
         valid = np.zeros(m, bool)
-        cs = self.cfg.chunk_size
         groups = self._groups(obs)
         pos = np.concatenate([g[2] for g in groups]) if groups else np.zeros(0, np.intp)
-        chunks, a0 = [], 0
-        for mi, ccd, g in groups:
-            chunks += [(mi, ccd, a, min(a + cs, a0 + len(g))) for a in range(a0, a0 + len(g), cs)]
-            a0 += len(g)
-        parts = thread_shares(chunks, m)
+        stops = np.cumsum([len(g) for _, _, g in groups], dtype=np.intp)
+        ranges = [
+            (mi, ccd, int(b - len(g)), int(b))
+            for (mi, ccd, g), b in zip(groups, stops, strict=True)
+        ]
+        parts = chunk_shares(ranges, self.cfg.chunk_size)
 
         def run(k: int) -> None:
             for mi, ccd, a, b in parts[k]:
