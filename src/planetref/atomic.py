@@ -26,6 +26,7 @@ __all__ = [
     "OutputWatcher",
     "atomic_path",
     "json_safe",
+    "read_only_mode",
     "watch_outputs",
     "write_bytes_atomic",
     "write_json_atomic",
@@ -68,6 +69,19 @@ def _umask() -> int:
     return mask
 
 
+def read_only_mode(path: str | os.PathLike[str]) -> int | None:
+    """The permission bits of a file that no one may write, else ``None``.
+
+    The mode bits, not ``os.access``: root may replace anything, but a file marked
+    read-only for everyone (an archive, shared data) is not planetref's to replace.
+    """
+    p = Path(path)
+    if not p.is_file():
+        return None
+    mode = p.stat().st_mode & 0o777
+    return None if mode & 0o222 else mode
+
+
 def _write_failed(exc: BaseException) -> bool:
     if isinstance(exc, PlanetrefError):
         return False
@@ -104,12 +118,10 @@ def atomic_path(
     """
     target = Path(path)
     absolute = Path(os.path.abspath(target))
-    if target.is_file() and not target.stat().st_mode & 0o222:
-        # The mode bits, not os.access: root may replace anything, but a file marked
-        # read-only for everyone (an archive, shared data) is not planetref's to replace.
+    mode = read_only_mode(target)
+    if mode is not None:
         raise OutputError(
-            f"the file is read-only (mode {target.stat().st_mode & 0o777:o}); planetref "
-            "does not replace it",
+            f"the file is read-only (mode {mode:o}); planetref does not replace it",
             path=target,
         )
     watchers = _WATCHERS.get()

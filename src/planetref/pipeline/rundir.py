@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from planetref import __version__
-from planetref.atomic import json_safe, watch_outputs
+from planetref.atomic import json_safe, read_only_mode, watch_outputs
 from planetref.atomic import write_json_atomic as _write_json
 from planetref.errors import InputError, OutputError, RunDirError
 
@@ -149,11 +149,10 @@ def check_output_file(
         raise InputError(f"{option} is a folder, a file is expected", path=p)
     if (p.exists() or p.is_symlink()) and not overwrite:
         raise InputError(f"{option} exists; pass --overwrite to replace it", path=p)
-    if p.is_file() and not p.stat().st_mode & 0o222:
-        # Checked on the mode bits, not os.access: root may write anywhere, but a file
-        # marked read-only for everyone is someone's statement that it must not change.
+    mode = read_only_mode(p)
+    if mode is not None:  # refused before any work; atomic_path refuses it again
         raise InputError(
-            f"{option} is a read-only file (mode {p.stat().st_mode & 0o777:o}); planetref "
+            f"{option} is a read-only file (mode {mode:o}); planetref "
             "does not replace it, even with --overwrite",
             path=p,
         )
