@@ -37,9 +37,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref._optional import optional_module
 from planetref.errors import InputError
 
-__all__ = ["geolocation_error", "ground_offset_px", "image_grid", "reprojection_metrics"]
+__all__ = [
+    "geolocation_error",
+    "ground_offset_px",
+    "grouped_reprojection_metrics",
+    "image_grid",
+    "reprojection_metrics",
+]
 
 F64 = NDArray[np.float64]
 
@@ -73,22 +80,82 @@ def reprojection_metrics(
     keep = finite if inlier is None else np.asarray(inlier, bool).ravel() & finite
     if keep.shape != x.shape:
         raise InputError(f"inlier has {keep.size} entries for {x.size} residuals")
-    n_total = int(x.size)
     n_in = int(np.count_nonzero(keep))
     xi, yi = x[keep], y[keep]
+    if not n_in:
+        return _metric_dict(int(x.size), 0, [math.nan] * 6, [math.nan] * 4)
+    sums = [
+        np.sum(xi**2 + yi**2),
+        np.sum(xi**2),
+        np.sum(yi**2),
+        np.sum(xi),
+        np.sum(yi),
+        np.sum(np.hypot(xi, yi)),
+    ]
+    return _metric_dict(int(x.size), n_in, sums, [np.max(xi), np.min(xi), np.max(yi), np.min(yi)])
+
+
+def grouped_reprojection_metrics(
+    dx: F64, dy: F64, inlier: NDArray[np.bool_], group: NDArray[np.intp], n_groups: int
+) -> list[dict[str, float | int]]:
+    """:func:`reprojection_metrics` of many groups of residuals in one pass.
+
+    Equal bit for bit to ``reprojection_metrics(dx[m], dy[m], inlier[m])`` with ``m``
+    the rows of each group (compiled, :mod:`planetref._numba_metrics`; without numba,
+    that loop itself).
+
+    Args:
+        dx: Sample residuals (pixels), ``(N,)``.
+        dy: Line residuals (pixels), ``(N,)``.
+        inlier: Inlier flags, ``(N,)``.
+        group: Group codes, ``(L, N)``: each row one partition of the residuals (a
+            residual belongs to at most one group per row; ``-1``: none); codes are
+            ``< n_groups`` and unique over the rows.
+        n_groups: Number of groups.
+
+    Returns:
+        One metrics dict per group code.
+    """
+    group = np.atleast_2d(np.asarray(group, np.intp))
+    fn = optional_module("planetref._numba_metrics", "compiled reprojection metrics")
+    if fn is None:
+        out: list[dict[str, float | int]] = [{} for _ in range(n_groups)]
+        for row in group:
+            for g in np.unique(row[row >= 0]):
+                m = row == g
+                out[int(g)] = reprojection_metrics(dx[m], dy[m], inlier[m])
+        empty = reprojection_metrics(np.zeros(0), np.zeros(0))
+        return [d or dict(empty) for d in out]
+    n_total, n_in, sums, ext = fn.group_sums(
+        np.asarray(dx, np.float64), np.asarray(dy, np.float64), inlier, group, n_groups
+    )
+    return [
+        _metric_dict(int(n_total[g]), int(n_in[g]), sums[g].tolist(), ext[g].tolist())
+        for g in range(n_groups)
+    ]
+
+
+def _metric_dict(
+    n_total: int, n_in: int, sums: list[Any], ext: list[Any]
+) -> dict[str, float | int]:
+    """The metrics from the sums and extremes of ``n_in`` inliers among ``n_total``.
+
+    ``sums``: of ``x^2 + y^2, x^2, y^2, x, y, hypot(x, y)``; ``ext``: ``(max x, min x,
+    max y, min y)``.
+    """
     nan = float("nan")
-    length = np.hypot(xi, yi)
+    s_r2, s_x2, s_y2, s_x, s_y, s_len = (float(v) for v in sums)
     return {
-        "rmse_px": float(math.sqrt(np.mean(xi**2 + yi**2))) if n_in else nan,
-        "rmse_x_px": float(math.sqrt(np.mean(xi**2))) if n_in else nan,
-        "rmse_y_px": float(math.sqrt(np.mean(yi**2))) if n_in else nan,
-        "mean_x_px": float(np.mean(xi)) if n_in else nan,
-        "mean_y_px": float(np.mean(yi)) if n_in else nan,
-        "mean_px": float(np.mean(length)) if n_in else nan,
-        "max_dx_px": float(np.max(xi)) if n_in else nan,
-        "min_dx_px": float(np.min(xi)) if n_in else nan,
-        "max_dy_px": float(np.max(yi)) if n_in else nan,
-        "min_dy_px": float(np.min(yi)) if n_in else nan,
+        "rmse_px": math.sqrt(s_r2 / n_in) if n_in else nan,
+        "rmse_x_px": math.sqrt(s_x2 / n_in) if n_in else nan,
+        "rmse_y_px": math.sqrt(s_y2 / n_in) if n_in else nan,
+        "mean_x_px": s_x / n_in if n_in else nan,
+        "mean_y_px": s_y / n_in if n_in else nan,
+        "mean_px": s_len / n_in if n_in else nan,
+        "max_dx_px": float(ext[0]) if n_in else nan,
+        "min_dx_px": float(ext[1]) if n_in else nan,
+        "max_dy_px": float(ext[2]) if n_in else nan,
+        "min_dy_px": float(ext[3]) if n_in else nan,
         "outlier_ratio_pct": 100.0 * (n_total - n_in) / n_total if n_total else nan,
         "n_total": n_total,
         "n_inliers": n_in,

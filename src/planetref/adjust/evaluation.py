@@ -24,7 +24,7 @@ from planetref.adjust.problem import Network
 from planetref.adjust.rays import ground_error_m
 from planetref.adjust.solver import BundleSolver, LmReport
 from planetref.adjust.variance import VceResult
-from planetref.metrics import reprojection_metrics
+from planetref.metrics import grouped_reprojection_metrics
 
 __all__ = ["check_metrics", "diagnostics", "reprojection_blocks", "round_summary"]
 
@@ -108,25 +108,46 @@ def reprojection_blocks(
         ``"before"``, ``"before_all"`` and ``"after"``
         (:func:`~planetref.metrics.reprojection_metrics`); check observations excluded.
     """
+    # Group codes per level (-1: not in a group): 0 all adjusted observations, then
+    # one per camera (when there are several), then one per CCD of multi-CCD cameras.
     adjusted = ~net.obs_check
-
-    def block(sel: NDArray[np.bool_] | None) -> dict[str, Any]:
-        idx = np.flatnonzero(adjusted if sel is None else sel & adjusted)
-        return {
-            "before": reprojection_metrics(res0[idx, 1], res0[idx, 0], inlier[idx]),
-            "before_all": reprojection_metrics(res0[idx, 1], res0[idx, 0], usable[idx]),
-            "after": reprojection_metrics(res[idx, 1], res[idx, 0], inlier[idx]),
-        }
-
-    out: dict[str, Any] = {"all": block(None), "cameras": {}, "ccds": {}}
     single = len(net.camera_ids) == 1
+    levels = [np.where(adjusted, 0, -1)]
+    n_groups = 1
+    cam_code = np.full(len(net.camera_ids), -1, np.intp)
+    if not single:
+        cam_code[:] = np.arange(1, len(net.camera_ids) + 1)
+        n_groups += len(net.camera_ids)
+        levels.append(np.where(adjusted, cam_code[net.obs_camera], -1))
+    ccd_base = np.zeros(len(net.camera_ids) + 1, np.intp)
+    for ci, cam in enumerate(net.cameras):
+        n_ccd = len(cam.ccd_names)
+        ccd_base[ci + 1] = ccd_base[ci] + (n_ccd if n_ccd > 1 else 0)
+    if ccd_base[-1]:
+        multi = (ccd_base[1:] - ccd_base[:-1] > 0)[net.obs_camera]
+        code = n_groups + ccd_base[net.obs_camera] + net.obs_ccd
+        levels.append(np.where(adjusted & multi, code, -1))
+        n_groups += int(ccd_base[-1])
+    group = np.stack(levels)
+    before = grouped_reprojection_metrics(res0[:, 1], res0[:, 0], inlier, group, n_groups)
+    before_all = (
+        [dict(d) for d in before]
+        if np.array_equal(inlier, usable)
+        else grouped_reprojection_metrics(res0[:, 1], res0[:, 0], usable, group, n_groups)
+    )
+    after = grouped_reprojection_metrics(res[:, 1], res[:, 0], inlier, group, n_groups)
+
+    def block(g: int) -> dict[str, Any]:
+        return {"before": before[g], "before_all": before_all[g], "after": after[g]}
+
+    out: dict[str, Any] = {"all": block(0), "cameras": {}, "ccds": {}}
     for ci, cid in enumerate(net.camera_ids):
-        on = net.obs_camera == ci
         # One camera: its block is the overall one (the same observations).
-        entry = {k: dict(v) for k, v in out["all"].items()} if single else block(on)
+        entry = {k: dict(v) for k, v in out["all"].items()} if single else block(cam_code[ci])
         names = net.cameras[ci].ccd_names
         if len(names) > 1:
-            entry["ccds"] = {n: block(on & (net.obs_ccd == k)) for k, n in enumerate(names)}
+            base = n_groups - int(ccd_base[-1]) + int(ccd_base[ci])
+            entry["ccds"] = {n: block(base + k) for k, n in enumerate(names)}
             for n, m in entry["ccds"].items():
                 out["ccds"][n if single else f"{cid}/{n}"] = m
         out["cameras"][cid] = entry

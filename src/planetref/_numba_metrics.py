@@ -1,0 +1,139 @@
+"""numba implementation of grouped reprojection sums (lazy import).
+
+The twin of :func:`planetref.metrics.reprojection_metrics` called once per group (the
+numpy reference; a test binds both bit for bit): one pass sorts the kept residuals of
+every group into a contiguous buffer (stable, so each group keeps the observations'
+order), then each group's sums follow numpy's own pairwise summation (``np.add.reduce``
+over a contiguous float64 array: blocks of up to 128 elements in 8 interleaved partial
+sums, halves split at multiples of 8), so ``sum / n`` equals ``np.mean`` of the gathered
+array exactly. Importing this module imports numba; the functions compile on first use
+or load from numba's on-disk cache.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+#: The sums of :func:`group_sums`, in column order (x = sample, y = line residual).
+SUMS = ("x2+y2", "x2", "y2", "x", "y", "hypot")
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _term(x: F64, y: F64, i: int, kind: int) -> float:
+    if kind == 0:
+        return x[i] * x[i] + y[i] * y[i]
+    if kind == 1:
+        return x[i] * x[i]
+    if kind == 2:
+        return y[i] * y[i]
+    if kind == 3:
+        return x[i]
+    if kind == 4:
+        return y[i]
+    return math.hypot(x[i], y[i])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def pairwise_sum(x: F64, y: F64, a: int, n: int, kind: int) -> float:
+    """The pairwise sum (numpy's) of ``term(i)`` over ``i`` in ``[a, a + n)`` (see :data:`SUMS`)."""
+    if n < 8:
+        res = 0.0
+        for i in range(a, a + n):
+            res += _term(x, y, i, kind)
+        return res
+    if n <= 128:
+        r0 = _term(x, y, a, kind)
+        r1 = _term(x, y, a + 1, kind)
+        r2 = _term(x, y, a + 2, kind)
+        r3 = _term(x, y, a + 3, kind)
+        r4 = _term(x, y, a + 4, kind)
+        r5 = _term(x, y, a + 5, kind)
+        r6 = _term(x, y, a + 6, kind)
+        r7 = _term(x, y, a + 7, kind)
+        end = a + n - n % 8
+        i = a + 8
+        while i < end:
+            r0 += _term(x, y, i, kind)
+            r1 += _term(x, y, i + 1, kind)
+            r2 += _term(x, y, i + 2, kind)
+            r3 += _term(x, y, i + 3, kind)
+            r4 += _term(x, y, i + 4, kind)
+            r5 += _term(x, y, i + 5, kind)
+            r6 += _term(x, y, i + 6, kind)
+            r7 += _term(x, y, i + 7, kind)
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < a + n:
+            res += _term(x, y, i, kind)
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return pairwise_sum(x, y, a, n2, kind) + pairwise_sum(x, y, a + n2, n - n2, kind)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[Any, Any, F64, F64]:
+    """Counts, sums and extremes of the kept finite residuals of every group.
+
+    Args:
+        x: Sample residuals, ``(M,)``.
+        y: Line residuals, ``(M,)``.
+        keep: Rows that count as inliers, ``(M,)`` bool (non-finite rows never do).
+        group: Group codes, ``(L, M)``: each row of codes is one partition level (a row
+            may belong to one group per level; ``-1``: none), codes ``< n_groups``.
+        n_groups: Number of group codes over all levels.
+
+    Returns:
+        ``(n_total, n_in, sums, extremes)``: rows per group, kept finite rows, the
+        :data:`SUMS` ``(n_groups, 6)`` and ``(max x, min x, max y, min y)``
+        ``(n_groups, 4)`` (NaN for a group without kept rows).
+    """
+    m = x.shape[0]
+    n_total = np.zeros(n_groups, np.int64)
+    n_in = np.zeros(n_groups, np.int64)
+    for lv in range(group.shape[0]):
+        for i in range(m):
+            g = group[lv, i]
+            if g < 0:
+                continue
+            n_total[g] += 1
+            if keep[i] and math.isfinite(x[i]) and math.isfinite(y[i]):
+                n_in[g] += 1
+    start = np.zeros(n_groups + 1, np.int64)
+    for g in range(n_groups):
+        start[g + 1] = start[g] + n_in[g]
+    bx = np.empty(start[n_groups])
+    by = np.empty(start[n_groups])
+    pos = start[:n_groups].copy()
+    for lv in range(group.shape[0]):
+        for i in range(m):
+            g = group[lv, i]
+            if g < 0 or not (keep[i] and math.isfinite(x[i]) and math.isfinite(y[i])):
+                continue
+            bx[pos[g]] = x[i]
+            by[pos[g]] = y[i]
+            pos[g] += 1
+    sums = np.zeros((n_groups, 6))
+    ext = np.full((n_groups, 4), np.nan)
+    for g in range(n_groups):
+        a, n = start[g], n_in[g]
+        if n == 0:
+            continue
+        for k in range(6):
+            sums[g, k] = pairwise_sum(bx, by, a, n, k)
+        mx, mnx, my, mny = bx[a], bx[a], by[a], by[a]
+        for i in range(a + 1, a + n):
+            mx = max(mx, bx[i])
+            mnx = min(mnx, bx[i])
+            my = max(my, by[i])
+            mny = min(mny, by[i])
+        ext[g, 0], ext[g, 1], ext[g, 2], ext[g, 3] = mx, mnx, my, mny
+    return n_total, n_in, sums, ext
