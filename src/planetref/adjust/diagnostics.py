@@ -51,10 +51,14 @@ def point_table(
     xyz: F64,
     sigma_prior: F64,
     frame: F64,
-    cofactor: dict[int, F64],
+    cofactor: tuple[NDArray[np.intp], F64],
     sigma0: float,
 ) -> dict[str, Any]:
     """Per point: a-priori and adjusted coordinates, sigmas and shifts.
+
+    Only the points that moved, have a cofactor block or a weighted a-priori sigma are
+    converted, rotated and normalised; the others get their values directly (no shift,
+    the a-priori geodetic coordinates), equal to what the full computation gives them.
 
     Args:
         net: The network (ids, kinds, the first camera's ellipsoid).
@@ -63,7 +67,8 @@ def point_table(
         sigma_prior: A-priori sigmas used in the final adjustment (after variance
             component scaling), in each point's sigma frame, ``(P, 3)``.
         frame: Rotations XYZ -> sigma frame, ``(P, 3, 3)``.
-        cofactor: Point index -> 3x3 cofactor block (XYZ) of the unknown points.
+        cofactor: ``(points, blocks)``: indices of the unknown points ``(u,)`` and
+            their 3x3 cofactor blocks (XYZ), ``(u, 3, 3)``.
         sigma0: A-posteriori sigma of unit weight.
 
     Returns:
@@ -73,21 +78,33 @@ def point_table(
 
     ell = net.cameras[0].ellipsoid
     n = net.n_points
-    ok0 = np.all(np.isfinite(xyz0), axis=1)
-    lon0, lat0, h0 = (np.full(n, np.nan) for _ in range(3))
-    lon1, lat1, h1 = (np.full(n, np.nan) for _ in range(3))
+    fin = np.isfinite(xyz0)
+    ok0 = fin[:, 0] & fin[:, 1] & fin[:, 2]
+    every = bool(np.all(ok0))
     d = xyz - xyz0
     # Points that did not move (fixed ones) keep their a-priori geodetic coordinates and
     # have no shift: only the others are converted.
-    moved = ok0 & np.any(d != 0.0, axis=1)
-    if np.any(ok0):
-        lon0[ok0], lat0[ok0], h0[ok0] = xyz_to_lonlat(xyz0[ok0], ell)
-        lon1[ok0], lat1[ok0], h1[ok0] = lon0[ok0], lat0[ok0], h0[ok0]
-    if np.any(moved):
-        lon1[moved], lat1[moved], h1[moved] = xyz_to_lonlat(xyz[moved], ell)
+    moved = ok0 & ((d[:, 0] != 0.0) | (d[:, 1] != 0.0) | (d[:, 2] != 0.0))
+    if every:
+        lon0, lat0, h0 = xyz_to_lonlat(xyz0, ell)
+    else:
+        lon0, lat0, h0 = (np.full(n, np.nan) for _ in range(3))
+        if np.any(ok0):
+            lon0[ok0], lat0[ok0], h0[ok0] = xyz_to_lonlat(xyz0[ok0], ell)
+    lon1, lat1, h1 = lon0.copy(), lat0.copy(), h0.copy()
+    mv = np.flatnonzero(moved)
+    if mv.size:
+        lon1[mv], lat1[mv], h1[mv] = xyz_to_lonlat(xyz[mv], ell)
+    # Rows whose shifts are not simply 0 (unmoved) or NaN (no a-priori coordinates).
+    other = mv if every else np.flatnonzero(moved | ~ok0)
     d_enu = np.zeros((n, 3))
     d_enu[~ok0] = np.nan
-    cof_pts = np.array([j for j in cofactor if ok0[j]], np.intp)
+    shift_m = np.zeros(n)
+    shift_m[other] = np.linalg.norm(d[other], axis=1)
+    cof_idx, cof_blocks = cofactor
+    cof_idx = np.asarray(cof_idx, np.intp)
+    has = ok0[cof_idx]
+    cof_pts = cof_idx[has]
     need = moved.copy()
     need[cof_pts] = True
     # ENU rotations of the points that moved or have a cofactor block only.
@@ -95,21 +112,24 @@ def point_table(
     at = np.full(n, -1, np.intp)
     at[rot] = np.arange(len(rot))
     enu = enu_rotation(xyz0[rot]) if len(rot) else np.zeros((0, 3, 3))
-    mv = np.flatnonzero(moved)
     d_enu[mv] = np.einsum("pij,pj->pi", enu[at[mv]], d[mv])
     post = np.zeros((n, 3))
     if len(cof_pts):
         e = enu[at[cof_pts]]
-        q = np.stack([cofactor[int(j)] for j in cof_pts])
+        q = np.asarray(cof_blocks)[has]
         var = np.einsum("pij,pjk,pik->pi", e, q, e)  # diag(E Q E^T)
         post[cof_pts] = sigma0 * np.sqrt(np.maximum(var, 0.0))
-    d_frame = np.einsum("pij,pj->pi", frame, d)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm = np.where(
-            np.isfinite(sigma_prior) & (sigma_prior > 0), np.abs(d_frame) / sigma_prior, np.nan
-        )
-    shift_sigma = np.max(np.where(np.isnan(norm), -np.inf, norm), axis=1)
-    shift_sigma[~np.isfinite(shift_sigma)] = np.nan
+    # Shifts in a-priori sigmas: only points with a finite positive sigma have one.
+    prior_ok = np.isfinite(sigma_prior) & (sigma_prior > 0)
+    wp = np.flatnonzero(prior_ok[:, 0] | prior_ok[:, 1] | prior_ok[:, 2])
+    shift_sigma = np.full(n, np.nan)
+    if wp.size:
+        d_frame = np.einsum("pij,pj->pi", frame[wp], d[wp])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            norm = np.where(prior_ok[wp], np.abs(d_frame) / sigma_prior[wp], np.nan)
+        s_w = np.max(np.where(np.isnan(norm), -np.inf, norm), axis=1)
+        s_w[~np.isfinite(s_w)] = np.nan
+        shift_sigma[wp] = s_w
     return {
         "point_id": np.asarray(net.point_ids),
         "kind": np.asarray(net.point_kind),
@@ -124,7 +144,7 @@ def point_table(
         "sigma_apriori": sigma_prior,
         "sigma_local": np.asarray(net.point_sigma_local),
         "sigma_enu": post,
-        "shift_m": np.linalg.norm(d, axis=1),
+        "shift_m": shift_m,
         "shift_horizontal_m": np.hypot(d_enu[:, 0], d_enu[:, 1]),
         "shift_up_m": d_enu[:, 2],
         "shift_sigma": shift_sigma,
@@ -132,15 +152,23 @@ def point_table(
 
 
 def point_summary(
-    table: dict[str, Any], used: NDArray[np.bool_], cfg: DiagnosticsConfig
+    table: dict[str, Any],
+    used: NDArray[np.bool_],
+    cfg: DiagnosticsConfig,
+    kind_codes: tuple[NDArray[np.str_], NDArray[np.intp]] | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
-    """Movement statistics of the points per kind and the warning lines."""
+    """Movement statistics of the points per kind and the warning lines.
+
+    ``kind_codes``: ``(kinds, code)`` of ``table["kind"]`` when already known
+    (:attr:`~planetref.adjust.problem.Network.point_kind_codes`).
+    """
     out: dict[str, Any] = {}
     warnings: list[str] = []
-    kinds, code = small_unique(table["kind"])
+    kinds, code = kind_codes if kind_codes is not None else small_unique(table["kind"])
+    finite = used & np.isfinite(table["shift_m"])
     for c in np.flatnonzero(np.bincount(code[used], minlength=len(kinds))):
         k = str(kinds[c])
-        m = used & (code == c) & np.isfinite(table["shift_m"])
+        m = finite & (code == c)
         s = table["shift_m"][m]
         if not s.size:
             continue

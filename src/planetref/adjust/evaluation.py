@@ -46,13 +46,13 @@ def diagnostics(
     c, stats = solution
     xyz0, xyz = points
     red = vce.redundancy
-    cof = {int(j): red.point_cofactor[k] for k, j in enumerate(red.unknown)}
+    cof = (red.unknown, red.point_cofactor)
     table = point_table(
         net, xyz0, xyz, solver.point_sigma, solver.point_frame, cof, float(stats["sigma0"])
     )
     used = np.zeros(net.n_points, bool)
     used[net.obs_point[red.obs]] = True
-    moved, w_pts = point_summary(table, used, dc)
+    moved, w_pts = point_summary(table, used, dc, net.point_kind_codes)
     shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc, heights=table["height"])
     corr_info, w_corr = correlation_warnings(solver.names, stats["correlation"], dc)
     calib, w_cal = self_calibration(

@@ -36,7 +36,7 @@ from planetref.adjust.solver import BundleSolver
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
 
-__all__ = ["Redundancy", "redundancy"]
+__all__ = ["Redundancy", "group_sum", "redundancy"]
 
 F64 = NDArray[np.float64]
 _PAIR_CHUNK = 65536
@@ -110,13 +110,20 @@ class Redundancy:
         ``group_of``: per network observation its group (``-1``: none). A slot lies in
         one group (groups never split a point kind, camera or CCD).
         """
-        rg = group_of[self.obs]
-        on = rg >= 0
-        r = np.bincount(rg[on], weights=self.obs_r.sum(axis=1)[on], minlength=n_groups)
+        # Row sums of obs_r, column by column.
+        r = group_sum(group_of[self.obs], self.obs_r[:, 0] + self.obs_r[:, 1], n_groups)
         if len(self.slot_r):
             sg = group_of[self.slot_obs]
             r += np.bincount(sg[sg >= 0], weights=self.slot_r[sg >= 0], minlength=n_groups)
         return r
+
+
+def group_sum(group: NDArray[np.intp], weights: F64, n_groups: int) -> F64:
+    """Sums of ``weights`` per group (``group < 0``: none), ``np.bincount`` order."""
+    on = group >= 0
+    if np.all(on):
+        return np.bincount(group, weights=weights, minlength=n_groups)
+    return np.bincount(group[on], weights=weights[on], minlength=n_groups)
 
 
 def redundancy(
@@ -156,11 +163,12 @@ def redundancy(
     # the per-observation data gathered once (the redundancy follows its order).
     st = solver._structure(np.asarray(obs, np.intp))
     lay = st.lay
-    obs = lay.obs
-    w = solver.obs_w0[obs]
+    w = lay.w0  # solver.obs_w0[lay.obs] (a new weight makes a new layout)
+    h: F64 | None
     if _reusable(solver, lin, lay):
-        v_all = np.where(lin.valid[:, None], lin.r, 0.0)
-        h = np.zeros((len(obs), 2, 2))
+        all_valid = bool(np.all(lin.valid))
+        v_all = lin.r if all_valid else np.where(lin.valid[:, None], lin.r, 0.0)
+        h = None  # only the observations of unknown points have their own numbers
         tpos, a_u, gpat_u, b_u = st.tie_pos, lin.a_t, lin.gpat_t, lin.b_t
         slot_r = _slot_redundancy(solver, lin, lay, cofactor)
     else:
@@ -172,13 +180,20 @@ def redundancy(
 
 def _reusable(solver: BundleSolver, lin: _Linearization | None, lay: _Layout) -> bool:
     """Whether a linearisation can stand in for a fresh evaluation (see :func:`redundancy`)."""
-    return (
-        lin is not None
-        and lin.loss == "linear"
-        and len(lin.slot_n) == len(lay.slot_obs)
-        and np.array_equal(lin.obs, lay.obs)
-        and np.array_equal(lin.weight, np.where(lin.valid[:, None], lay.w0, 0.0))
-    )
+    if (
+        lin is None
+        or lin.loss != "linear"
+        or len(lin.slot_n) != len(lay.slot_obs)
+        or not np.array_equal(lin.obs, lay.obs)
+    ):
+        return False
+    # Every observation of a fixed point needs a slot (the layout gives each one, unless
+    # the slot matrices would be too large: then there are none).
+    if not len(lay.slot_obs) and np.any(solver.point_fixed[lay.point]):
+        return False
+    if np.all(lin.valid):
+        return np.array_equal(lin.weight, lay.w0)
+    return np.array_equal(lin.weight, np.where(lin.valid[:, None], lay.w0, 0.0))
 
 
 def _slot_redundancy(solver: BundleSolver, lin: _Linearization, lay: _Layout, cofactor: F64) -> F64:
@@ -249,14 +264,15 @@ def _finish(
     sol: tuple[F64, F64, F64],
     lay: _Layout,
     cofactor: F64,
-    eqs: tuple[F64, F64, F64, F64],
+    eqs: tuple[F64, F64 | None, F64, F64],
     kept: tuple[NDArray[np.intp], F64, NDArray[np.intp], F64],
 ) -> Redundancy:
     """The pairs of observations of unknown points, the point and camera priors.
 
     ``sol``: ``(c, xyz, xyz0)``; ``eqs``: ``(v, h, w, slot_r)`` of the image equations
-    (``slot_r`` empty: every observation has its own ``h``); ``kept``: ``(tpos, a_u,
-    gpat_u, b_u)`` (see :func:`_evaluate`).
+    (``slot_r`` empty: every observation has its own ``h``; ``h`` ``None``: the
+    observations of fixed points are summed in ``slot_r``, their rows of ``obs_r`` are
+    0); ``kept``: ``(tpos, a_u, gpat_u, b_u)`` (see :func:`_evaluate`).
     """
     c, xyz, xyz0 = sol
     v_all, h, w, slot_r = eqs
@@ -286,6 +302,7 @@ def _finish(
     pb = first[loc[pa]] + within
     tmat = np.zeros((len(t), 2, 3))
     umat = np.zeros((u, 3, 3))
+    ht = np.zeros((len(t), 2, 2))  # J_i Q J_i^T of the observations of unknown points
     for s0 in range(0, len(pa), _PAIR_CHUNK):
         ia, ib = pa[s0 : s0 + _PAIR_CHUNK], pb[s0 : s0 + _PAIR_CHUNK]
         g = pairs(tpos[t[ia]], tpos[t[ib]])  # (k, 2, 2)
@@ -293,15 +310,19 @@ def _finish(
         np.add.at(tmat, ia, gc)
         np.add.at(umat, loc[ia], np.matmul(cmat[ia], gc))
         diag = ia == ib
-        h[t[ia[diag]]] = g[diag]
+        ht[ia[diag]] = g[diag]
     btt = np.transpose(bt, (0, 2, 1))
     qjj = vinv + umat
-    h[t] += (
+    ht += (
         -np.matmul(tmat, btt)
         - np.matmul(bt, np.transpose(tmat, (0, 2, 1)))
         + np.matmul(np.matmul(bt, qjj[loc]), btt)
     )
-    obs_r = 1.0 - w * np.stack([h[:, 0, 0], h[:, 1, 1]], axis=1)
+    if h is None:
+        obs_r = np.zeros((len(obs), 2))
+    else:
+        obs_r = 1.0 - w * np.stack([h[:, 0, 0], h[:, 1, 1]], axis=1)
+    obs_r[t] = 1.0 - w[t] * np.stack([ht[:, 0, 0], ht[:, 1, 1]], axis=1)
     if len(slot_r):
         obs_r[lay.slot >= 0] = 0.0  # summed per slot instead
     # Priors of weighted points, in their sigma frames.

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import VarianceConfig
 from planetref.adjust.linearization import _Linearization
-from planetref.adjust.redundancy import Redundancy, redundancy
+from planetref.adjust.redundancy import Redundancy, group_sum, redundancy
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
 
@@ -68,18 +68,27 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
         cid = net.camera_ids[int(key) // base]
         names = cam.ccd_names
         labels[int(key)] = cid if len(names) == 1 else f"{cid}/{names[int(key) % base]}"
+    # One stable sort by (kind, label rank) gives every image group its observations in
+    # the order of ``obs``, as a mask per group would.
+    by_label = sorted(labels, key=lambda key: labels[key])
+    rank = np.zeros(int(image_key.max(initial=0)) + 1, np.int64)
+    rank[by_label] = np.arange(len(by_label))
+    n_lab = max(len(by_label), 1)
+    code = kind_obs.astype(np.int64) * n_lab + rank[image_key]
+    n_code = len(kinds) * n_lab
+    small = code.astype(np.uint16) if n_code <= 2**16 else code
+    order = np.argsort(small, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(code, minlength=n_code))])
     out: list[_Group] = []
     for k in np.flatnonzero(np.bincount(kind_obs)):  # kinds are sorted by name
-        in_kind = kind_obs == k
-        for key, lab in sorted(labels.items(), key=lambda kv: kv[1]):
-            sel = obs[in_kind & (image_key == key)]
+        for j, key in enumerate(by_label):
+            cc = int(k) * n_lab + j
+            sel = obs[order[bounds[cc] : bounds[cc + 1]]]
             if sel.size:
-                out.append(_Group(f"image {kinds[k]} {lab}", "image", obs=sel))
+                out.append(_Group(f"image {kinds[k]} {labels[key]}", "image", obs=sel))
     pts = np.flatnonzero(np.bincount(net.obs_point[obs], minlength=net.n_points))
-    weighted = pts[
-        ~solver.point_fixed[pts]
-        & np.any(np.isfinite(solver.point_sigma[pts]) & (solver.point_sigma[pts] > 0), axis=1)
-    ]
+    unknown = pts[~solver.point_fixed[pts]]
+    weighted = unknown[_has_prior(solver.point_sigma[unknown])]
     pk = kind_of_pt[weighted]
     local = np.asarray(net.point_sigma_local)[weighted]
     for code in np.flatnonzero(np.bincount(pk)):
@@ -103,6 +112,12 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     return out
 
 
+def _has_prior(sigma: F64) -> NDArray[np.bool_]:
+    """Rows of ``(n, 3)`` sigmas with a finite positive sigma on some axis."""
+    ok = np.isfinite(sigma) & (sigma > 0)
+    return ok[:, 0] | ok[:, 1] | ok[:, 2]
+
+
 def _single_view_notes(
     solver: BundleSolver, obs: NDArray[np.intp], groups: list[_Group]
 ) -> dict[str, str]:
@@ -115,11 +130,14 @@ def _single_view_notes(
     net = solver.net
     pt = net.obs_point[obs]
     views = np.bincount(pt, minlength=net.n_points)
-    weighted = ~solver.point_fixed & np.any(
-        np.isfinite(solver.point_sigma) & (solver.point_sigma > 0), axis=1
-    )
-    single = weighted & (views == 1)
-    out = {}
+    # Weighted points (unknown, with a finite positive sigma) seen once.
+    once = np.flatnonzero(~solver.point_fixed & (views == 1))
+    once = once[_has_prior(solver.point_sigma[once])]
+    out: dict[str, str] = {}
+    if not once.size:
+        return out
+    single = np.zeros(net.n_points, bool)
+    single[once] = True
     text = (
         "single-view weighted MCPs: image and ground noise are confounded; their split "
         "is the a-priori ratio, only the sum is estimated"
@@ -145,10 +163,9 @@ def _image_sums(
 ) -> dict[str, tuple[float, float, int]]:
     """``(v^T P v, redundancy, equations)`` of every image group in one pass."""
     rg = group_of[red.obs]
-    on = rg >= 0
-    vtpv = np.bincount(
-        rg[on], weights=np.sum(red.obs_w * red.obs_v**2, axis=1)[on], minlength=len(groups)
-    )
+    w, v = red.obs_w, red.obs_v
+    # Per observation w_l v_l^2 + w_s v_s^2 (the row sums of w v^2, column by column).
+    vtpv = group_sum(rg, w[:, 0] * v[:, 0] ** 2 + w[:, 1] * v[:, 1] ** 2, len(groups))
     r = red.image_sums(group_of, len(groups))
     return {
         g.name: (float(vtpv[i]), float(r[i]), 2 * len(g.obs))
@@ -172,6 +189,16 @@ def _group_stats(
     v, w, r = red.point_v[pos][:, ax], red.point_w[pos][:, ax], red.point_r[pos][:, ax]
     on = w > 0
     return float(np.sum(w[on] * v[on] ** 2)), float(np.sum(r[on])), int(np.count_nonzero(on))
+
+
+def _image_at_floor(
+    solver: BundleSolver, group_of: NDArray[np.intp], n_groups: int, min_sigma_px: float
+) -> NDArray[np.bool_]:
+    """Per group: every sigma of its observations is at the floor (``min_sigma_px``)."""
+    sig = solver.obs_sigma
+    thr = min_sigma_px * (1 + 1e-9)
+    above = ~((sig[:, 0] <= thr) & (sig[:, 1] <= thr)) & (group_of >= 0)
+    return np.bincount(group_of[above], minlength=n_groups) == 0
 
 
 @dataclass
@@ -268,7 +295,8 @@ def variance_components(
         image = _image_sums(groups, red, group_of)
         table = []
         factors: dict[str, float] = {}
-        for g in groups:
+        img_floor = _image_at_floor(solver, group_of, len(groups), cfg.min_sigma_px)
+        for i, g in enumerate(groups):
             vtpv, r, n_eq = _group_stats(g, red, image)
             f = math.sqrt(vtpv / r) if r > 0 else float("nan")
             why = ""
@@ -289,7 +317,7 @@ def variance_components(
                 }
             )
             if g.kind == "image":
-                floor = bool(np.all(solver.obs_sigma[g.obs] <= cfg.min_sigma_px * (1 + 1e-9)))
+                floor = bool(img_floor[i])
             else:
                 sig_g = solver.point_sigma[np.ix_(g.points, list(g.axes))]
                 floor = bool(np.all(sig_g <= cfg.min_sigma_m * (1 + 1e-9)))
