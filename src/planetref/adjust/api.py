@@ -94,15 +94,16 @@ def _adjust(
     m_all = net.n_obs
     # Points whose coordinates the rays must determine: free ones, and tie points under
     # their (loose) a-priori sigma; they need min_tie_observations rays.
-    free_pt = np.all(np.isinf(net.point_sigma_m), axis=1) | (
-        _is_kind(net, "tie") & ~np.all(net.point_sigma_m == 0, axis=1)
-    )
+    sig_inf = _rows_all(np.isinf(net.point_sigma_m))
+    free_pt = sig_inf | (_is_kind(net, "tie") & ~_rows_all(net.point_sigma_m == 0))
     candidates = ~net.obs_check
     xyz0 = net.point_xyz.copy()
-    missing = np.flatnonzero(~np.all(np.isfinite(xyz0), axis=1))
+    finite_pt = _rows_all(np.isfinite(xyz0))
+    missing = np.flatnonzero(~finite_pt)
     if missing.size:
         xyz0[missing] = triangulate(net, initial_cams, missing, candidates)
-        lost = missing[~np.all(np.isfinite(xyz0[missing]), axis=1)]
+        finite_pt = _rows_all(np.isfinite(xyz0))
+        lost = missing[~finite_pt[missing]]
         if lost.size:
             warn(
                 f"{lost.size} free point(s) without coordinates could not be triangulated "
@@ -110,7 +111,7 @@ def _adjust(
             )
 
     solver = BundleSolver(net, models, cfg.solver, progress=progress)
-    has_xyz = np.all(np.isfinite(xyz0[net.obs_point]), axis=1)
+    has_xyz = finite_pt[net.obs_point]
     res0 = np.full((m_all, 2), np.nan)
     valid0 = np.zeros(m_all, bool)
     sel = np.flatnonzero(has_xyz)
@@ -140,7 +141,7 @@ def _adjust(
             f"they are unusable"
         )
     before_support = usable.copy()
-    usable = supported(usable, net.obs_point, free_pt, cfg.observations.min_tie_observations)
+    usable = _supported(usable, net.obs_point, free_pt, cfg.observations.min_tie_observations)
     n_weak = int(np.count_nonzero(before_support & ~usable))
     if n_weak:
         warn(
@@ -154,7 +155,7 @@ def _adjust(
 
     # Every parameter group must be observed (or be weighted, if so configured).
     for i, model in enumerate(models):
-        sel = usable & (net.obs_camera == i)
+        sel = usable if len(models) == 1 else usable & (net.obs_camera == i)
         models[i], messages = model.weaken(model.coverage(net.obs_ccd[sel], net.obs_line[sel]))
         for msg in messages:
             warn(msg)
@@ -163,14 +164,12 @@ def _adjust(
     # Weighted MCPs: their residuals (metrics, outlier rule) are those of the reference
     # ground point through the adjusted camera, as with fixed MCPs; the adjusted point
     # may absorb its image residual (one view) and would flatter the RMSE.
-    ref_pt = (
-        _is_kind(net, "mcp") & ~solver.point_fixed & ~np.all(np.isinf(net.point_sigma_m), axis=1)
-    )
+    ref_pt = _is_kind(net, "mcp") & ~solver.point_fixed & ~sig_inf
 
     def _reference(xyz_now: F64) -> F64:
         return np.where(ref_pt[:, None], xyz_start, xyz_now)
 
-    on_ref = ref_pt[net.obs_point]
+    on_ref = ref_pt[net.obs_point] if np.any(ref_pt) else np.zeros(m_all, bool)
     inlier = usable.copy()
     c = solver.x0.copy()
     xyz = xyz_start
@@ -206,7 +205,7 @@ def _adjust(
             stable = rep.converged
             break
         new, _ = classify_inliers(length, usable, inlier, cfg.outliers.k_rmse)
-        new = supported(new, net.obs_point, free_pt, cfg.observations.min_tie_observations)
+        new = _supported(new, net.obs_point, free_pt, cfg.observations.min_tie_observations)
         if np.array_equal(new, inlier):
             stable = rep.converged
             break
@@ -239,21 +238,22 @@ def _adjust(
         line, samp, _ = solver.project(c, _reference(xyz), sel)
         residual[sel] = np.stack([line - net.obs_line[sel], samp - net.obs_sample[sel]], 1)
     # Observations of free points that lost their support cannot be re-tested fairly.
-    status = np.full(m_all, "outlier", dtype="<U8")
-    status[inlier] = "inlier"
-    status[~usable] = "unusable"
-    status[net.obs_check] = "check"
+    code = np.ones(m_all, np.int8)  # index into STATUSES: outlier
+    code[inlier] = 0
+    code[~usable] = 2
+    code[net.obs_check] = 3
+    status = np.array(STATUSES, dtype="<U8")[code]
 
     # Check observations: evaluated, never used.
     chk = np.flatnonzero(net.obs_check)
     cams_after = solver.cameras(c)
     if chk.size:
-        has = np.all(np.isfinite(xyz0[net.obs_point[chk]]), axis=1)
+        has = finite_pt[net.obs_point[chk]]
         if np.any(has):
             cs = chk[has]
             line, samp, _ = solver.project(c, xyz, cs)
             residual[cs] = np.stack([line - net.obs_line[cs], samp - net.obs_sample[cs]], 1)
-    xyz_final = np.where(np.isfinite(xyz0), xyz, np.nan)
+    xyz_final = xyz.copy() if np.all(finite_pt) else np.where(np.isfinite(xyz0), xyz, np.nan)
     diag = diagnostics(
         net, solver, cfg, (c, stats), vce, (xyz0, xyz_final), initial_cams, cams_after
     )
@@ -300,6 +300,20 @@ def _adjust(
         seconds=time.perf_counter() - t0,
     )
     return result
+
+
+def _rows_all(flags: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Rows of ``(n, 3)`` flags that are all true (faster than ``np.all(axis=1)``)."""
+    return flags[:, 0] & flags[:, 1] & flags[:, 2]
+
+
+def _supported(
+    inlier: NDArray[np.bool_], obs_point: NDArray[np.intp], free_pt: NDArray[np.bool_], min_obs: int
+) -> NDArray[np.bool_]:
+    """:func:`~planetref.adjust.outliers.supported` (a copy of ``inlier`` without free points)."""
+    if not np.any(free_pt):
+        return inlier.copy()
+    return supported(inlier, obs_point, free_pt, min_obs)
 
 
 def _is_kind(net: Network, kind: str) -> NDArray[np.bool_]:
