@@ -42,36 +42,41 @@ def _term(x: F64, y: F64, i: int, kind: int) -> float:
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def pairwise_sum(x: F64, y: F64, a: int, n: int, kind: int) -> float:
-    """The pairwise sum (numpy's) of ``term(i)`` over ``i`` in ``[a, a + n)`` (see :data:`SUMS`)."""
+    """The pairwise sum (numpy's) of ``term(i)`` over ``i`` in ``[a, a + n)``.
+
+    ``kind``: the term, ``0..5`` for :data:`SUMS`; ``6``: ``x[i]`` (a sum of ``x``
+    itself, e.g. of lengths computed before).
+    """
+    k = kind if kind < 6 else 3
     if n < 8:
         res = 0.0
         for i in range(a, a + n):
-            res += _term(x, y, i, kind)
+            res += _term(x, y, i, k)
         return res
     if n <= 128:
-        r0 = _term(x, y, a, kind)
-        r1 = _term(x, y, a + 1, kind)
-        r2 = _term(x, y, a + 2, kind)
-        r3 = _term(x, y, a + 3, kind)
-        r4 = _term(x, y, a + 4, kind)
-        r5 = _term(x, y, a + 5, kind)
-        r6 = _term(x, y, a + 6, kind)
-        r7 = _term(x, y, a + 7, kind)
+        r0 = _term(x, y, a, k)
+        r1 = _term(x, y, a + 1, k)
+        r2 = _term(x, y, a + 2, k)
+        r3 = _term(x, y, a + 3, k)
+        r4 = _term(x, y, a + 4, k)
+        r5 = _term(x, y, a + 5, k)
+        r6 = _term(x, y, a + 6, k)
+        r7 = _term(x, y, a + 7, k)
         end = a + n - n % 8
         i = a + 8
         while i < end:
-            r0 += _term(x, y, i, kind)
-            r1 += _term(x, y, i + 1, kind)
-            r2 += _term(x, y, i + 2, kind)
-            r3 += _term(x, y, i + 3, kind)
-            r4 += _term(x, y, i + 4, kind)
-            r5 += _term(x, y, i + 5, kind)
-            r6 += _term(x, y, i + 6, kind)
-            r7 += _term(x, y, i + 7, kind)
+            r0 += _term(x, y, i, k)
+            r1 += _term(x, y, i + 1, k)
+            r2 += _term(x, y, i + 2, k)
+            r3 += _term(x, y, i + 3, k)
+            r4 += _term(x, y, i + 4, k)
+            r5 += _term(x, y, i + 5, k)
+            r6 += _term(x, y, i + 6, k)
+            r7 += _term(x, y, i + 7, k)
             i += 8
         res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
         while i < a + n:
-            res += _term(x, y, i, kind)
+            res += _term(x, y, i, k)
             i += 1
         return res
     n2 = n // 2
@@ -99,36 +104,46 @@ def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[An
     m = x.shape[0]
     n_total = np.zeros(n_groups, np.int64)
     n_in = np.zeros(n_groups, np.int64)
+    # The length of every kept row, computed once for all levels (hypot is the costly
+    # term).
+    kept = np.zeros(m, np.bool_)
+    length = np.empty(m)
+    for i in range(m):
+        if keep[i] and math.isfinite(x[i]) and math.isfinite(y[i]):
+            kept[i] = True
+            length[i] = math.hypot(x[i], y[i])
     for lv in range(group.shape[0]):
         for i in range(m):
             g = group[lv, i]
-            if g < 0:
-                continue
-            n_total[g] += 1
-            if keep[i] and math.isfinite(x[i]) and math.isfinite(y[i]):
-                n_in[g] += 1
+            if g >= 0:
+                n_total[g] += 1
+                if kept[i]:
+                    n_in[g] += 1
     start = np.zeros(n_groups + 1, np.int64)
     for g in range(n_groups):
         start[g + 1] = start[g] + n_in[g]
     bx = np.empty(start[n_groups])
     by = np.empty(start[n_groups])
+    bl = np.empty(start[n_groups])
     pos = start[:n_groups].copy()
     for lv in range(group.shape[0]):
         for i in range(m):
             g = group[lv, i]
-            if g < 0 or not (keep[i] and math.isfinite(x[i]) and math.isfinite(y[i])):
-                continue
-            bx[pos[g]] = x[i]
-            by[pos[g]] = y[i]
-            pos[g] += 1
+            if g >= 0 and kept[i]:
+                p = pos[g]
+                bx[p] = x[i]
+                by[p] = y[i]
+                bl[p] = length[i]
+                pos[g] = p + 1
     sums = np.zeros((n_groups, 6))
     ext = np.full((n_groups, 4), np.nan)
     for g in range(n_groups):
         a, n = start[g], n_in[g]
         if n == 0:
             continue
-        for k in range(6):
+        for k in range(5):
             sums[g, k] = pairwise_sum(bx, by, a, n, k)
+        sums[g, 5] = pairwise_sum(bl, bl, a, n, 6)
         mx, mnx, my, mny = bx[a], bx[a], by[a], by[a]
         for i in range(a + 1, a + n):
             mx = max(mx, bx[i])

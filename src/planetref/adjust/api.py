@@ -115,7 +115,7 @@ def _adjust(
     res0 = np.full((m_all, 2), np.nan)
     valid0 = np.zeros(m_all, bool)
     sel = np.flatnonzero(has_xyz)
-    xyz_start = np.where(np.isfinite(xyz0), xyz0, 0.0)
+    xyz_start = xyz0.copy() if np.all(finite_pt) else np.where(np.isfinite(xyz0), xyz0, 0.0)
     # With plain least squares in the first round, the initial residuals come from a
     # full linearisation of the candidates that the first LM run reuses when they all
     # turn out usable (one pass fewer); with a robust loss the weights need the
@@ -126,7 +126,7 @@ def _adjust(
     if cand.size and linear_first:
         solver.loss, solver.threshold = "linear", np.inf
         lin0 = solver.linearize(solver.x0, xyz_start, cand, xyz_start)
-        res0[lin0.obs] = np.where(lin0.valid[:, None], lin0.r, np.nan)
+        _put_rows(res0, lin0.obs, lin0.r, lin0.valid)
         valid0[lin0.obs] = lin0.valid
         sel = np.flatnonzero(has_xyz & ~candidates)
     if sel.size:
@@ -173,7 +173,7 @@ def _adjust(
     inlier = usable.copy()
     c = solver.x0.copy()
     xyz = xyz_start
-    residual = res0.copy()
+    residual = res0  # read only until the first round replaces it
     rounds: list[dict[str, Any]] = []
     stable = False
     stats: dict[str, Any] = {}
@@ -191,7 +191,7 @@ def _adjust(
         # The final linearisation holds the residuals of the observations it used; only
         # the others (rejected so far) need projecting.
         residual = np.full((m_all, 2), np.nan)
-        residual[lin.obs] = np.where(lin.valid[:, None], lin.r, np.nan)
+        _put_rows(residual, lin.obs, lin.r, lin.valid)
         sel = np.flatnonzero(usable & ~(inlier & ~on_ref))
         if sel.size:
             line, samp, _ = solver.project(c, _reference(xyz), sel)
@@ -300,6 +300,17 @@ def _adjust(
         seconds=time.perf_counter() - t0,
     )
     return result
+
+
+def _put_rows(dst: F64, rows: NDArray[np.intp], src: F64, valid: NDArray[np.bool_]) -> None:
+    """``dst[rows] = src`` (NaN where not ``valid``) for ``(n, 2)`` float64 rows.
+
+    Each row moves as one 16-byte element (a complex view): a one-dimensional scatter,
+    about twice as fast as numpy's row scatter, the same bits.
+    """
+    val = src if np.all(valid) else np.where(valid[:, None], src, np.nan)
+    flat = np.ascontiguousarray(val, np.float64).view(np.complex128).reshape(-1)
+    dst.view(np.complex128).reshape(-1)[rows] = flat
 
 
 def _rows_all(flags: NDArray[np.bool_]) -> NDArray[np.bool_]:

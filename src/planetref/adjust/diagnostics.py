@@ -109,13 +109,14 @@ def point_table(
     need[cof_pts] = True
     # ENU rotations of the points that moved or have a cofactor block only.
     rot = np.flatnonzero(need)
-    at = np.full(n, -1, np.intp)
-    at[rot] = np.arange(len(rot))
     enu = enu_rotation(xyz0[rot]) if len(rot) else np.zeros((0, 3, 3))
-    d_enu[mv] = np.einsum("pij,pj->pi", enu[at[mv]], d[mv])
+    d_enu[mv] = np.einsum("pij,pj->pi", enu[np.searchsorted(rot, mv)], d[mv])
+    shift_h = np.zeros(n)  # hypot(0, 0) of the points that did not move
+    shift_h[~ok0] = np.nan
+    shift_h[mv] = np.hypot(d_enu[mv, 0], d_enu[mv, 1])
     post = np.zeros((n, 3))
     if len(cof_pts):
-        e = enu[at[cof_pts]]
+        e = enu[np.searchsorted(rot, cof_pts)]
         q = np.asarray(cof_blocks)[has]
         var = np.einsum("pij,pjk,pik->pi", e, q, e)  # diag(E Q E^T)
         post[cof_pts] = sigma0 * np.sqrt(np.maximum(var, 0.0))
@@ -145,7 +146,7 @@ def point_table(
         "sigma_local": np.asarray(net.point_sigma_local),
         "sigma_enu": post,
         "shift_m": shift_m,
-        "shift_horizontal_m": np.hypot(d_enu[:, 0], d_enu[:, 1]),
+        "shift_horizontal_m": shift_h,
         "shift_up_m": d_enu[:, 2],
         "shift_sigma": shift_sigma,
     }

@@ -68,6 +68,8 @@ class Redundancy:
             observations of fixed points are summed in :attr:`slot_r`, ``(s,)``.
         slot_r: The sums of their redundancy numbers (their rows of :attr:`obs_r` are
             0), ``(s,)``; empty when every observation has its own numbers.
+        own: The rows of :attr:`obs_r` that may be non-zero, ascending (``None``: every
+            row); the others are summed in :attr:`slot_r`.
     """
 
     obs: NDArray[np.intp]
@@ -88,6 +90,7 @@ class Redundancy:
     constraint_n: int
     slot_obs: NDArray[np.intp]
     slot_r: F64
+    own: NDArray[np.intp] | None = None
 
     @property
     def obs_order(self) -> NDArray[np.intp]:
@@ -110,8 +113,13 @@ class Redundancy:
         ``group_of``: per network observation its group (``-1``: none). A slot lies in
         one group (groups never split a point kind, camera or CCD).
         """
-        # Row sums of obs_r, column by column.
-        r = group_sum(group_of[self.obs], self.obs_r[:, 0] + self.obs_r[:, 1], n_groups)
+        # Row sums of obs_r, column by column (rows that are 0 by construction add
+        # nothing and are skipped).
+        if self.own is None:
+            r = group_sum(group_of[self.obs], self.obs_r[:, 0] + self.obs_r[:, 1], n_groups)
+        else:
+            o = self.own
+            r = group_sum(group_of[self.obs[o]], self.obs_r[o, 0] + self.obs_r[o, 1], n_groups)
         if len(self.slot_r):
             sg = group_of[self.slot_obs]
             r += np.bincount(sg[sg >= 0], weights=self.slot_r[sg >= 0], minlength=n_groups)
@@ -121,9 +129,10 @@ class Redundancy:
 def group_sum(group: NDArray[np.intp], weights: F64, n_groups: int) -> F64:
     """Sums of ``weights`` per group (``group < 0``: none), ``np.bincount`` order."""
     on = group >= 0
-    if np.all(on):
-        return np.bincount(group, weights=weights, minlength=n_groups)
-    return np.bincount(group[on], weights=weights[on], minlength=n_groups)
+    if not np.all(on):
+        group, weights = group[on], weights[on]
+    # Float even without any row (bincount then returns integers).
+    return np.bincount(group, weights=weights, minlength=n_groups).astype(np.float64, copy=False)
 
 
 def redundancy(
@@ -323,8 +332,8 @@ def _finish(
     else:
         obs_r = 1.0 - w * np.stack([h[:, 0, 0], h[:, 1, 1]], axis=1)
     obs_r[t] = 1.0 - w[t] * np.stack([ht[:, 0, 0], ht[:, 1, 1]], axis=1)
-    if len(slot_r):
-        obs_r[lay.slot >= 0] = 0.0  # summed per slot instead
+    # With slot sums (``h`` None) the rows of the observations of fixed points stay 0:
+    # they are summed per slot instead.
     # Priors of weighted points, in their sigma frames.
     pw_axis = solver.point_prior_axis_w[unknown]
     has = np.any(pw_axis > 0, axis=1)
@@ -364,6 +373,7 @@ def _finish(
         constraint_n=len(solver.con_w),
         slot_obs=lay.slot_obs if len(slot_r) else np.zeros(0, np.intp),
         slot_r=slot_r,
+        own=t_all if h is None else None,
     )
 
 
