@@ -3,7 +3,9 @@
 Grouped reprojection metrics (:mod:`planetref._numba_metrics`) against
 :func:`~planetref.metrics.reprojection_metrics` per group, bit for bit; the metric
 blocks of :func:`~planetref.adjust.evaluation.reprojection_blocks` with and without the
-compiled kernel.
+compiled kernel; the variance components' group passes
+(:mod:`planetref.adjust._numba_groups`) against their numpy twins; the redundancy
+numbers when the linearisation has no slot matrices.
 """
 
 from __future__ import annotations
@@ -16,8 +18,13 @@ from adjust_synth import mcp_problem
 
 from planetref import metrics
 from planetref._optional import optional_module
+from planetref.adjust import linearization, variance
+from planetref.adjust.config import validate_config
 from planetref.adjust.evaluation import reprojection_blocks
+from planetref.adjust.models import parameterize
 from planetref.adjust.problem import Network
+from planetref.adjust.redundancy import redundancy
+from planetref.adjust.solver import BundleSolver
 
 compiled_metrics = optional_module("planetref._numba_metrics", "compiled reprojection metrics")
 needs_numba = pytest.mark.skipif(
@@ -105,3 +112,56 @@ def test_reprojection_blocks_compiled_equal_numpy_reference(monkeypatch, cameras
         assert got["all"]["after"]["n_total"] == m - 40
         assert sum(v["after"]["n_total"] for v in got["ccds"].values()) == m - 40
         assert got["all"]["before"]["n_inliers"] == np.count_nonzero(inlier & ~net.obs_check)
+
+
+def _two_kind_solver():
+    """Fixed and weighted MCPs of two kinds on one strip, solved (plain least squares)."""
+    net, _, _ = mcp_problem(600, seed=9)
+    sig = net.point_sigma_m.copy()
+    sig[::3] = 3.0  # every third point weighted (an unknown)
+    kind = net.point_kind.copy()
+    kind[1::4] = "tie"
+    net = dataclasses.replace(net, point_sigma_m=sig, point_kind=kind)
+    cfg = validate_config({"solver": {"loss": "linear"}, "outliers": {"enabled": False}})
+    solver = BundleSolver(net, [parameterize("strip", net.cameras[0], cfg)], cfg.solver)
+    obs = np.arange(net.n_obs)
+    c, xyz, _, lin, stats = solver.run(solver.x0, net.point_xyz, obs, net.point_xyz)
+    return net, solver, obs, (c, xyz, lin, stats)
+
+
+@pytest.mark.skipif(variance._compiled() is None, reason="numba is not installed")
+def test_variance_group_passes_compiled_equal_numpy_reference():
+    net, solver, obs, (c, xyz, lin, stats) = _two_kind_solver()
+    kinds, kind_of_pt = net.point_kind_codes
+    sub = obs[np.random.default_rng(2).random(len(obs)) < 0.7]  # gaps, as inliers leave
+    args = (sub, net.obs_camera, net.obs_ccd, net.obs_point, kind_of_pt, 3, 3, len(kinds))
+    order, bounds = variance._compiled().group_order(*args)
+    order_ref, bounds_ref = variance._group_order_numpy(*args)
+    assert np.array_equal(order, order_ref) and np.array_equal(bounds, bounds_ref)
+    assert np.count_nonzero(np.diff(bounds)) == 6  # 2 kinds x 3 CCDs
+    red = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"], lin)
+    groups = variance._groups(solver, obs)
+    group_of = variance._image_group_of(solver, groups)
+    args = (red.obs, group_of, red.obs_w, red.obs_v, len(groups))
+    got, ref = variance._compiled().group_vtpv(*args), variance._group_vtpv_numpy(*args)
+    assert np.array_equal(got, ref) and np.count_nonzero(got) == 6
+    # Against the definition: v^T P v of each image group.
+    for i, g in enumerate(groups):
+        if g.kind == "image":
+            rows = np.isin(red.obs, g.obs)
+            want = np.sum(red.obs_w[rows] * red.obs_v[rows] ** 2)
+            assert got[i] == pytest.approx(want, rel=1e-12)
+
+
+def test_redundancy_without_slot_matrices_is_evaluated_again(monkeypatch):
+    """Slot matrices too large for memory: the linearisation cannot stand in (each
+    observation of a fixed point then needs its own number), so the reference runs."""
+    monkeypatch.setattr(linearization, "_SLOT_BYTES", 0)
+    net, solver, obs, (c, xyz, lin, stats) = _two_kind_solver()
+    assert len(lin.slot_n) == 0
+    got = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"], lin)
+    ref = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"])
+    assert np.array_equal(got.obs_r, ref.obs_r)
+    fixed = solver.point_fixed[net.obs_point[got.obs]]
+    assert np.all((got.obs_r[fixed] > 0.5) & (got.obs_r[fixed] < 1.0))
+    assert got.total == pytest.approx(stats["dof"], rel=1e-6)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref._optional import optional_module
 from planetref.adjust.config import VarianceConfig
 from planetref.adjust.linearization import _Linearization
 from planetref.adjust.redundancy import Redundancy, group_sum, redundancy
@@ -60,32 +61,28 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     net = solver.net
     kinds, kind_of_pt = net.point_kind_codes
     base = max(len(cam.ccd_names) for cam in net.cameras)
-    image_key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
-    kind_obs = kind_of_pt[net.obs_point[obs]]
+    n_keys = len(net.cameras) * base
+    # One stable sort by (kind, camera, CCD) gives every image group its observations
+    # in the order of ``obs``, as a mask per group would.
+    fn = _compiled()
+    args = (obs, net.obs_camera, net.obs_ccd, net.obs_point, kind_of_pt, base, n_keys, len(kinds))
+    order, bounds = _group_order_numpy(*args) if fn is None else fn.group_order(*args)
+    counts = np.diff(bounds).reshape(len(kinds), n_keys)
     labels = {}
-    for key in np.flatnonzero(np.bincount(image_key)):
+    for key in np.flatnonzero(counts.sum(axis=0)):
         cam = net.cameras[int(key) // base]
         cid = net.camera_ids[int(key) // base]
         names = cam.ccd_names
         labels[int(key)] = cid if len(names) == 1 else f"{cid}/{names[int(key) % base]}"
-    # One stable sort by (kind, label rank) gives every image group its observations in
-    # the order of ``obs``, as a mask per group would.
-    by_label = sorted(labels, key=lambda key: labels[key])
-    rank = np.zeros(int(image_key.max(initial=0)) + 1, np.int64)
-    rank[by_label] = np.arange(len(by_label))
-    n_lab = max(len(by_label), 1)
-    code = kind_obs.astype(np.int64) * n_lab + rank[image_key]
-    n_code = len(kinds) * n_lab
-    small = code.astype(np.uint16) if n_code <= 2**16 else code
-    order = np.argsort(small, kind="stable")
-    bounds = np.concatenate([[0], np.cumsum(np.bincount(code, minlength=n_code))])
     out: list[_Group] = []
-    for k in np.flatnonzero(np.bincount(kind_obs)):  # kinds are sorted by name
-        for j, key in enumerate(by_label):
-            cc = int(k) * n_lab + j
+    for k in np.flatnonzero(counts.sum(axis=1)):  # kinds are sorted by name
+        for key in sorted(labels, key=lambda key: labels[key]):
+            cc = int(k) * n_keys + key
             sel = obs[order[bounds[cc] : bounds[cc + 1]]]
             if sel.size:
                 out.append(_Group(f"image {kinds[k]} {labels[key]}", "image", obs=sel))
+    if not np.any(~solver.point_fixed):  # no unknown point: no ground group
+        return out
     pts = np.flatnonzero(np.bincount(net.obs_point[obs], minlength=net.n_points))
     unknown = pts[~solver.point_fixed[pts]]
     weighted = unknown[_has_prior(solver.point_sigma[unknown])]
@@ -110,6 +107,40 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
             sel = weighted[m & ~local]
             out.append(_Group(f"ground {k}", kind_g, points=sel, axes=(0, 1, 2), estimate=estimate))
     return out
+
+
+def _compiled() -> Any:
+    """The compiled group passes (:mod:`planetref.adjust._numba_groups`), or ``None``."""
+    return optional_module("planetref.adjust._numba_groups", "compiled variance groups")
+
+
+def _group_order_numpy(
+    obs: NDArray[np.intp],
+    obs_camera: NDArray[np.intp],
+    obs_ccd: NDArray[np.intp],
+    obs_point: NDArray[np.intp],
+    kind_of_pt: NDArray[np.intp],
+    base: int,
+    n_keys: int,
+    n_kinds: int,
+) -> tuple[NDArray[np.intp], NDArray[np.int64]]:
+    """The reference of :func:`planetref.adjust._numba_groups.group_order`."""
+    code = (
+        kind_of_pt[obs_point[obs]].astype(np.int64) * n_keys
+        + obs_camera[obs].astype(np.int64) * base
+        + obs_ccd[obs]
+    )
+    n_code = n_kinds * n_keys
+    order = np.argsort(code, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(code, minlength=n_code))])
+    return order, bounds
+
+
+def _group_vtpv_numpy(
+    rows: NDArray[np.intp], group_of: NDArray[np.intp], w: F64, v: F64, n_groups: int
+) -> F64:
+    """The reference of :func:`planetref.adjust._numba_groups.group_vtpv`."""
+    return group_sum(group_of[rows], w[:, 0] * v[:, 0] ** 2 + w[:, 1] * v[:, 1] ** 2, n_groups)
 
 
 def _has_prior(sigma: F64) -> NDArray[np.bool_]:
@@ -162,10 +193,10 @@ def _image_sums(
     groups: list[_Group], red: Redundancy, group_of: NDArray[np.intp]
 ) -> dict[str, tuple[float, float, int]]:
     """``(v^T P v, redundancy, equations)`` of every image group in one pass."""
-    rg = group_of[red.obs]
-    w, v = red.obs_w, red.obs_v
-    # Per observation w_l v_l^2 + w_s v_s^2 (the row sums of w v^2, column by column).
-    vtpv = group_sum(rg, w[:, 0] * v[:, 0] ** 2 + w[:, 1] * v[:, 1] ** 2, len(groups))
+    # Per observation w_l v_l^2 + w_s v_s^2 (the row sums of w v^2), summed per group.
+    fn = _compiled()
+    args = (red.obs, group_of, red.obs_w, red.obs_v, len(groups))
+    vtpv = _group_vtpv_numpy(*args) if fn is None else fn.group_vtpv(*args)
     r = red.image_sums(group_of, len(groups))
     return {
         g.name: (float(vtpv[i]), float(r[i]), 2 * len(g.obs))
