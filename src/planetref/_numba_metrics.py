@@ -85,6 +85,65 @@ def pairwise_sum(x: F64, y: F64, a: int, n: int, kind: int) -> float:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _sums5(bx: F64, by: F64, a: int, n: int, out: F64) -> None:
+    """The first five :data:`SUMS` of ``[a, a + n)`` at once, into ``out[:5]``.
+
+    Each is summed as :func:`pairwise_sum` sums it (the same tree, the same order).
+    """
+    if n < 8:
+        s0 = s1 = s2 = s3 = s4 = 0.0
+        for i in range(a, a + n):
+            x, y = bx[i], by[i]
+            s0 += x * x + y * y
+            s1 += x * x
+            s2 += y * y
+            s3 += x
+            s4 += y
+        out[0], out[1], out[2], out[3], out[4] = s0, s1, s2, s3, s4
+        return
+    if n <= 128:
+        r = np.empty((5, 8))
+        for j in range(8):
+            x, y = bx[a + j], by[a + j]
+            r[0, j] = x * x + y * y
+            r[1, j] = x * x
+            r[2, j] = y * y
+            r[3, j] = x
+            r[4, j] = y
+        end = a + n - n % 8
+        i = a + 8
+        while i < end:
+            for j in range(8):
+                x, y = bx[i + j], by[i + j]
+                r[0, j] += x * x + y * y
+                r[1, j] += x * x
+                r[2, j] += y * y
+                r[3, j] += x
+                r[4, j] += y
+            i += 8
+        for k in range(5):
+            out[k] = ((r[k, 0] + r[k, 1]) + (r[k, 2] + r[k, 3])) + (
+                (r[k, 4] + r[k, 5]) + (r[k, 6] + r[k, 7])
+            )
+        while i < a + n:
+            x, y = bx[i], by[i]
+            out[0] += x * x + y * y
+            out[1] += x * x
+            out[2] += y * y
+            out[3] += x
+            out[4] += y
+            i += 1
+        return
+    n2 = n // 2
+    n2 -= n2 % 8
+    left = np.empty(5)
+    _sums5(bx, by, a, n2, left)
+    _sums5(bx, by, a + n2, n - n2, out)
+    for k in range(5):
+        out[k] = left[k] + out[k]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[Any, Any, F64, F64]:
     """Counts, sums and extremes of the kept finite residuals of every group.
 
@@ -141,8 +200,7 @@ def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[An
         a, n = start[g], n_in[g]
         if n == 0:
             continue
-        for k in range(5):
-            sums[g, k] = pairwise_sum(bx, by, a, n, k)
+        _sums5(bx, by, a, n, sums[g])
         sums[g, 5] = pairwise_sum(bl, bl, a, n, 6)
         mx, mnx, my, mny = bx[a], bx[a], by[a], by[a]
         for i in range(a + 1, a + n):

@@ -114,7 +114,6 @@ def _adjust(
     has_xyz = finite_pt[net.obs_point]
     res0 = np.full((m_all, 2), np.nan)
     valid0 = np.zeros(m_all, bool)
-    sel = np.flatnonzero(has_xyz)
     xyz_start = xyz0.copy() if np.all(finite_pt) else np.where(np.isfinite(xyz0), xyz0, 0.0)
     # With plain least squares in the first round, the initial residuals come from a
     # full linearisation of the candidates that the first LM run reuses when they all
@@ -129,6 +128,8 @@ def _adjust(
         _put_rows(res0, lin0.obs, lin0.r, lin0.valid)
         valid0[lin0.obs] = lin0.valid
         sel = np.flatnonzero(has_xyz & ~candidates)
+    else:
+        sel = np.flatnonzero(has_xyz)
     if sel.size:
         line0, samp0, v0 = solver.project(solver.x0, xyz_start, sel)
         res0[sel] = np.stack([line0 - net.obs_line[sel], samp0 - net.obs_sample[sel]], 1)

@@ -220,14 +220,14 @@ def camera_shifts(
     moved: list[str] = []
     for ci, cid in enumerate(net.camera_ids):
         c0, c1 = cams0[ci], cams1[ci]
-        pts = np.flatnonzero(
-            np.bincount(net.obs_point[net.obs_camera == ci], minlength=net.n_points)
-        )
+        # The points the camera observes.
+        seen = np.zeros(net.n_points, bool)
+        seen[net.obs_point if len(cams0) == 1 else net.obs_point[net.obs_camera == ci]] = True
         if heights is not None and c0.ellipsoid == net.cameras[0].ellipsoid:
-            hp = heights[pts]
+            hp = heights[seen]
             hp = hp[np.isfinite(hp)]
         else:
-            p = xyz[pts]
+            p = xyz[seen]
             p = p[np.all(np.isfinite(p), axis=1)]
             hp = xyz_to_lonlat(p, c0.ellipsoid)[2] if len(p) else np.zeros(0)
         h = float(np.median(hp)) if len(hp) else 0.0
