@@ -142,7 +142,9 @@ def test_variance_group_passes_compiled_equal_numpy_reference():
     red = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"], lin)
     groups = variance._groups(solver, obs)
     group_of = variance._image_group_of(solver, groups)
-    args = (red.obs, group_of, red.obs_w, red.obs_v, len(groups))
+    rg = red.row_groups(group_of)
+    assert red.slot is not None and np.array_equal(rg, group_of[red.obs])  # slots' groups
+    args = (rg, red.obs_w, red.obs_v, len(groups))
     got, ref = variance._compiled().group_vtpv(*args), variance._group_vtpv_numpy(*args)
     assert np.array_equal(got, ref) and np.count_nonzero(got) == 6
     # Against the definition: v^T P v of each image group.

@@ -3,7 +3,7 @@
 The twins of :func:`planetref.adjust.variance._group_order_numpy` and
 :func:`planetref.adjust.variance._group_vtpv_numpy` (the numpy references; a test binds
 both bit for bit): a stable counting sort of the observations by (point kind, camera,
-CCD), and the per-group ``v^T P v`` summed in observation order as ``np.bincount`` sums.
+CCD), and the per-group ``v^T P v`` summed row by row, as ``np.bincount`` sums.
 Importing this module imports numba; the functions compile on first use or load from
 numba's on-disk cache.
 """
@@ -57,11 +57,11 @@ def group_order(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def group_vtpv(rows: Any, group_of: Any, w: F64, v: F64, n_groups: int) -> F64:
-    """Per group, ``sum w_l v_l^2 + w_s v_s^2`` over ``rows`` (network observations)."""
+def group_vtpv(group: Any, w: F64, v: F64, n_groups: int) -> F64:
+    """Per group, ``sum w_l v_l^2 + w_s v_s^2`` over the rows (``group`` per row, -1: none)."""
     out = np.zeros(n_groups)
-    for i in range(rows.shape[0]):
-        g = group_of[rows[i]]
+    for i in range(group.shape[0]):
+        g = group[i]
         if g >= 0:
             out[g] += w[i, 0] * (v[i, 0] * v[i, 0]) + w[i, 1] * (v[i, 1] * v[i, 1])
     return out

@@ -70,6 +70,8 @@ class Redundancy:
             0), ``(s,)``; empty when every observation has its own numbers.
         own: The rows of :attr:`obs_r` that may be non-zero, ascending (``None``: every
             row); the others are summed in :attr:`slot_r`.
+        slot: Per row, its slot (index into :attr:`slot_obs`; ``-1`` for the rows in
+            :attr:`own`), or ``None`` without slot sums.
     """
 
     obs: NDArray[np.intp]
@@ -91,6 +93,7 @@ class Redundancy:
     slot_obs: NDArray[np.intp]
     slot_r: F64
     own: NDArray[np.intp] | None = None
+    slot: NDArray[np.intp] | None = None
 
     @property
     def obs_order(self) -> NDArray[np.intp]:
@@ -106,6 +109,19 @@ class Redundancy:
     def image_total(self) -> float:
         """Sum of the redundancy numbers of the image equations."""
         return float(self.obs_r.sum() + self.slot_r.sum())
+
+    def row_groups(self, group_of: NDArray[np.intp]) -> NDArray[np.intp]:
+        """``group_of[obs]``: the group of each row (``group_of`` per network observation).
+
+        With slot sums, the rows of a slot take its group (a slot lies in one group) and
+        only the other rows are looked up, sparing a random gather over every row.
+        """
+        if self.slot is None or self.own is None:
+            return group_of[self.obs]
+        sg = np.append(group_of[self.slot_obs], -1)  # slot -1 -> -1
+        rg = sg[self.slot]
+        rg[self.own] = group_of[self.obs[self.own]]
+        return rg
 
     def image_sums(self, group_of: NDArray[np.intp], n_groups: int) -> F64:
         """Redundancy of the image equations per group, ``(n_groups,)``.
@@ -374,6 +390,7 @@ def _finish(
         slot_obs=lay.slot_obs if len(slot_r) else np.zeros(0, np.intp),
         slot_r=slot_r,
         own=t_all if h is None else None,
+        slot=lay.slot if len(slot_r) else None,
     )
 
 

@@ -136,11 +136,9 @@ def _group_order_numpy(
     return order, bounds
 
 
-def _group_vtpv_numpy(
-    rows: NDArray[np.intp], group_of: NDArray[np.intp], w: F64, v: F64, n_groups: int
-) -> F64:
+def _group_vtpv_numpy(group: NDArray[np.intp], w: F64, v: F64, n_groups: int) -> F64:
     """The reference of :func:`planetref.adjust._numba_groups.group_vtpv`."""
-    return group_sum(group_of[rows], w[:, 0] * v[:, 0] ** 2 + w[:, 1] * v[:, 1] ** 2, n_groups)
+    return group_sum(group, w[:, 0] * v[:, 0] ** 2 + w[:, 1] * v[:, 1] ** 2, n_groups)
 
 
 def _has_prior(sigma: F64) -> NDArray[np.bool_]:
@@ -195,7 +193,7 @@ def _image_sums(
     """``(v^T P v, redundancy, equations)`` of every image group in one pass."""
     # Per observation w_l v_l^2 + w_s v_s^2 (the row sums of w v^2), summed per group.
     fn = _compiled()
-    args = (red.obs, group_of, red.obs_w, red.obs_v, len(groups))
+    args = (red.row_groups(group_of), red.obs_w, red.obs_v, len(groups))
     vtpv = _group_vtpv_numpy(*args) if fn is None else fn.group_vtpv(*args)
     r = red.image_sums(group_of, len(groups))
     return {
