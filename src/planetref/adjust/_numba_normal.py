@@ -49,7 +49,7 @@ def linearize_rows(
     observed: tuple[F64, F64, F64],
     loss: int,
     thr: F64,
-    d: F64,
+    partials: tuple[F64, F64, Any, Any],
     gp: Any,
     tables: tuple[Any, Any, Any],
     slots: tuple[Any, F64, int],
@@ -77,7 +77,11 @@ def linearize_rows(
             weights ``(m, 2)`` (1/sigma^2, line then sample).
         loss: :data:`LOSS_CODES` code.
         thr: Robust threshold (normalised units), ``(1,)`` or per row ``(m,)``.
-        d: Partials ``(m, 2, q)`` in pattern column order.
+        partials: ``(imp, weights, src, node)``: the partials in pattern column order
+            are ``imp[i, r, src[c]] * weights[i, node[c]]`` (times 1 where
+            ``node[c] < 0``): a line scanner's node columns are multiplied out here
+            (:class:`~planetref.adjust.models.protocol.Evaluation` ``factors``); plain
+            partials ``d (m, 2, q)`` are ``(d, any, arange(q), -1)``.
         gp: Global pattern of each row ``(m,)``.
         tables: ``(act_n, act_loc, act_col)``: per pattern, the number of active
             columns, their local (pattern) indices and global columns (padded).
@@ -92,7 +96,8 @@ def linearize_rows(
     act_n, act_loc, act_col = tables
     slot, slot_n, col_off = slots
     r, s_out, weight = out
-    m = d.shape[0]
+    imp, wn, src, node = partials
+    m = p_line.shape[0]
     q = act_loc.shape[1]
     per_row = thr.shape[0] == m and m != 1
     blk = np.zeros((q, q))
@@ -141,8 +146,11 @@ def linearize_rows(
         f1 = e1 * r1
         for a in range(na):
             col = act_loc[cur, a]
-            v0[a] = d[i, 0, col]
-            v1[a] = d[i, 1, col]
+            sc = src[col]
+            j = node[col]
+            f = wn[i, j] if j >= 0 else 1.0
+            v0[a] = imp[i, 0, sc] * f
+            v1[a] = imp[i, 1, sc] * f
         for a in range(na):
             x0, x1 = v0[a], v1[a]
             gb[a] += x0 * f0 + x1 * f1

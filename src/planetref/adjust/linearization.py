@@ -210,7 +210,7 @@ class LinearizationMixin:
                     (lay.line[a:b], lay.sample[a:b], lay.w0[a:b]),
                     loss_code,
                     thr_c if thr_c.size == 1 else thr_c[a:b],
-                    ev.d_params,
+                    _partial_factors(ev),
                     gp,
                     (self.act_n, self.act_loc, self.act_col),
                     (lay.slot[a:b], s_k, int(self.offsets[mi])),
@@ -252,8 +252,12 @@ class LinearizationMixin:
                 tp = tie_pos[a:b]
                 is_t = tp >= 0
                 if np.any(is_t):
-                    a_t[tp[is_t], :, : ev.d_params.shape[2]] = ev.d_params[is_t]
-                    b_t[tp[is_t]] = ev.d_ground[is_t]
+                    if ev.factors is not None and not np.all(is_t):
+                        d, dg = ev.factors.expand(is_t)  # the tie rows only
+                    else:
+                        d, dg = ev.d_params[is_t], ev.d_ground[is_t]
+                    a_t[tp[is_t], :, : d.shape[2]] = d
+                    b_t[tp[is_t]] = dg
                     gpat_t[tp[is_t]] = gp[is_t]
 
         self.map_chunks(lay, parts, c, pxyz, work)
@@ -467,6 +471,19 @@ def run_shares(n: int, run: Callable[[int], None], threads: int) -> None:
 def _compiled() -> Any:
     """The compiled accumulation, or ``None`` (numpy) when numba cannot be loaded."""
     return optional_module("planetref.adjust._numba_normal", "compiled normal equations")
+
+
+def _partial_factors(ev: Evaluation) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.intp]]:
+    """``(imp, weights, src, node)`` of an evaluation's partials (see ``linearize_rows``)."""
+    f = ev.factors
+    if f is not None:
+        return f.imp, f.weights, f.src, f.node
+    d = ev.d_params
+    q = d.shape[2]
+    return d, _NO_WEIGHTS, np.arange(q, dtype=np.intp), np.full(q, -1, np.intp)
+
+
+_NO_WEIGHTS = np.ones((1, 1))
 
 
 def _quadratic(w: F64, dx: F64) -> float:
