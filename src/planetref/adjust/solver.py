@@ -390,7 +390,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         lay, unknown, tie_pos, chunks, n_tie = st.lay, st.unknown, st.tie_pos, st.chunks, st.n_tie
         obs = lay.obs
         self._unknown_ids = unknown
-        xyz = xyz.copy()
+        # A copy where points move (steps make new arrays; the caller's stays as it was).
+        xyz = xyz.copy() if len(unknown) else xyz
         c = c.copy()
         rep = LmReport()
 
@@ -451,8 +452,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 rep.converged, rep.reason = True, "predicted cost decrease below ftol"
                 break
             c_new = c + delta_c
-            xyz_new = xyz.copy()
-            xyz_new[unknown] += dx
+            if len(unknown):
+                xyz_new = xyz.copy()
+                xyz_new[unknown] += dx
+            else:
+                xyz_new = xyz  # nothing moves (every point fixed): no copy of (P, 3)
             saved = lay.line_guess.copy()
             saved_rate = lay.rate_guess.copy()
             new = linearize(c_new, xyz_new)
