@@ -104,6 +104,13 @@ def linearize_rows(
     gb = np.zeros(q)
     v0 = np.empty(q)
     v1 = np.empty(q)
+    # Per run, each active column's source in ``imp`` and its factor's slot in ``wk``
+    # (the row's weights, then 1 for columns without one).
+    asrc = np.empty(q, np.intp)
+    anode = np.empty(q, np.intp)
+    k = wn.shape[1]
+    wk = np.ones(k + 1)
+    factored = wn.shape[0] == m and m > 0
     cur = -1
     cur_s = -1
     na = 0
@@ -118,6 +125,10 @@ def linearize_rows(
             cur = g
             cur_s = sl
             na = act_n[g]
+            for a in range(na):
+                col = act_loc[g, a]
+                asrc[a] = src[col]
+                anode[a] = node[col] if node[col] >= 0 else k
         r0 = p_line[i] - o_line[i]
         r1 = p_samp[i] - o_samp[i]
         r[i, 0] = r0
@@ -144,13 +155,13 @@ def linearize_rows(
         s_out[i] = s
         f0 = e0 * r0
         f1 = e1 * r1
+        if factored:
+            for j in range(k):
+                wk[j] = wn[i, j]
         for a in range(na):
-            col = act_loc[cur, a]
-            sc = src[col]
-            j = node[col]
-            f = wn[i, j] if j >= 0 else 1.0
-            v0[a] = imp[i, 0, sc] * f
-            v1[a] = imp[i, 1, sc] * f
+            f = wk[anode[a]]
+            v0[a] = imp[i, 0, asrc[a]] * f
+            v1[a] = imp[i, 1, asrc[a]] * f
         for a in range(na):
             x0, x1 = v0[a], v1[a]
             gb[a] += x0 * f0 + x1 * f1
