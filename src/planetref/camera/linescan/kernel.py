@@ -28,7 +28,8 @@ secant) run until the step is below :data:`CHORD_TOL`; then one full evaluation 
 the partials and the last Newton step is applied to first order (the offset is linear
 in the line to ~1e-10 px over a pixel, so the result is exact to ~1e-12 px). With the
 partials the last step uses the analytic slope, so the chord stops earlier, below
-:data:`CHORD_TOL_PARTIALS` (often one chord evaluation fewer). Without a
+:data:`CHORD_TOL_PARTIALS` (often one chord evaluation fewer; the partials stay
+exact to ~1e-7 relative: their Lagrange weights are taken at the root). Without a
 guess, :meth:`LineScanKernel.search_lines` brackets the root on a grid over the node
 span and refines it with safeguarded Newton steps (:mod:`planetref.geometry.roots`).
 
