@@ -139,12 +139,15 @@ def test_counting_order_equals_numpy_stable_sort():
     rng = np.random.default_rng(3)
     keys = rng.integers(0, 50, 20_000)  # many ties: stability matters
     assert np.array_equal(_numba_sort.counting_order(keys, 50), np.argsort(keys, kind="stable"))
-    # The layout order: by group, then by the whole line, ties in input order.
-    key = rng.integers(0, 3, 5000).astype(np.int64)
-    line = rng.uniform(-3.0, 400.0, 5000)
-    order = _group_order(key, line)
-    ref = np.lexsort((np.arange(5000), np.floor(line), key))
-    assert np.array_equal(order, ref)
+    # The layout order: by group, then by line (stable), compiled and numpy; with long
+    # buckets (many observations of one line) and exact ties.
+    key = rng.integers(0, 3, 6000).astype(np.int64)
+    line = np.concatenate([rng.uniform(-3.0, 400.0, 5000), rng.uniform(7.0, 7.9, 900)])
+    line = np.concatenate([line, line[:100]])  # exact ties
+    ref = np.lexsort((np.arange(6000), line, key))
+    assert np.array_equal(_group_order(key, line), ref)
+    keys = key * 1000 + (np.floor(line) + 3).astype(np.int64)
+    assert np.array_equal(_numba_sort.group_line_order(keys, 3000, line), ref)
 
 
 def test_point_matrices_index_like_the_dense_array():

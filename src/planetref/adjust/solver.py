@@ -539,23 +539,30 @@ _COUNTING_KEYS = 1 << 24
 
 
 def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
-    """The stable order of observations by ``(group key, floor(observed line))``.
+    """The stable order of observations by ``(group key, observed line)``.
 
-    A counting sort (compiled) when the combined key range is small, which it is for
-    image lines; ``np.argsort(kind="stable")`` otherwise and as the reference (the same
-    permutation).
+    Compiled: a counting sort by group and whole line, then each line's few
+    observations by line (O(m) for image lines); numpy: a stable sort by line, then by
+    group (the reference; the same permutation). The order does not depend on the
+    order of the observations except for equal lines, so a network whose observations
+    come in another order (tiles finished by workers in another order) gives the same
+    sums.
     """
     if len(key) == 0:
         return np.zeros(0, np.intp)
-    whole = np.floor(np.nan_to_num(line, nan=0.0, posinf=0.0, neginf=0.0))
-    lo = float(whole.min())
-    span = int(whole.max() - lo) + 1
-    n_keys = (int(key.max()) + 1) * span
-    combined = key * span + (whole - lo).astype(np.int64)
     fn = _sort_kernels()
-    if fn is None or n_keys > max(_COUNTING_KEYS, 4 * len(key)):
-        return np.argsort(combined, kind="stable")
-    return fn.counting_order(combined, n_keys)
+    finite = np.isfinite(line)
+    if fn is not None and np.all(finite):
+        whole = np.floor(line)
+        lo = float(whole.min())
+        span = int(whole.max() - lo) + 1
+        n_keys = (int(key.max()) + 1) * span
+        if n_keys <= max(_COUNTING_KEYS, 4 * len(key)):
+            bucket = key * span + (whole - lo).astype(np.int64)
+            return fn.group_line_order(bucket, n_keys, np.ascontiguousarray(line))
+    order = np.argsort(line, kind="stable")
+    small = key[order].astype(np.uint16 if key.max(initial=0) < 2**16 else np.int64)
+    return order[np.argsort(small, kind="stable")]
 
 
 def _sort_kernels() -> Any:

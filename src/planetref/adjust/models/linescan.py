@@ -175,7 +175,7 @@ class LineScanParameterization:
     ) -> Evaluation:
         """Project ground points into a CCD with the partials of ``(line, sample)``.
 
-        Lines and samples are exact to ~1e-9 px, partials to ~1e-7 relative, whatever
+        Lines, samples and partials are exact to ~1e-9 (pixels, relative) whatever
         the guesses; good guesses only make the evaluation cheaper.
 
         Args:

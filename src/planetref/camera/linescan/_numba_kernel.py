@@ -317,16 +317,10 @@ def project(
             and lo_ <= hi
         )
         out_start[i] = s
-        # The Lagrange weights at the root (the partials' other factors hardly change
-        # over the last step; the weights vary by ~1/window per line).
-        jr = row_of(lo_, rs)
-        tau_r = rt0[jr] + (lo_ - rs[jr]) * rp[jr] - centre[s]
-        if not math.isfinite(tau_r):
-            tau_r = tau
         for jb in range(k):
             wv = coef[s, jb, k - 1]
             for q in range(k - 2, -1, -1):
-                wv = wv * tau_r + coef[s, jb, q]
+                wv = wv * tau + coef[s, jb, q]
             out_w[i, jb] = wv
         for q in range(15):
             a = raw[0, q] * nir

@@ -26,10 +26,7 @@ The image line solves ``offset(l) = 0``. From a guess (the observed line, or the
 previous solution) chord steps with a fixed slope (the previous rate, or a one-line
 secant) run until the step is below :data:`CHORD_TOL`; then one full evaluation gives
 the partials and the last Newton step is applied to first order (the offset is linear
-in the line to ~1e-10 px over a pixel, so the result is exact to ~1e-12 px). With the
-partials the last step uses the analytic slope, so the chord stops earlier, below
-:data:`CHORD_TOL_PARTIALS` (often one chord evaluation fewer; the partials stay
-exact to ~1e-7 relative: their Lagrange weights are taken at the root). Without a
+in the line to ~1e-10 px over a pixel, so the result is exact to ~1e-12 px). Without a
 guess, :meth:`LineScanKernel.search_lines` brackets the root on a grid over the node
 span and refines it with safeguarded Newton steps (:mod:`planetref.geometry.roots`).
 
@@ -64,7 +61,6 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CHORD_TOL",
-    "CHORD_TOL_PARTIALS",
     "RAW_COLUMNS",
     "KernelState",
     "LineScanKernel",
@@ -75,10 +71,6 @@ F64 = NDArray[np.float64]
 
 #: Chord iterations on the line stop when the step is below this (pixels).
 CHORD_TOL = 1e-6
-#: Chord iterations stop below this step (px) before a full evaluation: its analytic
-#: Newton step (first order; the offset is linear in the line to ~1e-10 px over a pixel)
-#: finishes the root to ~1e-14 px from there, one chord evaluation earlier.
-CHORD_TOL_PARTIALS = 2e-4
 #: A projection is valid only when the last (first-order) Newton step is below this (px).
 STEP_VALID = 1e-3
 #: Column slices of the raw and implicit partials.
@@ -217,7 +209,7 @@ class LineScanKernel:
             line,
             rate,
             full=full,
-            chord_tol=CHORD_TOL_PARTIALS if full else CHORD_TOL,
+            chord_tol=CHORD_TOL,
             step_valid=STEP_VALID,
         )
 
@@ -306,14 +298,7 @@ class LineScanKernel:
 
     # ------------------------------------------------------------------ line search
     def converge(
-        self,
-        poly: F64,
-        io: F64,
-        ccd: CcdGeometry,
-        p: F64,
-        line: F64,
-        rate: F64 | None,
-        tol: float = CHORD_TOL,
+        self, poly: F64, io: F64, ccd: CcdGeometry, p: F64, line: F64, rate: F64 | None
     ) -> tuple[F64, F64]:
         """Chord iterations on the detector offset from guesses.
 
@@ -324,7 +309,6 @@ class LineScanKernel:
             p: Ground points, ``(m, 3)``.
             line: Starting lines (NaN: the middle of the node span).
             rate: Fixed slopes ``d offset / d line`` (NaN or ``None``: a one-line secant).
-            tol: Stop below this step (px).
 
         Returns:
             ``(line, rate)``: the lines after the last chord step (clipped to the node
@@ -343,7 +327,7 @@ class LineScanKernel:
             rate[ia] = self.offset(poly, io, ccd, p[ia], line[ia] + 1.0) - off[ia]
         with np.errstate(divide="ignore", invalid="ignore"):
             step = -off / rate
-        active = np.isfinite(step) & (np.abs(step) > tol)
+        active = np.isfinite(step) & (np.abs(step) > CHORD_TOL)
         for _ in range(40):
             ia = np.flatnonzero(active)
             if ia.size == 0:
@@ -352,7 +336,7 @@ class LineScanKernel:
             off_a = self.offset(poly, io, ccd, p[ia], line[ia])
             with np.errstate(divide="ignore", invalid="ignore"):
                 step[ia] = -off_a / rate[ia]
-            active[ia] = np.isfinite(step[ia]) & (np.abs(step[ia]) > tol)
+            active[ia] = np.isfinite(step[ia]) & (np.abs(step[ia]) > CHORD_TOL)
         return line, rate
 
     def search_lines(
@@ -436,7 +420,7 @@ class LineScanKernel:
         """
         if self._compiled(use_compiled, ccd):
             return Projection(*self._run_compiled(poly, io, ccd, p, line, rate, True))
-        line, _ = self.converge(poly, io, ccd, p, line, rate, CHORD_TOL_PARTIALS)
+        line, _ = self.converge(poly, io, ccd, p, line, rate)
         st = self.state(poly, io, ccd, p, line, full=True)
         raw, rate_, srate = st.raw, np.asarray(st.rate), np.asarray(st.srate)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -449,20 +433,13 @@ class LineScanKernel:
         np.multiply(raw[:, 0], neg_inv_rate[:, None], out=imp[:, 0])  # type: ignore[index]
         np.multiply(imp[:, 0], srate[:, None], out=imp[:, 1])
         imp[:, 1] += raw[:, 1]  # type: ignore[index]
-        # The Lagrange weights at the root (they vary by ~1/window per line; the other
-        # factors of the partials hardly change over the last step).
-        start = np.asarray(st.start)
-        centre = self.windows.centre[start]
-        tau = self.line_rates.time(line_out) - centre
-        tau = np.where(np.isfinite(tau), tau, self.line_rates.time(line) - centre)
-        _, weights, _ = self.windows.basis(start, tau)
         return Projection(
             line_out,
             samp_out,
             self._valid(line_out, samp_out, st.depth, step),
             rate_,
-            start,
-            weights,
+            np.asarray(st.start),
+            np.asarray(st.weights),
             imp,
         )
 
