@@ -40,10 +40,10 @@ def counting_order(keys: Any, n_keys: int) -> Any:
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def group_line_order(bucket: Any, n_buckets: int, line: Any) -> Any:
-    """The stable order by ``(bucket, line)``, where ``bucket`` is monotonic in ``line``
-    within a group (``group * span + floor(line) - lo``).
+    """The stable order by ``(bucket, line)``.
 
-    A counting sort by bucket, then each bucket (a few observations of one image line)
+    ``bucket`` is monotonic in ``line`` within a group (``group * span + floor(line) -
+    lo``). A counting sort by bucket, then each bucket (a few observations of one image line)
     sorted by line, stably: the same permutation as a stable sort by line, then by group.
     """
     order = counting_order(bucket, n_buckets)

@@ -144,25 +144,6 @@ def collinear(
     return off, samp, b2, u, v_, a0, a2, b1, cp, sp, co, so, ck, sk, phi, omega, kappa
 
 
-@_inline
-def renew_anchor(anchor: Any, ev: Any, have: bool) -> Any:
-    """The anchors after evaluation ``ev``.
-
-    An angle's pair renews where :func:`cos_sin` called the library for it: no anchor
-    yet, or the angle moved ``_NEAR_RAD`` or more.
-    """
-    cp, sp, co, so, ck, sk = anchor[8], anchor[9], anchor[10], anchor[11], anchor[12], anchor[13]
-    phi, omega, kappa = anchor[14], anchor[15], anchor[16]
-    if not have or not abs(ev[14] - phi) < _NEAR_RAD:
-        cp, sp, phi = ev[8], ev[9], ev[14]
-    if not have or not abs(ev[15] - omega) < _NEAR_RAD:
-        co, so, omega = ev[10], ev[11], ev[15]
-    if not have or not abs(ev[16] - kappa) < _NEAR_RAD:
-        ck, sk, kappa = ev[12], ev[13], ev[16]
-    z = 0.0
-    return (z, z, z, z, z, z, z, z, cp, sp, co, so, ck, sk, phi, omega, kappa)
-
-
 @njit
 def project(
     rs: F64,
@@ -197,12 +178,7 @@ def project(
     deo = np.empty(6)
     f = io[2]
     sa, ca, pitch = ccd[4], ccd[5], ccd[3]
-    # Per angle, the last cosine and sine computed by the library (not by the series):
-    # the points of a chunk come sorted by line, so their first evaluations are near
-    # those of the point before, and the series (one step from an exact value, so a few
-    # ulp, never accumulating) replaces the six library calls (see :func:`cos_sin`).
-    anchor = (0.0,) * 17
-    have_anchor = False
+    none = (0.0,) * 17  # no earlier evaluation
     for i in range(len(pts)):
         line = guess[i]
         if not math.isfinite(line):
@@ -211,9 +187,7 @@ def project(
         # ``ev`` always holds the evaluation at ``line``: the last one of the chord
         # iterations is the final one (its terms give the partials).
         s, tau, period = locate(line, rs, rt0, rp, times, centre, k)
-        ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i, anchor, have_anchor)
-        anchor = renew_anchor(anchor, ev, have_anchor)
-        have_anchor = True
+        ev = collinear(poly, s, k, tau, r0, io, ccd, pts, i, none, False)
         off = ev[0]
         rate = rate_in[i]
         if not (math.isfinite(rate) and rate != 0.0):
