@@ -130,3 +130,34 @@ def test_pattern_partials_compiled_equal_numpy_reference():
         scale = np.abs(y).max(axis=0)
         assert np.all(np.abs(x - y).max(axis=0) <= 1e-12 * scale + 1e-9)
     assert np.array_equal(a.pattern, b.pattern)
+
+
+def test_counting_order_equals_numpy_stable_sort():
+    from planetref.adjust import _numba_sort
+    from planetref.adjust.solver import _group_order
+
+    rng = np.random.default_rng(3)
+    keys = rng.integers(0, 50, 20_000)  # many ties: stability matters
+    assert np.array_equal(_numba_sort.counting_order(keys, 50), np.argsort(keys, kind="stable"))
+    # The layout order: by group, then by line (stable), compiled and numpy; with long
+    # buckets (many observations of one line) and exact ties.
+    key = rng.integers(0, 3, 6000).astype(np.int64)
+    line = np.concatenate([rng.uniform(-3.0, 400.0, 5000), rng.uniform(7.0, 7.9, 900)])
+    line = np.concatenate([line, line[:100]])  # exact ties
+    ref = np.lexsort((np.arange(6000), line, key))
+    assert np.array_equal(_group_order(key, line), ref)
+    keys = key * 1000 + (np.floor(line) + 3).astype(np.int64)
+    assert np.array_equal(_numba_sort.group_line_order(keys, 3000, line), ref)
+
+
+def test_point_matrices_index_like_the_dense_array():
+    from planetref.adjust.problem import PointMatrices
+
+    rng = np.random.default_rng(4)
+    dense = np.zeros((50, 3, 3))
+    on = np.array([3, 17, 40])
+    dense[on] = rng.normal(size=(3, 3, 3))
+    pm = PointMatrices(50, on, dense[on])
+    idx = rng.integers(0, 50, 200)
+    assert np.array_equal(pm[idx], dense[idx])
+    assert len(pm) == 50 and pm[np.array([17])][0, 1, 2] == dense[17, 1, 2]

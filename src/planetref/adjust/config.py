@@ -457,7 +457,7 @@ class SolverConfig(Settings):
     loss_scale_px: float | None = Field(None, gt=0.0)
     loss_threshold: float = Field(3.0, gt=0.0)
     loss_rounds: Literal["first", "all"] = "first"
-    chunk_size: int = Field(8192, ge=256)
+    chunk_size: int = Field(32768, ge=256)
     threads: int | None = Field(None, ge=1)
     min_rcond: float = Field(1e-14, gt=0.0, lt=1.0)
 

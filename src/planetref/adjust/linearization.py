@@ -109,20 +109,22 @@ class LinearizationMixin:
             ranges.append((mi, ccd, a, a + len(pos)))
             a += len(pos)
         net = self.net
-        point = net.obs_point[obs]
-        fixed_rows = self.point_fixed[point]
+        # ``take`` along axis 0: numpy's fancy indexing of (M, 2) and (M, 3) arrays is
+        # several times slower than of 1-D ones.
+        point = net.obs_point.take(obs)
+        fixed_rows = self.point_fixed.take(point)
         fixed = np.all(fixed_rows)
         slot, slot_obs, size = self._slots(obs, point, fixed_rows)
         return _Layout(
             obs,
             ranges,
             point,
-            net.obs_line[obs],
-            net.obs_sample[obs],
-            self.obs_w0[obs],
-            net.point_xyz[point] if fixed else None,
-            self.line_guess[obs],
-            self.rate_guess[obs],
+            net.obs_line.take(obs),
+            net.obs_sample.take(obs),
+            self.obs_w0.take(obs, axis=0),
+            net.point_xyz.take(point, axis=0) if fixed else None,
+            self.line_guess.take(obs),
+            self.rate_guess.take(obs),
             slot,
             slot_obs,
             size,
@@ -136,14 +138,15 @@ class LinearizationMixin:
         _, kind = net.point_kind_codes
         base = max(len(cam.ccd_names) for cam in net.cameras)
         n_img = len(net.cameras) * base
-        key = kind[point].astype(np.int64) * n_img + net.obs_camera[obs] * base + net.obs_ccd[obs]
+        key = kind.take(point) * n_img + net.obs_camera.take(obs) * base + net.obs_ccd.take(obs)
         size = int(np.max(np.diff(self.offsets), initial=0)) + 1
-        present = np.bincount(key[fixed_rows], minlength=1) > 0
+        present = np.bincount(key[fixed_rows], minlength=int(key.max(initial=0)) + 1) > 0
         n_slot = int(np.count_nonzero(present))
         if n_slot * size * size * 8 > _SLOT_BYTES or not np.any(fixed_rows):
             return np.full(len(obs), -1, np.intp), np.zeros(0, np.intp), size
-        dense = np.cumsum(present) - 1
-        slot = np.where(fixed_rows, dense[np.where(fixed_rows, key, 0)], -1).astype(np.intp)
+        dense = (np.cumsum(present) - 1).astype(np.intp)
+        slot = dense.take(key)
+        slot[~fixed_rows] = -1
         slot_obs = np.zeros(n_slot, np.intp)
         on = np.flatnonzero(fixed_rows)[::-1]
         slot_obs[slot[on]] = obs[on]  # an observation of each slot
@@ -188,9 +191,35 @@ class LinearizationMixin:
             (np.zeros_like(n_cc), np.zeros_like(g_c), np.zeros_like(slot_n)) for _ in parts[1:]
         ]
 
+        fn = self.normal_kernels()
+        if fn is not None:
+            loss_code = fn.LOSS_CODES.get(self.loss)
+            if loss_code is None:
+                robust_rho(np.zeros(1), self.loss, 1.0)  # raises: unknown loss
+            thr_c = np.atleast_1d(np.asarray(thr_l, np.float64))
+
         def work(k: int, mi: int, a: int, b: int, ev: Evaluation) -> None:
             if ev.line_rate is not None:
                 rate[a:b] = ev.line_rate
+            gp = ev.pattern + self.pat_offsets[mi]
+            if fn is not None:
+                # The compiled twin of everything below (the numpy reference).
+                n_k, g_k, s_k = acc[k]
+                fn.linearize_rows(
+                    (ev.line, ev.sample, ev.valid),
+                    (lay.line[a:b], lay.sample[a:b], lay.w0[a:b]),
+                    loss_code,
+                    thr_c if thr_c.size == 1 else thr_c[a:b],
+                    _partial_factors(ev),
+                    gp,
+                    (self.act_n, self.act_loc, self.act_col),
+                    (lay.slot[a:b], s_k, int(self.offsets[mi])),
+                    (n_k, g_k),
+                    (r[a:b], s_all[a:b], weight[a:b]),
+                )
+                valid[a:b], line[a:b], sample[a:b] = ev.valid, ev.line, ev.sample
+                _tie_rows(ev, a, b, gp)
+                return
             res = r[a:b]
             np.subtract(ev.line, lay.line[a:b], out=res[:, 0])
             np.subtract(ev.sample, lay.sample[a:b], out=res[:, 1])
@@ -211,18 +240,24 @@ class LinearizationMixin:
                 res_ok = np.where(ok[:, None], res, 0.0)
             valid[a:b], s_all[a:b] = ok, s
             line[a:b], sample[a:b] = ev.line, ev.sample
-            gp = ev.pattern + self.pat_offsets[mi]
             d = ev.d_params
-            qm = d.shape[2]
             n_k, g_k, s_k = acc[k]
             sl = (lay.slot[a:b], s_k, int(self.offsets[mi]))
-            self._accumulate(n_k, g_k, d, we, we * res_ok, gp, qm, sl)
+            self._accumulate(n_k, g_k, d, we, we * res_ok, gp, d.shape[2], sl)
+            _tie_rows(ev, a, b, gp)
+
+        def _tie_rows(ev: Evaluation, a: int, b: int, gp: NDArray[np.intp]) -> None:
+            # The partials of observations of unknown points, for the Schur complement.
             if n_tie:
                 tp = tie_pos[a:b]
                 is_t = tp >= 0
                 if np.any(is_t):
-                    a_t[tp[is_t], :, :qm] = d[is_t]
-                    b_t[tp[is_t]] = ev.d_ground[is_t]
+                    if ev.factors is not None and not np.all(is_t):
+                        d, dg = ev.factors.expand(is_t)  # the tie rows only
+                    else:
+                        d, dg = ev.d_params[is_t], ev.d_ground[is_t]
+                    a_t[tp[is_t], :, : d.shape[2]] = d
+                    b_t[tp[is_t]] = dg
                     gpat_t[tp[is_t]] = gp[is_t]
 
         self.map_chunks(lay, parts, c, pxyz, work)
@@ -327,17 +362,11 @@ class LinearizationMixin:
         views; the few observations whose window differs from their neighbours' simply
         form short runs of their own. Only a pattern's active columns enter the products
         (fixed parameters are never solved for: their rows of ``N`` stay zero): with most
-        parameters fixed that is a fraction of the flops. The compiled twin
-        (:mod:`~planetref.adjust._numba_normal`) runs when numba is available and
-        ``compiled_normal`` is set; this numpy code is its reference.
+        parameters fixed that is a fraction of the flops. The numpy reference of
+        :func:`~planetref.adjust._numba_normal.linearize_rows`, which runs instead (with
+        the residuals and weights) when numba is available and ``compiled_normal`` is set.
         """
         slot, slot_n, off = slots
-        fn = self.normal_kernels()
-        if fn is not None:
-            fn.accumulate(
-                n_cc, g_c, d, we, wr, gp, self.act_n, self.act_loc, self.act_col, slot, slot_n, off
-            )
-            return
         m = len(gp)
         change = (np.diff(gp) != 0) | (np.diff(slot) != 0)
         cut = np.concatenate([[0], np.flatnonzero(change) + 1, [m]])
@@ -442,6 +471,19 @@ def run_shares(n: int, run: Callable[[int], None], threads: int) -> None:
 def _compiled() -> Any:
     """The compiled accumulation, or ``None`` (numpy) when numba cannot be loaded."""
     return optional_module("planetref.adjust._numba_normal", "compiled normal equations")
+
+
+def _partial_factors(ev: Evaluation) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.intp]]:
+    """``(imp, weights, src, node)`` of an evaluation's partials (see ``linearize_rows``)."""
+    f = ev.factors
+    if f is not None:
+        return f.imp, f.weights, f.src, f.node
+    d = ev.d_params
+    q = d.shape[2]
+    return d, _NO_WEIGHTS, np.arange(q, dtype=np.intp), np.full(q, -1, np.intp)
+
+
+_NO_WEIGHTS = np.ones((1, 1))
 
 
 def _quadratic(w: F64, dx: F64) -> float:

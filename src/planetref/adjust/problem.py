@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
-__all__ = ["Network", "PointKind", "enu_rotation", "small_unique"]
+__all__ = ["Network", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]
 
 PointKind = str  # "mcp" or "tie" (informative: how a point is reported)
 F64 = NDArray[np.float64]
@@ -204,18 +204,22 @@ class Network:
         kinds, code = small_unique(self.point_kind)
         return kinds, code
 
-    def point_frame_matrices(self) -> F64:
+    def point_frame_matrices(self, points: NDArray[np.intp] | None = None) -> F64:
         """Rotations from body-fixed XYZ to each point's sigma frame, ``(P, 3, 3)``.
 
         Identity for points with XYZ sigmas; rows east, north, up (radial) for points
         with local sigmas (up is the geocentric radial direction; it differs from the
         ellipsoid normal by a fraction of a degree, nothing for a sigma).
+
+        Args:
+            points: Only these points (indices), ``(n, 3, 3)``; ``None``: every point.
         """
-        n = self.n_points
-        out = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
-        loc = np.flatnonzero(self.point_sigma_local & np.all(np.isfinite(self.point_xyz), axis=1))
+        idx = np.arange(self.n_points) if points is None else np.asarray(points, np.intp)
+        out = np.broadcast_to(np.eye(3), (len(idx), 3, 3)).copy()
+        xyz = self.point_xyz[idx]
+        loc = np.flatnonzero(self.point_sigma_local[idx] & np.all(np.isfinite(xyz), axis=1))
         if loc.size:
-            out[loc] = enu_rotation(self.point_xyz[loc])
+            out[loc] = enu_rotation(xyz[loc])
         return out
 
     def replace_points(self, point_xyz: F64) -> Network:
@@ -440,3 +444,33 @@ def enu_rotation(xyz: F64) -> F64:
     east = np.where(norm > 1e-12, east / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0])
     north = np.cross(up, east)
     return np.stack([east, north, up], axis=1)
+
+
+class PointMatrices:
+    """Per-point ``3 x 3`` matrices held for a few points, zero for all others.
+
+    Indexing with point indices gives ``(n, 3, 3)`` like the dense ``(P, 3, 3)`` array it
+    stands for, without that array: a network of a million fixed MCPs has no weighted
+    point, and its set-up should not write 72 MB of zeros.
+
+    Args:
+        n_points: ``P``.
+        points: The points that have a matrix (distinct indices).
+        matrices: Their matrices, ``(len(points), 3, 3)``.
+    """
+
+    def __init__(self, n_points: int, points: NDArray[np.intp], matrices: F64) -> None:
+        self._pos = np.full(n_points, -1, np.intp)
+        self._pos[points] = np.arange(len(points))
+        self._m = np.asarray(matrices, np.float64)
+        self.shape = (n_points, 3, 3)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, points: NDArray[np.intp]) -> F64:
+        pos = self._pos[points]
+        out = np.zeros((*np.shape(pos), 3, 3))
+        hit = pos >= 0
+        out[hit] = self._m[pos[hit]]
+        return out

@@ -144,7 +144,7 @@ class ScipyProblem:
         wp = self.weighted_p
         if wp.size:
             # Whitening L = diag(1/sigma) R of each point (L^T L = its weight matrix).
-            w = np.sqrt(s.point_prior_axis_w[wp])[:, :, None] * s.point_frame[wp]
+            w = np.sqrt(s.point_prior_axis_w[wp])[:, :, None] * s.net.point_frame_matrices(wp)
             dxp = xyz[wp] - self.xyz_fixed[wp]
             extra.append(np.einsum("pij,pj->pi", w, dxp).ravel())
             umap = np.searchsorted(self.unknown, wp)

@@ -21,10 +21,12 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref._optional import optional_module
 from planetref.adjust.config import SolverConfig
 from planetref.adjust.linearization import (
     LinearizationMixin,
@@ -33,7 +35,7 @@ from planetref.adjust.linearization import (
     run_shares,
 )
 from planetref.adjust.models import AdjustableCamera, Evaluation
-from planetref.adjust.problem import Network
+from planetref.adjust.problem import Network, PointMatrices
 from planetref.adjust.robust import robust_rho
 from planetref.adjust.schur import SchurMixin, _Structure
 from planetref.adjust.statistics import StatisticsMixin
@@ -133,8 +135,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 f"some axes only is not supported"
             )
         self.point_fixed = fixed_pt
-        #: Rotation from body-fixed XYZ to the frame of each point's sigmas, (P, 3, 3).
-        self.point_frame = network.point_frame_matrices()
+        self._point_frame: F64 | None = None
         self.set_point_sigma(sig)
         self.set_obs_sigma(network.obs_sigma_px)
         self.line_guess = network.obs_line.copy()
@@ -160,12 +161,22 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / sig**2, 0.0)
         #: Per-axis weights in the sigma frame, (P, 3).
         self.point_prior_axis_w = w
-        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, (P, 3, 3) (zero for the
-        #: fixed and free points: only weighted ones are multiplied out).
-        self.point_prior_w = np.zeros((len(w), 3, 3))
         on = np.flatnonzero(np.any(w > 0, axis=1))
-        fr = self.point_frame[on]
-        self.point_prior_w[on] = np.einsum("pki,pk,pkj->pij", fr, w[on], fr)
+        fr = self.net.point_frame_matrices(on)
+        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, indexed like ``(P, 3, 3)``
+        #: (zero for the fixed and free points: only weighted ones are held).
+        self.point_prior_w = PointMatrices(len(w), on, np.einsum("pki,pk,pkj->pij", fr, w[on], fr))
+
+    @property
+    def point_frame(self) -> F64:
+        """Rotations from body-fixed XYZ to each point's sigma frame, ``(P, 3, 3)``.
+
+        Built on first use (:meth:`~planetref.adjust.problem.Network.point_frame_matrices`;
+        the solve itself needs only the weighted points' frames).
+        """
+        if self._point_frame is None:
+            self._point_frame = self.net.point_frame_matrices()
+        return self._point_frame
 
     def set_obs_sigma(self, sigma_px: F64) -> None:
         """Set the sigmas of the image measures, ``(M, 2)`` pixels (line, sample)."""
@@ -238,9 +249,10 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
     def _groups(self, obs: NDArray[np.intp]) -> list[tuple[int, int, NDArray[np.intp]]]:
         """``(model, ccd, positions into obs)`` groups.
 
-        Within a group the positions are sorted by observed line: observations that
-        share a Lagrange window (a pattern) then form contiguous runs, so the normal
-        equations accumulate from array views instead of gathered copies.
+        Within a group the positions are sorted by the whole part of the observed line
+        (stable: ties keep the order of ``obs``): observations that share a Lagrange
+        window (a pattern) then form contiguous runs, so the normal equations accumulate
+        from array views instead of gathered copies.
         """
         cached = self._group_cache
         if cached is not None and np.array_equal(cached[0], obs):
@@ -248,11 +260,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         net = self.net
         base = max(len(cam.ccd_names) for cam in net.cameras)
         key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
-        # lexsort((line, key)) in two stable passes: the lines, then the (few) group
-        # keys as small integers (a radix sort); the same permutation, ~3x faster.
-        order = np.argsort(net.obs_line[obs], kind="stable")
-        small = key[order].astype(np.uint16 if key.max(initial=0) < 2**16 else np.int64)
-        order = order[np.argsort(small, kind="stable")]
+        order = _group_order(key, net.obs_line[obs])
         ks = key[order]
         cut = np.flatnonzero(np.diff(ks)) + 1
         out = []
@@ -382,7 +390,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         lay, unknown, tie_pos, chunks, n_tie = st.lay, st.unknown, st.tie_pos, st.chunks, st.n_tie
         obs = lay.obs
         self._unknown_ids = unknown
-        xyz = xyz.copy()
+        # A copy where points move (steps make new arrays; the caller's stays as it was).
+        xyz = xyz.copy() if len(unknown) else xyz
         c = c.copy()
         rep = LmReport()
 
@@ -443,8 +452,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 rep.converged, rep.reason = True, "predicted cost decrease below ftol"
                 break
             c_new = c + delta_c
-            xyz_new = xyz.copy()
-            xyz_new[unknown] += dx
+            if len(unknown):
+                xyz_new = xyz.copy()
+                xyz_new[unknown] += dx
+            else:
+                xyz_new = xyz  # nothing moves (every point fixed): no copy of (P, 3)
             saved = lay.line_guess.copy()
             saved_rate = lay.rate_guess.copy()
             new = linearize(c_new, xyz_new)
@@ -520,6 +532,42 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         rep.seconds = time.perf_counter() - t_start
         rep.cpu_seconds = time.process_time() - c_start
         return c, xyz, rep, lin, stats
+
+
+#: Largest key range the compiled counting sort takes (beyond it, numpy's stable sort).
+_COUNTING_KEYS = 1 << 24
+
+
+def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
+    """The stable order of observations by ``(group key, observed line)``.
+
+    Compiled: a counting sort by group and whole line, then each line's few
+    observations by line (O(m) for image lines); numpy: a stable sort by line, then by
+    group (the reference; the same permutation). The order does not depend on the
+    order of the observations except for equal lines, so a network whose observations
+    come in another order (tiles finished by workers in another order) gives the same
+    sums.
+    """
+    if len(key) == 0:
+        return np.zeros(0, np.intp)
+    fn = _sort_kernels()
+    finite = np.isfinite(line)
+    if fn is not None and np.all(finite):
+        whole = np.floor(line)
+        lo = float(whole.min())
+        span = int(whole.max() - lo) + 1
+        n_keys = (int(key.max()) + 1) * span
+        if n_keys <= max(_COUNTING_KEYS, 4 * len(key)):
+            bucket = key * span + (whole - lo).astype(np.int64)
+            return fn.group_line_order(bucket, n_keys, np.ascontiguousarray(line))
+    order = np.argsort(line, kind="stable")
+    small = key[order].astype(np.uint16 if key.max(initial=0) < 2**16 else np.int64)
+    return order[np.argsort(small, kind="stable")]
+
+
+def _sort_kernels() -> Any:
+    """The compiled counting sort, or ``None`` (numpy) when numba cannot be loaded."""
+    return optional_module("planetref.adjust._numba_sort", "compiled counting sort")
 
 
 def _cost_resolution(lin: _Linearization) -> float:

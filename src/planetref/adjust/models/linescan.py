@@ -213,20 +213,29 @@ class LineScanParameterization:
         proj = kern.project_with_partials(
             poly, io, c, p, guess, rate_guess, use_compiled=use_compiled
         )
-        dp = np.empty((m, 2, self.pattern_columns.shape[1]))
-        if kern.runs_compiled(use_compiled, c):
-            dg = np.empty((m, 2, 3))
-            compiled.fill_partials(proj.partials, proj.weights, self._placement, dp, dg)
-        else:  # the numpy reference of compiled.fill_partials
-            k6 = 6 * self._k
-            kern.node_partials(proj, out=dp[:, :, :k6].reshape(m, 2, self._k, 6))
-            dp[:, :, k6 : k6 + 3] = proj.partials[:, :, RAW_COLUMNS["interior"]]
-            if self._placement:
-                dp[:, :, k6 + 3 :] = proj.partials[:, :, RAW_COLUMNS["ccd"]]
-            dg = proj.partials[:, :, RAW_COLUMNS["ground"]]
         pg = ccd if self._pattern_groups > 1 else 0
         pattern = proj.start * self._pattern_groups + pg
         line, samp, valid, rate = proj.line, proj.sample, proj.valid, proj.rate
+        if kern.runs_compiled(use_compiled, c):
+            # Factored: the solver's compiled linearisation multiplies the node columns
+            # out as it reads them (compiled.fill_partials writes them if asked for).
+            imp = proj.partials
+            if not np.all(valid):
+                bad = ~valid
+                line[bad] = samp[bad] = rate[bad] = np.nan
+                pattern[bad] = 0
+                imp[bad] = 0.0
+                proj.weights[bad] = 0.0
+            factors = _Factors(imp, proj.weights, self._placement, *self._column_map())
+            return Evaluation(line, samp, valid, pattern, None, None, rate, factors=factors)
+        # The numpy reference of compiled.fill_partials.
+        dp = np.empty((m, 2, self.pattern_columns.shape[1]))
+        k6 = 6 * self._k
+        kern.node_partials(proj, out=dp[:, :, :k6].reshape(m, 2, self._k, 6))
+        dp[:, :, k6 : k6 + 3] = proj.partials[:, :, RAW_COLUMNS["interior"]]
+        if self._placement:
+            dp[:, :, k6 + 3 :] = proj.partials[:, :, RAW_COLUMNS["ccd"]]
+        dg = proj.partials[:, :, RAW_COLUMNS["ground"]]
         if not np.all(valid):
             bad = ~valid
             line[bad] = samp[bad] = rate[bad] = np.nan
@@ -234,6 +243,18 @@ class LineScanParameterization:
             dp[bad] = 0.0
             dg[bad] = 0.0
         return Evaluation(line, samp, valid, pattern, dp, dg, rate)
+
+    def _column_map(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """``(src, node)`` of each pattern column (see :class:`_Factors`)."""
+        k6 = 6 * self._k
+        q = self.pattern_columns.shape[1]
+        col = np.arange(q)
+        src = np.where(col < k6, col % 6, col - k6 + RAW_COLUMNS["interior"].start)
+        if self._placement:
+            tail = col >= k6 + 3
+            src[tail] = col[tail] - k6 - 3 + RAW_COLUMNS["ccd"].start
+        node = np.where(col < k6, col // 6, -1)
+        return src.astype(np.intp), node.astype(np.intp)
 
     def _eo_poly(self, nodes: F64) -> F64:
         """:meth:`~planetref.camera.linescan.kernel.LineScanKernel.eo_poly`, kept per nodes."""
@@ -406,3 +427,39 @@ class LineScanParameterization:
             a = np.vstack([self.constraints[0], a])
             w = np.concatenate([self.constraints[1], w])
         return a, w
+
+
+class _Factors:
+    """A line scanner's partials in factored form (see :class:`Evaluation` ``factors``).
+
+    ``d_params[i, r, 6 j + c] = imp[i, r, c] * weights[i, j]`` for node ``j`` of the
+    window and EO column ``c``; the interior (and placement) columns are columns of
+    ``imp``; ``d_ground`` is ``imp``'s ground columns.
+    """
+
+    __slots__ = ("imp", "node", "placement", "src", "weights")
+
+    def __init__(
+        self,
+        imp: F64,
+        weights: F64,
+        placement: bool,
+        src: NDArray[np.intp],
+        node: NDArray[np.intp],
+    ) -> None:
+        self.imp, self.weights, self.placement = imp, weights, placement
+        self.src, self.node = src, node
+
+    def expand(self, rows: NDArray[np.bool_] | None = None) -> tuple[F64, F64]:
+        """``(d_params (m, 2, q), d_ground (m, 2, 3))`` (compiled.fill_partials).
+
+        Args:
+            rows: Only these rows (a mask); ``None``: all.
+        """
+        imp = self.imp if rows is None else self.imp[rows]
+        w = self.weights if rows is None else self.weights[rows]
+        m = len(imp)
+        dp = np.empty((m, 2, len(self.src)))
+        dg = np.empty((m, 2, 3))
+        compiled.fill_partials(imp, w, self.placement, dp, dg)
+        return dp, dg

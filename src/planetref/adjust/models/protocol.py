@@ -33,9 +33,14 @@ F64 = NDArray[np.float64]
 MODE_CODE = {"free": 0, "weighted": 1, "fixed": 2}
 
 
-@dataclass(frozen=True, eq=False)
 class Evaluation:
     """Projections of ground points into one CCD, with partials.
+
+    A model may hand its partials in factored form (``factors``, e.g. a line scanner's
+    collinearity partials and Lagrange weights, whose products are the node columns):
+    ``d_params`` and ``d_ground`` are then expanded on first use, and the solver's
+    compiled linearisation reads the factors directly, so the ``(m, 2, q)`` block is
+    never written for observations of fixed points.
 
     Attributes:
         line: Projected line (pixels), ``(m,)``; NaN where invalid.
@@ -46,15 +51,55 @@ class Evaluation:
         d_ground: ``d(line, sample)/d(X, Y, Z)`` per metre, ``(m, 2, 3)``.
         line_rate: Optional per-point hint for the next evaluation (for line scanners
             ``d offset / d line``), handed back as ``rate_guess``; ``None`` if unused.
+        factors: ``None``, or an object with ``expand(rows=None) -> (d_params, d_ground)``
+            (all rows, or those of a mask) and the
+            arrays ``imp`` ``(m, 2, n_raw)``, ``weights`` ``(m, k)``, ``src`` ``(q,)``
+            and ``node`` ``(q,)`` such that ``d_params[i, r, c] = imp[i, r, src[c]] *
+            (weights[i, node[c]] if node[c] >= 0 else 1)``.
     """
 
-    line: F64
-    sample: F64
-    valid: NDArray[np.bool_]
-    pattern: NDArray[np.intp]
-    d_params: F64
-    d_ground: F64
-    line_rate: F64 | None = None
+    __slots__ = ("_d_ground", "_d_params", "factors", "line", "line_rate", "pattern", "sample",
+                 "valid")  # fmt: skip
+
+    def __init__(
+        self,
+        line: F64,
+        sample: F64,
+        valid: NDArray[np.bool_],
+        pattern: NDArray[np.intp],
+        d_params: F64 | None,
+        d_ground: F64 | None,
+        line_rate: F64 | None = None,
+        *,
+        factors: Any = None,
+    ) -> None:
+        if (d_params is None or d_ground is None) and factors is None:
+            raise ValueError("an Evaluation needs its partials or their factors")
+        self.line = line
+        self.sample = sample
+        self.valid = valid
+        self.pattern = pattern
+        self._d_params = d_params
+        self._d_ground = d_ground
+        self.line_rate = line_rate
+        self.factors = factors
+
+    def _expand(self) -> None:
+        self._d_params, self._d_ground = self.factors.expand()
+
+    @property
+    def d_params(self) -> F64:
+        """``d(line, sample)/d(params of the pattern)``, ``(m, 2, q)``."""
+        if self._d_params is None:
+            self._expand()
+        return self._d_params
+
+    @property
+    def d_ground(self) -> F64:
+        """``d(line, sample)/d(X, Y, Z)`` per metre, ``(m, 2, 3)``."""
+        if self._d_ground is None:
+            self._expand()
+        return self._d_ground
 
 
 @dataclass(frozen=True)

@@ -16,10 +16,12 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 _CHORD_ITERATIONS = 40
 
-njit = numba.njit(cache=True, nogil=True, error_model="numpy")
+njit = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
 
 
-_inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+_inline = numba.njit(
+    cache=True, nogil=True, error_model="numpy", inline="always", fastmath={"contract"}
+)
 
 
 @_inline
