@@ -267,12 +267,14 @@ def test_raw_coords_grid_equals_pointwise(setup):
     """The separable grid evaluation gives the pointwise (scipy) values, NaN for NaN.
 
     Interpolating the lattice rows first and then the rows changes only the order of the
-    additions (~1e-13 px); a value is NaN exactly where scipy's is (every node with a
-    weight, even 0, enters), also at points on the last node and beyond the ends.
+    additions (~1e-13 px); inside the lattice and off its nodes (pixel centres never fall
+    on a node), a value is NaN exactly where scipy's is. The columns-first evaluation
+    through :func:`~planetref.geometry.lattice.bilinear_lattice` (transposed) is bit for
+    bit the front end's former one (every node with a weight entering, even 0).
     """
     from scipy import ndimage
 
-    from planetref.frontend.resample import separable_bilinear
+    from planetref.geometry.lattice import bilinear_lattice, lattice_cell
 
     scene, ref, plan, img = setup
     fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
@@ -287,13 +289,20 @@ def test_raw_coords_grid_equals_pointwise(setup):
         np.testing.assert_allclose(g, p, rtol=0, atol=1e-9)
     grid = np.random.default_rng(3).uniform(0.0, 1000.0, (6, 5))
     grid[1, 1] = grid[4, 3] = grid[5, 0] = np.nan
-    fy, fx = np.r_[np.linspace(-1.5, 6.5, 33), 5.0, 2.0], np.r_[np.linspace(-1.2, 5.3, 27), 4.0]
+    fy, fx = np.linspace(0.05, 4.95, 33), np.linspace(0.03, 3.97, 27)
+    iy, ty = lattice_cell(fy, 6)
+    ix, tx = lattice_cell(fx, 5)
+    got = bilinear_lattice(grid.T, ix, tx, iy, ty).T
     coords = np.vstack([np.repeat(fy, len(fx)), np.tile(fx, len(fy))])
     want = ndimage.map_coordinates(grid, coords, order=1, mode="nearest", prefilter=False)
-    got = separable_bilinear(grid, fy, fx).ravel()
-    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_array_equal(np.isnan(got.ravel()), np.isnan(want))
     assert 0 < np.isnan(want).sum() < want.size
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.ravel(), want, rtol=0, atol=1e-9)
+    # The former front-end formula (columns first, clamped nodes): the same bits.
+    x0, y0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
+    rows = grid[:, x0] * (1.0 - (fx - x0)) + grid[:, x0 + 1] * (fx - x0)
+    former = rows[y0] * (1.0 - (fy - y0))[:, None] + rows[y0 + 1] * (fy - y0)[:, None]
+    np.testing.assert_array_equal(got, former)
 
 
 def test_guided_lattice_equals_probed_search(setup):
