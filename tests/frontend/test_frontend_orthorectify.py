@@ -197,6 +197,44 @@ def test_block_mean_cache_equals_direct_read(setup):
         assert cached._band_pixels <= 3000 + n_samples
 
 
+def test_raw_lines_decoded_once_for_all_factors(setup):
+    """The coarse and fine decimated levels share one decode of the raw lines.
+
+    Each raw line is read from the file once for both factors (while the decoded bands
+    fit), the block means are bit for bit those of a direct read, and with room for one
+    band only the cache stays within it and still gives the same means.
+    """
+    scene, _, _, _ = setup
+    with (
+        CcdImage(scene.image_paths["ccd1"]) as direct,
+        CcdImage(scene.image_paths["ccd1"]) as cached,
+    ):
+        n_lines, n_samples = direct.shape
+        calls = []
+        raw = cached._raw
+
+        def spy(r0, c0, r1, c1):
+            calls.append((r0, c0, r1, c1))
+            return raw(r0, c0, r1, c1)
+
+        cached._raw = spy
+        cached.RAW_BAND_LINES = 100  # several bands (whole blocks of the file)
+        for k in (4, 9, 4):
+            a, va = direct.read_block_mean(0, 0, n_lines, n_samples, k)
+            b, vb = cached.read_block_mean_cached(0, 0, n_lines, n_samples, k)
+            np.testing.assert_array_equal(va, vb)
+            np.testing.assert_array_equal(a, b)
+        assert sum(r1 - r0 for r0, _, r1, _ in calls) == n_lines
+        assert len(calls) >= 2 and all(c0 == 0 and c1 == n_samples for _, c0, _, c1 in calls)
+        cached.MAX_RAW_BYTES = 1  # one band at a time
+        cached._bands.clear()
+        cached._band_pixels = 0
+        b, vb = cached.read_block_mean_cached(0, 0, n_lines, n_samples, 5)
+        np.testing.assert_array_equal(b, direct.read_block_mean(0, 0, n_lines, n_samples, 5)[0])
+        assert len(cached._raw_bands) == 1
+        assert cached._raw_bytes == next(iter(cached._raw_bands.values())).nbytes
+
+
 def test_lattice_nodes_do_not_depend_on_tile_order(setup):
     """A chunk's nodes do not depend on which chunks were projected with it.
 
