@@ -26,6 +26,10 @@ own lattice and reading its own raw pixels (the way before), for a before/after 
 ``--threads 1`` and ``OMP_NUM_THREADS=1``, the figures other jobs on the machine do not
 inflate).
 
+``--save-mcps FILE.npz`` keeps every measured tile's MCPs (raw line, sample, reference
+column, row, confidence); ``--compare-mcps FILE.npz`` compares this run's with such a file
+(another version's) per matcher and grid: tiles bit-identical and the largest difference.
+
 One warm-up tile is matched first, on its own reader (it builds the model; the measured
 tiles build the per-reader caches themselves), and left out of the numbers.
 
@@ -38,6 +42,7 @@ Usage::
     python benchmarks/bench_frontend.py [--matchers sift ncc disk-lightglue ...]
         [--tile 128] [--threads 1] [--prep cached uncached] [--clock cpu]
         [--device cpu|cuda|auto] [--weights-dir DIR] [--scene DIR] [--json]
+        [--save-mcps FILE.npz] [--compare-mcps FILE.npz]
 """
 
 from __future__ import annotations
@@ -154,6 +159,7 @@ def bench(
         # Spread the measured tiles over the strip (every k-th tile).
         tiles = tiles[:: max(1, len(tiles) // max_tiles)][:max_tiles]
     rows = []
+    mcps: dict[str, np.ndarray] = {}
     # "uncached": each window projects its own lattice and reads its raw pixels (the
     # preparation before the per-reader caches), for comparison in the same run.
     tile_module.lattice_cache = lattice_cache if prep == "cached" else lambda *a, **k: None
@@ -175,6 +181,10 @@ def bench(
         if i == 0:
             continue  # warm-up: builds the model
         tm = r.timings
+        if r.line is not None:
+            key = f"{name}|{cfg.fine_upsample}|{prep}|{t.ccd}|{t.tile_id}"
+            cols = (r.line, r.sample, r.ref_col, r.ref_row, r.confidence)
+            mcps[key] = np.column_stack([np.asarray(c, np.float64) for c in cols])
         rows.append(
             {
                 "tile": t.tile_id,
@@ -219,7 +229,33 @@ def bench(
         "fine_upsample": cfg.fine_upsample,
         "max_offset_error_px": max(errs) if errs else float("nan"),
         "rows": rows,
+        "_mcps": mcps,
     }
+
+
+def compare_mcps(mcps: dict[str, np.ndarray], path: Path) -> list[str]:
+    """Lines comparing this run's MCPs with a saved run's, per matcher and fine grid."""
+    with np.load(path) as f:
+        old = {k: f[k] for k in f.files}
+    groups: dict[tuple[str, str], list] = {}
+    for key in sorted(set(mcps) | set(old)):
+        name, up = key.split("|")[:2]
+        a, b = old.get(key), mcps.get(key)
+        g = groups.setdefault((name, up), [0, 0, 0, 0, 0.0])
+        g[0] += 1
+        g[1] += 0 if a is None else len(a)
+        g[2] += 0 if b is None else len(b)
+        if a is not None and b is not None and a.shape == b.shape:
+            g[3] += int(np.array_equal(a, b))
+            if a.size:
+                g[4] = max(g[4], float(np.max(np.abs(a[:, :4] - b[:, :4]))))
+        else:
+            g[4] = float("inf")
+    return [
+        f"{name:<18} up {up}: {n} tiles, MCPs {na} -> {nb}, bit-identical tiles {same}/{n}, "
+        f"largest difference {diff:.3g} px"
+        for (name, up), (n, na, nb, same, diff) in groups.items()
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -259,6 +295,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--max-tiles", type=int, default=0, help="measure at most this many tiles")
     ap.add_argument("--json", action="store_true", help="print JSON only")
+    ap.add_argument("--save-mcps", type=Path, default=None, help="keep the MCPs in this .npz")
+    ap.add_argument(
+        "--compare-mcps", type=Path, default=None, help="compare the MCPs with this .npz"
+    )
     ap.add_argument(
         "--clock",
         default="wall",
@@ -315,6 +355,10 @@ def main(argv: list[str] | None = None) -> int:
                 for prep in args.prep:
                     results.append(bench(name, s, c, weights, prep, args.device, args.max_tiles))
         s["ref"].close()
+    mcps = {k: v for r in results for k, v in r.pop("_mcps").items()}
+    if args.save_mcps is not None:
+        np.savez(args.save_mcps, **mcps)
+    compared = [] if args.compare_mcps is None else compare_mcps(mcps, args.compare_mcps)
     if args.json:
         print(
             json.dumps(
@@ -323,6 +367,7 @@ def main(argv: list[str] | None = None) -> int:
                     "threads": args.threads,
                     "results": results,
                     "skipped": skipped,
+                    "mcp_comparison": compared,
                 },
                 indent=2,
             )
@@ -353,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     for name, why in skipped.items():
         print(f"{name:<20} skipped: {why}")
+    for line in compared:
+        print(line)
     return 0
 
 

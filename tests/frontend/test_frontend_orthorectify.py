@@ -197,6 +197,44 @@ def test_block_mean_cache_equals_direct_read(setup):
         assert cached._band_pixels <= 3000 + n_samples
 
 
+def test_raw_lines_decoded_once_for_all_factors(setup):
+    """The coarse and fine decimated levels share one decode of the raw lines.
+
+    Each raw line is read from the file once for both factors (while the decoded bands
+    fit), the block means are bit for bit those of a direct read, and with room for one
+    band only the cache stays within it and still gives the same means.
+    """
+    scene, _, _, _ = setup
+    with (
+        CcdImage(scene.image_paths["ccd1"]) as direct,
+        CcdImage(scene.image_paths["ccd1"]) as cached,
+    ):
+        n_lines, n_samples = direct.shape
+        calls = []
+        raw = cached._raw
+
+        def spy(r0, c0, r1, c1):
+            calls.append((r0, c0, r1, c1))
+            return raw(r0, c0, r1, c1)
+
+        cached._raw = spy
+        cached.RAW_BAND_LINES = 100  # several bands (whole blocks of the file)
+        for k in (4, 9, 4):
+            a, va = direct.read_block_mean(0, 0, n_lines, n_samples, k)
+            b, vb = cached.read_block_mean_cached(0, 0, n_lines, n_samples, k)
+            np.testing.assert_array_equal(va, vb)
+            np.testing.assert_array_equal(a, b)
+        assert sum(r1 - r0 for r0, _, r1, _ in calls) == n_lines
+        assert len(calls) >= 2 and all(c0 == 0 and c1 == n_samples for _, c0, _, c1 in calls)
+        cached.MAX_RAW_BYTES = 1  # one band at a time
+        cached._bands.clear()
+        cached._band_pixels = 0
+        b, vb = cached.read_block_mean_cached(0, 0, n_lines, n_samples, 5)
+        np.testing.assert_array_equal(b, direct.read_block_mean(0, 0, n_lines, n_samples, 5)[0])
+        assert len(cached._raw_bands) == 1
+        assert cached._raw_bytes == next(iter(cached._raw_bands.values())).nbytes
+
+
 def test_lattice_nodes_do_not_depend_on_tile_order(setup):
     """A chunk's nodes do not depend on which chunks were projected with it.
 
@@ -267,12 +305,14 @@ def test_raw_coords_grid_equals_pointwise(setup):
     """The separable grid evaluation gives the pointwise (scipy) values, NaN for NaN.
 
     Interpolating the lattice rows first and then the rows changes only the order of the
-    additions (~1e-13 px); a value is NaN exactly where scipy's is (every node with a
-    weight, even 0, enters), also at points on the last node and beyond the ends.
+    additions (~1e-13 px); inside the lattice and off its nodes (pixel centres never fall
+    on a node), a value is NaN exactly where scipy's is. The columns-first evaluation
+    through :func:`~planetref.geometry.lattice.bilinear_lattice` (transposed) is bit for
+    bit the front end's former one (every node with a weight entering, even 0).
     """
     from scipy import ndimage
 
-    from planetref.frontend.resample import separable_bilinear
+    from planetref.geometry.lattice import bilinear_lattice, lattice_cell
 
     scene, ref, plan, img = setup
     fp = tile_footprint(scene.init_cam, plan.tiles[0], ref, scene.dem)
@@ -287,13 +327,20 @@ def test_raw_coords_grid_equals_pointwise(setup):
         np.testing.assert_allclose(g, p, rtol=0, atol=1e-9)
     grid = np.random.default_rng(3).uniform(0.0, 1000.0, (6, 5))
     grid[1, 1] = grid[4, 3] = grid[5, 0] = np.nan
-    fy, fx = np.r_[np.linspace(-1.5, 6.5, 33), 5.0, 2.0], np.r_[np.linspace(-1.2, 5.3, 27), 4.0]
+    fy, fx = np.linspace(0.05, 4.95, 33), np.linspace(0.03, 3.97, 27)
+    iy, ty = lattice_cell(fy, 6)
+    ix, tx = lattice_cell(fx, 5)
+    got = bilinear_lattice(grid.T, ix, tx, iy, ty).T
     coords = np.vstack([np.repeat(fy, len(fx)), np.tile(fx, len(fy))])
     want = ndimage.map_coordinates(grid, coords, order=1, mode="nearest", prefilter=False)
-    got = separable_bilinear(grid, fy, fx).ravel()
-    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_array_equal(np.isnan(got.ravel()), np.isnan(want))
     assert 0 < np.isnan(want).sum() < want.size
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.ravel(), want, rtol=0, atol=1e-9)
+    # The former front-end formula (columns first, clamped nodes): the same bits.
+    x0, y0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
+    rows = grid[:, x0] * (1.0 - (fx - x0)) + grid[:, x0 + 1] * (fx - x0)
+    former = rows[y0] * (1.0 - (fy - y0))[:, None] + rows[y0 + 1] * (fy - y0)[:, None]
+    np.testing.assert_array_equal(got, former)
 
 
 def test_guided_lattice_equals_probed_search(setup):

@@ -41,8 +41,9 @@ from planetref.frontend.geometry import (
     project_to_image,
 )
 from planetref.frontend.lineguide import LineGuide
-from planetref.frontend.resample import bilinear_blocks, separable_bilinear
+from planetref.frontend.resample import bilinear_blocks
 from planetref.frontend.tiles import Tile
+from planetref.geometry.lattice import bilinear_lattice, lattice_cell
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
@@ -132,16 +133,21 @@ class OrthoTile:
         """:meth:`raw_coords` of the grid ``xs x ys``, ``(len(ys), len(xs))`` (same values).
 
         The lattice's fractional indices are separable, and so is the bilinear
-        interpolation: the lattice rows are interpolated at every column first, then those
-        rows at every row, two gathers of whole rows instead of four gathers of points. A
-        value is NaN where one of its four nodes is (as in :meth:`raw_coords`, whose values
-        it equals to rounding, ~1e-13 px).
+        interpolation (:func:`~planetref.geometry.lattice.bilinear_lattice`): the lattice
+        rows are interpolated at every column first, then those rows at every row, two
+        gathers of whole rows instead of four gathers of points. The values equal
+        :meth:`raw_coords`'s to rounding (~1e-13 px) at points inside the lattice, NaN
+        where a node with a non-zero weight is NaN (a point exactly on a node next to a NaN
+        node keeps the node's value; pixel centres never fall on nodes).
         """
         fx = _fractional_index(self.lattice_x, np.asarray(xs, np.float64))
         fy = _fractional_index(self.lattice_y, np.asarray(ys, np.float64))
-        return separable_bilinear(self.lattice_line, fy, fx), separable_bilinear(
-            self.lattice_sample, fy, fx
-        )
+        iy, ty = lattice_cell(fy, len(self.lattice_y))
+        ix, tx = lattice_cell(fx, len(self.lattice_x))
+        # Columns first: the transposed lattice, rows and columns swapped.
+        line = bilinear_lattice(self.lattice_line.T, ix, tx, iy, ty).T
+        sample = bilinear_lattice(self.lattice_sample.T, ix, tx, iy, ty).T
+        return line, sample
 
     def _interpolate(self, coords: F64, shape: tuple[int, ...]) -> tuple[F64, F64]:
         """Bilinear lattice line and sample at fractional ``(row, col)`` node indices."""

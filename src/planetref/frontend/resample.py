@@ -1,7 +1,8 @@
-"""Bilinear resampling of the orthorectification: lattice interpolation and block sampling.
+"""Bilinear block sampling of the orthorectification.
 
-* :func:`separable_bilinear`: a lattice (raw line or sample at nodes) at every pixel of a
-  grid, separably (rows first, then columns of the result);
+The lattice interpolation is :mod:`planetref.geometry.lattice`'s.
+
+
 * :func:`bilinear_blocks`: block means and their valid fraction at fractional block
   indices, as scipy's ``map_coordinates(order=1, mode="constant")`` gives, compiled in one
   pass when numba is available (:mod:`planetref.frontend._numba_resample`; the scipy way,
@@ -16,32 +17,9 @@ from scipy import ndimage
 
 from planetref._optional import optional_module
 
-__all__ = ["bilinear_blocks", "bilinear_blocks_numpy", "separable_bilinear"]
+__all__ = ["bilinear_blocks", "bilinear_blocks_numpy"]
 
 F64 = NDArray[np.float64]
-
-
-def _linear_weights(f: F64, n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], F64]:
-    """Lower and upper node and the upper weight of fractional indices.
-
-    Node indices beyond the ends are clamped to them, as scipy's ``mode="nearest"`` does.
-    """
-    lo = np.floor(f)
-    i0 = lo.astype(np.intp)
-    return np.clip(i0, 0, n - 1), np.clip(i0 + 1, 0, n - 1), f - lo
-
-
-def separable_bilinear(grid: F64, fy: F64, fx: F64) -> F64:
-    """Bilinear values of ``grid`` at every ``(fy[i], fx[j])`` (fractional node indices).
-
-    Both neighbours of a point enter with their weights, so a NaN node makes every value
-    around it NaN, as in scipy's ``map_coordinates(order=1, mode="nearest")``.
-    """
-    ny, nx = grid.shape
-    y0, y1, ty = _linear_weights(fy, ny)
-    x0, x1, tx = _linear_weights(fx, nx)
-    rows = grid[:, x0] * (1.0 - tx) + grid[:, x1] * tx  # (ny, len(fx))
-    return rows[y0] * (1.0 - ty)[:, None] + rows[y1] * ty[:, None]
 
 
 def bilinear_blocks_numpy(

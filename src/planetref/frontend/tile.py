@@ -66,10 +66,10 @@ F64 = NDArray[np.float64]
 
 
 def _flat(image: NDArray[np.float32], valid: NDArray[np.bool_]) -> bool:
-    v = image[valid]
+    v = image[valid]  # a copy: the percentiles may reorder it (same values)
     if v.size < 16:
         return True
-    lo, hi = np.percentile(v, [0.5, 99.5])
+    lo, hi = np.percentile(v, [0.5, 99.5], overwrite_input=True)
     return not (hi - lo) > 1e-6 * max(abs(float(lo)), abs(float(hi))) + 1e-30
 
 

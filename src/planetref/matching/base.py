@@ -302,25 +302,35 @@ def robust_normalise(
         ``(normalised float32 image, flat)``. ``flat`` is True when the valid pixels have no
         contrast (constant, or fewer than 16 of them); the image is then all zeros.
     """
-    values = image[valid]
+    all_valid = bool(valid.all())
+    values = image.ravel() if all_valid else image[valid]
     if values.size < 16:
         return np.zeros(image.shape, np.float32), True
     if values.size > max_samples:
         values = values[:: int(np.ceil(values.size / max_samples))]
-    lo, hi = (float(v) for v in np.percentile(values.astype(np.float64), [low, high]))
+    # A float64 copy of its own: the percentiles may reorder it in place (same values).
+    v64 = values.astype(np.float64)
+    lo, hi = (float(v) for v in np.percentile(v64, [low, high], overwrite_input=True))
     if not hi - lo > 1e-6 * max(abs(lo), abs(hi)) + 1e-30:
         # near-constant within the percentile band: fall back to the full range before
         # declaring the image flat (a few bright features on a flat background)
         lo, hi = float(values.min()), float(values.max())
         if not hi - lo > 1e-6 * max(abs(lo), abs(hi)) + 1e-30:
             return np.zeros(image.shape, np.float32), True
-    out = np.where(valid, image, lo).astype(np.float64)
-    out = np.clip((out - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
-    invalid = ~valid
-    if invalid.any():  # the fill (a median over the valid pixels) only where it is used
-        fill = float(np.median(np.clip((values.astype(np.float64) - lo) / (hi - lo), 0.0, 1.0)))
-        out[invalid] = fill
-    return out, False
+    # In place on one float64 array: the same operations, and values, as
+    # clip((image - lo) / (hi - lo), 0, 1) (invalid pixels take the fill below).
+    out = image.astype(np.float64)
+    if not all_valid:
+        out[~valid] = lo
+    out -= lo
+    out /= hi - lo
+    np.clip(out, 0.0, 1.0, out=out)
+    res = out.astype(np.float32)
+    if not all_valid:  # the fill (a median over the valid pixels) only where it is used
+        v64 -= lo
+        v64 /= hi - lo
+        res[~valid] = float(np.median(np.clip(v64, 0.0, 1.0, out=v64), overwrite_input=True))
+    return res, False
 
 
 def keypoints_on_valid_pixels(

@@ -128,23 +128,24 @@ class SiftMatcher(BaseMatcher):
                 return Matches.empty()
             knn = self._knn(d0, d1, 2)
             back = self._knn(d1, d0, 1) if self.mutual else None
-        q, t, conf = [], [], []
-        for pair in knn:
-            if len(pair) < 2:
-                continue
-            best, second = pair
-            if second.distance <= 0 or best.distance >= self.ratio * second.distance:
-                continue
-            if back is not None:
-                rev = back[best.trainIdx]
-                if not rev or rev[0].trainIdx != best.queryIdx:
-                    continue
-            q.append(best.queryIdx)
-            t.append(best.trainIdx)
-            conf.append(1.0 - best.distance / second.distance)
-        if not q:
+        # Lowe's ratio test and the mutual check on arrays of the pairs' indices and
+        # distances (float32 distances, the ratio in float64 as before).
+        pairs = [p for p in knn if len(p) >= 2]
+        if not pairs:
             return Matches.empty()
+        q = np.fromiter((p[0].queryIdx for p in pairs), np.intp, len(pairs))
+        t = np.fromiter((p[0].trainIdx for p in pairs), np.intp, len(pairs))
+        dist1 = np.fromiter((p[0].distance for p in pairs), np.float64, len(pairs))
+        dist2 = np.fromiter((p[1].distance for p in pairs), np.float64, len(pairs))
+        keep = (dist2 > 0) & (dist1 < self.ratio * dist2)
+        if back is not None:
+            rev = np.fromiter((b[0].trainIdx if b else -1 for b in back), np.intp, len(back))
+            keep &= rev[t] == q
+        if not keep.any():
+            return Matches.empty()
+        q, t = q[keep], t[keep]
+        conf = 1.0 - dist1[keep] / dist2[keep]
         from planetref.matching.tiling import deduplicate
 
         # OpenCV repeats a location once per dominant orientation: one match per location pair
-        return deduplicate(Matches(p0[q], p1[t], np.asarray(conf)), radius=1e-3)
+        return deduplicate(Matches(p0[q], p1[t], conf), radius=1e-3)

@@ -387,6 +387,10 @@ class CcdImage(BandReader):
             OrderedDict()
         )
         self._band_pixels = 0
+        # Decoded raw lines (the file's own dtype) in bands of whole lines, least recently
+        # used first; see _raw_lines.
+        self._raw_bands: OrderedDict[int, NDArray[Any]] = OrderedDict()
+        self._raw_bytes = 0
         #: Caches that belong with this reader (e.g. the front end's orthorectification
         #: lattices), keyed by their owner; they live and die with the reader.
         self.caches: dict[Any, Any] = {}
@@ -447,6 +451,22 @@ class CcdImage(BandReader):
             ``(mean, valid)`` of shape ``ceil((n_lines, n_samples) / factor)``; block
             ``(i, j)`` covers raw lines ``line0 + [i k, (i + 1) k)``.
         """
+        return self._block_mean(
+            line0, sample0, n_lines, n_samples, factor, min_valid_fraction, max_pixels, self.read
+        )
+
+    @staticmethod
+    def _block_mean(
+        line0: int,
+        sample0: int,
+        n_lines: int,
+        n_samples: int,
+        factor: int,
+        min_valid_fraction: float,
+        max_pixels: int,
+        read: Any,
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """:meth:`read_block_mean` with the window reader ``read(line0, sample0, n, m)``."""
         k = int(factor)
         if k < 1:
             raise InputError(f"block factor must be >= 1, got {factor}")
@@ -457,7 +477,7 @@ class CcdImage(BandReader):
         for i in range(0, hb, rows_per_strip):
             j = min(hb, i + rows_per_strip)
             n = min(int(n_lines) - i * k, (j - i) * k)
-            data, valid = self.read(line0 + i * k, sample0, n, n_samples)
+            data, valid = read(line0 + i * k, sample0, n, n_samples)
             out[i:j], ok[i:j] = masked_block_mean(data, valid, k, min_valid_fraction)
         return out, ok
 
@@ -465,6 +485,11 @@ class CcdImage(BandReader):
     BAND_ROWS = 64
     #: Most block pixels :meth:`read_block_mean_cached` keeps per reader (5 bytes each: ~40 MB).
     MAX_CACHED_PIXELS = 1 << 23
+    #: Raw lines per decoded band of :meth:`read_block_mean_cached` (rounded up to whole
+    #: blocks of the file).
+    RAW_BAND_LINES = 512
+    #: Most bytes of decoded raw lines :meth:`read_block_mean_cached` keeps per reader.
+    MAX_RAW_BYTES = 32 << 20
 
     def read_block_mean_cached(
         self,
@@ -480,7 +505,10 @@ class CcdImage(BandReader):
         The image is averaged once per factor, in bands of :attr:`BAND_ROWS` block rows
         over the whole width (the blocks of ``(0, 0)``-anchored ``factor x factor`` cells,
         the last row and column partial where the image ends), read when first needed and
-        kept while they fit :attr:`MAX_CACHED_PIXELS`. Windows that start on the block grid
+        kept while they fit :attr:`MAX_CACHED_PIXELS`: one decimated level per factor (the
+        coarse and the fine stages' pre-filters), built once per reader. The raw lines
+        under them are decoded once for all factors (:attr:`RAW_BAND_LINES` lines at a
+        time, kept while they fit :attr:`MAX_RAW_BYTES`). Windows that start on the block grid
         get the same blocks as :meth:`read_block_mean` of the same window, except that a
         block the window cuts short is whole here; other windows are read directly.
 
@@ -520,10 +548,44 @@ class CcdImage(BandReader):
             return hit
         rows, cols = self._shape
         l0 = b * self.BAND_ROWS * k
-        got = self.read_block_mean(l0, 0, min(rows - l0, self.BAND_ROWS * k), cols, k, frac)
+        n = min(rows - l0, self.BAND_ROWS * k)
+        got = self._block_mean(l0, 0, n, cols, k, frac, 1 << 22, self._read_lines)
         self._bands[key] = got
         self._band_pixels += got[0].size
         while self._band_pixels > self.MAX_CACHED_PIXELS and len(self._bands) > 1:
             _, old = self._bands.popitem(last=False)
             self._band_pixels -= old[0].size
         return got
+
+    def _read_lines(
+        self, line0: int, sample0: int, n_lines: int, n_samples: int
+    ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """:meth:`read` of whole lines inside the image, from the decoded-line cache."""
+        raw = self._raw_lines(int(line0), int(line0) + int(n_lines))
+        v = self._valid(raw)
+        # The conversion of _read_window's window wholly inside the image.
+        with np.errstate(invalid="ignore", over="ignore"):
+            data = raw if v.all() else np.where(v, raw, 0)
+            return data.astype(np.float32), v
+
+    def _raw_lines(self, l0: int, l1: int) -> NDArray[Any]:
+        """Stored pixels of lines ``[l0, l1)``, whole width, each band decoded once."""
+        rows, cols = self._shape
+        if self._array is not None:
+            return self._raw(l0, 0, l1, cols)
+        block_h = int(self._ds.block_shapes[self.band - 1][0]) or 1
+        h = -(-self.RAW_BAND_LINES // block_h) * block_h
+        parts = []
+        for b in range(l0 // h, (l1 - 1) // h + 1):
+            band = self._raw_bands.get(b)
+            if band is None:
+                band = self._raw(b * h, 0, min(rows, (b + 1) * h), cols)
+                self._raw_bands[b] = band
+                self._raw_bytes += band.nbytes
+            else:
+                self._raw_bands.move_to_end(b)
+            parts.append(band[max(l0, b * h) - b * h : min(l1, (b + 1) * h) - b * h])
+        while self._raw_bytes > self.MAX_RAW_BYTES and len(self._raw_bands) > 1:
+            _, old = self._raw_bands.popitem(last=False)
+            self._raw_bytes -= old.nbytes
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
