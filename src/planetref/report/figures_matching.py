@@ -222,11 +222,19 @@ def _display(image: NDArray[Any], valid: NDArray[np.bool_] | None) -> NDArray[np
 
 
 def _save(fig: Any, path: str | PathLike[str], dpi: int) -> Path:
+    """Write ``fig`` as a PNG at ``dpi`` in one draw.
+
+    ``Figure.savefig`` draws a figure with a layout engine twice: once without rendering
+    (to run the layout), then again for the pixels. The canvas's ``print_png`` draws once,
+    running the layout at the start of that draw from the same state, so the pixels are
+    the same (tested against ``savefig``) for about half the drawing time.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    FigureCanvasAgg(fig)
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        canvas.print_png(tmp)
     return Path(path)
 
 
