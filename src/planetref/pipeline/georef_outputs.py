@@ -223,8 +223,9 @@ def figures_matching(
     """The MCP distribution figure and the coarse/fine matches of three tiles (Fig. 2).
 
     Both are drawn by ``job.figures`` (a child process). Fig. 2's tiles come from
-    ``store`` (kept during matching); a tile not in it (matched by a parallel worker, or
-    read back from a resumed run's journal) is matched again here.
+    ``store`` (kept during matching, by this process or by the parallel workers); a tile
+    not in it (a resumed run's journal tile without its file, or a worker that could not
+    write it) is matched again here.
     """
     from planetref.frontend.tile import match_tile
     from planetref.report.figures_matching import (
