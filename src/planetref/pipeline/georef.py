@@ -287,6 +287,7 @@ def run_georef(
                 timing={"matching": 0.0, "adjustment": 0.0, "outputs": 0.0},
                 figures=stack.enter_context(FigureJobs()),
             )
+            job.figures.start()  # matplotlib is imported there while the tiles are matched
             campaign = None
             if cfg.campaign.adjust_together and len(manifest.strips) > 1:
                 preps = [_strip_mcps(job.for_strip(s)) for s in manifest.strips]
