@@ -20,9 +20,10 @@ from pathlib import Path
 
 
 def warm() -> None:
-    """Import what every figure needs (matplotlib's Agg canvas, the figure modules)."""
+    """Import what the figures need: matplotlib's canvas, the figure modules, a KD-tree."""
     import matplotlib.backends.backend_agg
     import matplotlib.figure  # noqa: F401
+    import scipy.spatial  # noqa: F401
 
     import planetref.report.figures_adjust
     import planetref.report.figures_matching  # noqa: F401
