@@ -232,12 +232,14 @@ def figures_matching(
         MatchPanel,
         figure_mcp_distribution,
         figure_tile_grid,
+        mcp_distribution_sdu,
         panels_from_tile,
         tile_selection_rows,
     )
 
     strip, run = job.spec.id, job.run
     columns = {k: np.asarray(table[k]) for k in ("ccd", "line", "sample")}
+    grids, sdu = mcp_distribution_sdu(columns, sizes)  # here, where the front end is loaded
     job.figures.submit(
         f"{strip}_mcp_distribution",
         figure_mcp_distribution,
@@ -246,6 +248,8 @@ def figures_matching(
         run.file("figures", f"{strip}_mcp_distribution.png"),
         ccd_order=list(sizes),
         title=f"{strip}: MCPs of {matches.matcher}",
+        grids=grids,
+        sdu=sdu,
     )
 
     def panels_of(t: TileResult) -> list[MatchPanel]:
