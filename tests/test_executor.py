@@ -75,12 +75,29 @@ def _assert_same_mcps(a, b):
 
 
 def test_dask_local_gives_identical_mcps_and_adjustment(
-    scene, tmp_path, inprocess_run, dask_local, ref_grid
+    scene, tmp_path, inprocess_run, dask_local, ref_grid, monkeypatch
 ):
+    import planetref.frontend.tile
+
+    calls = []  # tiles matched in this process (the workers are other processes)
+    real = planetref.frontend.tile.match_tile
+    monkeypatch.setattr(
+        planetref.frontend.tile, "match_tile", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
     out = run_georef(
         scene, "sift", tmp_path / "dask", config=ref_grid, progress=False, executor=dask_local
     )
     a, b = inprocess_run.run_dir, out.run_dir
+    # Fig. 2 from the stage images the workers wrote: no tile matched again for it, the
+    # same picture as in process, its three tiles kept and recorded as the run's.
+    assert calls == []
+    fig2 = ("figures", "strip1_tile_matches.png")
+    assert a.joinpath(*fig2).read_bytes() == b.joinpath(*fig2).read_bytes()
+    panels = sorted(p.name for p in (b / "strip1" / "tile_panels").iterdir())
+    assert panels == sorted(p.name for p in (a / "strip1" / "tile_panels").iterdir())
+    assert len(panels) == 3
+    listed = json.loads((b / "run.json").read_text())["files"]
+    assert {f"strip1/tile_panels/{p}" for p in panels} <= set(listed)
     _assert_same_mcps(a / "strip1" / "mcps.parquet", b / "strip1" / "mcps.parquet")
     ra, rb = inprocess_run.report, out.report
     _assert_close(ra["adjustment"], rb["adjustment"])

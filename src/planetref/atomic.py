@@ -27,6 +27,7 @@ __all__ = [
     "atomic_path",
     "json_safe",
     "read_only_mode",
+    "record_output",
     "watch_outputs",
     "write_bytes_atomic",
     "write_json_atomic",
@@ -61,6 +62,19 @@ def watch_outputs(watcher: OutputWatcher) -> Iterator[None]:
         yield
     finally:
         _WATCHERS.reset(token)
+
+
+def record_output(path: str | os.PathLike[str]) -> None:
+    """Tell the watchers that ``path`` was written for this process by another one.
+
+    A worker process writes its outputs atomically, but the watchers (a run folder's
+    record of its files) live in the process that asked for them; it records them here
+    when the worker says they are written.
+    """
+    absolute = Path(os.path.abspath(path))
+    for w in _WATCHERS.get():
+        w.check_output(absolute)
+        w.output_written(absolute)
 
 
 def _umask() -> int:

@@ -15,6 +15,7 @@ from planetref.report.figures_matching import (
     MatchPanel,
     figure_mcp_distribution,
     figure_tile_matches,
+    mcp_distribution_sdu,
     panels_from_tile,
 )
 
@@ -77,6 +78,14 @@ def test_strip_to_mcps_and_figures(scene, tmp_path):
     _is_png(out)
     sdu = sdu_per_ccd(table, sizes)
     assert all(0 < v <= 100 for v in sdu.values())
+    # The SDU handed over by the caller (the figure process then loads no front end) is
+    # the strip's own, and gives the same picture.
+    grids, given = mcp_distribution_sdu(table, sizes)
+    assert given == pytest.approx(sdu, rel=1e-12)
+    again = figure_mcp_distribution(
+        table, sizes, tmp_path / "dist2.png", title="sift", grids=grids, sdu=given
+    )
+    assert again.read_bytes() == out.read_bytes()
     assert not [p for p in tmp_path.rglob("*") if ".tmp" in p.name]
 
 

@@ -71,3 +71,40 @@ def test_panel_store_round_trip_and_cleanup():
             (p.keypoints0, k0), (p.keypoints1, k1), (p.inliers, inl),
         ):  # fmt: skip
             assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_panel_store_adopts_and_records_a_worker_file(tmp_path):
+    from planetref.atomic import watch_outputs
+    from planetref.report.tile_panels import save_panels
+
+    class Recorder:
+        def __init__(self):
+            self.written = []
+
+        def check_output(self, path):
+            pass
+
+        def output_written(self, path):
+            self.written.append(path)
+
+    rng = np.random.default_rng(2)
+    img = rng.normal(size=(12, 14)).astype(np.float32)
+    k = rng.random((4, 2)) * 10
+    stages = [StageDebug("fine", img, img > 0, img, img > 0, k, k + 1, np.ones(4, bool))]
+    tile = Tile("ccd2:r000c001", "ccd2", 0, 10, 10, 10)
+    folder = tmp_path / "tile_panels"
+    rec = Recorder()
+    store = PanelStore(persistent=folder)  # the run's store, empty
+    # A worker (another process, nothing watching there) writes the tile's file...
+    written = save_panels(folder, TileResult(tile=tile, matcher="m", status="ok", debug=stages))
+    assert written is not None and written.parent == folder
+    with watch_outputs(rec):
+        # ...and its result arrives here without stages: the store adopts the file.
+        store.add(TileResult(tile=tile, matcher="m", status="ok"))
+        store.add(TileResult(Tile("ccd2:r009c009", "ccd2", 90, 90, 10, 10), "m", "ok"))
+    assert "ccd2:r000c001" in store and len(store) == 1  # a tile without a file is not
+    assert rec.written == [written.resolve()]  # recorded as written for this process
+    (panel,) = store.panels("ccd2:r000c001")
+    assert np.array_equal(panel.image0, img) and np.array_equal(panel.keypoints1, k + 1)
+    store.keep_only([])
+    assert not written.exists()

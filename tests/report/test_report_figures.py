@@ -160,3 +160,40 @@ def test_read_report_html_rejects_bad_base64(tmp_path, bad):
     page.write_text(f'<html><body><img src="{bad}" data-file="x.png"></body></html>')
     with pytest.raises(InputError, match=r"x\.png"):
         read_report_html(page)
+
+
+def test_save_draws_once_with_the_pixels_of_savefig(tmp_path, monkeypatch):
+    """``_save`` (one draw, layout inside it) writes the pixels ``savefig`` (two draws) does."""
+    import matplotlib.image as mpimg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from planetref.report.figures_matching import _save
+
+    def figure():
+        fig = Figure(figsize=(6.0, 3.0), layout="constrained")
+        axes = fig.subplots(1, 2, sharey=True)
+        x, y, _ = _points(200, 3)
+        axes[0].scatter(x, y, s=4)
+        axes[1].imshow(np.arange(600.0).reshape(20, 30), extent=(0, 600, 300, 0))
+        axes[0].set_ylabel("line (px)")
+        fig.suptitle("two panels\nand a second title line")
+        return fig
+
+    ref = figure()
+    FigureCanvasAgg(ref)
+    ref.savefig(tmp_path / "ref.png", dpi=90, format="png")
+    draws = []
+    fig = figure()
+    orig = Figure.draw
+
+    def counted(self, renderer):
+        draws.append(1)
+        return orig(self, renderer)
+
+    monkeypatch.setattr(Figure, "draw", counted)
+    _save(fig, tmp_path / "one.png", 90)
+    assert len(draws) == 1
+    a, b = mpimg.imread(tmp_path / "ref.png"), mpimg.imread(tmp_path / "one.png")
+    assert a.shape == b.shape == (270, 540, 4)
+    assert np.array_equal(a, b)

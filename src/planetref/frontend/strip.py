@@ -49,6 +49,7 @@ def match_strip(
     raise_errors: bool = False,
     debug_tiles: Sequence[str] = (),
     debug_sink: Callable[[TileResult], None] | None = None,
+    panels_dir: str | PathLike[str] | None = None,
     coarse_matcher: MatcherLike | None = None,
     executor: Executor | None = None,
     sources: TileSources | None = None,
@@ -81,6 +82,11 @@ def match_strip(
             images attached (``result.debug``), before it is recorded; the stage images
             are dropped afterwards (except for ``debug_tiles``), so memory stays bounded.
             Figures keep what they need from the matching pass instead of matching again.
+        panels_dir: With a parallel ``executor`` and ``debug_sink``: the folder where the
+            workers write the stage images of the tiles they match
+            (:func:`planetref.report.tile_panels.save_panels`, a
+            :class:`~planetref.report.tile_panels.PanelStore`'s folder); each such result
+            then goes to ``debug_sink`` too, without stage images, before it is recorded.
         coarse_matcher: Matcher of the coarse stage (default: ``matcher``).
         executor: A :class:`planetref.execute.Executor` for the tiles (default: in this
             process, one after another). A parallel one sends each worker a
@@ -199,6 +205,8 @@ def match_strip(
                     pending,
                     match_here,
                     record,
+                    None if debug_sink is None or panels_dir is None else str(panels_dir),
+                    debug_sink,
                     progress,
                     set(debug_tiles),
                 )
@@ -260,7 +268,7 @@ class _Dispatch:
         self.fine, self.coarse, self.cfg = fine, coarse, cfg
         self.plans, self.raise_errors = plans, raise_errors
 
-    def task(self, t: Tile) -> TileTask:
+    def task(self, t: Tile, panels: str | None = None) -> TileTask:
         return TileTask(
             self.key,
             self.fine,
@@ -269,6 +277,7 @@ class _Dispatch:
             self.cfg,
             self.plans[t.ccd].ratio,
             self.raise_errors,
+            panels,
         )
 
 
@@ -278,12 +287,16 @@ def _match_parallel(
     pending: list[Tile],
     match_here: Callable[[Tile], TileResult],
     record: Callable[[TileResult], None],
+    panels: str | None,
+    sink: Callable[[TileResult], None] | None,
     progress: bool,
     debug: set[str],
 ) -> None:
     """The pending tiles on a parallel executor, each recorded (journalled) as it arrives.
 
     ``debug`` tiles are matched here with ``match_here`` (their stage images do not travel).
+    With ``panels`` the workers write every tile's stage images into that folder, and
+    each arriving result goes to ``sink`` first.
     """
     from tqdm.auto import tqdm
 
@@ -301,7 +314,8 @@ def _match_parallel(
             if t.tile_id in debug:
                 record(match_here(t))
                 bar.update(1)
-        for out in executor.map_unordered(run_tile_task, [dispatch.task(t) for t in remote]):
+        tasks = [dispatch.task(t, panels) for t in remote]
+        for out in executor.map_unordered(run_tile_task, tasks):
             t = remote[out.index]
             if out.error is not None:
                 if dispatch.raise_errors:
@@ -309,6 +323,8 @@ def _match_parallel(
                 r = error_result(t, name, dispatch.cfg.geometry, out.error)
             else:
                 r = TileResult.from_dict(out.result)
+                if panels is not None and sink is not None:
+                    sink(r)
             record(r)
             n_ok += r.status == "ok"
             bar.update(1)

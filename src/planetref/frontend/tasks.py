@@ -112,6 +112,8 @@ class TileTask:
         config: The front-end settings.
         ratio: Image pixels per reference pixel of the tile's CCD (the plan's).
         raise_errors: Re-raise an exception of the matching instead of status ``error``.
+        panels: A folder where the worker writes the tile's stage images for figures
+            (:func:`planetref.report.tile_panels.save_panels`), or None.
     """
 
     sources: str
@@ -121,6 +123,7 @@ class TileTask:
     config: FrontendConfig
     ratio: float | None = None
     raise_errors: bool = False
+    panels: str | None = None
 
 
 @dataclass
@@ -179,6 +182,8 @@ def run_tile_task(task: TileTask) -> dict[str, Any]:
         The tile's :meth:`~planetref.frontend.result.TileResult.to_dict`. An exception of
         the matching itself becomes status ``error`` (as in process) unless
         ``raise_errors``; failing to open the inputs raises (and the executor retries).
+        With ``task.panels`` the stage images are written there first (a failed write
+        only costs the figure a second match of the tile).
     """
     ctx = _worker_context(task.sources, _matchers_key(task.fine, task.coarse))
     try:
@@ -192,10 +197,20 @@ def run_tile_task(task: TileTask) -> dict[str, Any]:
             config=task.config,
             ratio=task.ratio,
             coarse_matcher=ctx.coarse,
+            debug=task.panels is not None,
         )
     except Exception as exc:
         if task.raise_errors:
             raise
         name = str(getattr(ctx.fine, "name", type(ctx.fine).__name__))
         res = error_result(task.tile, name, task.config.geometry, exc)
+    if task.panels is not None and res.debug:
+        from planetref.errors import PlanetrefError
+        from planetref.report.tile_panels import save_panels
+
+        try:
+            save_panels(task.panels, res)
+        except (OSError, PlanetrefError):
+            pass  # the figure matches this tile again
+        res.debug = []
     return res.to_dict()

@@ -8,8 +8,9 @@ Run directory layout::
 
     run.json, config.json, planetref.log, report.json, report.md
     <strip>/tiles.jsonl              per-tile matching journal (resume)
-    <strip>/tile_panels/*.npz        stage images of the tiles Fig. 2 draws (all tiles matched
-                                     in this process until it is drawn, so a resume keeps them)
+    <strip>/tile_panels/*.npz        stage images of the tiles Fig. 2 draws (every tile, by
+                                     this process or a worker, until it is drawn; a resume
+                                     keeps them)
     <strip>/mcps.parquet, mcps.gpkg  matched control points
     <strip>/adjustment/...           adjusted cameras, RPCs, residuals, per-strip report
     <strip>/adjustment/isd/*.json    adjusted native camera as USGS CSM ISDs (one per CCD)
@@ -286,6 +287,7 @@ def run_georef(
                 timing={"matching": 0.0, "adjustment": 0.0, "outputs": 0.0},
                 figures=stack.enter_context(FigureJobs()),
             )
+            job.figures.start()  # matplotlib is imported there while the tiles are matched
             campaign = None
             if cfg.campaign.adjust_together and len(manifest.strips) > 1:
                 preps = [_strip_mcps(job.for_strip(s)) for s in manifest.strips]
@@ -326,7 +328,10 @@ def run_georef(
 def _match(
     job: StripJob, camera: Camera, images: dict[str, CcdImage], store: PanelStore
 ) -> StripMatches:
-    """Match a strip's tiles, here (their stage images go to ``store``) or on the executor."""
+    """Match a strip's tiles, here or on the executor; their stage images go to ``store``.
+
+    Workers write the stage images of their tiles into the store's folder themselves.
+    """
     from planetref.frontend.strip import match_strip
     from planetref.frontend.tasks import TileSources
 
@@ -358,6 +363,7 @@ def _match(
         executor=job.executor,
         sources=sources,
         debug_sink=store.add,
+        panels_dir=store.folder.resolve() if job.executor.parallel else None,
     )
 
 

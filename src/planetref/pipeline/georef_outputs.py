@@ -223,20 +223,23 @@ def figures_matching(
     """The MCP distribution figure and the coarse/fine matches of three tiles (Fig. 2).
 
     Both are drawn by ``job.figures`` (a child process). Fig. 2's tiles come from
-    ``store`` (kept during matching); a tile not in it (matched by a parallel worker, or
-    read back from a resumed run's journal) is matched again here.
+    ``store`` (kept during matching, by this process or by the parallel workers); a tile
+    not in it (a resumed run's journal tile without its file, or a worker that could not
+    write it) is matched again here.
     """
     from planetref.frontend.tile import match_tile
     from planetref.report.figures_matching import (
         MatchPanel,
         figure_mcp_distribution,
         figure_tile_grid,
+        mcp_distribution_sdu,
         panels_from_tile,
         tile_selection_rows,
     )
 
     strip, run = job.spec.id, job.run
     columns = {k: np.asarray(table[k]) for k in ("ccd", "line", "sample")}
+    grids, sdu = mcp_distribution_sdu(columns, sizes)  # here, where the front end is loaded
     job.figures.submit(
         f"{strip}_mcp_distribution",
         figure_mcp_distribution,
@@ -245,6 +248,8 @@ def figures_matching(
         run.file("figures", f"{strip}_mcp_distribution.png"),
         ccd_order=list(sizes),
         title=f"{strip}: MCPs of {matches.matcher}",
+        grids=grids,
+        sdu=sdu,
     )
 
     def panels_of(t: TileResult) -> list[MatchPanel]:

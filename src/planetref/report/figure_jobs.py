@@ -84,6 +84,13 @@ class FigureJobs:
                 self.background = False
         return self._proc
 
+    def start(self) -> None:
+        """Start the child process now (it imports matplotlib while the caller works on).
+
+        Otherwise it starts with the first figure.
+        """
+        self._child()
+
     def submit(self, label: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
         """Draw a figure: ``fn(*args, **kwargs)`` (``label`` names it in a warning)."""
         proc = self._child()

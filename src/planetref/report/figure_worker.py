@@ -5,6 +5,10 @@ one per line; each file holds a pickled ``(function, args, kwargs)``, which it r
 then removes the file). For every task it writes one line to its reply channel (the
 original stdout): ``ok`` or ``error <message>``. Anything the figures print goes to
 stderr, so it cannot garble the replies. The process ends when stdin closes.
+
+Before it reads its first task it imports matplotlib and the figure modules
+(:func:`warm`), so a process started early (:meth:`FigureJobs.start
+<planetref.report.figure_jobs.FigureJobs.start>`) has them ready when the figures come.
 """
 
 from __future__ import annotations
@@ -15,10 +19,24 @@ import sys
 from pathlib import Path
 
 
+def warm() -> None:
+    """Import what the figures need: matplotlib's canvas, the figure modules, a KD-tree."""
+    import matplotlib.backends.backend_agg
+    import matplotlib.figure  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
+    import planetref.report.figures_adjust
+    import planetref.report.figures_matching  # noqa: F401
+
+
 def main() -> int:
     """Run the tasks named on stdin until it closes."""
     replies = os.fdopen(os.dup(1), "w", encoding="utf-8")
     os.dup2(2, 1)  # stray prints go to stderr, not into the replies
+    try:
+        warm()
+    except ImportError:
+        pass  # each figure then says what it lacks
     for line in sys.stdin:
         path = Path(line.strip())
         if not line.strip():

@@ -41,6 +41,7 @@ __all__ = [
     "figure_pair_matches",
     "figure_tile_grid",
     "figure_tile_matches",
+    "mcp_distribution_sdu",
     "panels_from_tile",
     "select_tiles",
     "tile_selection_rows",
@@ -222,11 +223,19 @@ def _display(image: NDArray[Any], valid: NDArray[np.bool_] | None) -> NDArray[np
 
 
 def _save(fig: Any, path: str | PathLike[str], dpi: int) -> Path:
+    """Write ``fig`` as a PNG at ``dpi`` in one draw.
+
+    ``Figure.savefig`` draws a figure with a layout engine twice: once without rendering
+    (to run the layout), then again for the pixels. The canvas's ``print_png`` draws once,
+    running the layout at the start of that draw from the same state, so the pixels are
+    the same (tested against ``savefig``) for about half the drawing time.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    FigureCanvasAgg(fig)
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        canvas.print_png(tmp)
     return Path(path)
 
 
@@ -466,6 +475,7 @@ def figure_mcp_distribution(
     gap_fraction: float = 0.08,
     dpi: int = 110,
     grids: Sequence[int] | None = None,
+    sdu: Mapping[str, float] | None = None,
 ) -> Path:
     """The seed's Fig. 3: MCPs of a strip, one panel per CCD in its image coordinates.
 
@@ -484,20 +494,22 @@ def figure_mcp_distribution(
         gap_fraction: Kept for compatibility (panels are separate now).
         dpi: Resolution.
         grids: SDU grid sizes (default: :data:`~planetref.frontend.stats.SDU_GRIDS`).
+        sdu: Each CCD's SDU over ``grids`` (:func:`mcp_distribution_sdu`), when the caller
+            has it (the figure process then needs no front-end module); else computed.
 
     Returns:
         The PNG path.
     """
     from matplotlib.figure import Figure
 
-    from planetref.frontend.stats import SDU_GRIDS, sdu_percent
-
     del gap_fraction
     order = list(ccd_order or image_sizes)
     unknown = [c for c in order if c not in image_sizes]
     if unknown or not order:
         raise InputError(f"no image size for CCDs {unknown}" if unknown else "no CCD to draw")
-    gs = tuple(grids or SDU_GRIDS)
+    if grids is None or sdu is None or set(order) - set(sdu):
+        grids, sdu = mcp_distribution_sdu(table, image_sizes, grids)
+    gs = tuple(grids)
     ccd = np.asarray(table["ccd"]).astype(str)
     line = np.asarray(table["line"], np.float64)
     sample = np.asarray(table["sample"], np.float64)
@@ -531,12 +543,14 @@ def figure_mcp_distribution(
             interpolation="nearest",
             aspect="auto",
         )
-        for k in range(g + 1):
-            ax.axhline(k * nl / g, color="0.85", lw=0.3, zorder=0)
-            ax.axvline(k * ns / g, color="0.85", lw=0.3, zorder=0)
+        # The SDU grid: one line collection per direction across the whole panel (as
+        # axhline/axvline would draw them, which cost one artist each in the layout).
+        k = np.arange(g + 1)
+        grid = {"colors": "0.85", "lw": 0.3, "zorder": 0, "capstyle": "projecting"}
+        ax.hlines(k * nl / g, 0, 1, transform=ax.get_yaxis_transform(which="grid"), **grid)
+        ax.vlines(k * ns / g, 0, 1, transform=ax.get_xaxis_transform(which="grid"), **grid)
         ax.scatter(sm, ln, s=5, color=colour, linewidths=0, zorder=3)
-        sdu = sdu_percent(ln, sm, nl, ns, gs)
-        ax.set_title(f"{c}\nNCP {int(sel.sum())}, SDU {sdu:.1f} %", fontsize=9, color=colour)
+        ax.set_title(f"{c}\nNCP {int(sel.sum())}, SDU {sdu[c]:.1f} %", fontsize=9, color=colour)
         ax.set_xlim(0, ns)
         ax.set_ylim(max_h, 0)
         ax.set_xlabel("sample (px)", fontsize=8)
@@ -549,6 +563,29 @@ def figure_mcp_distribution(
         fontsize=9,
     )
     return _save(fig, path, dpi)
+
+
+def mcp_distribution_sdu(
+    table: Any, image_sizes: Mapping[str, tuple[int, int]], grids: Sequence[int] | None = None
+) -> tuple[tuple[int, ...], dict[str, float]]:
+    """The grids and each CCD's SDU that :func:`figure_mcp_distribution` prints.
+
+    Args:
+        table: MCPs (``ccd``, ``line`` and ``sample`` columns).
+        image_sizes: CCD name -> ``(n_lines, n_samples)``.
+        grids: SDU grid sizes (default: :data:`~planetref.frontend.stats.SDU_GRIDS`).
+    """
+    from planetref.frontend.stats import SDU_GRIDS, sdu_percent
+
+    gs = tuple(int(g) for g in (grids or SDU_GRIDS))
+    ccd = np.asarray(table["ccd"]).astype(str)
+    line = np.asarray(table["line"], np.float64)
+    sample = np.asarray(table["sample"], np.float64)
+    out = {}
+    for c, (nl, ns) in image_sizes.items():
+        sel = ccd == c
+        out[c] = float(sdu_percent(line[sel], sample[sel], nl, ns, gs))
+    return gs, out
 
 
 def _single(colour: str) -> Any:

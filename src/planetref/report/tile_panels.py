@@ -9,8 +9,10 @@ than the rest of the figures (hiric-strip, SIFT: three tiles, ~10 CPU-s of ~20).
 figure then reads back the three it draws. A run keeps the store in its run folder
 (``persistent``), so a resumed run, whose tiles come back from the journal, finds the
 stages of the tiles matched before it was stopped; after the figure is drawn, only its
-tiles are kept (:meth:`PanelStore.keep_only`). Tiles matched by parallel workers are not
-in the store: the figure matches those again.
+tiles are kept (:meth:`PanelStore.keep_only`). A tile matched by a parallel worker is
+written into the same folder by the worker itself (:func:`save_panels`, the store's
+:attr:`PanelStore.folder` travels with the task) and adopted by the store when its result
+arrives, so no tile is matched again for the figure.
 """
 
 from __future__ import annotations
@@ -24,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from planetref.atomic import atomic_path
+from planetref.atomic import atomic_path, record_output
 from planetref.report.figures_matching import MatchPanel
 
-__all__ = ["PanelStore"]
+__all__ = ["PanelStore", "save_panels"]
 
 _FIELDS = ("image0", "valid0", "image1", "valid1", "keypoints0", "keypoints1", "inliers")
 
@@ -35,6 +37,33 @@ _FIELDS = ("image0", "valid0", "image1", "valid1", "keypoints0", "keypoints1", "
 def _file_name(tile_id: str) -> str:
     """A tile's file name (tile ids such as ``ccd1:r001c000`` hold a colon)."""
     return re.sub(r"[^A-Za-z0-9_.-]", "_", tile_id) + ".npz"
+
+
+def save_panels(folder: str | Path, result: Any) -> Path | None:
+    """Write the stages of a tile result (matched with ``debug``) into ``folder``.
+
+    The file a :class:`PanelStore` on ``folder`` reads (written atomically); parallel
+    workers call this for the tiles they match. Only tiles that ended ``ok`` can be drawn
+    (see :func:`~planetref.report.figures_matching.select_tiles`); others are ignored.
+
+    Returns:
+        The file, or None when the result has no stages to keep.
+    """
+    stages = getattr(result, "debug", None) or []
+    if getattr(result, "status", "ok") != "ok" or not stages:
+        return None
+    tile_id = str(result.tile_id)
+    arrays: dict[str, Any] = {
+        "tile_id": np.array(tile_id),
+        "stages": np.array([s.stage for s in stages]),
+    }
+    for i, s in enumerate(stages):
+        for f in _FIELDS:
+            arrays[f"{i}_{f}"] = np.asarray(getattr(s, f))
+    path = Path(folder) / _file_name(tile_id)
+    with atomic_path(path) as tmp:
+        np.savez(tmp, **arrays)
+    return path
 
 
 class PanelStore:
@@ -88,27 +117,32 @@ class PanelStore:
     def __len__(self) -> int:
         return len(self._files)
 
+    @property
+    def folder(self) -> Path:
+        """Where the tiles' files are (a worker writes its tiles here, see :func:`save_panels`)."""
+        return self._dir
+
     def add(self, result: Any) -> None:
         """Keep the stages of a :class:`~planetref.frontend.result.TileResult` (``debug``).
 
-        Only tiles that ended ``ok`` can be drawn (see
-        :func:`~planetref.report.figures_matching.select_tiles`); others are ignored.
+        A result without stage images (matched by a parallel worker) adopts the file the
+        worker wrote into :attr:`folder`, if there is one, and records it as written for
+        this process (:func:`~planetref.atomic.record_output`). Only tiles that ended
+        ``ok`` are kept.
         """
-        stages = getattr(result, "debug", None) or []
-        if getattr(result, "status", "ok") != "ok" or not stages:
+        if getattr(result, "status", "ok") != "ok":
             return
         tile_id = str(result.tile_id)
-        arrays: dict[str, Any] = {
-            "tile_id": np.array(tile_id),
-            "stages": np.array([s.stage for s in stages]),
-        }
-        for i, s in enumerate(stages):
-            for f in _FIELDS:
-                arrays[f"{i}_{f}"] = np.asarray(getattr(s, f))
-        path = self._dir / _file_name(tile_id)
-        with atomic_path(path) as tmp:
-            np.savez(tmp, **arrays)
-        self._files[tile_id] = path
+        if getattr(result, "debug", None):
+            path = save_panels(self._dir, result)
+        else:
+            path = self._dir / _file_name(tile_id)
+            if path.is_file() and self._stored_id(path) == tile_id:
+                record_output(path)
+            else:
+                path = None
+        if path is not None:
+            self._files[tile_id] = path
 
     def panels(self, tile_id: str) -> list[MatchPanel] | None:
         """The stages of a tile as figure panels, or None if it was not kept."""
