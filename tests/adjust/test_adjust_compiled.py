@@ -133,12 +133,12 @@ def test_pattern_partials_compiled_equal_numpy_reference():
 
 
 def test_counting_order_equals_numpy_stable_sort():
-    from planetref.adjust import _numba_sort
+    from planetref.adjust import _numba_groups
     from planetref.adjust.solver import _group_order
 
     rng = np.random.default_rng(3)
     keys = rng.integers(0, 50, 20_000)  # many ties: stability matters
-    assert np.array_equal(_numba_sort.counting_order(keys, 50), np.argsort(keys, kind="stable"))
+    assert np.array_equal(_numba_groups.counting_order(keys, 50), np.argsort(keys, kind="stable"))
     # The layout order: by group, then by line (stable), compiled and numpy; with long
     # buckets (many observations of one line) and exact ties.
     key = rng.integers(0, 3, 6000).astype(np.int64)
@@ -147,7 +147,7 @@ def test_counting_order_equals_numpy_stable_sort():
     ref = np.lexsort((np.arange(6000), line, key))
     assert np.array_equal(_group_order(key, line), ref)
     keys = key * 1000 + (np.floor(line) + 3).astype(np.int64)
-    assert np.array_equal(_numba_sort.group_line_order(keys, 3000, line), ref)
+    assert np.array_equal(_numba_groups.group_line_order(keys, 3000, line), ref)
 
 
 def test_point_matrices_index_like_the_dense_array():
@@ -161,3 +161,14 @@ def test_point_matrices_index_like_the_dense_array():
     idx = rng.integers(0, 50, 200)
     assert np.array_equal(pm[idx], dense[idx])
     assert len(pm) == 50 and pm[np.array([17])][0, 1, 2] == dense[17, 1, 2]
+
+
+def test_point_frames_index_like_the_dense_array():
+    from planetref.adjust.problem import PointFrames
+
+    net, _, _ = mcp_problem(60, seed=9, ground_sigma_m=3.0)
+    dense = net.point_frame_matrices()
+    frames = PointFrames(net)
+    idx = np.array([5, 0, 5, net.n_points - 1])
+    assert np.array_equal(frames[idx], dense[idx])
+    assert len(frames) == net.n_points

@@ -50,7 +50,7 @@ def point_table(
     xyz0: F64,
     xyz: F64,
     sigma_prior: F64,
-    frame: F64,
+    frame: Any,
     cofactor: tuple[NDArray[np.intp], F64],
     sigma0: float,
 ) -> dict[str, Any]:
@@ -66,7 +66,8 @@ def point_table(
         xyz: Adjusted XYZ, ``(P, 3)``.
         sigma_prior: A-priori sigmas used in the final adjustment (after variance
             component scaling), in each point's sigma frame, ``(P, 3)``.
-        frame: Rotations XYZ -> sigma frame, ``(P, 3, 3)``.
+        frame: Rotations XYZ -> sigma frame, indexed like ``(P, 3, 3)`` (an array or
+            :class:`~planetref.adjust.problem.PointFrames`).
         cofactor: ``(points, blocks)``: indices of the unknown points ``(u,)`` and
             their 3x3 cofactor blocks (XYZ), ``(u, 3, 3)``.
         sigma0: A-posteriori sigma of unit weight.

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
-__all__ = ["Network", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]
+__all__ = ["Network", "PointFrames", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]
 
 PointKind = str  # "mcp" or "tie" (informative: how a point is reported)
 F64 = NDArray[np.float64]
@@ -474,3 +474,24 @@ class PointMatrices:
         hit = pos >= 0
         out[hit] = self._m[pos[hit]]
         return out
+
+
+class PointFrames:
+    """The points' sigma frames, computed only for the points asked for.
+
+    Indexed like the ``(P, 3, 3)`` array of :meth:`Network.point_frame_matrices`.
+
+    Args:
+        network: The network.
+    """
+
+    def __init__(self, network: Network) -> None:
+        self._net = network
+        self.shape = (network.n_points, 3, 3)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, points: NDArray[np.intp]) -> F64:
+        idx = np.arange(self.shape[0])[points]
+        return self._net.point_frame_matrices(np.atleast_1d(idx)).reshape(*np.shape(idx), 3, 3)

@@ -35,7 +35,7 @@ from planetref.adjust.linearization import (
     run_shares,
 )
 from planetref.adjust.models import AdjustableCamera, Evaluation
-from planetref.adjust.problem import Network, PointMatrices
+from planetref.adjust.problem import Network, PointFrames, PointMatrices
 from planetref.adjust.robust import robust_rho
 from planetref.adjust.schur import SchurMixin, _Structure
 from planetref.adjust.statistics import StatisticsMixin
@@ -135,7 +135,6 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 f"some axes only is not supported"
             )
         self.point_fixed = fixed_pt
-        self._point_frame: F64 | None = None
         self.set_point_sigma(sig)
         self.set_obs_sigma(network.obs_sigma_px)
         self.line_guess = network.obs_line.copy()
@@ -168,15 +167,13 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         self.point_prior_w = PointMatrices(len(w), on, np.einsum("pki,pk,pkj->pij", fr, w[on], fr))
 
     @property
-    def point_frame(self) -> F64:
-        """Rotations from body-fixed XYZ to each point's sigma frame, ``(P, 3, 3)``.
+    def point_frame(self) -> PointFrames:
+        """Rotations from body-fixed XYZ to each point's sigma frame.
 
-        Built on first use (:meth:`~planetref.adjust.problem.Network.point_frame_matrices`;
-        the solve itself needs only the weighted points' frames).
+        Indexed like ``(P, 3, 3)``, computed for the indexed points only
+        (:meth:`~planetref.adjust.problem.Network.point_frame_matrices`).
         """
-        if self._point_frame is None:
-            self._point_frame = self.net.point_frame_matrices()
-        return self._point_frame
+        return PointFrames(self.net)
 
     def set_obs_sigma(self, sigma_px: F64) -> None:
         """Set the sigmas of the image measures, ``(M, 2)`` pixels (line, sample)."""
@@ -567,7 +564,7 @@ def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
 
 def _sort_kernels() -> Any:
     """The compiled counting sort, or ``None`` (numpy) when numba cannot be loaded."""
-    return optional_module("planetref.adjust._numba_sort", "compiled counting sort")
+    return optional_module("planetref.adjust._numba_groups", "compiled grouping and sorting")
 
 
 def _cost_resolution(lin: _Linearization) -> float:
