@@ -107,8 +107,8 @@ class FrontendConfig(Settings):
             other matchers match one pair at a time. Meant for a GPU (``--device cuda``);
             the results equal tile-by-tile matching as sets of matches (keypoints 1e-3 px,
             confidences 2e-3) and it is left out of the run's and the journal's identity.
-            Tiles sent to parallel workers (``--executor pool|dask``) are matched one at
-            a time.
+            Tiles sent to parallel workers (``--scheduler pool:N``, ``dask-local:N``, a
+            dask scheduler) are matched one at a time.
     """
 
     tile_size_ref_px: int = Field(256, ge=32, le=4096)

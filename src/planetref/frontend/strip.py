@@ -9,6 +9,7 @@ plan order whatever the executor.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from os import PathLike
 
@@ -27,6 +28,8 @@ from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = ["match_strip"]
+
+_log = logging.getLogger(__name__)
 
 MatcherLike = Matcher | MatcherRecipe
 
@@ -116,6 +119,13 @@ def match_strip(
     parallel = executor is not None and executor.parallel
     if parallel:
         _check_parallel(executor, sources, matcher, coarse_matcher, todo_ccds)
+        if cfg.batch_tiles > 1:
+            _log.warning(
+                "[frontend] batch_tiles = %d applies to tiles matched in this process; the "
+                "%s workers match one tile at a time",
+                cfg.batch_tiles,
+                executor.name,  # type: ignore[union-attr]  # parallel: an executor
+            )
 
     opened: list[ReferenceOrtho | CcdImage] = []
     try:
