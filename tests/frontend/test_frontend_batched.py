@@ -85,7 +85,9 @@ def test_batched_tiles_give_the_mcps_of_tile_by_tile(
     n_tiles = len(many.tiles)
     assert n_tiles >= 6 and sum(r.status == "ok" for r in many.tiles) >= n_tiles // 2
     # the detector ran on batches: both images of each of up to 4 tiles per forward pass
-    assert max(calls) == 8 and len(calls) < sum(calls) / 4
+    # (DISK and XFeat: all of a round's images round up to one padded shape here; ALIKED
+    # batches only images of one exact shape, and tiles' windows differ by a pixel)
+    assert max(calls) == 8 and len(calls) <= sum(calls) / (4 if matcher.pad_multiple else 2)
     _same_tiles(one, many)
     a, b = _mcps(one), _mcps(many)
     assert len(a) == len(b) > 100
