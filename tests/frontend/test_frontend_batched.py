@@ -62,7 +62,7 @@ def _same_tiles(one, many) -> None:
 @pytest.mark.parametrize(
     "name, ccds",
     [
-        ("xfeat-lighterglue", ["ccd1"]),  # ~3 CPU-s: the default run's check
+        ("xfeat-lighterglue", ["ccd1"]),  # ~6 CPU-s: the default run's check
         pytest.param("disk-lightglue", None, marks=pytest.mark.slow),
         pytest.param("aliked-lightglue", None, marks=pytest.mark.slow),
         pytest.param("xfeat-lighterglue", None, marks=pytest.mark.slow),
