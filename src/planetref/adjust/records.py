@@ -24,21 +24,24 @@ IMAGE_MARGIN_PX = 1.0
 pixels, in either pixel convention); a measure farther out is refused."""
 
 
-def outside_image(line: ArrayLike, sample: ArrayLike, size: tuple[int, int]) -> NDArray[np.bool_]:
+def outside_image(
+    line: ArrayLike, sample: ArrayLike, size: tuple[ArrayLike, ArrayLike]
+) -> NDArray[np.bool_]:
     """Which ``(line, sample)`` (planetref convention) lie more than 1 px outside the image.
 
     Args:
         line: Lines, pixels (the image spans ``0 .. n_lines``).
         sample: Samples, pixels.
-        size: ``(n_lines, n_samples)``.
+        size: ``(n_lines, n_samples)``, numbers or arrays broadcasting with ``line``.
 
     Returns:
         True where a measure is farther than :data:`IMAGE_MARGIN_PX` outside (or not finite).
     """
     lo = -IMAGE_MARGIN_PX
+    line, sample = np.asarray(line), np.asarray(sample)
     with np.errstate(invalid="ignore"):
-        ok_l = (np.asarray(line) >= lo) & (np.asarray(line) <= size[0] + IMAGE_MARGIN_PX)
-        ok_s = (np.asarray(sample) >= lo) & (np.asarray(sample) <= size[1] + IMAGE_MARGIN_PX)
+        ok_l = (line >= lo) & (line <= np.asarray(size[0]) + IMAGE_MARGIN_PX)
+        ok_s = (sample >= lo) & (sample <= np.asarray(size[1]) + IMAGE_MARGIN_PX)
     return ~(ok_l & ok_s)
 
 
@@ -63,27 +66,42 @@ def check_in_images(
     sample: F64,
     obs_ids: Sequence[str] | None,
 ) -> None:
-    """Refuse the first finite measure lying more than 1 px outside its image."""
+    """Refuse the first finite measure lying more than 1 px outside its image.
+
+    Args:
+        cameras: Camera id -> camera.
+        cam_ids: The camera ids in index order.
+        cam_i: Camera index of each measure.
+        ccd_i: CCD index (into the camera's ``ccd_names``) of each measure.
+        line: Lines (planetref convention).
+        sample: Samples.
+        obs_ids: Measure ids (default: their indices).
+
+    Raises:
+        InputError: Naming the first measure outside (index, id, value, image, its size)
+            and how many of that image's measures are.
+    """
     cams = [cameras[c] for c in cam_ids]
+    n_ccd = max(len(c.ccd_names) for c in cams)
+    sizes = np.zeros((len(cams), n_ccd, 2))
     for c, cam in enumerate(cams):
         for k, ccd in enumerate(cam.ccd_names):
-            sel = np.flatnonzero((cam_i == c) & (ccd_i == k))
-            if sel.size == 0:
-                continue
-            size = tuple(int(n) for n in cam.image_size(ccd))
-            with np.errstate(invalid="ignore"):
-                bad = (
-                    outside_image(line[sel], sample[sel], size)
-                    & np.isfinite(line[sel])
-                    & np.isfinite(sample[sel])
-                )
-            if np.any(bad):
-                j = int(sel[np.flatnonzero(bad)[0]])
-                oid = str(j) if obs_ids is None else str(obs_ids[j])
-                image = cam_ids[c] if len(cam.ccd_names) == 1 else f"{cam_ids[c]}/{ccd}"
-                raise InputError(
-                    f"observation {j} (id {oid!r}): line {line[j]:g}, sample {sample[j]:g} "
-                    f"is outside image {image!r} (0 to {size[0]} lines, 0 to {size[1]} "
-                    f"samples; {int(np.count_nonzero(bad))} of {sel.size} measures of it)",
-                    field="line",
-                )
+            sizes[c, k] = cam.image_size(ccd)
+    size = sizes[cam_i, ccd_i]
+    bad = outside_image(line, sample, (size[:, 0], size[:, 1])) & np.isfinite(line)
+    bad &= np.isfinite(sample)
+    if not np.any(bad):
+        return
+    j = int(np.flatnonzero(bad)[0])
+    c, k = int(cam_i[j]), int(ccd_i[j])
+    cam, ccd = cams[c], cams[c].ccd_names[k]
+    same = (cam_i == c) & (ccd_i == k)
+    oid = str(j) if obs_ids is None else str(obs_ids[j])
+    image = cam_ids[c] if len(cam.ccd_names) == 1 else f"{cam_ids[c]}/{ccd}"
+    nl, ns = (int(n) for n in sizes[c, k])
+    raise InputError(
+        f"observation {j} (id {oid!r}): line {line[j]:g}, sample {sample[j]:g} is outside "
+        f"image {image!r} (0 to {nl} lines, 0 to {ns} samples; "
+        f"{int(np.count_nonzero(bad & same))} of {int(np.count_nonzero(same))} measures of it)",
+        field="line",
+    )
