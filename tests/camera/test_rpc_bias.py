@@ -148,6 +148,21 @@ def test_refined_rpc_exact_shift_and_refit_far_below_a_hundredth_pixel():
         assert np.max(np.hypot(got.line - want.line, got.sample - want.sample)) < 1e-3
 
 
+def test_refined_rpc_refits_through_the_ladder_and_stops_at_its_first_rung():
+    """A well-behaved refit is the plain fit bit for bit (the ladder's first rung)."""
+    from planetref.camera.rpc.fit import fit_rpc
+    from planetref.camera.rpc.stable import REGULARIZATIONS
+
+    biased = BiasedRpcCamera(_camera(), RpcBias(SIZE, AFFINE))
+    rpc, report = refined_rpc(biased)
+    h0, hs = biased.rpc.height_off, abs(biased.rpc.height_scale)
+    plain, plain_report = fit_rpc(biased, height_range_m=(h0 - hs, h0 + hs), grid=(21, 21, 9))
+    assert report.regularization == REGULARIZATIONS[0] == plain_report.regularization
+    for name in ("line_num_coeff", "line_den_coeff", "samp_num_coeff", "samp_den_coeff"):
+        assert np.array_equal(getattr(rpc, name), getattr(plain, name))
+    assert report.check_max_px == plain_report.check_max_px
+
+
 def _input_file(kind: str, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     if kind == "geotiff":

@@ -34,6 +34,9 @@ def _pairs(shifted_pair) -> list[tuple[np.ndarray, ...]]:
         pairs.append((a, b))
     a, b = shifted_pair(128, (1.5, 1.5), seed=4)
     pairs.append((a[:80], b[:80]))  # another shape: its own group
+    # another shape whose sides round up to 96 like the first pairs': DISK (16) and XFeat
+    # (32) pad it into their batch, each image padded on its own
+    pairs.append((a[5:95, 3:97], b[5:95, 3:97]))
     flat = np.full((96, 96), 7.0, np.float32)
     pairs.append((flat, pairs[0][1]))  # flat: no matches, order kept
     mask = np.ones((96, 96), bool)
@@ -50,13 +53,23 @@ def _pairs(shifted_pair) -> list[tuple[np.ndarray, ...]]:
         pytest.param("aliked-lightglue", marks=pytest.mark.slow),
     ],
 )
-def test_batched_equals_unbatched_on_cpu(name, shared_weights, shifted_pair):
+def test_batched_equals_unbatched_on_cpu(name, shared_weights, shifted_pair, monkeypatch):
     matcher = get_matcher(name, weights_dir=shared_weights, **SMALL[name])
     pairs = _pairs(shifted_pair)
     one = [matcher.match(*p) for p in pairs]
+    shapes: list[set] = []
+    extract = matcher._extract_batch
+
+    def spy(images):
+        shapes.append({im.shape for im in images})
+        return extract(images)
+
+    monkeypatch.setattr(matcher, "_extract_batch", spy)
     many = matcher.match_many(pairs, batch_size=4)
+    # images of several shapes shared a forward pass exactly where the detector pads
+    assert any(len(s) > 1 for s in shapes) == (matcher.pad_multiple > 0)
     assert len(many) == len(pairs)
-    assert len(one[4]) == len(many[4]) == 0
+    assert len(one[5]) == len(many[5]) == 0
     assert sum(len(m) for m in one) > 100
     for a, b in zip(one, many, strict=True):
         assert len(a) == len(b)
@@ -66,7 +79,7 @@ def test_batched_equals_unbatched_on_cpu(name, shared_weights, shifted_pair):
         np.testing.assert_allclose(sb[:, :4], sa[:, :4], atol=1e-3)
         # descriptors equal to ~1e-6 move LightGlue's scores by up to ~3e-4
         np.testing.assert_allclose(sb[:, 4], sa[:, 4], atol=2e-3)
-    assert not np.any(many[5].keypoints0[:, 0] < 20)  # the mask holds
+    assert not np.any(many[6].keypoints0[:, 0] < 20)  # the mask holds
     assert matcher.timings["forward"] > 0
 
 

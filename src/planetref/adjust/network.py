@@ -40,6 +40,7 @@ import numpy as np
 
 from planetref.adjust.config import AdjustConfig, validate_config
 from planetref.adjust.problem import Network
+from planetref.adjust.records import IMAGE_MARGIN_PX
 from planetref.camera.base import isis_to_csm
 from planetref.camera.io import load_camera
 from planetref.errors import InputError, MissingFileError
@@ -143,7 +144,7 @@ def _check_in_image(
     shift = 0.5 if convention == "isis" else 0.0
     for name, value, n in (("line", measure[0], size[0]), ("sample", measure[1], size[1])):
         v = value - shift  # planetref convention
-        if not -1.0 <= v <= n + 1.0:
+        if not -IMAGE_MARGIN_PX <= v <= n + IMAGE_MARGIN_PX:
             lo, hi = f"{shift:g}", f"{n + shift:g}"
             raise InputError(
                 f"row {row}: {name} {value:g} is outside image {image_id!r} ({lo} to {hi})",
@@ -420,4 +421,5 @@ def _read_measures(
         sigma_px=np.asarray(sig),
         check=check,
         obs_ids=ids,
+        source=path,
     )

@@ -19,14 +19,16 @@ adjustment starts.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from os import PathLike
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.adjust.records import check_in_images, point_value
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
@@ -103,45 +105,78 @@ class Network:
             raise InputError("point ids must be unique", field="point_ids")
         xyz = _as_float(self.point_xyz, (n_pts, 3), "point_xyz")
         sig = _as_float(self.point_sigma_m, (n_pts, 3), "point_sigma_m")
-        if np.any(np.isnan(sig)) or np.any(sig < 0):
-            raise InputError("point sigmas must be >= 0 (0 fixed, inf free)", field="point_sigma_m")
+        bad_sig = np.any(np.isnan(sig) | (sig < 0), axis=1)
+        if np.any(bad_sig):
+            i = int(np.flatnonzero(bad_sig)[0])
+            raise InputError(
+                f"point {str(pids[i])!r}: sigmas must be >= 0 (0 fixed, inf free), got "
+                f"{sig[i].tolist()}",
+                field="point_sigma_m",
+            )
         kind = np.asarray(np.broadcast_to(np.asarray(self.point_kind, dtype=str), (n_pts,)))
         bad_xyz = ~np.all(np.isfinite(xyz), axis=1) & ~np.all(np.isinf(sig), axis=1)
         if np.any(bad_xyz):
             i = int(np.flatnonzero(bad_xyz)[0])
             raise InputError(
-                f"point {pids[i]!r} is fixed or weighted but has no finite a priori XYZ",
+                f"point {str(pids[i])!r} is fixed or weighted but has no finite a priori XYZ",
                 field="point_xyz",
             )
         m = len(np.atleast_1d(self.obs_point))
-        cam_i = np.asarray(self.obs_camera, dtype=np.intp).reshape(m)
-        ccd_i = np.asarray(np.broadcast_to(np.asarray(self.obs_ccd, dtype=np.intp), (m,)))
-        pt_i = np.asarray(self.obs_point, dtype=np.intp).reshape(m)
-        if m and (cam_i.min() < 0 or cam_i.max() >= len(cams)):
-            raise InputError("observation camera index out of range", field="obs_camera")
-        if m and (pt_i.min() < 0 or pt_i.max() >= n_pts):
-            raise InputError("observation point index out of range", field="obs_point")
-        n_ccd = np.array([len(c.ccd_names) for c in cams])
-        if m and (np.any(ccd_i < 0) or np.any(ccd_i >= n_ccd[cam_i])):
-            raise InputError("observation CCD index out of range", field="obs_ccd")
-        line = _as_float(self.obs_line, (m,), "obs_line")
-        sample = _as_float(self.obs_sample, (m,), "obs_sample")
-        if not (np.all(np.isfinite(line)) and np.all(np.isfinite(sample))):
-            raise InputError("observed lines and samples must be finite", field="obs_line")
-        sig_px = np.array(np.asarray(self.obs_sigma_px, dtype=np.float64))
-        sig_px = _as_float(
-            sig_px[..., None] if sig_px.ndim == 1 else sig_px, (m, 2), "obs_sigma_px"
-        )
-        if not np.all(np.isfinite(sig_px) & (sig_px > 0)):
-            raise InputError(
-                "observation sigmas must be finite and > 0 pixels", field="obs_sigma_px"
-            )
-        check = np.asarray(np.broadcast_to(np.asarray(self.obs_check, dtype=bool), (m,)))
         oids = (
             np.asarray(self.obs_ids, dtype=str).reshape(m)
             if np.size(self.obs_ids)
             else np.array([str(i) for i in range(m)], dtype=str)
         )
+
+        def first_bad(bad: NDArray[np.bool_], what: Callable[[int], str], field: str) -> None:
+            """Name the first observation flagged in ``bad`` (and how many are)."""
+            if np.any(bad):
+                k = int(np.flatnonzero(bad)[0])
+                raise InputError(
+                    f"observation {k} (id {str(oids[k])!r}): {what(k)} "
+                    f"({int(np.count_nonzero(bad))} of {m} observations)",
+                    field=field,
+                )
+
+        cam_i = np.asarray(self.obs_camera, dtype=np.intp).reshape(m)
+        ccd_i = np.asarray(np.broadcast_to(np.asarray(self.obs_ccd, dtype=np.intp), (m,)))
+        pt_i = np.asarray(self.obs_point, dtype=np.intp).reshape(m)
+        first_bad(
+            (cam_i < 0) | (cam_i >= len(cams)),
+            lambda k: f"camera index {cam_i[k]} out of range (0 to {len(cams) - 1})",
+            "obs_camera",
+        )
+        first_bad(
+            (pt_i < 0) | (pt_i >= n_pts),
+            lambda k: f"point index {pt_i[k]} out of range (0 to {n_pts - 1})",
+            "obs_point",
+        )
+        n_ccd = np.array([len(c.ccd_names) for c in cams])
+        first_bad(
+            (ccd_i < 0) | (ccd_i >= n_ccd[cam_i]),
+            lambda k: (
+                f"CCD index {ccd_i[k]} out of range (camera {ids[cam_i[k]]!r} has "
+                f"{n_ccd[cam_i[k]]})"
+            ),
+            "obs_ccd",
+        )
+        line = _as_float(self.obs_line, (m,), "obs_line")
+        sample = _as_float(self.obs_sample, (m,), "obs_sample")
+        first_bad(
+            ~(np.isfinite(line) & np.isfinite(sample)),
+            lambda k: f"line and sample must be finite, got {line[k]:g}, {sample[k]:g}",
+            "obs_line",
+        )
+        sig_px = np.array(np.asarray(self.obs_sigma_px, dtype=np.float64))
+        sig_px = _as_float(
+            sig_px[..., None] if sig_px.ndim == 1 else sig_px, (m, 2), "obs_sigma_px"
+        )
+        first_bad(
+            ~np.all(np.isfinite(sig_px) & (sig_px > 0), axis=1),
+            lambda k: f"sigmas must be finite and > 0 pixels, got {sig_px[k].tolist()}",
+            "obs_sigma_px",
+        )
+        check = np.asarray(np.broadcast_to(np.asarray(self.obs_check, dtype=bool), (m,)))
         local = np.array(np.broadcast_to(np.asarray(self.point_sigma_local, bool), (n_pts,)))
         for name, value in (
             ("point_sigma_local", local),
@@ -247,8 +282,15 @@ class Network:
         check: ArrayLike = False,
         obs_ids: Sequence[str] | None = None,
         point_sigma_local: bool | Mapping[str, bool] = False,
+        source: str | PathLike[str] | None = None,
     ) -> Network:
         """Build a network from string ids (e.g. rows of a measures table).
+
+        Every record is checked before the network is built: lengths, camera, point and
+        CCD names, each point's XYZ, sigmas and kind, finite measures and sigmas, and each
+        measure inside its image (at most 1 px outside its edges, as for network files);
+        the first bad record is named in a one-line :class:`InputError` (with ``source``,
+        when given, as the file).
 
         Args:
             cameras: Camera id -> camera.
@@ -265,15 +307,58 @@ class Network:
             obs_ids: Observation ids (default: row numbers).
             point_sigma_local: Sigmas along east, north, up (see the class doc), for all
                 points or point id -> flag.
+            source: The file the records come from (named in errors).
 
         Raises:
-            InputError: Unknown camera, point or CCD names.
+            InputError: A bad record (see above), naming ``source`` and the record.
         """
+        try:
+            return cls._from_records(
+                cameras,
+                obs_camera=obs_camera,
+                obs_point=obs_point,
+                line=line,
+                sample=sample,
+                point_xyz=point_xyz,
+                point_sigma_m=point_sigma_m,
+                point_kind=point_kind,
+                obs_ccd=obs_ccd,
+                sigma_px=sigma_px,
+                check=check,
+                obs_ids=obs_ids,
+                point_sigma_local=point_sigma_local,
+            )
+        except InputError as exc:
+            if source is None or exc.path is not None:
+                raise
+            raise InputError(str(exc), path=source) from None
+
+    @classmethod
+    def _from_records(
+        cls,
+        cameras: Mapping[str, Camera],
+        *,
+        obs_camera: Sequence[str],
+        obs_point: Sequence[str],
+        line: ArrayLike,
+        sample: ArrayLike,
+        point_xyz: Mapping[str, ArrayLike],
+        point_sigma_m: ArrayLike | Mapping[str, ArrayLike],
+        point_kind: str | Mapping[str, str],
+        obs_ccd: Sequence[str | None] | None,
+        sigma_px: ArrayLike,
+        check: ArrayLike,
+        obs_ids: Sequence[str] | None,
+        point_sigma_local: bool | Mapping[str, bool],
+    ) -> Network:
+        m = len(obs_point)
+        for name, seq in (("obs_camera", obs_camera), ("obs_ccd", obs_ccd), ("obs_ids", obs_ids)):
+            if seq is not None and len(seq) != m:
+                raise InputError(f"{len(seq)} entries for {m} observations (obs_point)", field=name)
         cam_ids = list(cameras)
         cam_index = {c: i for i, c in enumerate(cam_ids)}
         pids = list(point_xyz)
         p_index = {p: i for i, p in enumerate(pids)}
-        m = len(obs_point)
         ci = np.empty(m, np.intp)
         pi = np.empty(m, np.intp)
         ki = np.zeros(m, np.intp)
@@ -297,11 +382,12 @@ class Network:
                         field="ccd",
                     )
                 ki[k] = names.index(obs_ccd[k])
-        xyz = np.array([np.asarray(point_xyz[p], dtype=np.float64) for p in pids]).reshape(-1, 3)
+        xyz = np.array([point_value(point_xyz, p, "point_xyz", exact=True) for p in pids])
+        xyz = xyz.reshape(-1, 3)
         if isinstance(point_sigma_m, Mapping):
-            sig = np.array(
-                [np.broadcast_to(np.asarray(point_sigma_m[p], np.float64), (3,)) for p in pids]
-            ).reshape(-1, 3)
+            sig = np.array([point_value(point_sigma_m, p, "point_sigma_m") for p in pids]).reshape(
+                -1, 3
+            )
         else:
             sig = np.broadcast_to(np.asarray(point_sigma_m, np.float64), (len(pids), 3))
         if isinstance(point_sigma_local, Mapping):
@@ -309,9 +395,15 @@ class Network:
         else:
             local = np.full(len(pids), bool(point_sigma_local))
         if isinstance(point_kind, Mapping):
+            missing = [p for p in pids if p not in point_kind]
+            if missing:
+                raise InputError(f"no kind for point {missing[0]!r}", field="point_kind")
             kind = np.array([point_kind[p] for p in pids], dtype=str)
         else:
             kind = np.array([point_kind] * len(pids), dtype=str)
+        line_a = _as_float(line, (m,), "line")
+        sample_a = _as_float(sample, (m,), "sample")
+        check_in_images(cameras, cam_ids, ci, ki, line_a, sample_a, obs_ids)
         return cls(
             cameras=tuple(cameras.values()),
             camera_ids=tuple(cam_ids),
@@ -322,8 +414,8 @@ class Network:
             obs_camera=ci,
             obs_ccd=ki,
             obs_point=pi,
-            obs_line=np.asarray(line, np.float64),
-            obs_sample=np.asarray(sample, np.float64),
+            obs_line=line_a,
+            obs_sample=sample_a,
             obs_sigma_px=np.asarray(sigma_px, np.float64),
             obs_check=np.asarray(check, bool),
             obs_ids=np.array(

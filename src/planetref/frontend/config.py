@@ -99,6 +99,16 @@ class FrontendConfig(Settings):
             fraction of valid pixels gets status ``no_overlap``.
         footprint_points_per_edge: Points per tile edge projected to the ground for the
             footprint.
+        batch_tiles: Tiles matched together in this process (1: one at a time). Their
+            stages advance together, and each round's matcher calls go to
+            ``Matcher.match_many``: DISK, ALIKED and XFeat (with LightGlue/LighterGlue)
+            then detect on up to ``2 * batch_tiles`` images per forward pass (the CCD
+            sides and reference windows of one padded shape), LightGlue runs pair by pair;
+            other matchers match one pair at a time. Meant for a GPU (``--device cuda``);
+            the results equal tile-by-tile matching as sets of matches (keypoints 1e-3 px,
+            confidences 2e-3) and it is left out of the run's and the journal's identity.
+            Tiles sent to parallel workers (``--scheduler pool:N``, ``dask-local:N``, a
+            dask scheduler) are matched one at a time.
     """
 
     tile_size_ref_px: int = Field(256, ge=32, le=4096)
@@ -123,6 +133,7 @@ class FrontendConfig(Settings):
     max_mcps_per_tile: int = Field(0, ge=0)
     min_valid_fraction: float = Field(0.1, ge=0.0, le=1.0)
     footprint_points_per_edge: int = Field(5, ge=2, le=64)
+    batch_tiles: int = Field(1, ge=1, le=256)
 
     @model_validator(mode="after")
     def _check(self) -> FrontendConfig:
@@ -132,6 +143,12 @@ class FrontendConfig(Settings):
                 f"smaller than tile_size_ref_px ({self.tile_size_ref_px})"
             )
         return self
+
+    def identity(self) -> dict[str, Any]:
+        """The settings that decide the results (``model_dump()`` less ``batch_tiles``)."""
+        doc = self.model_dump()
+        doc.pop("batch_tiles")
+        return doc
 
     @classmethod
     def from_mapping(

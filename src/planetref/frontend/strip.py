@@ -9,23 +9,27 @@ plan order whatever the executor.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from os import PathLike
 
 from planetref.camera.base import Camera, Terrain
 from planetref.errors import InputError
 from planetref.execute import Executor
+from planetref.frontend.batched import TileSteps, run_batched, run_steps
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.journal import DEFAULT_MAX_ATTEMPTS, TileJournal, journal_digest
 from planetref.frontend.result import StripMatches, TileResult, error_result
 from planetref.frontend.tasks import MatcherRecipe, TileSources, TileTask, run_tile_task
-from planetref.frontend.tile import match_tile
+from planetref.frontend.tile import tile_steps
 from planetref.frontend.tiles import Tile, TilePlan, plan_tiles
 from planetref.matching.base import Matcher
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = ["match_strip"]
+
+_log = logging.getLogger(__name__)
 
 MatcherLike = Matcher | MatcherRecipe
 
@@ -115,6 +119,13 @@ def match_strip(
     parallel = executor is not None and executor.parallel
     if parallel:
         _check_parallel(executor, sources, matcher, coarse_matcher, todo_ccds)
+        if cfg.batch_tiles > 1:
+            _log.warning(
+                "[frontend] batch_tiles = %d applies to tiles matched in this process; the "
+                "%s workers match one tile at a time",
+                cfg.batch_tiles,
+                executor.name,  # type: ignore[union-attr]  # parallel: an executor
+            )
 
     opened: list[ReferenceOrtho | CcdImage] = []
     try:
@@ -150,40 +161,52 @@ def match_strip(
                 return built[which]
             return m
 
-        def match_here(t: Tile) -> TileResult:
-            r = _match_here(t)
+        def kept(t: Tile, r: TileResult) -> TileResult:
             if debug_sink is not None and r.debug:
                 debug_sink(r)
                 if t.tile_id not in debug_tiles:
                     r.debug = []
             return r
 
-        def _match_here(t: Tile) -> TileResult:
+        def steps(t: Tile) -> TileSteps:
+            return tile_steps(
+                t,
+                image=readers[t.ccd],
+                camera=camera,
+                ref=ref,
+                terrain=terrain,
+                matcher=instance("fine", matcher),
+                config=cfg,
+                ratio=plans[t.ccd].ratio,
+                debug=debug_sink is not None or t.tile_id in debug_tiles,
+                coarse_matcher=None
+                if coarse_matcher is None
+                else instance("coarse", coarse_matcher),
+            )
+
+        def failed(t: Tile, exc: BaseException) -> TileResult:
+            if raise_errors or not isinstance(exc, Exception):
+                raise exc
+            return error_result(t, name, cfg.geometry, exc)
+
+        def match_here(t: Tile) -> TileResult:
             try:
-                return match_tile(
-                    t,
-                    image=readers[t.ccd],
-                    camera=camera,
-                    ref=ref,
-                    terrain=terrain,
-                    matcher=instance("fine", matcher),
-                    config=cfg,
-                    ratio=plans[t.ccd].ratio,
-                    debug=debug_sink is not None or t.tile_id in debug_tiles,
-                    coarse_matcher=None
-                    if coarse_matcher is None
-                    else instance("coarse", coarse_matcher),
-                )
+                return kept(t, run_steps(steps(t)))
             except Exception as exc:
-                if raise_errors:
-                    raise
-                return error_result(t, name, cfg.geometry, exc)
+                return failed(t, exc)
+
+        def match_batch(batch: Sequence[Tile]) -> list[TileResult]:
+            got = run_batched([steps(t) for t in batch], cfg.batch_tiles)
+            return [
+                failed(t, r) if isinstance(r, BaseException) else kept(t, r)
+                for t, r in zip(batch, got, strict=True)
+            ]
 
         jr = (
             None
             if journal is None
             else TileJournal(
-                journal, journal_digest(name, cfg.model_dump()), max_attempts=max_attempts
+                journal, journal_digest(name, cfg.identity()), max_attempts=max_attempts
             )
         )
         results: dict[str, TileResult] = {}
@@ -212,14 +235,19 @@ def match_strip(
                 )
             else:
                 bar = tqdm(
-                    pending,
+                    total=len(pending),
                     desc=f"matching ({name})",
                     unit="tile",
                     disable=None if progress else True,
                 )
-                for t in bar:
-                    record(match_here(t))
+                n = cfg.batch_tiles
+                for a in range(0, len(pending), n):
+                    batch = pending[a : a + n]
+                    for r in [match_here(batch[0])] if n == 1 else match_batch(batch):
+                        record(r)
+                        bar.update(1)
                     bar.set_postfix(ok=sum(x.status == "ok" for x in results.values()))
+                bar.close()
         finally:
             if jr is not None:
                 jr.close()

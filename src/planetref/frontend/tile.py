@@ -35,16 +35,21 @@ predicted position of the tile's content on the reference grid.
 from __future__ import annotations
 
 import contextlib
-import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planetref.camera.base import Camera, Terrain
+from planetref.frontend.batched import (
+    StageAnswer,
+    StageRequest,
+    TileSteps,
+    inference_mode,
+    run_steps,
+)
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.grid import FineWindow, read_fine
 from planetref.frontend.orthorectify import (
@@ -60,7 +65,7 @@ from planetref.matching.base import Matcher
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
-__all__ = ["inference_mode", "match_tile"]
+__all__ = ["inference_mode", "match_tile", "tile_steps"]
 
 F64 = NDArray[np.float64]
 
@@ -83,16 +88,6 @@ def _timed(timings: dict[str, float], key: str) -> Iterator[None]:
         yield
     finally:
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
-
-
-def inference_mode() -> contextlib.AbstractContextManager[Any]:
-    """``torch.inference_mode()`` when torch is loaded already, else a null context."""
-    # Only when the matcher already brought torch in: importing it here would cost
-    # seconds for matchers that do not need it.
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        return torch.inference_mode()
-    return contextlib.nullcontext()
 
 
 def _image_side(
@@ -149,14 +144,11 @@ def _match_stage(
     matcher: Matcher,
     timings: dict[str, float],
     key: str,
-) -> _Stage:
-    t0 = time.perf_counter()
-    with inference_mode():
-        m = matcher.match(side.image, ref_img, side.valid, ref_valid)
-    elapsed = time.perf_counter() - t0
-    timings[key] = timings.get(key, 0.0) + elapsed
-    fwd = getattr(matcher, "timings", {}) or {}
-    timings["forward"] = timings.get("forward", 0.0) + float(fwd.get("forward", elapsed))
+) -> Generator[StageRequest, StageAnswer, _Stage]:
+    got = yield StageRequest(matcher, side.image, side.valid, ref_img, ref_valid)
+    timings[key] = timings.get(key, 0.0) + got.seconds
+    timings["forward"] = timings.get("forward", 0.0) + got.forward
+    m = got.matches
     kp0 = np.asarray(m.keypoints0, np.float64).reshape(-1, 2)
     kp1 = np.asarray(m.keypoints1, np.float64).reshape(-1, 2)
     conf = np.asarray(m.confidence, np.float64).reshape(-1)
@@ -259,6 +251,41 @@ def match_tile(
     Returns:
         The tile's result. Geometric failures become statuses, not exceptions.
     """
+    return run_steps(
+        tile_steps(
+            tile,
+            image=image,
+            camera=camera,
+            ref=ref,
+            terrain=terrain,
+            matcher=matcher,
+            config=config,
+            ratio=ratio,
+            debug=debug,
+            coarse_matcher=coarse_matcher,
+        )
+    )
+
+
+def tile_steps(
+    tile: Tile,
+    *,
+    image: CcdImage,
+    camera: Camera,
+    ref: ReferenceOrtho,
+    terrain: Terrain,
+    matcher: Matcher,
+    config: FrontendConfig | None = None,
+    ratio: float | None = None,
+    debug: bool = False,
+    coarse_matcher: Matcher | None = None,
+) -> TileSteps:
+    """The steps of :func:`match_tile` (same arguments): a generator of its matcher calls.
+
+    It yields a :class:`StageRequest` per stage (coarse, fine, a second fine pass), takes
+    the :class:`StageAnswer` sent back, and returns the tile's result, so that a driver can
+    make the calls of several tiles together (:mod:`planetref.frontend.batched`).
+    """
     cfg = config or FrontendConfig()
     name = str(getattr(matcher, "name", type(matcher).__name__))
     timings: dict[str, float] = {}
@@ -308,7 +335,7 @@ def match_tile(
         problem = _unmatchable(side, cref, cvalid, _area_share(base, cwin, cfg), cfg)
         if problem is not None:
             return finish(*problem)
-        st = _match_stage(
+        st = yield from _match_stage(
             side, cref, cvalid, cwin, coarse_matcher or matcher, timings, "coarse_match"
         )
         res.n_coarse_matches = len(st.kp0)
@@ -351,7 +378,7 @@ def match_tile(
         problem = _unmatchable(side, fref, fvalid, _area_share(base, iwin, cfg), cfg)
         if problem is not None:
             return finish(*problem)
-        st = _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
+        st = yield from _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
         res.n_matches = len(st.kp0)
         res.record("raw", res.n_matches)
         with _timed(timings, "verify"):

@@ -36,6 +36,7 @@ __all__ = [
     "image_batch",
     "lightglue_state_dict",
     "load_into",
+    "padded_batch",
     "resolve_device",
 ]
 
@@ -227,6 +228,27 @@ def pad_to_multiple(t: torch.Tensor, multiple: int) -> torch.Tensor:
     return F.pad(t, (0, pw, 0, ph), mode="replicate")
 
 
+def padded_batch(
+    images: Sequence[NDArray[np.float32]], device: torch.device, multiple: int, channels: int = 1
+) -> torch.Tensor:
+    """Images whose sides round up to the same multiples of ``multiple``, as one batch.
+
+    Each is replicate-padded at the bottom/right on its own (:func:`pad_to_multiple`), so
+    every image of the batch is the very tensor it would be alone.
+    """
+    if len(images) == 1:
+        return pad_to_multiple(image_tensor(images[0], device, channels), multiple)
+    same = {im.shape for im in images}
+    if len(same) == 1:
+        return pad_to_multiple(image_batch(images, device, channels), multiple)
+    parts = [pad_to_multiple(image_tensor(im, device, channels), multiple) for im in images]
+    if len({p.shape for p in parts}) != 1:
+        raise InputError(
+            f"a batch needs images of one padded shape, got {[im.shape for im in images]}"
+        )
+    return torch.cat(parts)
+
+
 def unpadded(keypoints: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     """Say which ``(N, 2)`` ``(x, y)`` keypoints of a padded image lie in the original.
 
@@ -352,6 +374,9 @@ class SparseLightGlueMatcher(TorchMatcher):
     lightglue_features: ClassVar[str] = ""
     #: cache file name of the LightGlue checkpoint (see :func:`build_lightglue`)
     lightglue_weights: ClassVar[str] = ""
+    #: the detector pads its input to multiples of this (:func:`padded_batch`), so images
+    #: whose sides round up alike share a batch; 0: only images of one shape do
+    pad_multiple: ClassVar[int] = 0
 
     def _build(self) -> dict[str, torch.nn.Module]:
         """Build ``{"extractor": ..., "matcher": LightGlue}`` on :attr:`device`."""
@@ -377,6 +402,8 @@ class SparseLightGlueMatcher(TorchMatcher):
         self, images: Sequence[NDArray[np.float32]]
     ) -> list[dict[str, torch.Tensor]]:
         """Detect and describe on normalised images, all of one shape, in one forward pass.
+
+        (Of one padded shape where :attr:`pad_multiple` is set.)
 
         Each image's features do not depend on the others of the batch (to float
         tolerance): one image at a time and a batch give the same features.
@@ -431,8 +458,10 @@ class SparseLightGlueMatcher(TorchMatcher):
         """:meth:`_features` of many images: those of one model shape ``batch`` at a time."""
         models = [self._model_image(im) for im in images]
         groups: dict[tuple[int, ...], list[int]] = {}
+        k = self.pad_multiple
         for i, m in enumerate(models):
-            groups.setdefault(m[0].shape, []).append(i)
+            shape = m[0].shape if k < 1 else tuple(-(-n // k) * k for n in m[0].shape)
+            groups.setdefault(shape, []).append(i)
         feats: list[dict[str, torch.Tensor] | None] = [None] * len(images)
         for members in groups.values():
             for a in range(0, len(members), batch):

@@ -23,9 +23,8 @@ from numpy.typing import NDArray
 from planetref.errors import WeightsError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
-    image_batch,
     load_into,
-    pad_to_multiple,
+    padded_batch,
     unpadded,
 )
 from planetref.matching.options import LightGlueSettings
@@ -51,6 +50,7 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
     weight_files: ClassVar[tuple[str, ...]] = (DISK_WEIGHTS, LIGHTGLUE_WEIGHTS)
     lightglue_features: ClassVar[str] = "disk"
     lightglue_weights: ClassVar[str] = LIGHTGLUE_WEIGHTS
+    pad_multiple: ClassVar[int] = 16
 
     def __init__(
         self,
@@ -74,14 +74,14 @@ class DiskLightGlueMatcher(SparseLightGlueMatcher):
     def _extract_batch(
         self, images: Sequence[NDArray[np.float32]]
     ) -> list[dict[str, torch.Tensor]]:
-        t = pad_to_multiple(image_batch(images, self.device, channels=3), 16)
+        t = padded_batch(images, self.device, self.pad_multiple, channels=3)
         batch = self._model["extractor"](
             t, n=None, window_size=self.nms_window, score_threshold=self.score_threshold
         )
         out = []
-        for feats in batch:
+        for feats, image in zip(batch, images, strict=True):
             kpts, desc, scores = feats.keypoints, feats.descriptors, feats.detection_scores
-            inside = unpadded(kpts, images[0].shape)
+            inside = unpadded(kpts, image.shape)
             kpts, desc, scores = kpts[inside], desc[inside], scores[inside]
             if len(scores) > self.settings.max_keypoints:
                 top = torch.topk(scores, self.settings.max_keypoints).indices

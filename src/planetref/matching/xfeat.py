@@ -53,10 +53,9 @@ from planetref.errors import InputError
 from planetref.matching._torch import (
     SparseLightGlueMatcher,
     TorchMatcher,
-    image_batch,
     image_tensor,
     load_into,
-    pad_to_multiple,
+    padded_batch,
     unpadded,
 )
 from planetref.matching.base import Matches, NormalisedPair, keypoints_on_valid_pixels
@@ -89,6 +88,7 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
     weight_files: ClassVar[tuple[str, ...]] = (XFEAT_WEIGHTS, LIGHTERGLUE_WEIGHTS)
     lightglue_features: ClassVar[str] = "xfeat"
     lightglue_weights: ClassVar[str] = LIGHTERGLUE_WEIGHTS
+    pad_multiple: ClassVar[int] = 32
 
     def __init__(
         self,
@@ -107,11 +107,12 @@ class XFeatLighterGlueMatcher(SparseLightGlueMatcher):
     def _extract_batch(
         self, images: Sequence[NDArray[np.float32]]
     ) -> list[dict[str, torch.Tensor]]:
-        t = pad_to_multiple(image_batch(images, self.device), 32)
+        t = padded_batch(images, self.device, self.pad_multiple)
         out = []
-        for f in self._model["extractor"].detectAndCompute(t, top_k=self.settings.max_keypoints):
+        feats = self._model["extractor"].detectAndCompute(t, top_k=self.settings.max_keypoints)
+        for f, image in zip(feats, images, strict=True):
             kpts = f["keypoints"].float()
-            inside = unpadded(kpts, images[0].shape)
+            inside = unpadded(kpts, image.shape)
             out.append({"keypoints": kpts[inside], "descriptors": f["descriptors"][inside]})
         return out
 

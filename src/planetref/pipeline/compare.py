@@ -157,7 +157,7 @@ def _run_compare(
     from planetref.pipeline.scene import load_manifest
 
     manifest, root = load_manifest(scene_path)
-    identity = {"scene": str(scene_path), "config": config_digest(cfg.to_json())}
+    identity = {"scene": str(scene_path), "config": config_digest(cfg.identity_json())}
     run = RunDir(
         out,
         "compare",

@@ -119,6 +119,18 @@ class GeorefConfig(Settings):
         doc = self.model_dump(mode="json")
         if self.campaign == CampaignOptions():
             doc.pop("campaign", None)
+        if self.frontend.batch_tiles == 1:  # likewise for runs that do not batch tiles
+            doc["frontend"].pop("batch_tiles")
+        return doc
+
+    def identity_json(self) -> dict[str, Any]:
+        """:meth:`to_json` less what does not change the results (``frontend.batch_tiles``).
+
+        What a run folder's configuration digest is taken of, so that a run resumes
+        whatever the batching.
+        """
+        doc = self.to_json()
+        doc["frontend"].pop("batch_tiles", None)
         return doc
 
 

@@ -239,7 +239,7 @@ def run_georef(
         identity = {
             "scene": str(scene_file),
             "matcher": matcher,
-            "config": config_digest(cfg.to_json()),
+            "config": config_digest(cfg.identity_json()),
         }
         run = RunDir(
             out,

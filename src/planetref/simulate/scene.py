@@ -402,9 +402,14 @@ def _build(
             for name, img in ccd_specs:
                 rpc_rel = None
                 if cfg.render.write_rpc:
-                    from planetref.camera.rpc import MARS_BODY, fit_rpc, write_rpc
+                    from planetref.camera.rpc import MARS_BODY, write_rpc
+                    from planetref.camera.rpc.stable import fit_rpc_stable
 
-                    rpc, rep = fit_rpc(
+                    # Through the regularisation ladder: a long strip's initial camera
+                    # is not exactly rational, and the plain fit may put a denominator
+                    # pole near the image. A well-behaved fit stops at the first rung
+                    # (the plain fit's own setting): the same RPC bit for bit.
+                    rpc, rep = fit_rpc_stable(
                         s.initial,
                         ccd=name,
                         height_range_m=(dem.min_height_m - 100.0, dem.max_height_m + 100.0),

@@ -25,10 +25,14 @@ linear map exactly. Bias models (the free coefficients; the others are zero):
 Refined RPCs
 ------------
 A shift is absorbed exactly by LINE_OFF and SAMP_OFF. A drift or affine correction is
-composed with the RPC by refitting an RPC00B to the corrected camera with
-:func:`~planetref.camera.rpc.fit.fit_rpc` over the RPC's own height domain; the fit's
-check errors are reported (they are thousandths of a pixel or less for corrections of
-a few pixels).
+composed with the RPC by refitting an RPC00B to the corrected camera over the RPC's own
+height domain, through the regularisation ladder
+(:func:`~planetref.camera.rpc.stable.fit_rpc_stable`): the corrected mapping (an affine
+function of two rationals with different denominators) is not itself an RPC00B, so the
+refit is not known to be well posed, and the ladder keeps a denominator pole away from
+the image. Its first rung is :func:`~planetref.camera.rpc.fit.fit_rpc`'s default, and a
+well-behaved refit stops there (the same RPC bit for bit); the fit's check errors are
+reported (thousandths of a pixel or less for corrections of a few pixels).
 """
 
 from __future__ import annotations
@@ -48,9 +52,10 @@ from planetref.atomic import atomic_path
 from planetref.camera.base import ImagePoints, OnMiss, Terrain
 from planetref.camera.rpc.body import RpcBody
 from planetref.camera.rpc.camera import RpcCamera
-from planetref.camera.rpc.fit import FitReport, fit_rpc
+from planetref.camera.rpc.fit import FitReport
 from planetref.camera.rpc.formats import write_rpc
 from planetref.camera.rpc.model import Rpc
+from planetref.camera.rpc.stable import fit_rpc_stable
 from planetref.errors import InputError
 
 __all__ = [
@@ -226,8 +231,9 @@ def refined_rpc(
     """An RPC00B of a bias-corrected camera.
 
     A pure shift changes LINE_OFF and SAMP_OFF only (exact; no report). Any other
-    correction is composed by refitting (:func:`fit_rpc`) to the corrected camera over
-    the RPC's height domain ``HEIGHT_OFF ± HEIGHT_SCALE``.
+    correction is composed by refitting (:func:`fit_rpc_stable`, the regularisation
+    ladder) to the corrected camera over the RPC's height domain ``HEIGHT_OFF ±
+    HEIGHT_SCALE``.
 
     Args:
         camera: The corrected camera.
@@ -243,7 +249,7 @@ def refined_rpc(
             rpc, line_off=rpc.line_off + a0, samp_off=rpc.samp_off + b0
         ), None
     h0, hs = rpc.height_off, abs(rpc.height_scale)
-    model, report = fit_rpc(camera, height_range_m=(h0 - hs, h0 + hs), grid=grid)
+    model, report = fit_rpc_stable(camera, height_range_m=(h0 - hs, h0 + hs), grid=grid)
     # The RPC's error terms still describe the corrected model's accuracy best.
     return dataclasses.replace(model, err_bias=rpc.err_bias, err_rand=rpc.err_rand), report
 
