@@ -139,6 +139,10 @@ def test_counting_order_equals_numpy_stable_sort():
     rng = np.random.default_rng(3)
     keys = rng.integers(0, 50, 20_000)  # many ties: stability matters
     assert np.array_equal(_numba_groups.counting_order(keys, 50), np.argsort(keys, kind="stable"))
+    big = rng.integers(0, 3_000_000, 20_000)  # two radix passes
+    order, srt = _numba_groups.radix_order(big, 3_000_000)
+    assert np.array_equal(order, np.argsort(big, kind="stable"))
+    assert np.array_equal(srt, np.sort(big))
     # The layout order: by group, then by line (stable), compiled and numpy; with long
     # buckets (many observations of one line) and exact ties.
     key = rng.integers(0, 3, 6000).astype(np.int64)

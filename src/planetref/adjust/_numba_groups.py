@@ -45,35 +45,80 @@ def counting_order(keys: Any, n_keys: int) -> Any:
     return order
 
 
+#: Digits of the radix sort (bits): 65536 counters stay in the L2 cache.
+_RADIX_BITS = 16
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def radix_order(keys: Any, n_keys: int) -> tuple[Any, Any]:
+    """The stable sorting permutation of ``keys`` (integers in ``[0, n_keys)``); sorted keys.
+
+    Equal to ``np.argsort(keys, kind="stable")``: least-significant-digit radix passes of
+    16 bits (two for up to 2**32 keys), each a counting sort, so the counters and the
+    write positions stay in cache where one counting sort over millions of keys would not.
+    """
+    m = keys.shape[0]
+    order = np.arange(m)
+    k = keys.copy()
+    size = 1 << _RADIX_BITS
+    mask = size - 1
+    shift = 0
+    while shift == 0 or ((n_keys - 1) >> shift) > 0:
+        start = np.zeros(size + 1, np.intp)
+        for i in range(m):
+            start[((k[i] >> shift) & mask) + 1] += 1
+        for d in range(size):
+            start[d + 1] += start[d]
+        new_order = np.empty(m, np.intp)
+        new_k = np.empty_like(k)
+        for i in range(m):
+            d = (k[i] >> shift) & mask
+            j = start[d]
+            new_order[j] = order[i]
+            new_k[j] = k[i]
+            start[d] = j + 1
+        order = new_order
+        k = new_k
+        shift += _RADIX_BITS
+    return order, k
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def group_line_order(bucket: Any, n_buckets: int, line: Any) -> Any:
     """The stable order by ``(bucket, line)``.
 
-    ``bucket`` is monotonic in ``line`` within a group (``group * span + floor(line) -
-    lo``). A counting sort by bucket, then each bucket (a few observations of one image line)
-    sorted by line, stably: the same permutation as a stable sort by line, then by group.
+    ``bucket`` is monotonic in ``line`` within a group (``group * span + line bin``). A
+    radix sort by bucket, then each bucket (a few observations of one line bin) sorted
+    by line, stably: the same permutation as a stable sort by line, then by group.
     """
-    order = counting_order(bucket, n_buckets)
+    order, keys = radix_order(bucket, n_buckets)
     m = order.shape[0]
+    ls = np.empty(m)
+    for i in range(m):
+        ls[i] = line[order[i]]
     a = 0
     while a < m:
         b = a + 1
-        while b < m and bucket[order[b]] == bucket[order[a]]:
+        while b < m and keys[b] == keys[a]:
             b += 1
         if b - a > _INSERTION_MAX:
+            sub = np.argsort(ls[a:b], kind="mergesort")
             seg = order[a:b].copy()
-            sub = np.argsort(line[seg], kind="mergesort")
+            vals = ls[a:b].copy()
             for j in range(b - a):
                 order[a + j] = seg[sub[j]]
+                ls[a + j] = vals[sub[j]]
         else:
             for j in range(a + 1, b):  # insertion sort: stable (strict comparison)
                 o = order[j]
-                v = line[o]
+                v = ls[j]
                 q = j - 1
-                while q >= a and line[order[q]] > v:
+                while q >= a and ls[q] > v:
                     order[q + 1] = order[q]
+                    ls[q + 1] = ls[q]
                     q -= 1
                 order[q + 1] = o
+                ls[q + 1] = v
         a = b
     return order
 

@@ -13,6 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,7 @@ from planetref.adjust.solver import BundleSolver
 from planetref.adjust.variance import variance_components
 from planetref.blas import single_threaded_blas
 from planetref.errors import AdjustmentError
+from planetref.threads import compute_threads
 
 __all__ = ["STATUSES", "AdjustmentResult", "adjust", "rays", "triangulate"]
 
@@ -255,13 +257,27 @@ def _adjust(
             line, samp, _ = solver.project(c, xyz, cs)
             residual[cs] = np.stack([line - net.obs_line[cs], samp - net.obs_sample[cs]], 1)
     xyz_final = xyz.copy() if np.all(finite_pt) else np.where(np.isfinite(xyz0), xyz, np.nan)
-    diag = diagnostics(
-        net, solver, cfg, (c, stats), vce, (xyz0, xyz_final), initial_cams, cams_after
+    # The metrics read only the residuals: with a second thread they are summed while
+    # the diagnostics run (both are compiled or numpy passes that release the GIL).
+    pool = ThreadPoolExecutor(1) if compute_threads(cfg.solver.threads) > 1 else None
+    pending = (
+        pool.submit(reprojection_blocks, net, res0, residual, inlier, usable) if pool else None
     )
+    try:
+        diag = diagnostics(
+            net, solver, cfg, (c, stats), vce, (xyz0, xyz_final), initial_cams, cams_after
+        )
+        metrics = (
+            pending.result()
+            if pending is not None
+            else reprojection_blocks(net, res0, residual, inlier, usable)
+        )
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
     for w in diag.pop("_warnings"):
         warn(w)
     points = diag.pop("_points")
-    metrics = reprojection_blocks(net, res0, residual, inlier, usable)
     if chk.size:
         metrics["check"] = check_metrics(net, initial_cams, cams_after, chk, res0, residual, xyz0)
     result = AdjustmentResult(

@@ -114,17 +114,35 @@ class LinearizationMixin:
         point = net.obs_point.take(obs)
         fixed_rows = self.point_fixed.take(point)
         fixed = np.all(fixed_rows)
-        slot, slot_obs, size = self._slots(obs, point, fixed_rows)
+        # Independent gathers (random reads that release the GIL): in two threads when
+        # there are two.
+        jobs = {
+            "slots": lambda: self._slots(obs, point, fixed_rows),
+            "xyz": lambda: net.point_xyz.take(point, axis=0) if fixed else None,
+            "w0": lambda: self.obs_w0.take(obs, axis=0),
+            "line": lambda: net.obs_line.take(obs),
+            "sample": lambda: net.obs_sample.take(obs),
+            "guess": lambda: self.line_guess.take(obs),
+            "rate": lambda: self.rate_guess.take(obs),
+        }
+        if compute_threads(self.cfg.threads) > 1 and len(obs) > 100_000:
+            with ThreadPoolExecutor(1, thread_name_prefix="planetref-layout") as ex:
+                far = {k: ex.submit(jobs[k]) for k in ("slots", "w0")}
+                out = {k: f() for k, f in jobs.items() if k not in far}
+                out |= {k: f.result() for k, f in far.items()}
+        else:
+            out = {k: f() for k, f in jobs.items()}
+        slot, slot_obs, size = out["slots"]
         return _Layout(
             obs,
             ranges,
             point,
-            net.obs_line.take(obs),
-            net.obs_sample.take(obs),
-            self.obs_w0.take(obs, axis=0),
-            net.point_xyz.take(point, axis=0) if fixed else None,
-            self.line_guess.take(obs),
-            self.rate_guess.take(obs),
+            out["line"],
+            out["sample"],
+            out["w0"],
+            out["xyz"],
+            out["guess"],
+            out["rate"],
             slot,
             slot_obs,
             size,
