@@ -126,8 +126,10 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         self.units = [u for m in models for u in m.units]
         self.refresh_modes()
         sig = network.point_sigma_m
-        fixed_pt = np.all(sig == 0, axis=1)
-        partial = np.any(sig == 0, axis=1) & ~fixed_pt
+        # Column by column: numpy's reductions along a length-3 axis are slow on (P, 3).
+        zero = [sig[:, k] == 0 for k in range(3)]
+        fixed_pt = zero[0] & zero[1] & zero[2]
+        partial = (zero[0] | zero[1] | zero[2]) & ~fixed_pt
         if np.any(partial):
             i = int(np.flatnonzero(partial)[0])
             raise AdjustmentError(
@@ -156,11 +158,13 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         """
         sig = np.asarray(sigma_m, np.float64)
         self.point_sigma = sig.copy()
-        with np.errstate(divide="ignore"):
-            w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / sig**2, 0.0)
+        # 1/sigma^2 where 0 < sigma < inf, else 0.
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            w = 1.0 / (sig * sig)
+        w[~((sig > 0) & (sig < np.inf))] = 0.0
         #: Per-axis weights in the sigma frame, (P, 3).
         self.point_prior_axis_w = w
-        on = np.flatnonzero(np.any(w > 0, axis=1))
+        on = np.flatnonzero((w[:, 0] > 0) | (w[:, 1] > 0) | (w[:, 2] > 0))
         fr = self.net.point_frame_matrices(on)
         #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, indexed like ``(P, 3, 3)``
         #: (zero for the fixed and free points: only weighted ones are held).
