@@ -303,14 +303,17 @@ class LineScanParameterization:
         need = self.config.min_obs_per_node
         if need <= 0 or np.all(self.mode[: 6 * self._n_nodes] == 2):
             return []
-        t = self.camera.line_rates.time(np.asarray(line, np.float64))
-        times = np.asarray(self._kernel.windows.times, np.float64)
+        line = np.asarray(line, np.float64)
         if self._n_nodes < 2:
-            nearest = np.zeros(len(t), np.intp)
+            counts = np.array([len(line)])
         else:
-            after = np.clip(np.searchsorted(times, t), 1, self._n_nodes - 1)
-            nearest = np.where(t - times[after - 1] <= times[after] - t, after - 1, after)
-        counts = np.bincount(nearest, minlength=self._n_nodes)
+            # Nearest node in time: node j owns the times up to the midpoint after it;
+            # the midpoints as lines (time is monotonic in the line), one search per
+            # observation.
+            times = np.asarray(self._kernel.windows.times, np.float64)
+            mid = self.camera.line_rates.line(0.5 * (times[:-1] + times[1:]))
+            nearest = np.searchsorted(mid, line, side="left")
+            counts = np.bincount(nearest, minlength=self._n_nodes)
         issues = []
         for i in range(self._n_nodes):
             sl = tuple(range(6 * i, 6 * i + 6))
