@@ -127,7 +127,7 @@ class LinearizationMixin:
         }
         if compute_threads(self.cfg.threads) > 1 and len(obs) > 100_000:
             with ThreadPoolExecutor(1, thread_name_prefix="planetref-layout") as ex:
-                far = {k: ex.submit(jobs[k]) for k in ("slots", "w0")}
+                far = {k: ex.submit(jobs[k]) for k in ("slots", "w0", "xyz")}
                 out = {k: f() for k, f in jobs.items() if k not in far}
                 out |= {k: f.result() for k, f in far.items()}
         else:

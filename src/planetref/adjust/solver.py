@@ -327,15 +327,20 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         if self._structure_cache is not None and np.array_equal(self._structure_cache[0], obs):
             st = self._structure_cache[1]
             # Fresh guesses: they may have improved since the structure was built.
-            st.lay.line_guess[:] = self.line_guess[st.lay.obs]
-            st.lay.rate_guess[:] = self.rate_guess[st.lay.obs]
+            st.lay.line_guess[:] = self.line_guess.take(st.lay.obs)
+            st.lay.rate_guess[:] = self.rate_guess.take(st.lay.obs)
             return st
         lay = self._layout(obs)
         pts = lay.point
-        unknown = np.unique(pts[~self.point_fixed[pts]])
-        umap = np.full(self.net.n_points, -1, np.intp)
-        umap[unknown] = np.arange(len(unknown))
-        tie_pos, chunks, n_tie = self._tie_structure(lay.obs, umap[pts], len(unknown))
+        if lay.fixed_xyz is not None:  # every point fixed: nothing to eliminate
+            unknown = np.zeros(0, np.intp)
+            tie_pos, chunks, n_tie = self._tie_structure(lay.obs[:0], unknown, 0)
+            tie_pos = np.full(len(lay.obs), -1, np.intp)
+        else:
+            unknown = np.unique(pts[~self.point_fixed[pts]])
+            umap = np.full(self.net.n_points, -1, np.intp)
+            umap[unknown] = np.arange(len(unknown))
+            tie_pos, chunks, n_tie = self._tie_structure(lay.obs, umap[pts], len(unknown))
         st = _Structure(lay, unknown, tie_pos, chunks, n_tie)
         self._structure_cache = (obs.copy(), st)
         return st
