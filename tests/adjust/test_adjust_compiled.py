@@ -134,7 +134,7 @@ def test_pattern_partials_compiled_equal_numpy_reference():
 
 def test_counting_order_equals_numpy_stable_sort():
     from planetref.adjust import _numba_groups
-    from planetref.adjust.solver import _group_order
+    from planetref.adjust.linearization import _group_order
 
     rng = np.random.default_rng(3)
     keys = rng.integers(0, 50, 20_000)  # many ties: stability matters

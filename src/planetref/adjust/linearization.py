@@ -486,6 +486,47 @@ def run_shares(n: int, run: Callable[[int], None], threads: int) -> None:
             f.result()
 
 
+#: Largest key range the compiled counting sort takes (beyond it, numpy's stable sort).
+_COUNTING_KEYS = 1 << 24
+
+
+def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
+    """The stable order of observations by ``(group key, observed line)``.
+
+    Compiled: a counting sort by group and line bin (bins of a power-of-two fraction
+    of a line, about one observation each), then each bin's few observations by line
+    (O(m) for image lines); numpy: a stable sort by line, then by
+    group (the reference; the same permutation). The order does not depend on the
+    order of the observations except for equal lines, so a network whose observations
+    come in another order (tiles finished by workers in another order) gives the same
+    sums.
+    """
+    if len(key) == 0:
+        return np.zeros(0, np.intp)
+    fn = _sort_kernels()
+    finite = np.isfinite(line)
+    if fn is not None and np.all(finite):
+        lo, hi = float(line.min()), float(line.max())
+        n_groups = int(key.max()) + 1
+        # Bins per line: a power of two (exact scaling) giving ~2 bins per observation.
+        per_line = len(key) / max(n_groups * (hi - lo + 1.0), 1.0)
+        scale = 2.0 ** int(np.clip(np.ceil(np.log2(max(2.0 * per_line, 1e-300))), -20, 8))
+        span = int(np.floor(hi * scale) - np.floor(lo * scale)) + 1
+        n_keys = n_groups * span
+        if n_keys <= max(_COUNTING_KEYS, 4 * len(key)):
+            whole = np.floor(line * scale) - np.floor(lo * scale)
+            bucket = key * span + whole.astype(np.int64)
+            return fn.group_line_order(bucket, n_keys, np.ascontiguousarray(line))
+    order = np.argsort(line, kind="stable")
+    small = key[order].astype(np.uint16 if key.max(initial=0) < 2**16 else np.int64)
+    return order[np.argsort(small, kind="stable")]
+
+
+def _sort_kernels() -> Any:
+    """The compiled counting sort, or ``None`` (numpy) when numba cannot be loaded."""
+    return optional_module("planetref.adjust._numba_groups", "compiled grouping and sorting")
+
+
 def _compiled() -> Any:
     """The compiled accumulation, or ``None`` (numpy) when numba cannot be loaded."""
     return optional_module("planetref.adjust._numba_normal", "compiled normal equations")
