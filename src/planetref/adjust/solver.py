@@ -333,8 +333,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         pts = lay.point
         if lay.fixed_xyz is not None:  # every point fixed: nothing to eliminate
             unknown = np.zeros(0, np.intp)
-            tie_pos, chunks, n_tie = self._tie_structure(lay.obs[:0], unknown, 0)
-            tie_pos = np.full(len(lay.obs), -1, np.intp)
+            tie_pos, chunks, n_tie = np.full(len(lay.obs), -1, np.intp), [], 0
         else:
             unknown = np.unique(pts[~self.point_fixed[pts]])
             umap = np.full(self.net.n_points, -1, np.intp)
