@@ -24,27 +24,6 @@ F64 = NDArray[np.float64]
 _INSERTION_MAX = 48
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def counting_order(keys: Any, n_keys: int) -> Any:
-    """The stable sorting permutation of ``keys`` (integers in ``[0, n_keys)``).
-
-    Equal to ``np.argsort(keys, kind="stable")``: one counting pass, one prefix sum, one
-    scatter (O(m + n_keys) instead of a comparison sort).
-    """
-    m = keys.shape[0]
-    start = np.zeros(n_keys + 1, np.intp)
-    for i in range(m):
-        start[keys[i] + 1] += 1
-    for k in range(n_keys):
-        start[k + 1] += start[k]
-    order = np.empty(m, np.intp)
-    for i in range(m):
-        k = keys[i]
-        order[start[k]] = i
-        start[k] += 1
-    return order
-
-
 #: Digits of the radix sort (bits): 65536 counters stay in the L2 cache.
 _RADIX_BITS = 16
 
@@ -151,7 +130,7 @@ def group_order(
         bounds[c + 1] += 1
     for c in range(n_code):
         bounds[c + 1] += bounds[c]
-    order = counting_order(code, n_code)
+    order, _ = radix_order(code, n_code)
     return order, bounds
 
 
