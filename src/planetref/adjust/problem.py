@@ -585,5 +585,5 @@ class PointFrames:
         return self.shape[0]
 
     def __getitem__(self, points: NDArray[np.intp]) -> F64:
-        idx = np.arange(self.shape[0])[points]
-        return self._net.point_frame_matrices(np.atleast_1d(idx)).reshape(*np.shape(idx), 3, 3)
+        """Frames of the points with these indices, ``(len(points), 3, 3)``."""
+        return self._net.point_frame_matrices(np.asarray(points, np.intp))
