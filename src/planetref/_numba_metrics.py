@@ -178,14 +178,35 @@ def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[An
                 n_total[g] += 1
                 if kept[i]:
                     n_in[g] += 1
-    start = np.zeros(n_groups + 1, np.int64)
-    for g in range(n_groups):
-        start[g + 1] = start[g] + n_in[g]
-    bx = np.empty(start[n_groups])
-    by = np.empty(start[n_groups])
-    bl = np.empty(start[n_groups])
-    pos = start[:n_groups].copy()
+    # One level at a time: the gathered residuals of a level's groups (contiguous per
+    # group, in row order, for numpy's pairwise sums) fit in buffers of the level with
+    # the most kept rows, reused for every level.
+    per_level = np.zeros(group.shape[0], np.int64)
     for lv in range(group.shape[0]):
+        for i in range(m):
+            if group[lv, i] >= 0 and kept[i]:
+                per_level[lv] += 1
+    size = 0
+    for lv in range(group.shape[0]):
+        size = max(size, per_level[lv])
+    bx = np.empty(size)
+    by = np.empty(size)
+    bl = np.empty(size)
+    sums = np.zeros((n_groups, 6))
+    ext = np.full((n_groups, 4), np.nan)
+    on_level = np.zeros(n_groups, np.bool_)
+    start = np.zeros(n_groups + 1, np.int64)
+    pos = np.zeros(n_groups, np.int64)
+    for lv in range(group.shape[0]):
+        on_level[:] = False
+        for i in range(m):
+            g = group[lv, i]
+            if g >= 0:
+                on_level[g] = True
+        for g in range(n_groups):
+            start[g + 1] = start[g] + (n_in[g] if on_level[g] else 0)
+        for g in range(n_groups):
+            pos[g] = start[g]
         for i in range(m):
             g = group[lv, i]
             if g >= 0 and kept[i]:
@@ -194,19 +215,17 @@ def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[An
                 by[p] = y[i]
                 bl[p] = length[i]
                 pos[g] = p + 1
-    sums = np.zeros((n_groups, 6))
-    ext = np.full((n_groups, 4), np.nan)
-    for g in range(n_groups):
-        a, n = start[g], n_in[g]
-        if n == 0:
-            continue
-        _sums5(bx, by, a, n, sums[g])
-        sums[g, 5] = pairwise_sum(bl, bl, a, n, 6)
-        mx, mnx, my, mny = bx[a], bx[a], by[a], by[a]
-        for i in range(a + 1, a + n):
-            mx = max(mx, bx[i])
-            mnx = min(mnx, bx[i])
-            my = max(my, by[i])
-            mny = min(mny, by[i])
-        ext[g, 0], ext[g, 1], ext[g, 2], ext[g, 3] = mx, mnx, my, mny
+        for g in range(n_groups):
+            a, n = start[g], start[g + 1] - start[g]
+            if n == 0:
+                continue
+            _sums5(bx, by, a, n, sums[g])
+            sums[g, 5] = pairwise_sum(bl, bl, a, n, 6)
+            mx, mnx, my, mny = bx[a], bx[a], by[a], by[a]
+            for i in range(a + 1, a + n):
+                mx = max(mx, bx[i])
+                mnx = min(mnx, bx[i])
+                my = max(my, by[i])
+                mny = min(mny, by[i])
+            ext[g, 0], ext[g, 1], ext[g, 2], ext[g, 3] = mx, mnx, my, mny
     return n_total, n_in, sums, ext

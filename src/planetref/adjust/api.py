@@ -116,7 +116,8 @@ def _adjust(
     has_xyz = finite_pt[net.obs_point]
     res0 = np.full((m_all, 2), np.nan)
     valid0 = np.zeros(m_all, bool)
-    xyz_start = xyz0.copy() if np.all(finite_pt) else np.where(np.isfinite(xyz0), xyz0, 0.0)
+    # Read only from here on (the solver copies before it moves points).
+    xyz_start = xyz0 if np.all(finite_pt) else np.where(np.isfinite(xyz0), xyz0, 0.0)
     # With plain least squares in the first round, the initial residuals come from a
     # full linearisation of the candidates that the first LM run reuses when they all
     # turn out usable (one pass fewer); with a robust loss the weights need the
@@ -186,10 +187,13 @@ def _adjust(
         obs = np.flatnonzero(inlier)
         if progress is not None:
             progress(f"round {rnd + 1}: {obs.size} observations")
-        c, xyz, rep, lin, stats = solver.run(
-            c, xyz, obs, xyz_start, initial=lin0 if rnd == 0 else None
-        )
+        # Handed over, not kept: the first linearisation is freed as soon as the run
+        # replaces it (a million observations: ~40 MB out of the run's peak).
+        initial = [lin0] if rnd == 0 else []
         lin0 = None
+        c, xyz, rep, lin, stats = solver.run(
+            c, xyz, obs, xyz_start, initial=initial.pop() if initial else None
+        )
         last_used = inlier.copy()
         # The final linearisation holds the residuals of the observations it used; only
         # the others (rejected so far) need projecting.
@@ -230,12 +234,28 @@ def _adjust(
     c, xyz, stats, vce = variance_components(
         solver, c, xyz, np.flatnonzero(inlier), xyz_start, stats, cfg.variance, progress, lin
     )
+    variance = {
+        "enabled": cfg.variance.enabled,
+        "iterations": vce.iterations,
+        "converged": vce.converged,
+        "groups": vce.groups,
+        "dof": vce.dof_split() | {"dof": int(stats["dof"]), "n_unknowns": stats["n_unknowns"]},
+    }
+    # What the diagnostics need of the redundancy numbers. The per-observation arrays
+    # (redundancy, residuals, weights), the final linearisation and the solver's layout
+    # are let go: the diagnostics and metrics below are the memory peak of the call.
+    red = vce.redundancy
+    used_obs, cofactor = red.obs, (red.unknown, red.point_cofactor)
+    del red, lin, vce
+    solver.release_layout()
     if cfg.variance.enabled:
-        if not vce.converged:
+        if not variance["converged"]:
             warn(
-                f"variance components did not converge in {vce.iterations} iteration(s); "
-                f"the factors of the last one: "
-                + ", ".join(f"{g['group']} {g['factor']:.3g}" for g in vce.groups if g["estimated"])
+                f"variance components did not converge in {variance['iterations']} "
+                f"iteration(s); the factors of the last one: "
+                + ", ".join(
+                    f"{g['group']} {g['factor']:.3g}" for g in variance["groups"] if g["estimated"]
+                )
             )
         sel = np.flatnonzero(usable)
         line, samp, _ = solver.project(c, _reference(xyz), sel)
@@ -265,7 +285,14 @@ def _adjust(
     )
     try:
         diag = diagnostics(
-            net, solver, cfg, (c, stats), vce, (xyz0, xyz_final), initial_cams, cams_after
+            net,
+            solver,
+            cfg,
+            (c, stats),
+            (used_obs, cofactor),
+            (xyz0, xyz_final),
+            initial_cams,
+            cams_after,
         )
         metrics = (
             pending.result()
@@ -302,13 +329,7 @@ def _adjust(
         sigma0=float(stats["sigma0"]),
         dof=int(stats["dof"]),
         metrics=metrics,
-        variance={
-            "enabled": cfg.variance.enabled,
-            "iterations": vce.iterations,
-            "converged": vce.converged,
-            "groups": vce.groups,
-            "dof": vce.dof_split() | {"dof": int(stats["dof"]), "n_unknowns": stats["n_unknowns"]},
-        },
+        variance=variance,
         points=points,
         diagnostics=diag,
         rounds=rounds,

@@ -23,7 +23,6 @@ from planetref.adjust.diagnostics import (
 from planetref.adjust.problem import Network
 from planetref.adjust.rays import ground_error_m
 from planetref.adjust.solver import BundleSolver, LmReport
-from planetref.adjust.variance import VceResult
 from planetref.metrics import grouped_reprojection_metrics
 
 __all__ = ["check_metrics", "diagnostics", "reprojection_blocks", "round_summary"]
@@ -36,22 +35,34 @@ def diagnostics(
     solver: BundleSolver,
     cfg: AdjustConfig,
     solution: tuple[F64, dict[str, Any]],
-    vce: VceResult,
+    redundancy: tuple[NDArray[np.intp], tuple[NDArray[np.intp], F64]],
     points: tuple[F64, F64],
     cams0: list[Any],
     cams1: list[Any],
 ) -> dict[str, Any]:
-    """Movements, strong correlations and self-calibration estimability (with warnings)."""
+    """Movements, strong correlations and self-calibration estimability (with warnings).
+
+    Args:
+        net: The network.
+        solver: The solver of the final solution.
+        cfg: The adjustment's configuration.
+        solution: ``(c, stats)``: camera vector and the solver's statistics.
+        redundancy: ``(obs, (unknown, cofactor))`` of the final solution's
+            :class:`~planetref.adjust.redundancy.Redundancy`: the network indices of the
+            observations used, those of the unknown points and their 3x3 cofactor blocks.
+        points: ``(xyz0, xyz)``: a-priori and adjusted coordinates, ``(P, 3)``.
+        cams0: Cameras before the adjustment.
+        cams1: Cameras after it.
+    """
     dc = cfg.diagnostics
     c, stats = solution
     xyz0, xyz = points
-    red = vce.redundancy
-    cof = (red.unknown, red.point_cofactor)
+    used_obs, cof = redundancy
     table = point_table(
         net, xyz0, xyz, solver.point_sigma, solver.point_frame, cof, float(stats["sigma0"])
     )
     used = np.zeros(net.n_points, bool)
-    used[net.obs_point[red.obs]] = True
+    used[net.obs_point[used_obs]] = True
     moved, w_pts = point_summary(table, used, dc, net.point_kind_codes)
     shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc, heights=table["height"])
     corr_info, w_corr = correlation_warnings(solver.names, stats["correlation"], dc)
@@ -129,6 +140,7 @@ def reprojection_blocks(
         levels.append(np.where(adjusted & multi, code, -1))
         n_groups += int(ccd_base[-1])
     group = np.stack(levels)
+    del levels  # (M,) codes per level: the stacked copy is what is read
     before = grouped_reprojection_metrics(res0[:, 1], res0[:, 0], inlier, group, n_groups)
     before_all = (
         [dict(d) for d in before]

@@ -41,9 +41,8 @@ class _Linearization:
     r: F64  # (M, 2) residuals (line, sample)
     valid: NDArray[np.bool_]
     line: F64  # projected lines
-    sample: F64
     s: F64  # squared normalised residuals
-    weight: F64  # (M, 2) effective weights (robust x 1/sigma^2)
+    weight: F64  # (M, 2) effective weights (robust x 1/sigma^2); the layout's w0 when equal
     n_cc: F64  # (P+1, P+1) sum A^T W A
     g_c: F64  # (P+1,) sum A^T W r
     a_t: F64  # (Mt, 2, q) camera partials of observations on unknown points
@@ -187,9 +186,13 @@ class LinearizationMixin:
         r = np.empty((m, 2))
         valid = np.empty(m, bool)
         line = np.empty(m)
-        sample = np.empty(m)
         s_all = np.empty(m)
-        weight = np.empty((m, 2))
+        robust = self.loss != "linear"
+        # With the plain loss the weights are the a-priori ones (0 on invalid rows): they
+        # are taken from the layout after the pass, and each chunk writes its copy into
+        # a scratch of its share (16 bytes per observation less per linearisation).
+        weight = np.empty((m, 2)) if robust else None
+        scratch: dict[int, F64] = {}
         rate = np.full(m, np.nan)
         n_cc = np.zeros((p + 1, p + 1))
         g_c = np.zeros(p + 1)
@@ -201,7 +204,6 @@ class LinearizationMixin:
         thr = self.threshold
         thr_l = thr if np.ndim(thr) == 0 else np.asarray(thr)[lay.obs]
         pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[lay.point]
-        robust = self.loss != "linear"
         parts = self.chunk_parts(lay)
         # One normal matrix per share (contiguous chunks; not per thread), summed in
         # order below; every other output is a disjoint slice of the layout.
@@ -215,6 +217,14 @@ class LinearizationMixin:
             if loss_code is None:
                 robust_rho(np.zeros(1), self.loss, 1.0)  # raises: unknown loss
             thr_c = np.atleast_1d(np.asarray(thr_l, np.float64))
+
+        def weights_out(k: int, a: int, b: int) -> F64:
+            if weight is not None:
+                return weight[a:b]
+            buf = scratch.get(k)
+            if buf is None or len(buf) < b - a:
+                buf = scratch[k] = np.empty((self.cfg.chunk_size, 2))
+            return buf[: b - a]
 
         def work(k: int, mi: int, a: int, b: int, ev: Evaluation) -> None:
             if ev.line_rate is not None:
@@ -233,9 +243,9 @@ class LinearizationMixin:
                     (self.act_n, self.act_loc, self.act_col),
                     (lay.slot[a:b], s_k, int(self.offsets[mi])),
                     (n_k, g_k),
-                    (r[a:b], s_all[a:b], weight[a:b]),
+                    (r[a:b], s_all[a:b], weights_out(k, a, b)),
                 )
-                valid[a:b], line[a:b], sample[a:b] = ev.valid, ev.line, ev.sample
+                valid[a:b], line[a:b] = ev.valid, ev.line
                 _tie_rows(ev, a, b, gp)
                 return
             res = r[a:b]
@@ -244,7 +254,7 @@ class LinearizationMixin:
             w0 = lay.w0[a:b]
             s = np.einsum("mr,mr->m", res * res, w0)
             ok = ev.valid
-            we = weight[a:b]
+            we = weights_out(k, a, b)
             if robust:
                 _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else thr_l[a:b])
                 np.multiply(w0, rw[:, None], out=we)
@@ -257,7 +267,7 @@ class LinearizationMixin:
                 s[~ok] = np.inf
                 res_ok = np.where(ok[:, None], res, 0.0)
             valid[a:b], s_all[a:b] = ok, s
-            line[a:b], sample[a:b] = ev.line, ev.sample
+            line[a:b] = ev.line
             d = ev.d_params
             n_k, g_k, s_k = acc[k]
             sl = (lay.slot[a:b], s_k, int(self.offsets[mi]))
@@ -287,7 +297,10 @@ class LinearizationMixin:
             rho, _ = robust_rho(np.where(valid, s_all, 0.0), self.loss, thr_l)
         else:
             rho = np.where(valid, s_all, 0.0)
-        cost = 0.5 * float(np.sum(rho)) if np.all(valid) else math.inf
+        all_valid = bool(np.all(valid))
+        cost = 0.5 * float(np.sum(rho)) if all_valid else math.inf
+        if weight is None:
+            weight = lay.w0 if all_valid else np.where(valid[:, None], lay.w0, 0.0)
         cost += self._prior_cost(c)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
@@ -300,7 +313,6 @@ class LinearizationMixin:
             r,
             valid,
             line,
-            sample,
             s_all,
             weight,
             n_cc,

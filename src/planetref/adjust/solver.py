@@ -29,6 +29,7 @@ from planetref.adjust.config import SolverConfig
 from planetref.adjust.linearization import (
     LinearizationMixin,
     _group_order,
+    _Layout,
     _Linearization,
     chunk_shares,
     run_shares,
@@ -155,8 +156,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         0 and inf (fixed and free) must stay where they were: only the weights of
         weighted points change (variance component estimation).
         """
-        sig = np.asarray(sigma_m, np.float64)
-        self.point_sigma = sig.copy()
+        sig = _read_only(sigma_m)
+        self.point_sigma = sig
         # 1/sigma^2 where 0 < sigma < inf, else 0.
         with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
             w = 1.0 / (sig * sig)
@@ -180,9 +181,18 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
 
     def set_obs_sigma(self, sigma_px: F64) -> None:
         """Set the sigmas of the image measures, ``(M, 2)`` pixels (line, sample)."""
-        self.obs_sigma = np.array(sigma_px, np.float64)
+        self.obs_sigma = _read_only(sigma_px)
         self.obs_w0 = 1.0 / self.obs_sigma**2  # (M, 2), line then sample
         self._structure_cache = None
+
+    def release_layout(self) -> None:
+        """Drop the cached layout and groups of the last observation set.
+
+        They are rebuilt on the next linearisation; letting them go before work that
+        no longer linearises keeps the per-observation copies out of its memory peak.
+        """
+        self._structure_cache = None
+        self._group_cache = None
 
     def set_models(self, models: list[AdjustableCamera]) -> None:
         """Adjust with other parameterisations of the same cameras (weak groups weighted).
@@ -404,11 +414,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             return self._linearize(cc, xx, lay, tie_pos, n_tie, unknown, xyz0)
 
         if initial is not None and np.array_equal(initial.obs, obs):
-            lin = initial
+            lin, initial = initial, None  # held once: it goes when a step replaces it
             # Made outside, but part of this run's work (its time too).
             rep.evaluations += 1
-            t_start -= initial.seconds
-            c_start -= initial.cpu_seconds
+            t_start -= lin.seconds
+            c_start -= lin.cpu_seconds
         else:
             lin = linearize(c, xyz)
         if not np.all(lin.valid):
@@ -461,8 +471,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 xyz_new[unknown] += dx
             else:
                 xyz_new = xyz  # nothing moves (every point fixed): no copy of (P, 3)
-            saved = lay.line_guess.copy()
-            saved_rate = lay.rate_guess.copy()
+            # The models read the guesses and never write them: a rejected step leaves
+            # them as they are, an accepted one replaces them below.
             new = linearize(c_new, xyz_new)
             actual = lin.cost - new.cost
             step_c = np.abs(delta_c) / sig_c
@@ -480,8 +490,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 nu = 2.0
                 it += 1
                 c, xyz, lin = c_new, xyz_new, new
-                lay.line_guess[:] = np.where(new.valid, new.line, saved)
-                lay.rate_guess[:] = np.where(new.valid, new.rate, np.nan)
+                _take_guesses(lay, new)
                 rep.history.append((it, lin.cost, lam))
                 if self.progress is not None:
                     self.progress(
@@ -502,14 +511,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 # rounding noise happened to stop it).
                 it += 1
                 c, xyz, lin = c_new, xyz_new, new
-                lay.line_guess[:] = np.where(new.valid, new.line, saved)
-                lay.rate_guess[:] = np.where(new.valid, new.rate, np.nan)
+                _take_guesses(lay, new)
                 rep.history.append((it, lin.cost, lam))
                 rep.converged, rep.reason = True, "step gain below the cost's resolution"
                 break
             else:
-                lay.line_guess[:] = saved
-                lay.rate_guess[:] = saved_rate
                 # A rejected step that is tiny, or predicted to gain nothing, means the
                 # cost is at its floor of rounding (projections are exact to ~1e-9 px).
                 if np.isfinite(new.cost) and (
@@ -536,6 +542,24 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         rep.seconds = time.perf_counter() - t_start
         rep.cpu_seconds = time.process_time() - c_start
         return c, xyz, rep, lin, stats
+
+
+def _take_guesses(lay: _Layout, lin: _Linearization) -> None:
+    """Start the next evaluation from ``lin``'s lines and rates where it is valid."""
+    np.copyto(lay.line_guess, lin.line, where=lin.valid)
+    lay.rate_guess[:] = np.where(lin.valid, lin.rate, np.nan)
+
+
+def _read_only(a: F64) -> F64:
+    """A read-only float64 view of ``a`` (no copy where it is float64 already).
+
+    The solver only replaces its sigma arrays, never writes into them: a view spares
+    the copy (tens of MB at a million observations) and a write would raise instead of
+    changing the caller's array.
+    """
+    view = np.asarray(a, np.float64).view()
+    view.flags.writeable = False
+    return view
 
 
 def _cost_resolution(lin: _Linearization) -> float:
