@@ -129,13 +129,13 @@ def _two_kind_solver():
     return net, solver, obs, (c, xyz, lin, stats)
 
 
-@pytest.mark.skipif(variance._compiled() is None, reason="numba is not installed")
+@pytest.mark.skipif(variance.group_kernels() is None, reason="numba is not installed")
 def test_variance_group_passes_compiled_equal_numpy_reference():
     net, solver, obs, (c, xyz, lin, stats) = _two_kind_solver()
     kinds, kind_of_pt = net.point_kind_codes
     sub = obs[np.random.default_rng(2).random(len(obs)) < 0.7]  # gaps, as inliers leave
     args = (sub, net.obs_camera, net.obs_ccd, net.obs_point, kind_of_pt, 3, 3, len(kinds))
-    order, bounds = variance._compiled().group_order(*args)
+    order, bounds = variance.group_kernels().group_order(*args)
     order_ref, bounds_ref = variance._group_order_numpy(*args)
     assert np.array_equal(order, order_ref) and np.array_equal(bounds, bounds_ref)
     assert np.count_nonzero(np.diff(bounds)) == 6  # 2 kinds x 3 CCDs
@@ -145,7 +145,7 @@ def test_variance_group_passes_compiled_equal_numpy_reference():
     rg = red.row_groups(group_of)
     assert red.slot is not None and np.array_equal(rg, group_of[red.obs])  # slots' groups
     args = (rg, red.obs_w, red.obs_v, len(groups))
-    got, ref = variance._compiled().group_vtpv(*args), variance._group_vtpv_numpy(*args)
+    got, ref = variance.group_kernels().group_vtpv(*args), variance._group_vtpv_numpy(*args)
     assert np.array_equal(got, ref) and np.count_nonzero(got) == 6
     # Against the definition: v^T P v of each image group.
     for i, g in enumerate(groups):

@@ -29,7 +29,7 @@ from planetref.threads import compute_threads
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
 
-__all__ = ["LinearizationMixin", "chunk_shares", "run_shares"]
+__all__ = ["LinearizationMixin", "chunk_shares", "group_kernels", "run_shares"]
 
 
 F64 = NDArray[np.float64]
@@ -515,7 +515,7 @@ def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
     """
     if len(key) == 0:
         return np.zeros(0, np.intp)
-    fn = _sort_kernels()
+    fn = group_kernels()
     finite = np.isfinite(line)
     if fn is not None and np.all(finite):
         lo, hi = float(line.min()), float(line.max())
@@ -534,8 +534,12 @@ def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
     return order[np.argsort(small, kind="stable")]
 
 
-def _sort_kernels() -> Any:
-    """The compiled counting sort, or ``None`` (numpy) when numba cannot be loaded."""
+def group_kernels() -> Any:
+    """The compiled grouping passes, or ``None`` (numpy) when numba cannot be loaded.
+
+    The one loader of :mod:`planetref.adjust._numba_groups`: the counting sorts of the
+    layout here and the variance groups' order and sums (:mod:`planetref.adjust.variance`).
+    """
     return optional_module("planetref.adjust._numba_groups", "compiled grouping and sorting")
 
 

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.adjust.records import check_in_images, point_value
+from planetref.adjust.records import NetworkRecords, check_in_images, point_value
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
@@ -313,8 +313,7 @@ class Network:
             InputError: A bad record (see above), naming ``source`` and the record.
         """
         try:
-            return cls._from_records(
-                cameras,
+            records = NetworkRecords(
                 obs_camera=obs_camera,
                 obs_point=obs_point,
                 line=line,
@@ -328,82 +327,72 @@ class Network:
                 obs_ids=obs_ids,
                 point_sigma_local=point_sigma_local,
             )
+            return cls._from_records(cameras, records)
         except InputError as exc:
             if source is None or exc.path is not None:
                 raise
             raise InputError(str(exc), path=source) from None
 
     @classmethod
-    def _from_records(
-        cls,
-        cameras: Mapping[str, Camera],
-        *,
-        obs_camera: Sequence[str],
-        obs_point: Sequence[str],
-        line: ArrayLike,
-        sample: ArrayLike,
-        point_xyz: Mapping[str, ArrayLike],
-        point_sigma_m: ArrayLike | Mapping[str, ArrayLike],
-        point_kind: str | Mapping[str, str],
-        obs_ccd: Sequence[str | None] | None,
-        sigma_px: ArrayLike,
-        check: ArrayLike,
-        obs_ids: Sequence[str] | None,
-        point_sigma_local: bool | Mapping[str, bool],
-    ) -> Network:
-        m = len(obs_point)
-        for name, seq in (("obs_camera", obs_camera), ("obs_ccd", obs_ccd), ("obs_ids", obs_ids)):
+    def _from_records(cls, cameras: Mapping[str, Camera], rec: NetworkRecords) -> Network:
+        """:meth:`from_records` on its records (without the ``source`` of its errors)."""
+        m = len(rec.obs_point)
+        for name, seq in (
+            ("obs_camera", rec.obs_camera),
+            ("obs_ccd", rec.obs_ccd),
+            ("obs_ids", rec.obs_ids),
+        ):
             if seq is not None and len(seq) != m:
                 raise InputError(f"{len(seq)} entries for {m} observations (obs_point)", field=name)
         cam_ids = list(cameras)
         cam_index = {c: i for i, c in enumerate(cam_ids)}
-        pids = list(point_xyz)
+        pids = list(rec.point_xyz)
         p_index = {p: i for i, p in enumerate(pids)}
         ci = np.empty(m, np.intp)
         pi = np.empty(m, np.intp)
         ki = np.zeros(m, np.intp)
         for k in range(m):
-            c = obs_camera[k]
+            c = rec.obs_camera[k]
             if c not in cam_index:
                 raise InputError(
                     f"observation {k}: unknown camera {c!r}; known: {cam_ids}", field="obs_camera"
                 )
             ci[k] = cam_index[c]
-            p = obs_point[k]
+            p = rec.obs_point[k]
             if p not in p_index:
                 raise InputError(f"observation {k}: unknown point {p!r}", field="obs_point")
             pi[k] = p_index[p]
-            if obs_ccd is not None and obs_ccd[k] is not None:
+            if rec.obs_ccd is not None and rec.obs_ccd[k] is not None:
                 names = cameras[c].ccd_names
-                if obs_ccd[k] not in names:
+                if rec.obs_ccd[k] not in names:
                     raise InputError(
                         f"observation {k}: camera {c!r} has no CCD "
-                        f"{obs_ccd[k]!r} (it has {list(names)})",
+                        f"{rec.obs_ccd[k]!r} (it has {list(names)})",
                         field="ccd",
                     )
-                ki[k] = names.index(obs_ccd[k])
-        xyz = np.array([point_value(point_xyz, p, "point_xyz", exact=True) for p in pids])
+                ki[k] = names.index(rec.obs_ccd[k])
+        xyz = np.array([point_value(rec.point_xyz, p, "point_xyz", exact=True) for p in pids])
         xyz = xyz.reshape(-1, 3)
-        if isinstance(point_sigma_m, Mapping):
-            sig = np.array([point_value(point_sigma_m, p, "point_sigma_m") for p in pids]).reshape(
-                -1, 3
-            )
+        if isinstance(rec.point_sigma_m, Mapping):
+            sig = np.array(
+                [point_value(rec.point_sigma_m, p, "point_sigma_m") for p in pids]
+            ).reshape(-1, 3)
         else:
-            sig = np.broadcast_to(np.asarray(point_sigma_m, np.float64), (len(pids), 3))
-        if isinstance(point_sigma_local, Mapping):
-            local = np.array([bool(point_sigma_local.get(p, False)) for p in pids], dtype=bool)
+            sig = np.broadcast_to(np.asarray(rec.point_sigma_m, np.float64), (len(pids), 3))
+        if isinstance(rec.point_sigma_local, Mapping):
+            local = np.array([bool(rec.point_sigma_local.get(p, False)) for p in pids], dtype=bool)
         else:
-            local = np.full(len(pids), bool(point_sigma_local))
-        if isinstance(point_kind, Mapping):
-            missing = [p for p in pids if p not in point_kind]
+            local = np.full(len(pids), bool(rec.point_sigma_local))
+        if isinstance(rec.point_kind, Mapping):
+            missing = [p for p in pids if p not in rec.point_kind]
             if missing:
                 raise InputError(f"no kind for point {missing[0]!r}", field="point_kind")
-            kind = np.array([point_kind[p] for p in pids], dtype=str)
+            kind = np.array([rec.point_kind[p] for p in pids], dtype=str)
         else:
-            kind = np.array([point_kind] * len(pids), dtype=str)
-        line_a = _as_float(line, (m,), "line")
-        sample_a = _as_float(sample, (m,), "sample")
-        check_in_images(cameras, cam_ids, ci, ki, line_a, sample_a, obs_ids)
+            kind = np.array([rec.point_kind] * len(pids), dtype=str)
+        line_a = _as_float(rec.line, (m,), "line")
+        sample_a = _as_float(rec.sample, (m,), "sample")
+        check_in_images(cameras, cam_ids, ci, ki, line_a, sample_a, rec.obs_ids)
         return cls(
             cameras=tuple(cameras.values()),
             camera_ids=tuple(cam_ids),
@@ -416,10 +405,10 @@ class Network:
             obs_point=pi,
             obs_line=line_a,
             obs_sample=sample_a,
-            obs_sigma_px=np.asarray(sigma_px, np.float64),
-            obs_check=np.asarray(check, bool),
+            obs_sigma_px=np.asarray(rec.sigma_px, np.float64),
+            obs_check=np.asarray(rec.check, bool),
             obs_ids=np.array(
-                obs_ids if obs_ids is not None else [str(i) for i in range(m)], dtype=str
+                rec.obs_ids if rec.obs_ids is not None else [str(i) for i in range(m)], dtype=str
             ),
             point_sigma_local=local,
         )

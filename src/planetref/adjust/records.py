@@ -1,4 +1,4 @@
-"""Checks of a network's records: measures inside their images, points' 3-vectors.
+"""A network's records and their checks: measures inside their images, points' 3-vectors.
 
 Shared by :meth:`planetref.adjust.problem.Network.from_records` (networks built in code)
 and :func:`planetref.adjust.network.read_network` (network files), so that both refuse the
@@ -8,6 +8,7 @@ same records.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -15,13 +16,52 @@ from numpy.typing import ArrayLike, NDArray
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
-__all__ = ["IMAGE_MARGIN_PX", "check_in_images", "outside_image", "point_value"]
+__all__ = [
+    "IMAGE_MARGIN_PX",
+    "NetworkRecords",
+    "check_in_images",
+    "outside_image",
+    "point_value",
+]
 
 F64 = NDArray[np.float64]
 
 IMAGE_MARGIN_PX = 1.0
 """How far outside its image's edges a measure may lie (sub-pixel measures on border
 pixels, in either pixel convention); a measure farther out is refused."""
+
+
+@dataclass(frozen=True)
+class NetworkRecords:
+    """The records of a network by string ids, as given to ``Network.from_records``.
+
+    Attributes:
+        obs_camera: Camera id of each observation.
+        obs_point: Point id of each observation.
+        line: Observed lines (planetref convention), pixels.
+        sample: Observed samples, pixels.
+        point_xyz: Point id -> a priori XYZ (metres; NaN for unknown free points).
+        point_sigma_m: A scalar/3-vector for all points, or point id -> sigma(s), metres.
+        point_kind: ``"mcp"``/``"tie"`` for all points, or point id -> kind.
+        obs_ccd: CCD name per observation (``None``: the camera's first CCD).
+        sigma_px: Sigma of each observation (pixels), scalar, ``(M,)`` or ``(M, 2)``.
+        check: Held-out check flags.
+        obs_ids: Observation ids (``None``: row numbers).
+        point_sigma_local: Sigmas along east, north, up, for all points or point id -> flag.
+    """
+
+    obs_camera: Sequence[str]
+    obs_point: Sequence[str]
+    line: ArrayLike
+    sample: ArrayLike
+    point_xyz: Mapping[str, ArrayLike]
+    point_sigma_m: ArrayLike | Mapping[str, ArrayLike]
+    point_kind: str | Mapping[str, str]
+    obs_ccd: Sequence[str | None] | None
+    sigma_px: ArrayLike
+    check: ArrayLike
+    obs_ids: Sequence[str] | None
+    point_sigma_local: bool | Mapping[str, bool]
 
 
 def outside_image(

@@ -23,9 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref._optional import optional_module
 from planetref.adjust.config import VarianceConfig
-from planetref.adjust.linearization import _Linearization
+from planetref.adjust.linearization import _Linearization, group_kernels
 from planetref.adjust.redundancy import Redundancy, group_sum, redundancy
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
@@ -64,7 +63,7 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     n_keys = len(net.cameras) * base
     # One stable sort by (kind, camera, CCD) gives every image group its observations
     # in the order of ``obs``, as a mask per group would.
-    fn = _compiled()
+    fn = group_kernels()
     args = (obs, net.obs_camera, net.obs_ccd, net.obs_point, kind_of_pt, base, n_keys, len(kinds))
     order, bounds = _group_order_numpy(*args) if fn is None else fn.group_order(*args)
     counts = np.diff(bounds).reshape(len(kinds), n_keys)
@@ -107,11 +106,6 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
             sel = weighted[m & ~local]
             out.append(_Group(f"ground {k}", kind_g, points=sel, axes=(0, 1, 2), estimate=estimate))
     return out
-
-
-def _compiled() -> Any:
-    """The compiled group passes (:mod:`planetref.adjust._numba_groups`), or ``None``."""
-    return optional_module("planetref.adjust._numba_groups", "compiled variance groups")
 
 
 def _group_order_numpy(
@@ -192,7 +186,7 @@ def _image_sums(
 ) -> dict[str, tuple[float, float, int]]:
     """``(v^T P v, redundancy, equations)`` of every image group in one pass."""
     # Per observation w_l v_l^2 + w_s v_s^2 (the row sums of w v^2), summed per group.
-    fn = _compiled()
+    fn = group_kernels()
     args = (red.row_groups(group_of), red.obs_w, red.obs_v, len(groups))
     vtpv = _group_vtpv_numpy(*args) if fn is None else fn.group_vtpv(*args)
     r = red.image_sums(group_of, len(groups))

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +21,49 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     return value
 
 
-def _common(f: Any) -> Any:
+@dataclass(frozen=True)
+class _RunOptions:
+    """The options of every run command (:func:`_common`): config, weights, threads..."""
+
+    config_path: str | None
+    weights_dir: str | None
+    overwrite: bool
+    scheduler: str | None
+    threads: int | None
+    device: str
+
+    def run_kwargs(self, progress: bool) -> dict[str, Any]:
+        """Apply the thread budget and load the config (:func:`_runtime`).
+
+        Returns:
+            The keywords of ``run_georef`` and ``run_compare`` these options set.
+        """
+        return {
+            "config": _runtime(self.config_path, self.threads, self.device, self.scheduler),
+            "weights_dir": self.weights_dir,
+            "overwrite": self.overwrite,
+            "progress": progress,
+            "executor": self.scheduler,
+        }
+
+
+def _common(command: Any) -> Any:
+    """Add the shared options; ``command`` gets them as one ``run: _RunOptions``."""
+
+    @functools.wraps(command)
+    def f(
+        *args: Any,
+        config_path: str | None,
+        weights_dir: str | None,
+        overwrite: bool,
+        scheduler: str | None,
+        threads: int | None,
+        device: str,
+        **kwargs: Any,
+    ) -> Any:
+        run = _RunOptions(config_path, weights_dir, overwrite, scheduler, threads, device)
+        return command(*args, run=run, **kwargs)
+
     f = click.option(
         "--config",
         "config_path",
@@ -109,12 +153,7 @@ def georef_command(
     scene: str,
     matcher: str,
     out: str,
-    config_path: str | None,
-    weights_dir: str | None,
-    overwrite: bool,
-    scheduler: str | None,
-    threads: int | None,
-    device: str,
+    run: _RunOptions,
 ) -> None:
     """Georeference SCENE (scene.toml or its folder) with one matcher.
 
@@ -123,17 +162,7 @@ def georef_command(
     """
     from planetref.pipeline.georef import run_georef
 
-    cfg = _runtime(config_path, threads, device, scheduler)
-    outcome = run_georef(
-        scene,
-        matcher,
-        out,
-        config=cfg,
-        weights_dir=weights_dir,
-        overwrite=overwrite,
-        progress=not _quiet(ctx),
-        executor=scheduler,
-    )
+    outcome = run_georef(scene, matcher, out, **run.run_kwargs(progress=not _quiet(ctx)))
     r = outcome.report
     click.echo(
         json.dumps(
@@ -162,27 +191,12 @@ def compare_command(
     scene: str,
     matchers: str,
     out: str,
-    config_path: str | None,
-    weights_dir: str | None,
-    overwrite: bool,
-    scheduler: str | None,
-    threads: int | None,
-    device: str,
+    run: _RunOptions,
 ) -> None:
     """Run georef on SCENE once per matcher and tabulate the results side by side."""
     from planetref.pipeline.compare import run_compare
 
-    cfg = _runtime(config_path, threads, device, scheduler)
-    outcome = run_compare(
-        scene,
-        matchers,
-        out,
-        config=cfg,
-        weights_dir=weights_dir,
-        overwrite=overwrite,
-        progress=not _quiet(ctx),
-        executor=scheduler,
-    )
+    outcome = run_compare(scene, matchers, out, **run.run_kwargs(progress=not _quiet(ctx)))
     click.echo(outcome.tables_markdown)
     click.echo(f"report: {outcome.run_dir / 'report.html'} (and report.md, report.json)")
 
@@ -225,12 +239,7 @@ def demo_command(
     seed: int,
     difficulty: str,
     matchers: str,
-    config_path: str | None,
-    weights_dir: str | None,
-    overwrite: bool,
-    scheduler: str | None,
-    threads: int | None,
-    device: str,
+    run: _RunOptions,
 ) -> None:
     """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
     from planetref.cli.simulate import simulate_run
@@ -248,23 +257,14 @@ def demo_command(
         simulate_run(
             load_sim_config(preset, seed=seed, difficulty=level),
             scene_dir,
-            overwrite=overwrite,
+            overwrite=run.overwrite,
             preview=True,
             progress=not quiet,
         )
     elif not quiet:
         click.echo(f"using the cached scene {scene_dir}", err=True)
-    cfg = _runtime(config_path, threads, device, scheduler)
-    outcome = run_compare(
-        scene_dir,
-        matchers,
-        base / f"compare-{tag}-seed{seed}",
-        config=cfg,
-        weights_dir=weights_dir,
-        overwrite=overwrite,
-        progress=not quiet,
-        executor=scheduler,
-    )
+    compare_dir = base / f"compare-{tag}-seed{seed}"
+    outcome = run_compare(scene_dir, matchers, compare_dir, **run.run_kwargs(progress=not quiet))
     click.echo(outcome.tables_markdown)
     click.echo(f"report:  {outcome.run_dir / 'report.html'} (and report.md, report.json)")
     click.echo(f"figures: {outcome.run_dir / 'figures'}")

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.atomic import atomic_path
+from planetref.cli.weights import WEIGHTS_DIR_OPTION
 from planetref.errors import (
     InputError,
     MatchingError,
@@ -162,12 +163,7 @@ def _check_outputs(
 
 
 @click.command("matchers")
-@click.option(
-    "--weights-dir",
-    type=click.Path(file_okay=False),
-    default=None,
-    help="Weights directory (default: $PLANETREF_WEIGHTS, $TORCH_HOME, torch hub cache).",
-)
+@WEIGHTS_DIR_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def matchers_command(weights_dir: str | None, as_json: bool) -> None:
     """List every matcher, its paradigm and whether its weights are present."""
@@ -239,12 +235,7 @@ def matchers_command(weights_dir: str | None, as_json: bool) -> None:
     is_flag=True,
     help="Replace an existing --out / --figure (never an input image).",
 )
-@click.option(
-    "--weights-dir",
-    type=click.Path(file_okay=False),
-    default=None,
-    help="Weights directory (default: $PLANETREF_WEIGHTS, $TORCH_HOME, torch hub cache).",
-)
+@WEIGHTS_DIR_OPTION
 @click.option(
     "--device",
     default="cpu",

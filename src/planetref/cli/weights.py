@@ -16,7 +16,8 @@ from planetref.errors import PlanetrefError, WeightsError
 
 __all__ = ["weights_group"]
 
-_DIR_OPTION = click.option(
+#: The ``--weights-dir`` option of every command that reads matcher weights.
+WEIGHTS_DIR_OPTION = click.option(
     "--weights-dir",
     type=click.Path(file_okay=False),
     default=None,
@@ -98,7 +99,7 @@ def weights_group() -> None:
 
 
 @weights_group.command("list")
-@_DIR_OPTION
+@WEIGHTS_DIR_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def list_command(weights_dir: str | None, as_json: bool) -> None:
     """Every weight file: matchers, sha256, size, URL, licence, whether present."""
@@ -110,7 +111,7 @@ def list_command(weights_dir: str | None, as_json: bool) -> None:
 
 
 @weights_group.command("verify")
-@_DIR_OPTION
+@WEIGHTS_DIR_OPTION
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 def verify_command(weights_dir: str | None, as_json: bool) -> None:
     """Hash every present weight file; exit status 1 if any is not the official file."""
@@ -125,7 +126,7 @@ def verify_command(weights_dir: str | None, as_json: bool) -> None:
 
 
 @weights_group.command("where")
-@_DIR_OPTION
+@WEIGHTS_DIR_OPTION
 def where_command(weights_dir: str | None) -> None:
     """Print the folder planetref reads weights from and how it was chosen."""
     from planetref.matching.weights import ENV_VAR, WEIGHT_FILES, packaged_path
@@ -153,7 +154,7 @@ def where_command(weights_dir: str | None) -> None:
 
 @weights_group.command("download")
 @click.argument("names", nargs=-1, required=True)
-@_DIR_OPTION
+@WEIGHTS_DIR_OPTION
 @click.option("--unverified", is_flag=True, help="Accept files with no reference checksum.")
 @click.option("--overwrite", is_flag=True, help="Download again files already present.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")

@@ -21,7 +21,7 @@ from planetref.frontend.config import FrontendConfig
 from planetref.frontend.journal import DEFAULT_MAX_ATTEMPTS, TileJournal, journal_digest
 from planetref.frontend.result import StripMatches, TileResult, error_result
 from planetref.frontend.tasks import MatcherRecipe, TileSources, TileTask, run_tile_task
-from planetref.frontend.tile import tile_steps
+from planetref.frontend.tile import TileInputs, tile_steps
 from planetref.frontend.tiles import Tile, TilePlan, plan_tiles
 from planetref.matching.base import Matcher
 from planetref.raster.image import CcdImage
@@ -171,17 +171,19 @@ def match_strip(
         def steps(t: Tile) -> TileSteps:
             return tile_steps(
                 t,
-                image=readers[t.ccd],
-                camera=camera,
-                ref=ref,
-                terrain=terrain,
-                matcher=instance("fine", matcher),
-                config=cfg,
-                ratio=plans[t.ccd].ratio,
-                debug=debug_sink is not None or t.tile_id in debug_tiles,
-                coarse_matcher=None
-                if coarse_matcher is None
-                else instance("coarse", coarse_matcher),
+                TileInputs(
+                    image=readers[t.ccd],
+                    camera=camera,
+                    ref=ref,
+                    terrain=terrain,
+                    matcher=instance("fine", matcher),
+                    config=cfg,
+                    ratio=plans[t.ccd].ratio,
+                    debug=debug_sink is not None or t.tile_id in debug_tiles,
+                    coarse_matcher=None
+                    if coarse_matcher is None
+                    else instance("coarse", coarse_matcher),
+                ),
             )
 
         def failed(t: Tile, exc: BaseException) -> TileResult:

@@ -65,7 +65,7 @@ from planetref.matching.base import Matcher
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
-__all__ = ["inference_mode", "match_tile", "tile_steps"]
+__all__ = ["TileInputs", "inference_mode", "match_tile", "tile_steps"]
 
 F64 = NDArray[np.float64]
 
@@ -90,15 +90,30 @@ def _timed(timings: dict[str, float], key: str) -> Iterator[None]:
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
 
+@dataclass(frozen=True)
+class TileInputs:
+    """What a tile is matched with: the keyword arguments of :func:`match_tile`.
+
+    The fields mean what those arguments mean (see there), with the same defaults; the
+    drivers that run the steps of many tiles (:func:`tile_steps`) pass them as one value.
+    """
+
+    image: CcdImage
+    camera: Camera
+    ref: ReferenceOrtho
+    terrain: Terrain
+    matcher: Matcher
+    config: FrontendConfig | None = None
+    ratio: float | None = None
+    debug: bool = False
+    coarse_matcher: Matcher | None = None
+
+
 def _image_side(
     stage_factor: float,
     window: RefWindow | FineWindow,
-    *,
-    image: CcdImage,
-    camera: Camera,
     tile: Tile,
-    ref: ReferenceOrtho,
-    terrain: Terrain,
+    src: TileInputs,
     config: FrontendConfig,
     ratio: float,
 ) -> ImageSide:
@@ -113,18 +128,21 @@ def _image_side(
         # default: every other node of the fine stages' lattice at a coarse factor of 2)
         # and its ground spacing on the reference and finer grids. One cache per CCD
         # serves both stages: each fill of it has a fixed cost.
-        cache = lattice_cache(image, camera, tile.ccd, ref, terrain, config.lattice_step_ref_px)
+        cache = lattice_cache(
+            src.image, src.camera, tile.ccd, src.ref, src.terrain, config.lattice_step_ref_px
+        )
         return orthorectify(
-            image,
-            camera,
+            src.image,
+            src.camera,
             tile.ccd,
-            ref,
-            terrain,
+            src.ref,
+            src.terrain,
             window,  # type: ignore[arg-type]  # a FineWindow offers the same interface
             cache=cache,
             stride=max(1, round(stage_factor)),
         )
-    return downsample_tile(image, tile, max(1, round(ratio * stage_factor)), camera, ref, terrain)
+    stride = max(1, round(ratio * stage_factor))
+    return downsample_tile(src.image, tile, stride, src.camera, src.ref, src.terrain)
 
 
 @dataclass
@@ -254,39 +272,35 @@ def match_tile(
     return run_steps(
         tile_steps(
             tile,
-            image=image,
-            camera=camera,
-            ref=ref,
-            terrain=terrain,
-            matcher=matcher,
-            config=config,
-            ratio=ratio,
-            debug=debug,
-            coarse_matcher=coarse_matcher,
+            TileInputs(
+                image=image,
+                camera=camera,
+                ref=ref,
+                terrain=terrain,
+                matcher=matcher,
+                config=config,
+                ratio=ratio,
+                debug=debug,
+                coarse_matcher=coarse_matcher,
+            ),
         )
     )
 
 
-def tile_steps(
-    tile: Tile,
-    *,
-    image: CcdImage,
-    camera: Camera,
-    ref: ReferenceOrtho,
-    terrain: Terrain,
-    matcher: Matcher,
-    config: FrontendConfig | None = None,
-    ratio: float | None = None,
-    debug: bool = False,
-    coarse_matcher: Matcher | None = None,
-) -> TileSteps:
-    """The steps of :func:`match_tile` (same arguments): a generator of its matcher calls.
+def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
+    """The steps of :func:`match_tile`: a generator of its matcher calls.
 
     It yields a :class:`StageRequest` per stage (coarse, fine, a second fine pass), takes
     the :class:`StageAnswer` sent back, and returns the tile's result, so that a driver can
     make the calls of several tiles together (:mod:`planetref.frontend.batched`).
+
+    Args:
+        tile: The tile (from :func:`~planetref.frontend.tiles.plan_tiles`).
+        inputs: What it is matched with (see :func:`match_tile`).
     """
-    cfg = config or FrontendConfig()
+    camera, ref, terrain = inputs.camera, inputs.ref, inputs.terrain
+    matcher, ratio, debug = inputs.matcher, inputs.ratio, inputs.debug
+    cfg = inputs.config or FrontendConfig()
     name = str(getattr(matcher, "name", type(matcher).__name__))
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
@@ -317,9 +331,6 @@ def tile_steps(
     c0, r0, c1, r1 = base.padded(pad_unc).bounds_px
     if c1 <= 0 or r1 <= 0 or c0 >= cols or r0 >= rows:
         return finish("no_overlap", "the tile's search window lies outside the reference")
-    side_kw = dict(
-        image=image, camera=camera, tile=tile, ref=ref, terrain=terrain, config=cfg, ratio=ratio
-    )
 
     # ---- coarse stage
     # Orthorectified tiles are resampled onto the very window of the reference they are
@@ -330,13 +341,13 @@ def tile_steps(
         f = cfg.coarse_factor
         with _timed(timings, "coarse_prepare"):
             cwin = RefWindow.around(*base.bounds_px, pad_px=pad_unc + cfg.fine_pad_ref_px, factor=f)
-            side = _image_side(f, cwin, **side_kw)
+            side = _image_side(f, cwin, tile, inputs, cfg, ratio)
             cref, cvalid = ref.read(cwin)
         problem = _unmatchable(side, cref, cvalid, _area_share(base, cwin, cfg), cfg)
         if problem is not None:
             return finish(*problem)
         st = yield from _match_stage(
-            side, cref, cvalid, cwin, coarse_matcher or matcher, timings, "coarse_match"
+            side, cref, cvalid, cwin, inputs.coarse_matcher or matcher, timings, "coarse_match"
         )
         res.n_coarse_matches = len(st.kp0)
         disp = st.actual - st.predicted
@@ -371,7 +382,8 @@ def tile_steps(
             fwin = (
                 iwin if coarse_offset is None else iwin.shifted(coarse_offset[0], coarse_offset[1])
             )
-            side = _image_side(1.0 / up, FineWindow(iwin, up) if up > 1 else iwin, **side_kw)
+            fwin_img = FineWindow(iwin, up) if up > 1 else iwin
+            side = _image_side(1.0 / up, fwin_img, tile, inputs, cfg, ratio)
             fine_ref = FineWindow(fwin, up)
             fref, fvalid = read_fine(ref, fine_ref)
         res.search_window = fwin.to_tuple()

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from planetref.report.ccd_panels import ccd_panels, finish_ccd_panel
 from planetref.report.figures_matching import _save, ccd_colour
 
 __all__ = [
@@ -174,7 +175,6 @@ def figure_residual_vectors(
             residual drawn 6 % of the mean CCD width long).
         dpi: Resolution.
     """
-    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
     net = result.network
@@ -194,13 +194,7 @@ def figure_residual_vectors(
     pattern = residual_pattern(
         net.obs_line[inl], net.obs_sample[inl], r[inl, 0], r[inl, 1], group=names[inl]
     )
-    aspect = max_h / float(np.mean(widths))
-    panel_w = float(np.clip(9.0 / len(order), 2.2, 4.0))
-    fig = Figure(
-        figsize=(panel_w * len(order) + 0.6, float(np.clip(panel_w * aspect, 2.5, 11.0)) + 1.6),
-        layout="constrained",
-    )
-    axes = np.atleast_1d(fig.subplots(1, len(order), sharey=True, width_ratios=widths))
+    fig, axes, _ = ccd_panels(image_sizes, order, 1.6)
     q = None
     for i, (ax, c) in enumerate(zip(axes, order, strict=True)):
         _nl, ns = image_sizes[c]
@@ -222,11 +216,7 @@ def figure_residual_vectors(
             ax.scatter(net.obs_sample[out & on], net.obs_line[out & on], s=14, marker="x", c="0.4")
         rms = float(np.sqrt(np.nanmean(np.sum(r[inl & on] ** 2, 1)))) if (inl & on).any() else 0.0
         ax.set_title(f"{c}: {int((inl & on).sum())} inliers, RMSE {rms:.2f} px", fontsize=8)
-        ax.set_xlim(0, ns)
-        ax.set_ylim(max_h, 0)
-        ax.set_xlabel("sample (px)", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.set_facecolor("#fafafa")
+        finish_ccd_panel(ax, ns, max_h)
     axes[0].set_ylabel("line (px)", fontsize=8)
     if q is not None:
         q.axes.quiverkey(

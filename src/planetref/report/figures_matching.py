@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from planetref.atomic import atomic_path
 from planetref.errors import InputError, PlanetrefError
+from planetref.report.ccd_panels import ccd_panels, finish_ccd_panel
 
 __all__ = [
     "CCD_COLOURS",
@@ -500,8 +501,6 @@ def figure_mcp_distribution(
     Returns:
         The PNG path.
     """
-    from matplotlib.figure import Figure
-
     del gap_fraction
     order = list(ccd_order or image_sizes)
     unknown = [c for c in order if c not in image_sizes]
@@ -513,15 +512,7 @@ def figure_mcp_distribution(
     ccd = np.asarray(table["ccd"]).astype(str)
     line = np.asarray(table["line"], np.float64)
     sample = np.asarray(table["sample"], np.float64)
-    max_h = max(image_sizes[c][0] for c in order)
-    widths = [image_sizes[c][1] for c in order]
-    aspect = max_h / float(np.mean(widths))
-    panel_w = float(np.clip(9.0 / len(order), 2.2, 4.0))
-    fig = Figure(
-        figsize=(panel_w * len(order) + 0.6, float(np.clip(panel_w * aspect, 2.5, 11.0)) + 1.2),
-        layout="constrained",
-    )
-    axes = np.atleast_1d(fig.subplots(1, len(order), sharey=True, width_ratios=widths))
+    fig, axes, max_h = ccd_panels(image_sizes, order, 1.2)
     g = min(gs)
     for i, (ax, c) in enumerate(zip(axes, order, strict=True)):
         nl, ns = image_sizes[c]
@@ -551,11 +542,7 @@ def figure_mcp_distribution(
         ax.vlines(k * ns / g, 0, 1, transform=ax.get_xaxis_transform(which="grid"), **grid)
         ax.scatter(sm, ln, s=5, color=colour, linewidths=0, zorder=3)
         ax.set_title(f"{c}\nNCP {int(sel.sum())}, SDU {sdu[c]:.1f} %", fontsize=9, color=colour)
-        ax.set_xlim(0, ns)
-        ax.set_ylim(max_h, 0)
-        ax.set_xlabel("sample (px)", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.set_facecolor("#fafafa")
+        finish_ccd_panel(ax, ns, max_h)
     axes[0].set_ylabel("line (px)", fontsize=8)
     fig.suptitle(
         (title or f"MCP distribution: {len(line)} MCPs")
