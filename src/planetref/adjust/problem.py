@@ -528,30 +528,46 @@ def enu_rotation(xyz: F64) -> F64:
 
 
 class PointMatrices:
-    """Per-point ``3 x 3`` matrices held for a few points, zero for all others.
+    """Per-point arrays (``3 x 3`` matrices, or rows) held for a few points, zero for all others.
 
-    Indexing with point indices gives ``(n, 3, 3)`` like the dense ``(P, 3, 3)`` array it
-    stands for, without that array: a network of a million fixed MCPs has no weighted
-    point, and its set-up should not write 72 MB of zeros.
+    Indexing with point indices gives ``(n, *item)`` like the dense ``(P, *item)`` array
+    it stands for, without that array: a network of a million fixed MCPs has no weighted
+    point, and its set-up should not write tens of MB of zeros.
 
     Args:
         n_points: ``P``.
-        points: The points that have a matrix (distinct indices).
-        matrices: Their matrices, ``(len(points), 3, 3)``.
+        points: The points that have a value (distinct indices).
+        matrices: Their values, ``(len(points), *item)`` (e.g. ``(k, 3, 3)``).
+        index: The position map of another :class:`PointMatrices` over the same
+            ``points`` (shared instead of built again), or ``None``.
     """
 
-    def __init__(self, n_points: int, points: NDArray[np.intp], matrices: F64) -> None:
-        self._pos = np.full(n_points, -1, np.intp)
-        self._pos[points] = np.arange(len(points))
+    def __init__(
+        self,
+        n_points: int,
+        points: NDArray[np.intp],
+        matrices: F64,
+        *,
+        index: NDArray[np.intp] | None = None,
+    ) -> None:
+        if index is None:
+            index = np.full(n_points, -1, np.intp)
+            index[points] = np.arange(len(points))
+        self._pos = index
         self._m = np.asarray(matrices, np.float64)
-        self.shape = (n_points, 3, 3)
+        self.shape = (n_points, *self._m.shape[1:])
+
+    @property
+    def index(self) -> NDArray[np.intp]:
+        """Position of each point's value in the held values (-1: none), ``(P,)``."""
+        return self._pos
 
     def __len__(self) -> int:
         return self.shape[0]
 
     def __getitem__(self, points: NDArray[np.intp]) -> F64:
         pos = self._pos[points]
-        out = np.zeros((*np.shape(pos), 3, 3))
+        out = np.zeros((*np.shape(pos), *self.shape[1:]))
         hit = pos >= 0
         out[hit] = self._m[pos[hit]]
         return out

@@ -162,13 +162,18 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
             w = 1.0 / (sig * sig)
         w[~((sig > 0) & (sig < np.inf))] = 0.0
-        #: Per-axis weights in the sigma frame, (P, 3).
-        self.point_prior_axis_w = w
         on = np.flatnonzero((w[:, 0] > 0) | (w[:, 1] > 0) | (w[:, 2] > 0))
+        #: Per-axis weights in the sigma frame, indexed like ``(P, 3)`` (zero for the
+        #: fixed and free points: only weighted ones are held).
+        self.point_prior_axis_w = PointMatrices(len(w), on, w[on])
         fr = self.net.point_frame_matrices(on)
-        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, indexed like ``(P, 3, 3)``
-        #: (zero for the fixed and free points: only weighted ones are held).
-        self.point_prior_w = PointMatrices(len(w), on, np.einsum("pki,pk,pkj->pij", fr, w[on], fr))
+        #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, indexed like ``(P, 3, 3)``.
+        self.point_prior_w = PointMatrices(
+            len(w),
+            on,
+            np.einsum("pki,pk,pkj->pij", fr, w[on], fr),
+            index=self.point_prior_axis_w.index,
+        )
 
     @property
     def point_frame(self) -> PointFrames:
