@@ -186,7 +186,7 @@ def redundancy(
     """
     # The solver's layout of these observations: contiguous (camera, CCD) ranges with
     # the per-observation data gathered once (the redundancy follows its order).
-    st = solver._structure(np.asarray(obs, np.intp))
+    st = solver._structure(np.asarray(obs, np.intp), guesses=False)
     lay = st.lay
     w = lay.w0  # solver.obs_w0[lay.obs] (a new weight makes a new layout)
     h: F64 | None
@@ -197,6 +197,7 @@ def redundancy(
         tpos, a_u, gpat_u, b_u = st.tie_pos, lin.a_t, lin.gpat_t, lin.b_t
         slot_r = _slot_redundancy(solver, lin, lay, cofactor)
     else:
+        solver.refresh_guesses(lay)
         v_all, h, tpos, a_u, gpat_u, b_u = _evaluate(solver, c, xyz, lay, cofactor)
         slot_r = np.zeros(0)
     eqs = (v_all, h, w, slot_r)

@@ -335,14 +335,20 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             self.rate_guess[o] = np.where(ev.valid, ev.line_rate, np.nan)
 
     # --------------------------------------------------------------- LM loop
-    def _structure(self, obs: NDArray[np.intp]) -> _Structure:
-        """Layout and tie-point structure of an observation set (cached for the last set)."""
+    def _structure(self, obs: NDArray[np.intp], guesses: bool = True) -> _Structure:
+        """Layout and tie-point structure of an observation set (cached for the last set).
+
+        Args:
+            obs: Observation indices.
+            guesses: Refresh a cached layout's line and rate guesses from the solver's
+                (``False`` when the caller sets them itself or evaluates nothing; see
+                :meth:`refresh_guesses`).
+        """
         obs = np.asarray(obs, np.intp)
         if self._structure_cache is not None and np.array_equal(self._structure_cache[0], obs):
             st = self._structure_cache[1]
-            # Fresh guesses: they may have improved since the structure was built.
-            st.lay.line_guess[:] = self.line_guess.take(st.lay.obs)
-            st.lay.rate_guess[:] = self.rate_guess.take(st.lay.obs)
+            if guesses:
+                self.refresh_guesses(st.lay)
             return st
         lay = self._layout(obs)
         pts = lay.point
@@ -358,6 +364,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         self._structure_cache = (obs.copy(), st)
         return st
 
+    def refresh_guesses(self, lay: _Layout) -> None:
+        """Copy the solver's guesses into a layout: they may have improved since it was built."""
+        self.line_guess.take(lay.obs, out=lay.line_guess)
+        self.rate_guess.take(lay.obs, out=lay.rate_guess)
+
     def linearize(self, c: F64, xyz: F64, obs: NDArray[np.intp], xyz0: F64) -> _Linearization:
         """Residuals, validity and normal-equation pieces of ``obs`` at ``(c, xyz)``.
 
@@ -367,7 +378,10 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         t0, c0 = time.perf_counter(), time.process_time()
         st = self._structure(obs)
         lin = self._linearize(c, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz0)
-        self.line_guess[lin.obs] = np.where(lin.valid, lin.line, self.line_guess[lin.obs])
+        if np.all(lin.valid):
+            self.line_guess[lin.obs] = lin.line
+        else:
+            self.line_guess[lin.obs] = np.where(lin.valid, lin.line, self.line_guess[lin.obs])
         self.rate_guess[lin.obs] = lin.rate
         lin.seconds = time.perf_counter() - t0
         lin.cpu_seconds = time.process_time() - c0
@@ -405,7 +419,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         c_start = time.process_time()
         cfg = self.cfg
         net = self.net
-        st = self._structure(obs)
+        # With an initial linearisation the guesses are set from it below.
+        st = self._structure(obs, guesses=initial is None)
         lay, unknown, tie_pos, chunks, n_tie = st.lay, st.unknown, st.tie_pos, st.chunks, st.n_tie
         obs = lay.obs
         self._unknown_ids = unknown
@@ -425,6 +440,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             t_start -= lin.seconds
             c_start -= lin.cpu_seconds
         else:
+            if initial is not None:  # not of these observations: start from the solver's
+                self.refresh_guesses(lay)
             lin = linearize(c, xyz)
         if not np.all(lin.valid):
             bad = np.flatnonzero(~lin.valid)
