@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +32,13 @@ from planetref.adjust.linearization import (
     _Linearization,
     chunk_shares,
     run_shares,
+)
+from planetref.adjust.lm_steps import (
+    CORRECT_MAX_LAMBDA,
+    LmReport,
+    camera_gradient,
+    cost_resolution,
+    oscillation_correction,
 )
 from planetref.adjust.models import AdjustableCamera, Evaluation
 from planetref.adjust.problem import Network, PointFrames, PointMatrices
@@ -50,35 +56,6 @@ F64 = NDArray[np.float64]
 _STEP_FLOOR_SIGMA = 1e-6
 #: Relative cost decrease below which a robust (IRLS) run stops.
 _IRLS_FTOL = 1e-9
-#: Precision of a projection (px): the kernels converge to ~1e-9 px whatever the guesses.
-_PROJECTION_PX = 1e-9
-
-
-@dataclass
-class LmReport:
-    """What one Levenberg-Marquardt run did.
-
-    Attributes:
-        iterations: Accepted iterations.
-        evaluations: Model evaluations (accepted and rejected steps).
-        converged: True when a convergence criterion was met.
-        reason: Why it stopped.
-        cost_initial: Cost at the start (half the weighted robust sum of squares).
-        cost_final: Cost at the end.
-        history: ``(iteration, cost, lambda)`` per accepted step.
-        seconds: Wall time.
-        cpu_seconds: Process CPU time (robust when other jobs share the cores).
-    """
-
-    iterations: int = 0
-    evaluations: int = 0
-    converged: bool = False
-    reason: str = ""
-    cost_initial: float = float("nan")
-    cost_final: float = float("nan")
-    history: list[tuple[int, float, float]] = field(default_factory=list)
-    seconds: float = 0.0
-    cpu_seconds: float = 0.0
 
 
 class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
@@ -458,6 +435,10 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         lam = cfg.initial_lambda if self.last_lambda is None else self.last_lambda
         nu = 2.0
         it = 0
+        # The previous accepted undamped Gauss-Newton step (camera part, in sigmas): the
+        # reference of the oscillation correction (:func:`_oscillation_correction`).
+        prev_gn: F64 | None = None
+        correct = True  # False right after a corrected step was rejected
         while it < cfg.max_iterations:
             s_mat, rhs, d_c, blocks = self._reduced(lin, chunks, lam, c, xyz, xyz0, unknown)
             try:
@@ -472,14 +453,25 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                         "degenerate"
                     ) from None
                 continue
+            # Damping of 1e-6 of the diagonal or less leaves the Gauss-Newton step as it is.
+            gn_step = delta_c.copy() if lam <= CORRECT_MAX_LAMBDA and correct else None
+            corr = oscillation_correction(gn_step, prev_gn, s_mat)
+            correct = True
+            if corr is not None:
+                delta_c = delta_c + corr
             dx, bx, dd = self._back_substitute(lin, chunks, blocks, delta_c, len(unknown))
-            grad_c = _camera_gradient(lin, self, c)
+            grad_c = camera_gradient(lin, self, c)
             pred = 0.5 * (
                 lam * float(np.sum(d_c * delta_c**2))
                 - float(grad_c @ delta_c)
                 + lam * float(np.sum(dd * dx**2))
                 + float(np.sum(bx * dx))
             )
+            if corr is not None:
+                # The quadratic model's gain of a step that is not its minimiser: with the
+                # points following (back substitution), the reduced model's
+                # ``rhs . dc - dc^T S dc / 2`` (S as damped, by at most 1e-6).
+                pred = float(rhs @ delta_c) - 0.5 * float(delta_c @ s_mat @ delta_c)
             # IRLS (a robust loss) converges only linearly: stop at a looser floor.
             ftol = cfg.ftol if self.loss == "linear" else max(cfg.ftol, _IRLS_FTOL)
             if it > 0 and lam <= 10.0 * cfg.min_lambda and pred <= ftol * max(lin.cost, 1e-300):
@@ -513,6 +505,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 it += 1
                 c, xyz, lin = c_new, xyz_new, new
                 _take_guesses(lay, new)
+                prev_gn = gn_step
                 rep.history.append((it, lin.cost, lam))
                 if self.progress is not None:
                     self.progress(
@@ -525,7 +518,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 if step <= cfg.xtol:
                     rep.converged, rep.reason = True, "step below xtol"
                     break
-            elif np.isfinite(new.cost) and max(pred, -actual) <= _cost_resolution(lin):
+            elif np.isfinite(new.cost) and max(pred, -actual) <= cost_resolution(lin):
                 # Neither the predicted gain nor the rise is above what the projections
                 # can resolve in the cost: the comparison says nothing, while the step
                 # is the (nearly) Gauss-Newton step of an almost linear problem. Take it
@@ -538,6 +531,11 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 rep.converged, rep.reason = True, "step gain below the cost's resolution"
                 break
             else:
+                prev_gn = None
+                if corr is not None:
+                    # Not judged by a corrected step: the plain one comes next.
+                    correct = False
+                    continue
                 # A rejected step that is tiny, or predicted to gain nothing, means the
                 # cost is at its floor of rounding (projections are exact to ~1e-9 px).
                 if np.isfinite(new.cost) and (
@@ -582,23 +580,3 @@ def _read_only(a: F64) -> F64:
     view = np.asarray(a, np.float64).view()
     view.flags.writeable = False
     return view
-
-
-def _cost_resolution(lin: _Linearization) -> float:
-    """Three standard deviations of the cost's noise from the projections' precision.
-
-    ``cost = 0.5 sum w r^2`` moves by ``sum w r delta`` when every projection moves by an
-    independent ``delta`` of :data:`_PROJECTION_PX`: ``sd = _PROJECTION_PX
-    sqrt(sum (w r)^2)``.
-    """
-    wr = lin.weight * np.where(lin.valid[:, None], lin.r, 0.0)
-    return 3.0 * _PROJECTION_PX * float(np.sqrt(np.sum(wr * wr)))
-
-
-def _camera_gradient(lin: _Linearization, solver: BundleSolver, c: F64) -> F64:
-    """Gradient of the cost w.r.t. the camera parameters (observations and priors)."""
-    p = solver.n_params
-    grad = lin.g_c[:p] + solver.prior_w * (c - solver.x0)
-    if solver.con_n is not None:
-        grad = grad + solver.con_n @ (c - solver.x0)
-    return grad

@@ -313,6 +313,7 @@ def variance_components(
     converged = False
     stopped = ""
     group_of = _image_group_of(solver, groups)
+    capped = False  # the last re-weighted adjustment stopped at _VCE_MAX_LM unconverged
     while True:
         red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"], lin)
         image = _image_sums(groups, red, group_of)
@@ -409,6 +410,14 @@ def variance_components(
             break
         solver.cfg = base_cfg
         c, xyz, stats, lin = c_new, xyz_new, stats_new, lin_new
+        capped = not _rep.converged
+    if capped and not stopped:
+        # The re-weighted adjustments stop after a few steps (the weights are only known
+        # to ``tolerance``), but the solution handed back must be the optimum of the
+        # final weights: finish it with the solver's own limits, then take its
+        # redundancy numbers (the factors above stay those that ended the iteration).
+        c, xyz, _rep, lin, stats = solver.run(c, xyz, obs, xyz0, check_rank=False)
+        red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"], lin)
     for row in table:
         row["sigma_scale"] = scale[row["group"]]
         row["note"] = confounded.get(row["group"], "")
