@@ -61,28 +61,31 @@ class LmReport:
 PROJECTION_PX = 1e-9
 #: Largest damping at which a step counts as Gauss-Newton for the oscillation correction.
 CORRECT_MAX_LAMBDA = 1e-6
-#: Cosine below which two successive Gauss-Newton steps count as reversing.
-_REVERSAL_COS = -0.8
-#: Range of the step-length ratio within which a reversal is corrected.
-_REVERSAL_RATIO = (0.2, 1.5)
+#: |cosine| above which two successive Gauss-Newton steps count as one direction.
+_ALIGNED_COS = 0.8
+#: Step-length ratios within which a reversing / a shrinking sequence is corrected
+#: (the latter at most 5 x extrapolated).
+_REVERSING_RATIO = (0.2, 1.5)
+_SHRINKING_RATIO = (0.2, 0.8)
 
 
 def oscillation_correction(step: F64 | None, prev: F64 | None, s_mat: F64) -> F64 | None:
-    """Correction of an undamped Gauss-Newton step that reverses the previous one.
+    """Correction of an undamped Gauss-Newton step that repeats the previous one's direction.
 
     Where the residuals are systematic (a model that cannot fit the data exactly), the
     neglected second-order term ``sum r_i H_i`` of the cost's Hessian is not small in a
     weakly determined direction (positions against attitudes of neighbouring nodes):
-    ``J^T W J`` underestimates the curvature there, every Gauss-Newton step overshoots,
-    and successive steps point in opposite directions with lengths in a near-constant
-    ratio ``q`` (measured on the demo's NCC network: 0.67 before, 0.93-0.97 after the
-    variance re-weighting; hundreds of iterations to converge). The error along that
-    direction then shrinks by ``-q`` per step: the step's component along the previous
-    one, scaled by ``1 / (1 + q)`` (Aitken's extrapolation of a geometric sequence),
-    lands at the limit. Components and lengths are taken in the metric of the reduced
-    normal matrix ``S``, so the corrected step keeps a positive model gain
-    (``|dc|_S^2 / 2`` less that of the removed part); the points follow by back
-    substitution and the LM acceptance test judges the result like any step.
+    ``J^T W J`` misjudges the curvature there and Gauss-Newton converges only linearly.
+    Successive steps then point along one direction with lengths in a near-constant
+    ratio: reversing (the curvature underestimated, every step overshoots; measured on
+    the demo's NCC network: ratio 0.67 before, 0.93-0.97 after the variance
+    re-weighting, hundreds of iterations to converge) or shrinking (overestimated).
+    The error along that direction is a geometric sequence with ratio ``rho`` (``-q``
+    or ``+q``): the step's component along the previous one, scaled by
+    ``1 / (1 - rho)`` (Aitken's extrapolation), lands at its limit. Components and
+    lengths are taken in the metric of the reduced normal matrix ``S``; the points
+    follow by back substitution; the LM loop accepts the result only if the cost falls
+    (and takes the plain step otherwise).
 
     Args:
         step: This iteration's undamped camera step, or ``None`` (damped: never
@@ -103,9 +106,13 @@ def oscillation_correction(step: F64 | None, prev: F64 | None, s_mat: F64) -> F6
     along = float(step @ sp) / n_prev2  # step = along * prev + (S-orthogonal rest)
     cos = along * math.sqrt(n_prev2 / n_step2)
     q = math.sqrt(n_step2 / n_prev2)
-    if cos > _REVERSAL_COS or not _REVERSAL_RATIO[0] < q < _REVERSAL_RATIO[1]:
+    if cos <= -_ALIGNED_COS and _REVERSING_RATIO[0] < q < _REVERSING_RATIO[1]:
+        rho = -q
+    elif cos >= _ALIGNED_COS and _SHRINKING_RATIO[0] < q < _SHRINKING_RATIO[1]:
+        rho = q
+    else:
         return None
-    return (1.0 / (1.0 + q) - 1.0) * along * prev
+    return (1.0 / (1.0 - rho) - 1.0) * along * prev
 
 
 def cost_resolution(lin: _Linearization) -> float:

@@ -458,6 +458,10 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             corr = oscillation_correction(gn_step, prev_gn, s_mat)
             correct = True
             if corr is not None:
+                # The model's gain is that of the plain step (what the convergence and
+                # damping rules read); with the points following (back substitution)
+                # it is the reduced model's ``rhs . dc - dc^T S dc / 2``.
+                pred_plain = float(rhs @ delta_c) - 0.5 * float(delta_c @ s_mat @ delta_c)
                 delta_c = delta_c + corr
             dx, bx, dd = self._back_substitute(lin, chunks, blocks, delta_c, len(unknown))
             grad_c = camera_gradient(lin, self, c)
@@ -468,10 +472,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 + float(np.sum(bx * dx))
             )
             if corr is not None:
-                # The quadratic model's gain of a step that is not its minimiser: with the
-                # points following (back substitution), the reduced model's
-                # ``rhs . dc - dc^T S dc / 2`` (S as damped, by at most 1e-6).
-                pred = float(rhs @ delta_c) - 0.5 * float(delta_c @ s_mat @ delta_c)
+                pred = pred_plain
             # IRLS (a robust loss) converges only linearly: stop at a looser floor.
             ftol = cfg.ftol if self.loss == "linear" else max(cfg.ftol, _IRLS_FTOL)
             if it > 0 and lam <= 10.0 * cfg.min_lambda and pred <= ftol * max(lin.cost, 1e-300):
