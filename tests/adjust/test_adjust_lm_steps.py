@@ -1,4 +1,4 @@
-"""The LM loop's pieces: the oscillation correction and the converged VCE solution."""
+"""The LM loop's pieces: Anderson steps and the converged VCE solution."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from adjust_synth import mcp_problem
 
 from planetref.adjust import adjust, variance
-from planetref.adjust.lm_steps import oscillation_correction
+from planetref.adjust.lm_steps import anderson_correction
 
 
 def _spd(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -17,61 +17,67 @@ def _spd(rng: np.random.Generator, n: int) -> np.ndarray:
     return a @ a.T + n * np.eye(n)
 
 
-@pytest.mark.parametrize("q", [0.9, 0.5, -0.6])
-def test_correction_ends_a_geometric_sequence(q):
-    """Gauss-Newton with a Hessian that misjudges one direction converges linearly there.
+def _misjudged(rng: np.random.Generator, n: int, qs: list[float]):
+    """A model ``S`` and a true Hessian that differ along ``len(qs)`` directions.
 
-    The true curvature along ``u`` is ``1 + q`` times that of the model ``S``: with
-    ``q > 0`` every step overshoots and the error along ``u`` is multiplied by ``-q``,
-    with ``q < 0`` every step falls short (``|q|`` per step, same sign). The corrected
-    step removes that error (to rounding); a plain step only shrinks it by ``|q|``.
+    Along each direction ``u`` the true curvature is ``1 + q`` times the model's:
+    Gauss-Newton steps with ``S`` multiply the error there by ``-q`` (``q > 0``: every
+    step overshoots, ``q < 0``: every step falls short).
+    """
+    s_mat = _spd(rng, n)
+    h_true = s_mat.copy()
+    for q in qs:
+        u = rng.normal(size=n)
+        su = s_mat @ u
+        h_true += q * np.outer(su, su) / (u @ su)
+    return s_mat, h_true
+
+
+def _run(s_mat, h_true, x_star, x, n_plain):
+    """``n_plain`` plain Gauss-Newton steps from ``x``: the history, the iterate, its step."""
+    history = []
+    for _ in range(n_plain):
+        step = -np.linalg.solve(s_mat, h_true @ (x - x_star))
+        history.append((x, step))
+        x = x + step
+    return history, x, -np.linalg.solve(s_mat, h_true @ (x - x_star))
+
+
+@pytest.mark.parametrize("qs", [[0.9], [0.5], [-0.6], [0.9, -0.8]])
+def test_anderson_step_ends_linear_convergence(qs):
+    """Where Gauss-Newton converges linearly, the combined step lands at the limit.
+
+    Plain steps shrink the error only by ``max |q|`` per step (0.5-0.9 here); after three
+    plain steps the Anderson step removes it to rounding, also with two slow directions
+    of different ratios (where one-direction extrapolation could not).
     """
     rng = np.random.default_rng(3)
     n = 8
-    s_mat = _spd(rng, n)
-    u = rng.normal(size=n)
-    su = s_mat @ u
-    h_true = s_mat + q * np.outer(su, su) / (u @ su)
+    s_mat, h_true = _misjudged(rng, n, qs)
     x_star = rng.normal(size=n)
-
-    def gn_step(x: np.ndarray) -> np.ndarray:
-        return -np.linalg.solve(s_mat, h_true @ (x - x_star))
 
     def err(x: np.ndarray) -> float:
         return float(np.sqrt((x - x_star) @ h_true @ (x - x_star)))
 
-    x = x_star + 5.0 * u + 1e-3 * rng.normal(size=n)
-    prev = None
-    for _ in range(3):  # plain steps: the other directions die out, u remains
-        step = gn_step(x)
-        assert oscillation_correction(step, None, s_mat) is None
-        x, prev = x + step, step
+    history, x, step = _run(s_mat, h_true, x_star, x_star + 5.0 * rng.normal(size=n), 12)
     before = err(x)
-    step = gn_step(x)
-    corr = oscillation_correction(step, prev, s_mat)
+    assert err(x + step) > 0.4 * before  # a plain step: linear convergence
+    corr = anderson_correction(history, x, step, s_mat)
     assert corr is not None
-    assert err(x + step) == pytest.approx(abs(q) * before, rel=1e-3)
-    assert err(x + step + corr) < 1e-3 * before
+    assert err(x + step + corr) < 1e-6 * before
 
 
-def test_no_correction_without_a_geometric_sequence():
+def test_no_anderson_step_where_gauss_newton_is_fast_or_diverging():
     rng = np.random.default_rng(4)
-    s_mat = _spd(rng, 6)
-    prev = rng.normal(size=6)
-    other = np.linalg.solve(s_mat, rng.normal(size=6))
-    assert oscillation_correction(-0.05 * prev, prev, s_mat) is None  # ratio too small
-    assert oscillation_correction(-3.0 * prev, prev, s_mat) is None  # growing
-    assert oscillation_correction(0.9 * prev, prev, s_mat) is None  # > 5x extrapolation
-    assert oscillation_correction(None, prev, s_mat) is None  # damped step
-    # Another direction (|cos| in S's metric below 0.8).
-    o = other - (other @ s_mat @ prev) / (prev @ s_mat @ prev) * prev
-    assert oscillation_correction(0.5 * o + 0.1 * prev, prev, s_mat) is None
-    np.testing.assert_allclose(
-        -0.5 * prev + oscillation_correction(-0.5 * prev, prev, s_mat), -prev / 3.0, rtol=1e-12
-    )
-    np.testing.assert_allclose(
-        0.5 * prev + oscillation_correction(0.5 * prev, prev, s_mat), prev, rtol=1e-12
-    )
+    n = 6
+    s_mat, h_true = _misjudged(rng, n, [0.05])  # nearly exact model: fast convergence
+    x_star = rng.normal(size=n)
+    history, x, step = _run(s_mat, h_true, x_star, x_star + rng.normal(size=n), 2)
+    assert anderson_correction(history, x, step, s_mat) is None  # ratio below 0.2
+    assert anderson_correction([], x, step, s_mat) is None  # no earlier step
+    assert anderson_correction(history, x, None, s_mat) is None  # a damped step
+    f = history[-1][1]
+    assert anderson_correction(history, x, -3.0 * f, s_mat) is None  # steps growing
 
 
 def test_vce_solution_is_the_optimum_of_its_final_weights(monkeypatch):

@@ -34,11 +34,12 @@ from planetref.adjust.linearization import (
     run_shares,
 )
 from planetref.adjust.lm_steps import (
+    ANDERSON_DEPTH,
     CORRECT_MAX_LAMBDA,
     LmReport,
+    anderson_correction,
     camera_gradient,
     cost_resolution,
-    oscillation_correction,
 )
 from planetref.adjust.models import AdjustableCamera, Evaluation
 from planetref.adjust.problem import Network, PointFrames, PointMatrices
@@ -435,9 +436,9 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         lam = cfg.initial_lambda if self.last_lambda is None else self.last_lambda
         nu = 2.0
         it = 0
-        # The previous accepted undamped Gauss-Newton step (camera part, in sigmas): the
-        # reference of the oscillation correction (:func:`_oscillation_correction`).
-        prev_gn: F64 | None = None
+        # ``(c_j, f_j)`` of the previous consecutive accepted undamped iterations: the
+        # iterate and its plain camera step (:func:`anderson_correction`).
+        history: list[tuple[F64, F64]] = []
         correct = True  # False right after a corrected step was rejected
         while it < cfg.max_iterations:
             s_mat, rhs, d_c, blocks = self._reduced(lin, chunks, lam, c, xyz, xyz0, unknown)
@@ -455,7 +456,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 continue
             # Damping of 1e-6 of the diagonal or less leaves the Gauss-Newton step as it is.
             gn_step = delta_c.copy() if lam <= CORRECT_MAX_LAMBDA and correct else None
-            corr = oscillation_correction(gn_step, prev_gn, s_mat)
+            corr = anderson_correction(history, c, gn_step, s_mat)
             correct = True
             if corr is not None:
                 # The model's gain is that of the plain step (what the convergence and
@@ -504,9 +505,12 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                     lam = 0.0
                 nu = 2.0
                 it += 1
+                if gn_step is None:
+                    history.clear()
+                else:  # the iterate left behind and its plain step
+                    history[:] = [*history[-(ANDERSON_DEPTH - 1) :], (c, gn_step)]
                 c, xyz, lin = c_new, xyz_new, new
                 _take_guesses(lay, new)
-                prev_gn = gn_step
                 rep.history.append((it, lin.cost, lam))
                 if self.progress is not None:
                     self.progress(
@@ -532,7 +536,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 rep.converged, rep.reason = True, "step gain below the cost's resolution"
                 break
             else:
-                prev_gn = None
+                history.clear()
                 if corr is not None:
                     # Not judged by a corrected step: the plain one comes next.
                     correct = False
