@@ -13,6 +13,7 @@ from adjust_synth import (
 
 from planetref.adjust import Network, adjust, schur
 from planetref.adjust.reference import ScipyProblem
+from planetref.adjust.schur import Iterate
 from planetref.adjust.solver import BundleSolver, robust_rho
 from planetref.errors import AdjustmentError, InputError
 
@@ -240,15 +241,14 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol, monkeypatch):
     st = solver._structure(obs)
     xyz = net.point_xyz.copy()
     lin = solver._linearize(solver.x0, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz)
-    s_mat, rhs, _, blocks = solver._reduced(lin, st.chunks, 0.0, solver.x0, xyz, xyz, st.unknown)
+    at = Iterate(lin, st.chunks, solver.x0, xyz, xyz, st.unknown)
+    s_mat, rhs, _, blocks = solver._reduced(at, 0.0)
     dc, _ = solver._solve_reduced(s_mat, rhs)
     dx, _, _ = solver._back_substitute(lin, st.chunks, blocks, dc, len(st.unknown))
     # The numpy point elimination (the reference of the compiled one, used when numba
     # is available) gives the same step.
     monkeypatch.setattr(schur, "_compiled", lambda: None)
-    s_np, rhs_np, _, blocks_np = solver._reduced(
-        lin, st.chunks, 0.0, solver.x0, xyz, xyz, st.unknown
-    )
+    s_np, rhs_np, _, blocks_np = solver._reduced(at, 0.0)
     dc_np, _ = solver._solve_reduced(s_np, rhs_np)
     dx_np, _, _ = solver._back_substitute(lin, st.chunks, blocks_np, dc_np, len(st.unknown))
     # Dense: whitened Jacobian of every unknown (active cameras, then point XYZ).

@@ -9,7 +9,7 @@ mixed into :class:`~planetref.adjust.solver.BundleSolver`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -35,6 +35,21 @@ class _TieChunk:
     pair_a: NDArray[np.intp]  # observation pairs within points (chunk-local)
     pair_b: NDArray[np.intp]
     starts: NDArray[np.intp]  # first observation of each point (chunk-local)
+
+
+class Iterate(NamedTuple):
+    """An LM iterate and its linearisation.
+
+    What the reduced system, the rank check and the statistics read; unpacks as
+    ``(lin, chunks, c, xyz, xyz0, unknown)``.
+    """
+
+    lin: _Linearization  # the linearisation at (c, xyz)
+    chunks: list[_TieChunk]  # the observations of unknown points, by point
+    c: F64  # global camera vector
+    xyz: F64  # every network point, (P, 3)
+    xyz0: F64  # a-priori coordinates, (P, 3)
+    unknown: NDArray[np.intp]  # network indices of the unknown points
 
 
 @dataclass
@@ -93,17 +108,9 @@ class SchurMixin:
                 lo_pt = hi_pt
         return tie_pos, chunks, len(order)
 
-    def _reduced(
-        self,
-        lin: _Linearization,
-        chunks: list[_TieChunk],
-        lam: float,
-        c: F64,
-        xyz: F64,
-        xyz0: F64,
-        unknown: NDArray[np.intp],
-    ) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
-        """Reduced camera system ``(S, rhs, D_c)`` and per-chunk point blocks."""
+    def _reduced(self, at: Iterate, lam: float) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
+        """Reduced camera system ``(S, rhs, D_c)`` and per-chunk point blocks at ``at``."""
+        lin, chunks, c, xyz, xyz0, unknown = at
         p = self.n_params
         s_mat = lin.n_cc.copy()
         diag = np.arange(p)
@@ -118,7 +125,7 @@ class SchurMixin:
             s_mat[diag, diag] += lam * d_c
         rhs = -grad
         if chunks and _compiled() is not None:
-            return self._reduced_compiled(lin, chunks, lam, xyz, xyz0, unknown, s_mat, rhs, d_c)
+            return self._reduced_compiled(at, lam, s_mat, rhs, d_c)
         blocks = []
         n_pat = len(self.cols)
         for ch in chunks:
@@ -184,22 +191,14 @@ class SchurMixin:
         return s_mat[:p, :p], rhs[:p], d_c, blocks
 
     def _reduced_compiled(
-        self,
-        lin: _Linearization,
-        chunks: list[_TieChunk],
-        lam: float,
-        xyz: F64,
-        xyz0: F64,
-        unknown: NDArray[np.intp],
-        s_mat: F64,
-        rhs: F64,
-        d_c: F64,
+        self, at: Iterate, lam: float, s_mat: F64, rhs: F64, d_c: F64
     ) -> tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]:
         """:meth:`_reduced`'s point elimination by the compiled kernel (same maths).
 
         One loop over the points: each point's 3x3 block is factored in registers and
         only the active columns of its observations' patterns are updated.
         """
+        lin, chunks, _, xyz, xyz0, unknown = at
         p = self.n_params
         n_u = len(unknown)
         starts = np.concatenate([ch.obs[0] + ch.starts for ch in chunks] + [[len(lin.a_t)]])

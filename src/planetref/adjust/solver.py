@@ -44,7 +44,7 @@ from planetref.adjust.lm_steps import (
 from planetref.adjust.models import AdjustableCamera, Evaluation
 from planetref.adjust.problem import Network, PointFrames, PointMatrices
 from planetref.adjust.robust import robust_rho
-from planetref.adjust.schur import SchurMixin, _Structure
+from planetref.adjust.schur import Iterate, SchurMixin, _Structure
 from planetref.adjust.statistics import StatisticsMixin
 from planetref.errors import AdjustmentError
 from planetref.threads import compute_threads
@@ -431,7 +431,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         lay.rate_guess[:] = lin.rate
         rep.cost_initial = lin.cost
         if check_rank:
-            self._check_rank(lin, chunks, c, xyz, xyz0, unknown, "initial")
+            self._check_rank(Iterate(lin, chunks, c, xyz, xyz0, unknown), "initial")
         # A later outlier round starts near the optimum: keep the damping it ended with.
         lam = cfg.initial_lambda if self.last_lambda is None else self.last_lambda
         nu = 2.0
@@ -441,7 +441,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         history: list[tuple[F64, F64]] = []
         correct = True  # False right after a corrected step was rejected
         while it < cfg.max_iterations:
-            s_mat, rhs, d_c, blocks = self._reduced(lin, chunks, lam, c, xyz, xyz0, unknown)
+            at = Iterate(lin, chunks, c, xyz, xyz0, unknown)
+            s_mat, rhs, d_c, blocks = self._reduced(at, lam)
             try:
                 delta_c, sig_c = self._solve_reduced(s_mat, rhs)
             except np.linalg.LinAlgError:
@@ -563,7 +564,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         rep.iterations = it
         rep.cost_final = lin.cost
         self.last_lambda = min(lam, cfg.initial_lambda)
-        stats = self._statistics(lin, chunks, c, xyz, xyz0, unknown)
+        stats = self._statistics(Iterate(lin, chunks, c, xyz, xyz0, unknown))
         rep.seconds = time.perf_counter() - t_start
         rep.cpu_seconds = time.process_time() - c_start
         return c, xyz, rep, lin, stats

@@ -15,8 +15,8 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-from planetref.adjust.linearization import _Linearization, _quadratic
-from planetref.adjust.schur import _TieChunk
+from planetref.adjust.linearization import _quadratic
+from planetref.adjust.schur import Iterate
 from planetref.errors import AdjustmentError
 
 __all__ = ["StatisticsMixin"]
@@ -32,16 +32,8 @@ class StatisticsMixin:
     ``_prior_cost``.
     """
 
-    def _check_rank(
-        self,
-        lin: _Linearization,
-        chunks: list[_TieChunk],
-        c: F64,
-        xyz: F64,
-        xyz0: F64,
-        unknown: NDArray[np.intp],
-        when: str,
-    ) -> None:
+    def _check_rank(self, at: Iterate, when: str) -> None:
+        lin = at.lin
         act = self.active
         if not act.size:
             return
@@ -59,7 +51,7 @@ class StatisticsMixin:
             )
         con_n, self.con_n = self.con_n, None  # the constraints are checked apart (below)
         try:
-            s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
+            s_mat, _, _, _ = self._reduced(at, 0.0)
         finally:
             self.con_n = con_n
         sa = s_mat[np.ix_(act, act)]
@@ -106,17 +98,10 @@ class StatisticsMixin:
                 f"parameters (e.g. a datum: a fixed camera or control points)"
             )
 
-    def _statistics(
-        self,
-        lin: _Linearization,
-        chunks: list[_TieChunk],
-        c: F64,
-        xyz: F64,
-        xyz0: F64,
-        unknown: NDArray[np.intp],
-    ) -> dict[str, object]:
+    def _statistics(self, at: Iterate) -> dict[str, object]:
+        lin, _, c, xyz, xyz0, unknown = at
         p = self.n_params
-        s_mat, _, _, _ = self._reduced(lin, chunks, 0.0, c, xyz, xyz0, unknown)
+        s_mat, _, _, _ = self._reduced(at, 0.0)
         act = self.active
         # v^T P v with the final (robust) weights, plus the pseudo-observations.
         vtpv = float(np.sum(lin.weight * np.where(lin.valid[:, None], lin.r, 0.0) ** 2))
@@ -147,7 +132,7 @@ class StatisticsMixin:
                 factor = scipy.linalg.cho_factor(sh, lower=False, check_finite=False)
                 inv = scipy.linalg.cho_solve(factor, np.eye(len(act)), check_finite=False)
             except np.linalg.LinAlgError:
-                self._check_rank(lin, chunks, c, xyz, xyz0, unknown, "adjusted")
+                self._check_rank(at, "adjusted")
                 raise AdjustmentError(
                     "the reduced normal matrix is not positive definite at the solution"
                 ) from None
