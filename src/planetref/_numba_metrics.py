@@ -171,6 +171,10 @@ def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[An
         if keep[i] and math.isfinite(x[i]) and math.isfinite(y[i]):
             kept[i] = True
             length[i] = math.hypot(x[i], y[i])
+    # One level at a time below: the gathered residuals of a level's groups (contiguous
+    # per group, in row order, for numpy's pairwise sums) fit in buffers of the level
+    # with the most kept rows, reused for every level.
+    per_level = np.zeros(group.shape[0], np.int64)
     for lv in range(group.shape[0]):
         for i in range(m):
             g = group[lv, i]
@@ -178,14 +182,7 @@ def group_sums(x: F64, y: F64, keep: Any, group: Any, n_groups: int) -> tuple[An
                 n_total[g] += 1
                 if kept[i]:
                     n_in[g] += 1
-    # One level at a time: the gathered residuals of a level's groups (contiguous per
-    # group, in row order, for numpy's pairwise sums) fit in buffers of the level with
-    # the most kept rows, reused for every level.
-    per_level = np.zeros(group.shape[0], np.int64)
-    for lv in range(group.shape[0]):
-        for i in range(m):
-            if group[lv, i] >= 0 and kept[i]:
-                per_level[lv] += 1
+                    per_level[lv] += 1
     size = 0
     for lv in range(group.shape[0]):
         size = max(size, per_level[lv])

@@ -456,25 +456,24 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                     ) from None
                 continue
             # Damping of 1e-6 of the diagonal or less leaves the Gauss-Newton step as it is.
-            gn_step = delta_c.copy() if lam <= CORRECT_MAX_LAMBDA and correct else None
+            gn_step = delta_c if lam <= CORRECT_MAX_LAMBDA and correct else None
             corr = anderson_correction(history, c, gn_step, s_mat)
             correct = True
             if corr is not None:
                 # The model's gain is that of the plain step (what the convergence and
                 # damping rules read); with the points following (back substitution)
                 # it is the reduced model's ``rhs . dc - dc^T S dc / 2``.
-                pred_plain = float(rhs @ delta_c) - 0.5 * float(delta_c @ s_mat @ delta_c)
-                delta_c = delta_c + corr
+                pred = float(rhs @ delta_c) - 0.5 * float(delta_c @ s_mat @ delta_c)
+                delta_c = delta_c + corr  # a new array: gn_step stays the plain step
             dx, bx, dd = self._back_substitute(lin, chunks, blocks, delta_c, len(unknown))
-            grad_c = camera_gradient(lin, self, c)
-            pred = 0.5 * (
-                lam * float(np.sum(d_c * delta_c**2))
-                - float(grad_c @ delta_c)
-                + lam * float(np.sum(dd * dx**2))
-                + float(np.sum(bx * dx))
-            )
-            if corr is not None:
-                pred = pred_plain
+            if corr is None:
+                grad_c = camera_gradient(lin, self, c)
+                pred = 0.5 * (
+                    lam * float(np.sum(d_c * delta_c**2))
+                    - float(grad_c @ delta_c)
+                    + lam * float(np.sum(dd * dx**2))
+                    + float(np.sum(bx * dx))
+                )
             # IRLS (a robust loss) converges only linearly: stop at a looser floor.
             ftol = cfg.ftol if self.loss == "linear" else max(cfg.ftol, _IRLS_FTOL)
             if it > 0 and lam <= 10.0 * cfg.min_lambda and pred <= ftol * max(lin.cost, 1e-300):
