@@ -337,6 +337,9 @@ def main(argv: list[str] | None = None) -> int:
             out["scipy_s"] = out.get("scipy_same_kernel_s")
             out["speedup"] = out.get("speedup_same_kernel")
         out["peak_rss_mb_with_scipy"] = round(peak_rss_mb(), 1)
+    from machine import describe
+
+    out["machine"] = describe()
     if args.json:
         print(json.dumps(out))
     else:

@@ -334,6 +334,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg = FrontendConfig(
             tile_size_ref_px=args.tile, coarse_factor=2, uncertainty_m=150.0, geometry=args.geometry
         )
+    from machine import describe
+
+    machine = describe()  # the load before this run's own work
     ups = args.fine_upsample or [cfg.fine_upsample]
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -363,6 +366,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             json.dumps(
                 {
+                    "machine": machine,
                     "config": cfg.model_dump(),
                     "threads": args.threads,
                     "results": results,
@@ -373,6 +377,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         return 0
+    print(f"machine: {machine}")
     print(
         f"scene: {'given' if args.scene else f'simulated in {sim_s:.1f} s'}; tile "
         f"{args.tile} ref px; {args.geometry}; torch threads {args.threads}; clock {args.clock}; "

@@ -89,10 +89,13 @@ def main() -> int:
     from planetref.threads import ThreadBudget, apply_thread_budget
 
     apply_thread_budget(ThreadBudget.resolve(args.threads))
+    from machine import describe
+
     from planetref.pipeline import georef
     from planetref.pipeline.config import load_config
 
     cfg = load_config(args.config)
+    machine = describe()  # the load before the run
 
     acc = {stage: [0.0, 0.0, 0.0] for stage in [*STAGES, "block"]}
     for stage, targets in [*STAGES.items(), ("block", (BLOCK,))]:
@@ -127,6 +130,7 @@ def main() -> int:
     print(
         json.dumps(
             {
+                "machine": machine,
                 "fine_upsample": cfg.frontend.fine_upsample,
                 "wall_s": round(wall, 2),
                 "cpu_s": round(cpu, 2),

@@ -251,6 +251,17 @@ def test_corrupt_raster(tiny_scene, tmp_path):
     assert not (tmp_path / "run").exists()  # a bad image leaves no run folder behind
 
 
+def _one_line_failure(scene, out) -> str:
+    """``georef`` of a bad scene: exit 1, no traceback, one line of output (returned)."""
+    r = CliRunner().invoke(
+        main, ["-q", "georef", str(scene), "--matcher", "sift", "--out", str(out)]
+    )
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1
+    return lines[0]
+
+
 @pytest.mark.parametrize("name", ["ortho.tif", "dem.tif"])
 def test_truncated_reference(tiny_scene, tmp_path, name):
     # A truncated GeoTIFF opens (its header is whole): the reference ortho used to fail
@@ -260,12 +271,8 @@ def test_truncated_reference(tiny_scene, tmp_path, name):
     path = scene / "reference" / name
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
-    r = CliRunner().invoke(
-        main, ["-q", "georef", str(scene), "--matcher", "sift", "--out", str(tmp_path / "run")]
-    )
-    assert r.exit_code == 1 and "Traceback" not in r.output
-    lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert len(lines) == 1 and str(path) in lines[0] and "IReadBlock failed" in lines[0]
+    line = _one_line_failure(scene, tmp_path / "run")
+    assert str(path) in line and "IReadBlock failed" in line
     assert not (tmp_path / "run").exists()
 
 
@@ -322,3 +329,18 @@ def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
     with caplog.at_level("WARNING", logger="planetref"), ref:
         check_strips(manifest, root, ref, terrain)
     assert not [r for r in caplog.records if "footprint" in r.getMessage()]
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated"])
+def test_bad_truth_dem_fails_before_matching(tiny_scene, tmp_path, damage):
+    # The truth DEM is read only when the true errors are computed (it is not held through
+    # the run), but a missing or truncated file still fails at the start, in one line.
+    scene = _copy_scene(tiny_scene, tmp_path / "scene")
+    path = scene / "truth" / "dem.tif"
+    if damage == "missing":
+        path.unlink()
+    else:
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    assert str(path) in _one_line_failure(scene, tmp_path / "run")
+    assert not list((tmp_path / "run").rglob("tiles.jsonl"))  # no tile was matched

@@ -35,7 +35,8 @@ def _rms(values):
 def test_rpc_only_true_error_within_1_5x_of_the_rigorous_model(tiny_scene, bias):
     manifest, root = load_manifest(tiny_scene)
     strip = manifest.strips[0]
-    truth, dem = truth_inputs(manifest, root)
+    truth, truth_dem = truth_inputs(manifest, root)
+    dem = truth_dem.load()
     true_cam = truth[strip.id]
     rigorous = load_camera(root / strip.ccds[0].camera)
     rpcs = {c.name: RpcCamera.from_file(root / c.rpc, name=c.name) for c in strip.ccds}

@@ -136,7 +136,7 @@ def test_parallel_workers_read_the_converted_dem(tmp_path):
     """A DEM above the areoid reaches tile workers as one body-height file in the run folder."""
     from types import SimpleNamespace
 
-    from planetref.pipeline.georef import _worker_dem
+    from planetref.pipeline.inputs import worker_dem
     from planetref.pipeline.rundir import RunDir
 
     dem_path, _ = _dem(tmp_path)
@@ -146,13 +146,13 @@ def test_parallel_workers_read_the_converted_dem(tmp_path):
     man = SimpleNamespace(reference=ref, resolve=lambda root, rel: Path(root) / rel)
     run = RunDir(tmp_path / "run", "georef", {"test": 1})
     try:
-        job = SimpleNamespace(manifest=man, root=tmp_path, run=run, dem=body)
-        path = _worker_dem(job)
+        target = run.file("reference", "dem_body.tif")
+        path = worker_dem(man, tmp_path, body, target)
         assert path.parent.parent == run.path and path.is_file()
         back = GridTerrain.from_geotiff(path)
         assert np.array_equal(back.heights, body.heights) and back.transform == body.transform
-        assert _worker_dem(job) == path  # written once
+        assert worker_dem(man, tmp_path, body, target) == path  # written once
         ref.dem_datum = "body"
-        assert _worker_dem(job) == dem_path  # the scene's own file otherwise
+        assert worker_dem(man, tmp_path, body, target) == dem_path  # the scene's own file
     finally:
         run.close()

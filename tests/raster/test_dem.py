@@ -146,3 +146,34 @@ def test_intersect_rays_misses_are_nan() -> None:
     origin = origin + 5000.0 * np.cross(direction, [0, 0, 1.0])  # far outside the grid
     hits = dem.intersect_rays(origin, direction)
     assert not hits.hit.any() and np.isnan(hits.xyz).all()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("rows", [2, 257, 513, 600])
+def test_grid_statistics_by_row_blocks_equal_whole_grid(dtype, rows: int) -> None:
+    # Height range, steepest step and hole test are computed over row blocks of 256 (no
+    # grid-sized temporaries): they must equal the whole-grid formulas bit for bit,
+    # including steps across block borders and NaN cells.
+    rng = np.random.default_rng(rows)
+    h = rng.normal(0.0, 50.0, (rows, 7)).astype(dtype)
+    if rows > 256:
+        h[256, 3] += 5e4  # the steepest step crosses the first block border (rows 255/256)
+    grid = MapGrid(0.0, 7 * 2.0, 2.0, 7, rows)
+    dem = GridTerrain(h, grid.transform, local_crs_wkt(LAT, LON))
+    d1, d0 = np.abs(np.diff(h, axis=1)), np.abs(np.diff(h, axis=0))
+    res = float(np.hypot(dem.transform.a, dem.transform.d))
+    scale = dem.sampling_m / res
+    whole = np.nanmax([np.nanmax(d1) / (res * scale), np.nanmax(d0) / (res * scale), 0.0])
+    assert dem.max_slope == float(whole * np.sqrt(2.0))
+    assert (dem.min_height_m, dem.max_height_m) == (float(h.min()), float(h.max()))
+    assert dem._hole_table is None
+    h[rows - 1, 2] = np.nan
+    holed = GridTerrain(h, grid.transform, local_crs_wkt(LAT, LON))
+    assert holed._hole_table is not None and holed._hole_table[-1, -1] == 1
+    finite = h[np.isfinite(h)]
+    assert (holed.min_height_m, holed.max_height_m) == (float(finite.min()), float(finite.max()))
+    d1, d0 = np.abs(np.diff(h, axis=1)), np.abs(np.diff(h, axis=0))
+    assert holed.max_slope == float(
+        np.nanmax([np.nanmax(d1) / (res * scale), np.nanmax(d0) / (res * scale), 0.0])
+        * np.sqrt(2.0)
+    )

@@ -60,6 +60,7 @@ from planetref.pipeline.georef_report import (
     rmse_px,
 )
 from planetref.pipeline.inputs import (
+    TruthDem,
     check_body,
     check_strips,
     open_reference,
@@ -67,6 +68,8 @@ from planetref.pipeline.inputs import (
     scene_path,
     strip_cameras,
     truth_inputs,
+    truth_terrain,
+    worker_dem,
 )
 from planetref.pipeline.matchers import (
     MatcherPair,
@@ -140,7 +143,7 @@ class StripJob:
         executor: Where tiles are matched.
         progress: Show progress bars.
         truth_cameras: True camera per strip id (simulated scenes), else empty.
-        truth_dem: True DEM (simulated scenes), else None.
+        truth_dem: True DEM (simulated scenes, read when used), else None.
         timing: Seconds per step, summed over the strips (updated in place).
         figures: Draws the figures in a child process while the run goes on.
         strip: The strip (None in the run-wide template that :meth:`for_strip` copies).
@@ -156,7 +159,7 @@ class StripJob:
     executor: Executor
     progress: bool
     truth_cameras: dict[str, Camera]
-    truth_dem: GridTerrain | None
+    truth_dem: TruthDem | None
     timing: dict[str, float]
     figures: FigureJobs
     strip: StripSpec | None = None
@@ -341,7 +344,11 @@ def _match(
             camera=str(man.resolve(job.root, strip.ccds[0].camera)),
             images=tuple((c, str(Path(img.path).resolve())) for c, img in images.items()),
             ref=str(man.resolve(job.root, man.reference.ortho)),
-            dem=str(_worker_dem(job)),
+            dem=str(
+                worker_dem(
+                    job.manifest, job.root, job.dem, job.run.file("reference", "dem_body.tif")
+                )
+            ),
             ref_band=man.reference.ortho_band,
             dem_band=1 if man.reference.dem_datum != "body" else man.reference.dem_band,
         )
@@ -365,24 +372,6 @@ def _match(
         debug_sink=store.add,
         panels_dir=store.folder.resolve() if job.executor.parallel else None,
     )
-
-
-def _worker_dem(job: StripJob) -> Path:
-    """The DEM file parallel workers read: the scene's, or its body-height conversion.
-
-    A DEM above the areoid is converted once (``reference/dem_body.tif`` in the run
-    folder) so that every worker reads the same body-relative heights as this process.
-    """
-    from planetref.atomic import atomic_path
-
-    man = job.manifest
-    if man.reference.dem_datum == "body":
-        return man.resolve(job.root, man.reference.dem)
-    target = job.run.file("reference", "dem_body.tif")
-    if not target.is_file():
-        with atomic_path(target) as tmp:
-            job.dem.to_geotiff(tmp)
-    return target
 
 
 def _strip_mcps(job: StripJob) -> StripMcps:
@@ -465,16 +454,17 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     camera = result.cameras[prep.id]
     # Adjusted cameras, RPC refits, residuals and reports first (beside the orthoimages
     # they raised the peak memory by ~180 MB on hiric-strip, for ~1.6 CPU-s of overlap).
-    with part_timed(job.timing, "adjustment_files"):
+    with part_timed(job.timing, "adjustment_files"), truth_terrain(job.truth_dem, job.dem) as dem:
         out["files"]["adjustment"] = write_outputs(
             result,
             run.file(prep.id, "adjustment"),
             truth=truth,
-            terrain=job.truth_dem if job.truth_dem is not None else job.dem,
+            terrain=dem,
             plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
         )
-    out["adjustment"] = result_block(result)
-    out["check"] = check_block(result, truth, job.truth_dem) if truth else None
+        out["adjustment"] = result_block(result)
+        out["check"] = check_block(result, truth, dem) if truth else None
+    del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     out["warnings"] = list(result.warnings)
 
     def isds() -> list[str]:
@@ -544,13 +534,20 @@ def _adjust_together(
     t0 = time.perf_counter()
     cams = {p.id: p.camera for p in preps}
     truth = {sid: job.truth_cameras[sid] for sid in cams if sid in job.truth_cameras} or None
-    joint_files = write_outputs(
-        result,
-        run.file("campaign", "adjustment"),
-        truth=truth,
-        terrain=job.truth_dem if job.truth_dem is not None else job.dem,
-        plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
-    )
+    with truth_terrain(job.truth_dem, job.dem) as dem:
+        joint_files = write_outputs(
+            result,
+            run.file("campaign", "adjustment"),
+            truth=truth,
+            terrain=dem,
+            plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
+        )
+        checks = {
+            sid: check_block(result, {sid: job.truth_cameras[sid]}, dem)
+            for sid in cams
+            if sid in job.truth_cameras
+        }
+    del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     strips: dict[str, dict[str, Any]] = {}
     is_tie = np.asarray(network.point_kind)[network.obs_point] == "tie"
     for ci, p in enumerate(preps):
@@ -566,8 +563,7 @@ def _adjust_together(
             n_tie_observations=int(np.count_nonzero(on & is_tie)),
             ccds={c: m["after"] for c, m in cm.get("ccds", {}).items()},
         )
-        one = {p.id: job.truth_cameras[p.id]} if p.id in job.truth_cameras else None
-        out["check"] = check_block(result, one, job.truth_dem) if one else None
+        out["check"] = checks.get(p.id)
         out["warnings"] = list(result.warnings)
         out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
         figure_residuals(job, p.id, result, p.sizes, ci)

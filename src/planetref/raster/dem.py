@@ -57,6 +57,11 @@ _FIXED_POINT_MAX_ITER = 60
 _MARCH_TOL_M = 1e-6
 
 
+def _row_blocks(rows: int, block: int = 256) -> list[tuple[int, int]]:
+    """``[r0, r1)`` row ranges of at most ``block`` rows covering ``[0, rows)``."""
+    return [(r0, min(r0 + block, rows)) for r0 in range(0, rows, block)]
+
+
 class RayHits:
     """Intersections of rays with a :class:`GridTerrain`.
 
@@ -141,9 +146,16 @@ class GridTerrain:
             h = h.astype(np.float64)
         if nodata is not None and np.isfinite(nodata):
             h = np.where(h == nodata, np.nan, h).astype(h.dtype)
-        finite = np.isfinite(h)
-        if not finite.any():
-            raise InputError("the DEM holds no finite height")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all NaN: refused below
+            # NaN-ignoring reductions without a grid-sized mask or copy (a truth DEM of
+            # a long strip is hundreds of MB).
+            lo, hi = float(np.nanmin(h)), float(np.nanmax(h))
+        if not (np.isfinite(lo) and np.isfinite(hi)):  # all NaN, or infinite heights
+            finite = np.isfinite(h)
+            if not finite.any():
+                raise InputError("the DEM holds no finite height")
+            lo, hi = float(np.min(h[finite])), float(np.max(h[finite]))
         self.heights: NDArray[np.floating] = h
         if isinstance(transform, Affine):
             self.transform = transform
@@ -158,8 +170,7 @@ class GridTerrain:
         self.projection = MapProjection(crs)
         self.crs = self.projection.crs
         self.ellipsoid: Ellipsoid = self.projection.ellipsoid
-        self.min_height_m = float(np.min(h[finite]))
-        self.max_height_m = float(np.max(h[finite]))
+        self.min_height_m, self.max_height_m = lo, hi
         self._max_slope: float | None = None
         self._holes: NDArray[np.int64] | bool | None = None
         self._pixel_m: float | None = None
@@ -284,10 +295,16 @@ class GridTerrain:
             res_x = float(np.hypot(self.transform.a, self.transform.d))
             res_y = float(np.hypot(self.transform.b, self.transform.e))
             scale = self.sampling_m / min(res_x, res_y)  # metres per map unit (approx.)
+            gx = gy = h.dtype.type(np.nan)  # the grid's precision, as before
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                gx = np.nanmax(np.abs(np.diff(h, axis=1))) / (res_x * scale)
-                gy = np.nanmax(np.abs(np.diff(h, axis=0))) / (res_y * scale)
+                # Row blocks (overlapping by one row): the differences of a few rows at a
+                # time, not of the whole grid; the maxima are the same.
+                for r0, r1 in _row_blocks(h.shape[0]):
+                    gx = np.fmax(gx, np.nanmax(np.abs(np.diff(h[r0:r1], axis=1))))
+                    if len(rows := h[r0 : r1 + 1]) > 1:
+                        gy = np.fmax(gy, np.nanmax(np.abs(np.diff(rows, axis=0))))
+            gx, gy = gx / (res_x * scale), gy / (res_y * scale)
             self._max_slope = float(np.nanmax([gx, gy, 0.0]) * np.sqrt(2.0))
         return self._max_slope
 
@@ -513,10 +530,11 @@ class GridTerrain:
     def _hole_table(self) -> NDArray[np.int64] | None:
         """Summed-area table of NaN cells, shape ``(rows + 1, cols + 1)`` (None: no holes)."""
         if self._holes is None:
-            nan = ~np.isfinite(self.heights)
-            if not nan.any():
+            h = self.heights
+            if all(np.isfinite(h[r0:r1]).all() for r0, r1 in _row_blocks(h.shape[0])):
                 self._holes = False
             else:
+                nan = ~np.isfinite(h)
                 table = np.zeros((nan.shape[0] + 1, nan.shape[1] + 1), dtype=np.int64)
                 table[1:, 1:] = np.cumsum(np.cumsum(nan, axis=0), axis=1)
                 self._holes = table
