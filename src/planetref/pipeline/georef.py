@@ -454,7 +454,8 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     camera = result.cameras[prep.id]
     # Adjusted cameras, RPC refits, residuals and reports first (beside the orthoimages
     # they raised the peak memory by ~180 MB on hiric-strip, for ~1.6 CPU-s of overlap).
-    with part_timed(job.timing, "adjustment_files"), truth_terrain(job.truth_dem, job.dem) as dem:
+    with part_timed(job.timing, "adjustment_files"):
+        dem = truth_terrain(job.truth_dem, job.dem)
         out["files"]["adjustment"] = write_outputs(
             result,
             run.file(prep.id, "adjustment"),
@@ -534,19 +535,19 @@ def _adjust_together(
     t0 = time.perf_counter()
     cams = {p.id: p.camera for p in preps}
     truth = {sid: job.truth_cameras[sid] for sid in cams if sid in job.truth_cameras} or None
-    with truth_terrain(job.truth_dem, job.dem) as dem:
-        joint_files = write_outputs(
-            result,
-            run.file("campaign", "adjustment"),
-            truth=truth,
-            terrain=dem,
-            plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
-        )
-        checks = {
-            sid: check_block(result, {sid: job.truth_cameras[sid]}, dem)
-            for sid in cams
-            if sid in job.truth_cameras
-        }
+    dem = truth_terrain(job.truth_dem, job.dem)
+    joint_files = write_outputs(
+        result,
+        run.file("campaign", "adjustment"),
+        truth=truth,
+        terrain=dem,
+        plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
+    )
+    checks = {
+        sid: check_block(result, {sid: job.truth_cameras[sid]}, dem)
+        for sid in cams
+        if sid in job.truth_cameras
+    }
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     strips: dict[str, dict[str, Any]] = {}
     is_tie = np.asarray(network.point_kind)[network.obs_point] == "tie"

@@ -7,10 +7,8 @@ whose footprint misses the reference.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -258,39 +256,31 @@ class TruthDem:
 
     Read whole at the start it stayed resident through the run, orthoimages included,
     where a georef's memory peaks, and it grows with the strip (hiric-strip: 1 m over the
-    strip, ~14 MB per 1000 lines). Now :meth:`held` reads it for the true errors and it
-    goes with the block (one read per strip, ~0.3 s on hiric-strip).
+    strip, ~14 MB per 1000 lines). Now :func:`truth_terrain` reads it for the true errors
+    and the caller lets it go after them (one read per strip, 0.4-1.0 s on hiric-strip).
 
     Args:
-        path: The GeoTIFF; it must exist, open with a CRS and decode its last row
-            (one-line errors before any tile is matched; holes are checked when read).
+        path: The GeoTIFF; it must exist, read to its end (:func:`_check_readable`) and
+            have a CRS (one-line errors before any tile is matched; holes are checked
+            when it is read).
 
     Raises:
         MissingFileError: The file does not exist.
-        UnsupportedFormatError: GDAL cannot open it.
+        InputError: It cannot be read to its end (truncated or damaged).
         CrsError: It has no CRS.
     """
 
     def __init__(self, path: Path) -> None:
         import rasterio
-        from rasterio.errors import RasterioIOError
-        from rasterio.windows import Window
 
-        from planetref.errors import CrsError, MissingFileError, UnsupportedFormatError
+        from planetref.errors import CrsError, MissingFileError
 
         if not path.exists():
             raise MissingFileError("truth DEM file not found", path=path)
-        try:
-            with rasterio.open(path) as ds:
-                crs = ds.crs
-                # Its last row decodes: a truncated file (whose header is whole) fails
-                # here, not after the matching.
-                ds.read(1, window=Window(0, ds.height - 1, ds.width, 1))
-        except RasterioIOError as exc:
-            reason = f"cannot read raster ({library_reason(exc)})"
-            raise UnsupportedFormatError(reason, path=path) from None
-        if crs is None:
-            raise CrsError("the DEM has no CRS", path=path)
+        _check_readable(path, 1, "truth DEM")
+        with rasterio.open(path) as ds:
+            if ds.crs is None:
+                raise CrsError("the DEM has no CRS", path=path)
         self.path = path
 
     def load(self) -> GridTerrain:
@@ -300,13 +290,12 @@ class TruthDem:
         return GridTerrain.from_geotiff(self.path)
 
 
-@contextlib.contextmanager
-def truth_terrain(truth: TruthDem | None, dem: GridTerrain) -> Iterator[GridTerrain]:
-    """The truth DEM while the block runs when there is one, else ``dem``.
+def truth_terrain(truth: TruthDem | None, dem: GridTerrain) -> GridTerrain:
+    """The terrain of the true errors: the truth DEM, read now, when there is one, else ``dem``.
 
-    The caller drops its name for it after the block (``del``): the DEM then goes.
+    The caller drops it (``del``) when the true errors are done, before the orthoimages.
     """
-    yield dem if truth is None else truth.load()
+    return dem if truth is None else truth.load()
 
 
 def truth_inputs(manifest: SceneManifest, root: Path) -> tuple[dict[str, Camera], TruthDem | None]:
