@@ -73,6 +73,89 @@ def test_linearisation_compiled_equals_numpy_reference():
     assert np.all(np.diag(n_b) > 0)
 
 
+def _captured_rows(monkeypatch, net, loss="linear"):
+    """The arguments of every ``linearize_rows`` call of one linearisation."""
+    solver = _solver(net, False)
+    solver.loss = loss
+    fn = solver.normal_kernels()
+    calls = []
+    real = fn.linearize_rows
+
+    def capture(*args):
+        calls.append(args)
+        real(*args)
+
+    monkeypatch.setattr(fn, "linearize_rows", capture)
+    _linearize(solver, net)
+    monkeypatch.setattr(fn, "linearize_rows", real)
+    return solver, fn, calls
+
+
+def _sum_rows(fn, calls, basis: bool):
+    """``(N, g, r, s, weight)`` of the captured chunks, moments on or off."""
+    n_cc = g_c = None
+    outs = []
+    for args in calls:
+        args = list(args)
+        n0, g0 = np.zeros_like(args[8][0]), np.zeros_like(args[8][1])
+        args[8] = (n0, g0)
+        args[7] = (args[7][0], np.zeros_like(args[7][1]), args[7][2])
+        args[9] = tuple(np.full_like(a, np.nan) for a in args[9])
+        if not basis:  # the row-by-row form
+            args[4] = (*args[4][:4], np.empty(0), np.empty(0, np.intp), np.empty((0, 0, 0)))
+        fn.linearize_rows(*args)
+        n_cc = n0 if n_cc is None else n_cc + n0
+        g_c = g0 if g_c is None else g_c + g0
+        outs.append(args[9])
+    return n_cc, g_c, [np.concatenate(x) for x in zip(*outs, strict=True)]
+
+
+@pytest.mark.parametrize("loss", ["linear", "huber"])
+def test_moment_form_equals_row_by_row_accumulation(monkeypatch, loss):
+    """Runs of a window summed as moments of tau give the row-by-row normal equations.
+
+    Positions weighted and attitudes free: 6 distinct sources, 36 node columns per
+    window; some observations are made invalid (weight 0, pattern 0, a window of their
+    own) and the runs include short ones, summed row by row.
+    """
+    net, _, _ = mcp_problem(3000, seed=9)
+    solver, fn, calls = _captured_rows(monkeypatch, net, loss)
+    # Invalidate a few rows in the first chunk: they must add nothing.
+    proj = calls[0][0]
+    bad = np.zeros(len(proj[0]), bool)
+    bad[[3, 50, 51, 400]] = True
+    # As the models leave them: pattern 0, whatever their window (``start``).
+    gp0 = np.where(bad, 0, calls[0][5])
+    calls[0] = (
+        (np.where(bad, np.nan, proj[0]), proj[1], proj[2] & ~bad),
+        *calls[0][1:5],
+        gp0,
+        *calls[0][6:],
+    )
+    basis = calls[0][4]
+    tau, start, coef = basis[4:]
+    assert len(tau) == len(start) == len(proj[0]) and coef.shape[1:] == (4, 4)
+    gp = np.concatenate([c[5] for c in calls])
+    min_run = fn.MIN_MOMENT_RUN
+    runs = np.diff(np.flatnonzero(np.diff(gp) != 0))
+    assert runs.max() >= min_run and runs.min() < min_run  # both forms run
+    n_m, g_m, out_m = _sum_rows(fn, calls, basis=True)
+    n_r, g_r, out_r = _sum_rows(fn, calls, basis=False)
+    act = solver.active
+    nm, nr = n_m[np.ix_(act, act)], n_r[np.ix_(act, act)]
+    scale = np.sqrt(np.outer(np.diag(nr), np.diag(nr)))
+    assert np.all(np.abs(nm - nr) <= 1e-12 * scale)
+    assert np.array_equal(nm, nm.T)
+    g_scale = np.sqrt(np.diag(nr)) * np.sqrt(np.nansum(out_r[2] * out_r[0] ** 2))
+    assert np.all(np.abs(g_m[act] - g_r[act]) <= 1e-12 * g_scale)
+    for a, b in zip(out_m, out_r, strict=True):  # residuals, s, weights: the same code
+        assert np.array_equal(a, b, equal_nan=True)
+    rows = np.concatenate([c[0][2] for c in calls])
+    assert not np.any(out_m[2][~rows]) and np.all(np.isinf(out_m[1][~rows]))
+    # Every node's position and attitude is active (the interior is fixed).
+    assert act.size == 36 and np.all(np.diag(nr) > 0)
+
+
 def test_cofactor_products_compiled_equal_numpy_reference():
     net, _, _ = mcp_problem(300, seed=5)
     solver = _solver(net, False)

@@ -62,6 +62,26 @@ def test_same_point_same_values_and_partials(setup):
     assert scale[0, 3] > 1e4 and scale[1, 4] > 1e4  # d line / d phi, d sample / d omega
 
 
+def test_points_along_the_strip_match_and_tau_gives_the_weights(setup):
+    """In the adjustment's order (by line): the same values to ~1e-12 relative, and
+    ``tau`` gives the Lagrange weights through the window's basis coefficients (the
+    solver's moment form of the normal equations relies on it)."""
+    _, kern, poly, io, ccd, xyz, line = setup
+    order = np.argsort(line)
+    xyz, line = xyz[order], line[order]
+    ref = kern.project_with_partials(poly, io, ccd, xyz, line.copy(), None, use_compiled=False)
+    a, b = _both(kern, poly, io, ccd, xyz, ref.line, ref.rate)
+    assert np.abs(a.line - b.line).max() <= 1e-12 * np.abs(b.line).max() + 1e-9
+    assert np.abs(a.sample - b.sample).max() <= 1e-12 * np.abs(b.sample).max() + 1e-9
+    scale = np.abs(b.partials).max(axis=0)
+    assert np.all(np.abs(a.partials - b.partials).max(axis=0) <= 1e-12 * scale + 1e-9)
+    assert np.abs(a.tau - b.tau).max() <= 1e-12 * np.abs(b.tau).max()
+    coef = kern.windows.coef[a.start]  # (m, k basis, k powers)
+    w = np.einsum("mjq,mq->mj", coef, a.tau[:, None] ** np.arange(kern.k))
+    assert np.abs(w - a.weights).max() < 1e-12
+    assert np.abs(a.tau).max() > 0 and np.all(np.abs(a.weights.sum(axis=1) - 1.0) < 1e-12)
+
+
 def test_cold_guesses_converge_to_the_same_projection(setup):
     """From poor guesses (or none) the chord iterations differ only by rounding."""
     _, kern, poly, io, ccd, xyz, line = setup

@@ -548,17 +548,22 @@ def _compiled() -> Any:
     return optional_module("planetref.adjust._numba_normal", "compiled normal equations")
 
 
-def _partial_factors(ev: Evaluation) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.intp]]:
-    """``(imp, weights, src, node)`` of an evaluation's partials (see ``linearize_rows``)."""
+def _partial_factors(ev: Evaluation) -> tuple[Any, ...]:
+    """``(imp, weights, src, node, tau, start, coef)`` of an evaluation's partials.
+
+    See :func:`~planetref.adjust._numba_normal.linearize_rows`.
+    """
     f = ev.factors
     if f is not None:
-        return f.imp, f.weights, f.src, f.node
+        basis = f.basis if f.basis is not None else _NO_BASIS
+        return (f.imp, f.weights, f.src, f.node, *basis)
     d = ev.d_params
     q = d.shape[2]
-    return d, _NO_WEIGHTS, np.arange(q, dtype=np.intp), np.full(q, -1, np.intp)
+    return (d, _NO_WEIGHTS, np.arange(q, dtype=np.intp), np.full(q, -1, np.intp), *_NO_BASIS)
 
 
 _NO_WEIGHTS = np.ones((1, 1))
+_NO_BASIS = (np.empty(0), np.empty(0, np.intp), np.empty((0, 0, 0)))
 
 
 def _quadratic(w: F64, dx: F64) -> float:

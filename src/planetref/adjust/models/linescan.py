@@ -227,6 +227,9 @@ class LineScanParameterization:
                 imp[bad] = 0.0
                 proj.weights[bad] = 0.0
             factors = _Factors(imp, proj.weights, self._placement, *self._column_map())
+            # The weights' polynomial form: the solver accumulates runs of a window
+            # as moments of tau (``linearize_rows``).
+            factors.basis = (proj.tau, proj.start, kern.windows.coef)
             return Evaluation(line, samp, valid, pattern, None, None, rate, factors=factors)
         # The numpy reference of compiled.fill_partials.
         dp = np.empty((m, 2, self.pattern_columns.shape[1]))
@@ -437,10 +440,11 @@ class _Factors:
 
     ``d_params[i, r, 6 j + c] = imp[i, r, c] * weights[i, j]`` for node ``j`` of the
     window and EO column ``c``; the interior (and placement) columns are columns of
-    ``imp``; ``d_ground`` is ``imp``'s ground columns.
+    ``imp``; ``d_ground`` is ``imp``'s ground columns. ``basis``: ``(tau, start,
+    coef)`` with ``weights[i, j] = sum_q coef[start[i], j, q] tau[i]^q``, or ``None``.
     """
 
-    __slots__ = ("imp", "node", "placement", "src", "weights")
+    __slots__ = ("basis", "imp", "node", "placement", "src", "weights")
 
     def __init__(
         self,
@@ -452,6 +456,7 @@ class _Factors:
     ) -> None:
         self.imp, self.weights, self.placement = imp, weights, placement
         self.src, self.node = src, node
+        self.basis: tuple[F64, NDArray[np.intp], F64] | None = None
 
     def expand(self, rows: NDArray[np.bool_] | None = None) -> tuple[F64, F64]:
         """``(d_params (m, 2, q), d_ground (m, 2, 3))`` (compiled.fill_partials).

@@ -172,6 +172,7 @@ def project(
     out_start: Any,
     out_w: F64,
     out_imp: F64,
+    out_tau: F64,
 ) -> None:
     jac = np.empty((6, 3))
     raw = np.empty((2, 15))
@@ -291,6 +292,7 @@ def project(
             and lo_ <= hi
         )
         out_start[i] = s
+        out_tau[i] = tau
         for jb in range(k):
             wv = coef[s, jb, k - 1]
             for q in range(k - 2, -1, -1):

@@ -65,6 +65,7 @@ def _smoke_test(mod: Any) -> None:
             np.array([0.0, 0.0, 0.0, 0.01, 0.0, 1.0]), np.zeros((1, 3)), one * 5.0,
             one * np.nan, full, 1e-6, 1e-3, np.empty(1), np.empty(1), np.empty(1, np.bool_),
             np.empty(1), np.empty(1, np.intp), np.empty((1, k)), np.empty((1, 2, 15)),
+            np.empty(1),
         )  # fmt: skip
     mod.fill_partials(np.zeros((1, 2, 15)), np.ones((1, k)), True, np.empty((1, 2, 6 * k + 6)),
                       np.empty((1, 2, 3)))  # fmt: skip
@@ -117,7 +118,7 @@ def project_points(
 
     Returns:
         ``(line, sample, valid, rate)`` and, with ``full``, ``start``, ``weights``,
-        ``partials``; the meanings are those of
+        ``partials``, ``tau``; the meanings are those of
         :meth:`~planetref.camera.linescan.kernel.LineScanKernel.project` and
         :meth:`~planetref.camera.linescan.kernel.LineScanKernel.project_with_partials`.
     """
@@ -132,10 +133,12 @@ def project_points(
         start = np.empty(m, np.intp)
         weights = np.empty((m, k))
         partials = np.empty((m, 2, 15))
+        tau = np.empty(m)
     else:
         start = np.empty(0, np.intp)
         weights = np.empty((0, k))
         partials = np.empty((0, 2, 15))
+        tau = np.empty(0)
     fn.project(
         *tables,
         k,
@@ -157,9 +160,10 @@ def project_points(
         start,
         weights,
         partials,
+        tau,
     )
     if full:
-        return out_line, out_samp, out_valid, out_rate, start, weights, partials
+        return out_line, out_samp, out_valid, out_rate, start, weights, partials, tau
     return out_line, out_samp, out_valid, out_rate
 
 

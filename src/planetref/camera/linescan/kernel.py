@@ -99,6 +99,7 @@ class KernelState:
         weights: Lagrange weights ``(m, k)`` (full evaluations only).
         raw: ``(m, 2, 15)`` ``d(offset, sample)/dq`` at the fixed line, columns
             :data:`RAW_COLUMNS` (full evaluations only).
+        tau: Time (s) relative to the window's centre (full evaluations only).
     """
 
     offset: F64
@@ -109,6 +110,7 @@ class KernelState:
     start: NDArray[np.intp] | None = None
     weights: F64 | None = None
     raw: F64 | None = None
+    tau: F64 | None = None
 
 
 @dataclass(frozen=True)
@@ -125,6 +127,9 @@ class Projection:
         partials: ``(m, 2, 15)`` ``d(line, sample)/dq``, columns :data:`RAW_COLUMNS`;
             the EO columns are w.r.t. the *interpolated* EO (times ``weights`` for a
             node's own parameters, see :meth:`LineScanKernel.node_partials`).
+        tau: Time (s) of each point relative to its window's centre:
+            ``weights[:, j] = sum_q windows.coef[start, j, q] tau^q``
+            (:class:`~planetref.geometry.lagrange.LagrangeWindows`).
     """
 
     line: F64
@@ -134,6 +139,7 @@ class Projection:
     start: NDArray[np.intp]
     weights: F64
     partials: F64
+    tau: F64
 
 
 class LineScanKernel:
@@ -290,7 +296,7 @@ class LineScanKernel:
         period = self.line_rates.period(line)
         rate = np.einsum("mp,mp->m", raw[:, 0, :6], deo_dt) * period
         srate = np.einsum("mp,mp->m", raw[:, 1, :6], deo_dt) * period
-        return KernelState(off, samp, cf.w, rate, srate, start, w, raw)
+        return KernelState(off, samp, cf.w, rate, srate, start, w, raw, tau)
 
     def offset(self, poly: F64, io: F64, ccd: CcdGeometry, p: F64, line: F64) -> F64:
         """Detector offset (pixels) of points at given lines (no partials)."""
@@ -441,6 +447,7 @@ class LineScanKernel:
             np.asarray(st.start),
             np.asarray(st.weights),
             imp,
+            np.asarray(st.tau),
         )
 
     def node_partials(self, proj: Projection, out: F64 | None = None) -> F64:
