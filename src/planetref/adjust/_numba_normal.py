@@ -2,8 +2,9 @@
 
 The twin of :meth:`~planetref.adjust.linearization.LinearizationMixin._accumulate` (the
 numpy reference; a test binds both): ``N += A^T W A`` and ``g += A^T W r`` over the active
-columns of each observation's pattern. Importing this module imports numba; the function
-compiles on first use or loads from numba's on-disk cache.
+columns of each observation's pattern (a line scanner's runs of one Lagrange window as
+moments of the time within it: :func:`linearize_rows`). Importing this module imports
+numba; the function compiles on first use or loads from numba's on-disk cache.
 """
 
 from __future__ import annotations
