@@ -89,9 +89,9 @@ def linearize_rows(
       ``tau^0 ... tau^(2k-2)``, and ``sum_r e_r imp_r res_r`` times ``tau^0 ... tau^(k-1)``;
       the block is expanded once per run:
       ``N[(c,j),(c',j')] = sum_{q,q'} a_jq a_j'q' H_{q+q'}[c,c']`` with ``a_jq`` the
-      window's basis coefficients. With 4 nodes and 3 attitude sources that is ~60
-      multiply-adds per row instead of ~300 (with 6 EO sources, ~160 instead of
-      ~1150). The basis is centred on its window (``tau`` within ~1.5 node spacings),
+      window's basis coefficients. With 4 nodes and 3 attitude sources that is ~70
+      multiply-adds per row instead of ~310 (with 6 EO sources, ~220 instead of
+      ~1200). The basis is centred on its window (``tau`` within ~1.5 node spacings),
       so the expansion loses only a few bits to cancellation (a test binds the two
       forms and the numpy reference).
 

@@ -226,10 +226,15 @@ class LineScanParameterization:
                 pattern[bad] = 0
                 imp[bad] = 0.0
                 proj.weights[bad] = 0.0
-            factors = _Factors(imp, proj.weights, self._placement, *self._column_map())
-            # The weights' polynomial form: the solver accumulates runs of a window
-            # as moments of tau (``linearize_rows``).
-            factors.basis = (proj.tau, proj.start, kern.windows.coef)
+            # With the weights' polynomial form (basis) the solver accumulates runs of a
+            # window as moments of tau (``linearize_rows``).
+            factors = _Factors(
+                imp,
+                proj.weights,
+                self._placement,
+                *self._column_map(),
+                basis=(proj.tau, proj.start, kern.windows.coef),
+            )
             return Evaluation(line, samp, valid, pattern, None, None, rate, factors=factors)
         # The numpy reference of compiled.fill_partials.
         dp = np.empty((m, 2, self.pattern_columns.shape[1]))
@@ -453,10 +458,11 @@ class _Factors:
         placement: bool,
         src: NDArray[np.intp],
         node: NDArray[np.intp],
+        *,
+        basis: tuple[F64, NDArray[np.intp], F64] | None = None,
     ) -> None:
         self.imp, self.weights, self.placement = imp, weights, placement
-        self.src, self.node = src, node
-        self.basis: tuple[F64, NDArray[np.intp], F64] | None = None
+        self.src, self.node, self.basis = src, node, basis
 
     def expand(self, rows: NDArray[np.bool_] | None = None) -> tuple[F64, F64]:
         """``(d_params (m, 2, q), d_ground (m, 2, 3))`` (compiled.fill_partials).
