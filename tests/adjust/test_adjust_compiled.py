@@ -226,6 +226,15 @@ def test_radix_order_equals_numpy_stable_sort():
     order, srt = _numba_groups.radix_order(big, 3_000_000)
     assert np.array_equal(order, np.argsort(big, kind="stable"))
     assert np.array_equal(srt, np.sort(big))
+    # Digit widths at the pass boundaries: one key, one full 12-bit digit, one bit more
+    # (two passes of 7 bits), three passes; the top digit must not be dropped.
+    for n_keys in (1, 2, 4096, 4097, 1 << 24, (1 << 24) + 1, 1 << 34):
+        k = rng.integers(0, n_keys, 5000)
+        k[:50] = n_keys - 1
+        order, srt = _numba_groups.radix_order(k, n_keys)
+        assert np.array_equal(order, np.argsort(k, kind="stable")), n_keys
+        assert np.array_equal(srt, np.sort(k)), n_keys
+    assert _numba_groups.radix_order(np.zeros(0, np.int64), 10)[0].size == 0
     # The layout order: by group, then by line (stable), compiled and numpy; with long
     # buckets (many observations of one line) and exact ties.
     key = rng.integers(0, 3, 6000).astype(np.int64)

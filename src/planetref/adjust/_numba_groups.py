@@ -24,25 +24,32 @@ F64 = NDArray[np.float64]
 _INSERTION_MAX = 48
 
 
-#: Digits of the radix sort (bits): 65536 counters stay in the L2 cache.
-_RADIX_BITS = 16
+#: Widest digit of the radix sort (bits): 4096 counters and write streams stay in the
+#: L1/L2 caches (16-bit digits, 65536 streams, took 2.6x as long over 1e6 random keys).
+_RADIX_BITS = 12
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def radix_order(keys: Any, n_keys: int) -> tuple[Any, Any]:
     """The stable sorting permutation of ``keys`` (integers in ``[0, n_keys)``); sorted keys.
 
-    Equal to ``np.argsort(keys, kind="stable")``: least-significant-digit radix passes of
-    16 bits (two for up to 2**32 keys), each a counting sort, so the counters and the
-    write positions stay in cache where one counting sort over millions of keys would not.
+    Equal to ``np.argsort(keys, kind="stable")``: least-significant-digit radix passes,
+    each a counting sort by one digit of at most :data:`_RADIX_BITS` bits (the key's bits
+    split evenly over the fewest such passes), so the counters and the write positions
+    stay in cache where one counting sort over millions of keys would not.
     """
     m = keys.shape[0]
     order = np.arange(m)
     k = keys.copy()
-    size = 1 << _RADIX_BITS
+    total = 1
+    while (n_keys - 1) >> total > 0:
+        total += 1
+    passes = (total + _RADIX_BITS - 1) // _RADIX_BITS
+    bits = (total + passes - 1) // passes
+    size = 1 << bits
     mask = size - 1
-    shift = 0
-    while shift == 0 or ((n_keys - 1) >> shift) > 0:
+    for p in range(passes):
+        shift = p * bits
         start = np.zeros(size + 1, np.intp)
         for i in range(m):
             start[((k[i] >> shift) & mask) + 1] += 1
@@ -58,7 +65,6 @@ def radix_order(keys: Any, n_keys: int) -> tuple[Any, Any]:
             start[d] = j + 1
         order = new_order
         k = new_k
-        shift += _RADIX_BITS
     return order, k
 
 

@@ -116,7 +116,7 @@ class LinearizationMixin:
         # Independent gathers (random reads that release the GIL): in two threads when
         # there are two.
         jobs = {
-            "slots": lambda: self._slots(obs, point, fixed_rows),
+            "slots": lambda: self._slots(obs, point, fixed_rows, ranges),
             "xyz": lambda: net.point_xyz.take(point, axis=0) if fixed else None,
             "w0": lambda: self.obs_w0.take(obs, axis=0),
             "line": lambda: net.obs_line.take(obs),
@@ -148,14 +148,26 @@ class LinearizationMixin:
         )
 
     def _slots(
-        self, obs: NDArray[np.intp], point: NDArray[np.intp], fixed_rows: NDArray[np.bool_]
+        self,
+        obs: NDArray[np.intp],
+        point: NDArray[np.intp],
+        fixed_rows: NDArray[np.bool_],
+        ranges: list[tuple[int, int, int, int]],
     ) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:
-        """Slots of the rows of a layout (see :attr:`_Layout.slot`), one observation each."""
+        """Slots of the rows of a layout (see :attr:`_Layout.slot`), one observation each.
+
+        ``ranges``: the layout's ``(model, ccd, start, stop)`` groups, which give every
+        row's image without gathering the network's camera and CCD columns.
+        """
         net = self.net
         _, kind = net.point_kind_codes
         base = max(len(cam.ccd_names) for cam in net.cameras)
         n_img = len(net.cameras) * base
-        key = kind.take(point) * n_img + net.obs_camera.take(obs) * base + net.obs_ccd.take(obs)
+        image = np.repeat(
+            np.array([mi * base + ccd for mi, ccd, _, _ in ranges], np.intp),
+            [b - a for _, _, a, b in ranges],
+        )
+        key = kind.take(point) * n_img + image
         size = int(np.max(np.diff(self.offsets), initial=0)) + 1
         present = np.bincount(key[fixed_rows], minlength=int(key.max(initial=0)) + 1) > 0
         n_slot = int(np.count_nonzero(present))

@@ -136,20 +136,24 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         """
         sig = _read_only(sigma_m)
         self.point_sigma = sig
+        # The weighted points (0 < sigma < inf on some axis), column by column: no (P, 3)
+        # temporaries for a network of fixed or free points only.
+        ok = [(sig[:, k] > 0) & (sig[:, k] < np.inf) for k in range(3)]
+        on = np.flatnonzero(ok[0] | ok[1] | ok[2])
+        s_on = sig[on]
         # 1/sigma^2 where 0 < sigma < inf, else 0.
         with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-            w = 1.0 / (sig * sig)
-        w[~((sig > 0) & (sig < np.inf))] = 0.0
-        on = np.flatnonzero((w[:, 0] > 0) | (w[:, 1] > 0) | (w[:, 2] > 0))
+            w = 1.0 / (s_on * s_on)
+        w[~((s_on > 0) & (s_on < np.inf))] = 0.0
         #: Per-axis weights in the sigma frame, indexed like ``(P, 3)`` (zero for the
         #: fixed and free points: only weighted ones are held).
-        self.point_prior_axis_w = PointMatrices(len(w), on, w[on])
+        self.point_prior_axis_w = PointMatrices(len(sig), on, w)
         fr = self.net.point_frame_matrices(on)
         #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, indexed like ``(P, 3, 3)``.
         self.point_prior_w = PointMatrices(
             len(w),
             on,
-            np.einsum("pki,pk,pkj->pij", fr, w[on], fr),
+            np.einsum("pki,pk,pkj->pij", fr, w, fr),
             index=self.point_prior_axis_w.index,
         )
 
