@@ -8,6 +8,8 @@ accumulation over active columns and the cofactor products of the redundancy num
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from adjust_synth import mcp_problem
@@ -213,6 +215,29 @@ def test_pattern_partials_compiled_equal_numpy_reference():
         scale = np.abs(y).max(axis=0)
         assert np.all(np.abs(x - y).max(axis=0) <= 1e-12 * scale + 1e-9)
     assert np.array_equal(a.pattern, b.pattern)
+
+
+def test_point_prior_weights_equal_the_dense_formula():
+    """Sparse per-point weights (only weighted points held) index like the dense arrays."""
+    net, _, _ = mcp_problem(300, seed=2)
+    sig = net.point_sigma_m.copy()
+    sig[::3] = [2.0, 3.0, np.inf]  # weighted on two axes, free on the third
+    sig[1::7] = np.inf  # free points
+    solver = _solver(dataclasses.replace(net, point_sigma_m=sig), False)
+    n = net.n_points
+    with np.errstate(divide="ignore"):
+        dense = np.where((sig > 0) & np.isfinite(sig), 1.0 / sig**2, 0.0)
+    idx = np.arange(n)
+    assert solver.point_prior_axis_w.shape == (n, 3) and len(solver.point_prior_axis_w) == n
+    assert solver.point_prior_w.shape == (n, 3, 3) and len(solver.point_prior_w) == n
+    np.testing.assert_array_equal(solver.point_prior_axis_w[idx], dense)
+    fr = net.point_frame_matrices(idx)
+    want = np.einsum("pki,pk,pkj->pij", fr, dense, fr)
+    np.testing.assert_allclose(solver.point_prior_w[idx], want, rtol=1e-15, atol=0)
+    weighted = np.zeros(n, bool)
+    weighted[::3] = True
+    weighted[1::7] = False
+    assert weighted.sum() > 50 and np.array_equal(dense.any(axis=1), weighted)
 
 
 def test_radix_order_equals_numpy_stable_sort():

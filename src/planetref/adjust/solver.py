@@ -151,7 +151,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         fr = self.net.point_frame_matrices(on)
         #: Weight matrices ``R^T diag(w) R`` in body-fixed XYZ, indexed like ``(P, 3, 3)``.
         self.point_prior_w = PointMatrices(
-            len(w),
+            len(sig),
             on,
             np.einsum("pki,pk,pkj->pij", fr, w, fr),
             index=self.point_prior_axis_w.index,
