@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 import rasterio
+from rasterio.enums import Resampling
 
 from planetref.camera.io import load_camera
 from planetref.errors import InputError
@@ -142,9 +143,24 @@ def test_overviews_are_internal(strip, tmp_path):
         factors = ds.overviews(1)
         assert factors and factors[0] == 2
         assert min(ds.width, ds.height) // factors[-1] >= 256
+        # Padded so that every overview pixel covers its exact block of pixels.
+        assert ds.width % factors[-1] == 0 and ds.height % factors[-1] == 0
+        assert ds.tags(ns="rio_overview") == {"resampling": "average"}
         # ZSTD wherever this GDAL writes it (DEFLATE was always chosen before: rasterio's
         # enum names are lower case); the same pixels, ~4x faster to write.
         written = str(getattr(ds.compression, "value", ds.compression)).lower()
+    # The overviews made while writing are GDAL's AVERAGE of the written pixels.
+    gdal = tmp_path.parent / f"{tmp_path.name}_gdal.tif"
+    shutil.copy(res.ccds[ccd], gdal)
+    with rasterio.open(gdal, "r+") as ds:
+        ds.build_overviews(factors, Resampling.average)
+    for k in range(len(factors)):
+        with (
+            rasterio.open(res.ccds[ccd], overview_level=k) as a,
+            rasterio.open(gdal, overview_level=k) as b,
+        ):
+            assert np.array_equal(a.read(1), b.read(1), equal_nan=True)
+    gdal.unlink()
     assert written == _compression()["compress"]
     from rasterio.io import MemoryFile
 

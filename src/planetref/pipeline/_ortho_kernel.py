@@ -18,6 +18,8 @@ CCDs run in threads at once:
   stated there is 1e-3 DN).
 - :func:`cast_block`: float values (NaN = no data) to the output integer type (round half
   to even, clip, nodata), as ``PixelType.cast``.
+- :func:`halve_rows`: one overview level from the previous one, as GDAL's ``AVERAGE``
+  (the numpy reference is :func:`planetref.pipeline.overviews.halve_reference`).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["cast_block", "lattice_maps", "resample_bilinear"]
+__all__ = ["cast_block", "halve_rows", "lattice_maps", "resample_bilinear"]
 
 njit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
@@ -193,3 +195,35 @@ def cast_block(values: Any, lo: float, hi: float, nodata: float, out: Any) -> No
                 x = np.rint(np.float32(v))
                 x = min(max(x, np.float32(lo)), np.float32(hi))
                 out[r, c] = x
+
+
+@njit
+def halve_rows(src: Any, nodata: float, is_int: bool, out: Any) -> None:
+    """Each 2 x 2 block of ``src``: the mean of its valid pixels, in ``src``'s type.
+
+    Valid means ``v == v and v != nodata`` (NaN never is, so a float NaN nodata works
+    too). The mean is taken in float64; integer types round it half away from zero, as
+    GDAL does; a block without a valid pixel is ``nodata``.
+
+    Args:
+        src: ``(2 R, 2 C)`` pixels of one level.
+        nodata: The nodata value.
+        is_int: Whether the type is an integer one (round the mean).
+        out: ``(R, C)`` pixels of the next level, same type (filled).
+    """
+    for r in range(out.shape[0]):
+        for c in range(out.shape[1]):
+            s, n = 0.0, 0
+            for dr in range(2):
+                for dc in range(2):
+                    v = src[2 * r + dr, 2 * c + dc]
+                    if v == v and v != nodata:
+                        s += float(v)
+                        n += 1
+            if n == 0:
+                out[r, c] = nodata
+            else:
+                m = s / n
+                if is_int:
+                    m = math.floor(m + 0.5) if m >= 0.0 else -math.floor(0.5 - m)
+                out[r, c] = m

@@ -8,14 +8,18 @@ of them, in one pass over block rows of a common north-up grid:
   at integer multiples of it in the reference CRS, so the CCD orthoimages, the mosaic
   and orthoimages of other strips at the same size overlay pixel for pixel. A CCD's
   file covers its footprint (its top row moved up to the mosaic's block grid so that
-  every write fills whole 256-row tiles).
+  every write fills whole 256-row tiles); every file's width and height are rounded up
+  to a multiple of its largest overview factor (nodata at the right and bottom), and
+  the mosaic covers every CCD's file.
 * **Data type.** The input's type is kept: floating inputs as float32 (float64 stays
   float64) with NaN nodata; unsigned integers with nodata at the type's maximum
   (255, 65535), signed ones at its minimum, valid values rounded and clipped one short
   of it: a valid pixel never reads as nodata (only an input pixel at the type's extreme,
   i.e. saturated, is written one DN below it).
 * **Overviews.** Internal overviews (factors 2, 4, ... while the smaller side stays
-  >= 256 pixels), averaged over valid pixels.
+  >= 256 pixels), averaged over valid pixels: GDAL's ``AVERAGE`` bit for bit, but
+  computed from each block as it is written (:mod:`planetref.pipeline.overviews`)
+  instead of reading the finished file back.
 * **Mosaic, overlap rule.** Where CCDs overlap, a mosaic pixel takes the CCD whose image
   point lies farthest from that CCD's first/last sample (the distance to its nearer
   side edge), so seams run along the middle of each overlap, where both CCDs are
@@ -32,7 +36,7 @@ of them, in one pass over block rows of a common north-up grid:
   the same pixels on OpenCV 5, whereas OpenCV 4 quantises positions to 1/32 pixel), so
   the CCDs of a block row run in ``threads`` threads; each raw line is read and decoded
   about once (runs aligned to the input's tiles, kept while the next block needs them),
-  and GDAL computes the overviews in ``threads`` threads of its own.
+  and the files' overview levels are written in the same threads at the end.
 * **Resume.** A digest of the inputs (cameras, images, DEM, CRS, grid, settings) is
   written next to each file; a re-run with the same digest keeps the files.
 """
@@ -66,6 +70,7 @@ from planetref.pipeline.orthoimage import (
     _footprint,
     _terrain_id,
 )
+from planetref.pipeline.overviews import OverviewPyramid, overview_factors, padded_size
 
 __all__ = ["PixelType", "StripOrthoResult", "orthorectify_strip", "round_gsd"]
 
@@ -73,6 +78,8 @@ F32 = NDArray[np.float32]
 #: Round pixel sizes (times a power of ten) that :func:`round_gsd` chooses from.
 ROUND_STEPS = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 TILE = 256
+#: Key of the mosaic among the outputs (CCD names are the others).
+_MOSAIC = "\0mosaic"
 #: GDAL's block cache while writing (MB), and during a whole georef run. GDAL's default,
 #: 5 % of the RAM, fills with the blocks read and written (raw CCD lines, the outputs and
 #: their overviews), so the process grew with the strip length (hiric-strip: ~70 MB more
@@ -235,7 +242,7 @@ def _strip_digest(
         "gsd_m": float(gsd_m),
         "settings": [s.lattice_step, s.min_lattice_step, s.max_error_px, s.block_rows],
         "mosaic": mosaic,
-        "format": 2,
+        "format": 3,
     }
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=repr).encode()).hexdigest()
 
@@ -243,14 +250,6 @@ def _strip_digest(
 def _digest_ok(path: Path, digest: str) -> bool:
     d = path.with_name(path.name + DIGEST_SUFFIX)
     return path.is_file() and d.is_file() and d.read_text(encoding="utf-8").strip() == digest
-
-
-def _overview_factors(width: int, height: int) -> list[int]:
-    out, f = [], 2
-    while min(width, height) // f >= TILE:
-        out.append(f)
-        f *= 2
-    return out
 
 
 def _kernel() -> Any:
@@ -362,9 +361,9 @@ def orthorectify_strip(
         settings: Lattice and block settings.
         resume: Keep existing outputs whose inputs digest matches.
         overviews: Build internal overviews.
-        threads: CCDs resampled at once, and GDAL's threads computing overviews
-            (default: OpenCV's thread budget, see
-            :mod:`planetref.threads`); the output does not depend on it.
+        threads: CCDs resampled at once, and files whose overviews are written at
+            once (default: OpenCV's thread budget, see :mod:`planetref.threads`); the
+            output does not depend on it.
 
     Returns:
         What was written.
@@ -383,7 +382,6 @@ def orthorectify_strip(
     s = settings or OrthoSettings()
     if threads is None:
         threads = cv2.getNumThreads()
-    gdal_threads = max(1, int(threads or 1))
     rows_per_block = max(TILE, (int(s.block_rows) // TILE) * TILE)
     g = float(gsd_m)
     dtypes = {np.dtype(getattr(im, "dtype", np.float32)) for im in images.values()}
@@ -416,13 +414,12 @@ def orthorectify_strip(
     my1 = max(b[3] for b in boxes.values())
     mx1 = max(b[2] for b in boxes.values())
     my0 = min(b[1] for b in boxes.values())
-    m_grid = OrthoGrid(ground, mx0 * g, my1 * g, g, mx1 - mx0, my1 - my0)
     jobs: list[_CcdJob] = []
-    for ccd, (ix0, _iy0, ix1, iy1) in boxes.items():
+    for ccd, (ix0, iy0, ix1, iy1) in boxes.items():
         row_off = ((my1 - iy1) // rows_per_block) * rows_per_block
         col_off = ix0 - mx0
-        height = (my1 - boxes[ccd][1]) - row_off
-        grid = OrthoGrid(ground, ix0 * g, (my1 - row_off) * g, g, ix1 - ix0, height)
+        width, height = padded_size(ix1 - ix0, (my1 - iy0) - row_off)
+        grid = OrthoGrid(ground, ix0 * g, (my1 - row_off) * g, g, width, height)
         n_lines, n_samples = camera.image_size(ccd)
         jobs.append(
             _CcdJob(
@@ -436,6 +433,13 @@ def orthorectify_strip(
                 int(n_samples),
             )
         )
+
+    # The mosaic holds every CCD's (padded) grid.
+    m_width, m_height = padded_size(
+        max(mx1 - mx0, *(j.col_off + j.grid.width for j in jobs)),
+        max(my1 - my0, *(j.row_off + j.grid.height for j in jobs)),
+    )
+    m_grid = OrthoGrid(ground, mx0 * g, my1 * g, g, m_width, m_height)
 
     def profile(grid: OrthoGrid) -> dict[str, Any]:
         return {
@@ -461,13 +465,38 @@ def orthorectify_strip(
     with contextlib.ExitStack() as stack:
         stack.enter_context(rasterio.Env(GDAL_PAM_ENABLED="NO", GDAL_CACHEMAX=GDAL_CACHE_MB))
         dst: dict[str, Any] = {}
+        tmps: dict[str, Path] = {}
+        pyramids: dict[str, OverviewPyramid | None] = {}
+        kernel = _kernel()
+
+        def create(key: str, target: Path, grid: OrthoGrid) -> Any:
+            tmp = tmps[key] = stack.enter_context(atomic_path(target))
+            ds = stack.enter_context(rasterio.open(tmp, "w", **profile(grid)))
+            factors = overview_factors(grid.width, grid.height) if overviews else []
+            pyramids[key] = None
+            if factors:
+                # The overview directories, made while the file is empty (nothing to
+                # read or average); their pixels come from the pyramid at the end.
+                ds.build_overviews(factors, Resampling.nearest)
+                ds.update_tags(ns="rio_overview", resampling="average")
+                pyr = OverviewPyramid(
+                    grid.width,
+                    grid.height,
+                    factors,
+                    ptype.dtype,
+                    ptype.nodata,
+                    tmp.parent,
+                    kernel,
+                )
+                stack.callback(pyr.close)
+                pyramids[key] = pyr
+            return ds
+
         for j in jobs:
-            tmp = stack.enter_context(atomic_path(targets[j.ccd]))
-            dst[j.ccd] = stack.enter_context(rasterio.open(tmp, "w", **profile(j.grid)))
+            dst[j.ccd] = create(j.ccd, targets[j.ccd], j.grid)
         m_dst = None
         if mosaic_path is not None:
-            tmp = stack.enter_context(atomic_path(mosaic_path))
-            m_dst = stack.enter_context(rasterio.open(tmp, "w", **profile(m_grid)))
+            m_dst = create(_MOSAIC, mosaic_path, m_grid)
         # The CCDs of a block are resampled and written in threads (separate files and
         # readers; OpenCV, GDAL and numpy's large operations release the GIL).
         n_threads = min(len(jobs), max(1, int(threads or 1)))
@@ -493,7 +522,7 @@ def orthorectify_strip(
             def one(job: _CcdJob, a0: int, a1: int) -> tuple[F32, F32 | None]:
                 val, dist = _resample(job, a0, a1, m_dst is not None)
                 win = Window(0, a0, job.grid.width, a1 - a0)
-                dst[job.ccd].write(_cast(ptype, val), 1, window=win)
+                _write_block(dst[job.ccd], ptype, val, win, pyramids[job.ccd])
                 return val, dist
 
             if pool is not None and len(todo) > 1:
@@ -513,21 +542,25 @@ def orthorectify_strip(
                 if writing is not None:
                     writing.result()
                 win = Window(0, r0, m_grid.width, r1 - r0)
-                writing = writer.submit(_write_block, m_dst, ptype, m_val, win)
+                writing = writer.submit(_write_block, m_dst, ptype, m_val, win, pyramids[_MOSAIC])
         if writing is not None:
             writing.result()
-        if overviews:
-            for ds in [*dst.values(), *([m_dst] if m_dst is not None else [])]:
-                factors = _overview_factors(ds.width, ds.height)
-                if factors:
-                    # Overviews are computed and compressed in GDAL's own threads (the
-                    # same pixels; rasterio holds the GIL meanwhile). The tiles of the full
-                    # resolution are compressed in the writing thread: the CCDs are
-                    # written in parallel already, and GDAL's threads there cost ~15 %
-                    # more CPU (hiric-strip: 8.8 vs 7.6 CPU-s).
-                    with rasterio.Env(GDAL_NUM_THREADS=str(gdal_threads)):
-                        ds.build_overviews(factors, Resampling.average)
-                    ds.update_tags(ns="rio_overview", resampling="average")
+        # The full resolution is complete: close each file, then fill its overviews.
+        keys = [*dst, *([_MOSAIC] if m_dst is not None else [])]
+        for key in keys:
+            (m_dst if key == _MOSAIC else dst[key]).close()
+
+        def fill(key: str) -> None:
+            pyr = pyramids[key]
+            if pyr is not None:
+                pyr.write_into(tmps[key])
+
+        if pool is not None:
+            for f in [pool.submit(fill, k) for k in keys]:
+                f.result()
+        else:
+            for k in keys:
+                fill(k)
     for p in targets.values() if len(jobs) == len(targets) else [targets[j.ccd] for j in jobs]:
         _write_digest(p, digest)
     if mosaic_path is not None:
@@ -546,8 +579,13 @@ def _cast(ptype: PixelType, values: F32) -> NDArray[Any]:
     return out
 
 
-def _write_block(ds: Any, ptype: PixelType, values: F32, window: Any) -> None:
-    ds.write(_cast(ptype, values), 1, window=window)
+def _write_block(
+    ds: Any, ptype: PixelType, values: F32, window: Any, pyramid: OverviewPyramid | None
+) -> None:
+    pixels = _cast(ptype, values)
+    ds.write(pixels, 1, window=window)
+    if pyramid is not None:
+        pyramid.push(pixels)
 
 
 def _write_digest(path: Path, digest: str) -> None:
