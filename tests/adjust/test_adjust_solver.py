@@ -244,13 +244,25 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol, monkeypatch):
     at = Iterate(lin, st.chunks, solver.x0, xyz, xyz, st.unknown)
     s_mat, rhs, _, blocks = solver._reduced(at, 0.0)
     dc, _ = solver._solve_reduced(s_mat, rhs)
-    dx, _, _ = solver._back_substitute(lin, st.chunks, blocks, dc, len(st.unknown))
+    real_back = solver._back_substitute(lin, st.chunks, blocks, dc, len(st.unknown))
+    dx = real_back[0]
     # The numpy point elimination (the reference of the compiled one, used when numba
     # is available) gives the same step.
+    real_compiled = schur._compiled
     monkeypatch.setattr(schur, "_compiled", lambda: None)
     s_np, rhs_np, _, blocks_np = solver._reduced(at, 0.0)
     dc_np, _ = solver._solve_reduced(s_np, rhs_np)
     dx_np, _, _ = solver._back_substitute(lin, st.chunks, blocks_np, dc_np, len(st.unknown))
+    # The compiled back-substitution against the numpy loop, on the same blocks and step,
+    # in each point's sigma given the cameras (sqrt diag V^-1): the nearly singular case
+    # (tie depths along the CCD stagger) amplifies rounding by cond(V).
+    back_np = solver._back_substitute(lin, st.chunks, blocks, dc, len(st.unknown))
+    sig_pt = np.sqrt(np.concatenate([np.diagonal(b[0], axis1=1, axis2=2) for b in blocks]))
+    err_back = np.abs(dx - back_np[0]) / sig_pt
+    print(f"back-substitution: {err_back.max():.2g} sigma")
+    assert err_back.max() < 1e-9 and np.abs(dx).max() > 0
+    for x, y in zip(real_back[1:], back_np[1:], strict=True):
+        assert np.array_equal(x, y)
     # Dense: whitened Jacobian of every unknown (active cameras, then point XYZ).
     prob = ScipyProblem(net, cfg)
     x0 = prob.x0()
@@ -275,6 +287,20 @@ def test_schur_step_equals_dense_solve(tie_sigma, pos_sigma, tol, monkeypatch):
     err_np = np.abs(np.concatenate([dc_np[act], dx_np.ravel()]) - ours) / sigma
     assert err_np.max() < tol
     assert np.abs(s_np - s_mat).max() <= 1e-6 * np.abs(s_np).max()
+    # The compiled S is exactly symmetric; summed per pattern (the MCPs' terms) or
+    # straight into S, and against numpy, it agrees in correlation units.
+    assert np.array_equal(s_mat, s_mat.T)
+    monkeypatch.setattr(schur, "_POOL_ELEMENTS", 0)
+    monkeypatch.setattr(schur, "_compiled", real_compiled)
+    s_direct, rhs_direct, _, _ = solver._reduced(at, 0.0)
+    scale = np.sqrt(np.outer(np.diag(s_np), np.diag(s_np)))
+    act2 = np.ix_(act, act)
+    rhs_scale = np.sqrt(np.diag(s_np))[act]
+    # Direct and per pattern: 2e-14 / 2e-13 here; numpy (another arithmetic, an
+    # explicit inverse) 7e-11 / 1e-6, as before the per-pattern sums.
+    for other, other_rhs, limit in ((s_direct, rhs_direct, 1e-12), (s_np, rhs_np, tol)):
+        assert np.max(np.abs(other - s_mat)[act2] / scale[act2]) < limit
+        assert np.max(np.abs(other_rhs - rhs)[act] / rhs_scale) < limit
 
 
 def test_tie_points_connect_ccds_and_free_points_are_triangulated():

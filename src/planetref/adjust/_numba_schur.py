@@ -34,20 +34,37 @@ def eliminate_points(
     vinv_out: F64,
     bx_out: F64,
     dx_out: F64,
+    pool_max: int,
 ) -> int:
     """Subtract the points' Schur terms from ``s_mat`` and ``rhs`` (see ``SchurMixin``).
 
     Point ``u`` owns the tie rows ``starts[u]:starts[u + 1]``. Returns -1, or the first
     point whose (damped) normal block is not positive definite.
+
+    Only the upper triangle of ``s_mat`` is updated point by point (each term is
+    symmetric); the lower one is copied from it at the end, so ``s_mat`` leaves exactly
+    symmetric. Points seen by one observation (MCPs) take a rank-2 form
+    (:func:`_one_observation`).
     """
     q = a_t.shape[2]
     n_u = len(starts) - 1
     y = np.empty((1, q, 3))
     z = np.empty((1, q, 3))
+    # Scratch, overwritten for every point (no allocation per point).
+    v = np.empty((3, 3))
+    g = np.empty(3)
+    vb = np.empty(3)
+    p0 = np.empty(q)
+    p1 = np.empty(q)
+    act_n, act_c = _active_by_column(cols, sink)
+    # The one-observation terms are summed per pattern in a dense block of its active
+    # columns (contiguous rows, L1-resident) and added to ``s_mat`` once at the end,
+    # unless that takes more than ``pool_max`` elements (they then go into ``s_mat``).
+    n_pat = cols.shape[0]
+    pooled = n_pat * q * q <= pool_max
+    pool = np.zeros((n_pat if pooled else 0, q, q))
     for u in range(n_u):
         o0, o1 = starts[u], starts[u + 1]
-        v = np.empty((3, 3))
-        g = np.empty(3)
         for i in range(3):
             g[i] = prior_g[u, i]
             for j in range(3):
@@ -97,6 +114,15 @@ def eliminate_points(
         vi[1, 2] = vi[2, 1] = m21 * m22
         for i in range(3):
             bx_out[u, i] = -g[i]
+        for i in range(3):
+            vb[i] = vi[i, 0] * bx_out[u, 0] + vi[i, 1] * bx_out[u, 1] + vi[i, 2] * bx_out[u, 2]
+        n_o = o1 - o0
+        if n_o == 1:
+            gp = gpat_t[o0]
+            act = act_c[gp, : act_n[gp]]
+            block = pool[gp] if pooled else s_mat
+            _one_observation(a_t, b_t, w_t, o0, act, cols[gp], vi, vb, block, pooled, rhs, p0, p1)
+            continue
         # C C^T = V^-1 (lower): S -= (y C)(y C)^T keeps each point's term symmetric PSD.
         c00 = math.sqrt(vi[0, 0])
         c10 = vi[1, 0] / c00
@@ -104,10 +130,6 @@ def eliminate_points(
         c11 = math.sqrt(vi[1, 1] - c10 * c10)
         c21 = (vi[2, 1] - c20 * c10) / c11
         c22 = math.sqrt(vi[2, 2] - c20 * c20 - c21 * c21)
-        vb = np.empty(3)
-        for i in range(3):
-            vb[i] = vi[i, 0] * bx_out[u, 0] + vi[i, 1] * bx_out[u, 1] + vi[i, 2] * bx_out[u, 2]
-        n_o = o1 - o0
         if y.shape[0] < n_o:
             y = np.empty((n_o, q, 3))
             z = np.empty((n_o, q, 3))
@@ -138,11 +160,153 @@ def eliminate_points(
                         continue
                     for c2 in range(q):
                         col2 = cols[g2, c2]
-                        if col2 == sink:
+                        # The upper triangle only; mirrored below.
+                        if col2 == sink or col2 < col1:
                             continue
                         s_mat[col1, col2] -= (
                             z[k1, c1, 0] * z[k2, c2, 0]
                             + z[k1, c1, 1] * z[k2, c2, 1]
                             + z[k1, c1, 2] * z[k2, c2, 2]
                         )
+    for gp in range(n_pat if pooled else 0):
+        for i in range(act_n[gp]):
+            col1 = cols[gp, act_c[gp, i]]
+            for j in range(i, act_n[gp]):
+                s_mat[col1, cols[gp, act_c[gp, j]]] -= pool[gp, i, j]
+    for i in range(sink):
+        for j in range(i):
+            s_mat[i, j] = s_mat[j, i]
     return -1
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _one_observation(
+    a_t: F64,
+    b_t: F64,
+    w_t: F64,
+    o: int,
+    act: Any,
+    col_of: Any,
+    vi: F64,
+    vb: F64,
+    block: F64,
+    pooled: bool,
+    rhs: F64,
+    p0: F64,
+    p1: F64,
+) -> None:
+    """The Schur terms of a point seen by one observation (an MCP), upper triangle.
+
+    Into ``block``: the pattern's dense block over its active columns (added with the
+    ``+`` sign; ``pooled``) or the reduced matrix itself (subtracted).
+
+    With one observation ``Y = A^T W B`` has rank 2, so ``Y V^-1 Y^T = A^T M A`` with
+    the 2 x 2 ``M = W B V^-1 B^T W``. ``M`` is formed as a Gram matrix (``U U^T``, the
+    rows of ``U = W B C`` with ``C C^T = V^-1``) and factored, ``M = L L^T``, so the
+    term is ``P^T P`` with ``P = L^T A`` (2 x q): positive semi-definite by
+    construction, as the general path's ``z z^T``, at two products per element instead
+    of three.
+    """
+    # C: Cholesky of V^-1 (lower).
+    c00 = math.sqrt(vi[0, 0])
+    c10 = vi[1, 0] / c00
+    c20 = vi[2, 0] / c00
+    c11 = math.sqrt(vi[1, 1] - c10 * c10)
+    c21 = (vi[2, 1] - c20 * c10) / c11
+    c22 = math.sqrt(vi[2, 2] - c20 * c20 - c21 * c21)
+    # Rows r of W B (3-vectors): U = W B C and e = W B V^-1 b_x.
+    w = w_t[o, 0]
+    b0, b1, b2 = w * b_t[o, 0, 0], w * b_t[o, 0, 1], w * b_t[o, 0, 2]
+    u00, u01, u02 = b0 * c00 + b1 * c10 + b2 * c20, b1 * c11 + b2 * c21, b2 * c22
+    e0 = b0 * vb[0] + b1 * vb[1] + b2 * vb[2]
+    w = w_t[o, 1]
+    b0, b1, b2 = w * b_t[o, 1, 0], w * b_t[o, 1, 1], w * b_t[o, 1, 2]
+    u10, u11, u12 = b0 * c00 + b1 * c10 + b2 * c20, b1 * c11 + b2 * c21, b2 * c22
+    e1 = b0 * vb[0] + b1 * vb[1] + b2 * vb[2]
+    m00 = u00 * u00 + u01 * u01 + u02 * u02
+    m01 = u00 * u10 + u01 * u11 + u02 * u12
+    m11 = u10 * u10 + u11 * u11 + u12 * u12
+    l00 = math.sqrt(m00)
+    l10 = m01 / l00 if l00 > 0.0 else 0.0
+    l11 = math.sqrt(max(m11 - l10 * l10, 0.0))
+    # Over the pattern's active columns in increasing parameter column: the upper
+    # triangle is each column with itself and the ones after it.
+    n = len(act)
+    for i in range(n):
+        c = act[i]
+        a0, a1 = a_t[o, 0, c], a_t[o, 1, c]
+        rhs[col_of[c]] -= a0 * e0 + a1 * e1
+        p0[i] = l00 * a0 + l10 * a1
+        p1[i] = l11 * a1
+    if pooled:  # ``block`` is the pattern's: += P^T P over its active columns
+        # Whole rows (both triangles): a loop from 0 vectorises, one from i did not
+        # (hiric-strip NCC network: ~270 against ~575 ns per point).
+        for i in range(n):
+            x0, x1 = p0[i], p1[i]
+            row = block[i]
+            for j in range(n):
+                row[j] += x0 * p0[j] + x1 * p1[j]
+        return
+    for i in range(n):  # ``block`` is S itself
+        col1 = col_of[act[i]]
+        x0, x1 = p0[i], p1[i]
+        for j in range(i, n):
+            block[col1, col_of[act[j]]] -= x0 * p0[j] + x1 * p1[j]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _active_by_column(cols: Any, sink: int) -> tuple[Any, Any]:
+    """Per pattern, its active pattern columns ordered by parameter column, and how many."""
+    n_pat, q = cols.shape
+    act_n = np.zeros(n_pat, np.intp)
+    act_c = np.empty((n_pat, q), np.intp)
+    for g in range(n_pat):
+        k = 0
+        for c in range(q):
+            if cols[g, c] != sink:
+                # Insertion by parameter column (patterns hold a few dozen columns).
+                j = k
+                while j > 0 and cols[g, act_c[g, j - 1]] > cols[g, c]:
+                    act_c[g, j] = act_c[g, j - 1]
+                    j -= 1
+                act_c[g, j] = c
+                k += 1
+        act_n[g] = k
+    return act_n, act_c
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def back_substitute(
+    a_t: F64,
+    b_t: F64,
+    w_t: F64,
+    gpat_t: Any,
+    cols: Any,
+    starts: Any,
+    vinv: F64,
+    bx: F64,
+    dc_pad: F64,
+    dx_out: F64,
+) -> None:
+    """Point steps ``dX_u = V_u^-1 (b_x,u - B_u^T W_u A_u dc)`` (``SchurMixin``).
+
+    Point ``u`` owns the tie rows ``starts[u]:starts[u + 1]``; ``dc_pad`` is the camera
+    step with a trailing zero at the sink column of the fixed parameters.
+    """
+    q = a_t.shape[2]
+    for u in range(len(starts) - 1):
+        t0 = t1 = t2 = 0.0
+        for o in range(starts[u], starts[u + 1]):
+            gp = gpat_t[o]
+            ad0 = ad1 = 0.0
+            for c in range(q):
+                d = dc_pad[cols[gp, c]]
+                ad0 += a_t[o, 0, c] * d
+                ad1 += a_t[o, 1, c] * d
+            w0, w1 = w_t[o, 0], w_t[o, 1]
+            t0 += w0 * b_t[o, 0, 0] * ad0 + w1 * b_t[o, 1, 0] * ad1
+            t1 += w0 * b_t[o, 0, 1] * ad0 + w1 * b_t[o, 1, 1] * ad1
+            t2 += w0 * b_t[o, 0, 2] * ad0 + w1 * b_t[o, 1, 2] * ad1
+        r0, r1, r2 = bx[u, 0] - t0, bx[u, 1] - t1, bx[u, 2] - t2
+        for i in range(3):
+            dx_out[u, i] = vinv[u, i, 0] * r0 + vinv[u, i, 1] * r1 + vinv[u, i, 2] * r2

@@ -196,7 +196,9 @@ class SchurMixin:
         """:meth:`_reduced`'s point elimination by the compiled kernel (same maths).
 
         One loop over the points: each point's 3x3 block is factored in registers and
-        only the active columns of its observations' patterns are updated.
+        only the active columns of its observations' patterns are updated; the terms of
+        points seen once (MCPs) are summed per pattern in dense blocks first (up to
+        :data:`_POOL_ELEMENTS`). ``S`` leaves exactly symmetric.
         """
         lin, chunks, _, xyz, xyz0, unknown = at
         p = self.n_params
@@ -222,6 +224,7 @@ class SchurMixin:
             vinv,
             bx,
             dx,
+            _POOL_ELEMENTS,
         )
         if bad >= 0:
             raise AdjustmentError(
@@ -240,11 +243,40 @@ class SchurMixin:
         delta_c: F64,
         n_unknown: int,
     ) -> tuple[F64, F64, F64]:
-        """Point steps ``dX = V^-1 (b_x - W^T dc)`` and their gradient/diagonal terms."""
+        """Point steps ``dX = V^-1 (b_x - W^T dc)`` and their gradient/diagonal terms.
+
+        Compiled (:func:`~planetref.adjust._numba_schur.back_substitute`) when numba is
+        there; the numpy loop below is its reference.
+        """
+        dc_pad = np.concatenate([delta_c, [0.0]])
+        k = _compiled()
+        if k is not None and chunks:
+            pts = np.concatenate([ch.pts for ch in chunks])
+            starts = np.concatenate([ch.obs[0] + ch.starts for ch in chunks] + [[len(lin.a_t)]])
+            vinv = np.concatenate([b[0] for b in blocks])
+            bx = np.concatenate([b[1] for b in blocks])
+            step = np.empty((len(pts), 3))
+            k.back_substitute(
+                lin.a_t,
+                lin.b_t,
+                lin.weight_t,
+                lin.gpat_t,
+                self.cols,
+                starts.astype(np.intp),
+                vinv,
+                bx,
+                dc_pad,
+                step,
+            )
+            dx = np.zeros((n_unknown, 3))
+            bx_all = np.zeros((n_unknown, 3))
+            dd_all = np.zeros((n_unknown, 3))
+            dx[pts], bx_all[pts] = step, bx
+            dd_all[pts] = np.concatenate([b[2] for b in blocks])
+            return dx, bx_all, dd_all
         dx = np.zeros((n_unknown, 3))
         bx_all = np.zeros((n_unknown, 3))
         dd_all = np.zeros((n_unknown, 3))
-        dc_pad = np.concatenate([delta_c, [0.0]])
         for ch, (vinv, bx, d_x) in zip(chunks, blocks, strict=True):
             a = lin.a_t[ch.obs]
             b = lin.b_t[ch.obs]
@@ -288,6 +320,11 @@ def _first_singular(v: F64) -> int:
         except np.linalg.LinAlgError:
             return i
     return 0
+
+
+#: Most float64 elements (patterns x q x q, 8 MB) of the compiled elimination's
+#: per-pattern blocks of one-observation terms; beyond it they go straight into S.
+_POOL_ELEMENTS = 1 << 20
 
 
 def _compiled() -> Any:
