@@ -124,12 +124,7 @@ def eliminate_points(
             _one_observation(a_t, b_t, w_t, o0, act, cols[gp], vi, vb, block, pooled, rhs, p0, p1)
             continue
         # C C^T = V^-1 (lower): S -= (y C)(y C)^T keeps each point's term symmetric PSD.
-        c00 = math.sqrt(vi[0, 0])
-        c10 = vi[1, 0] / c00
-        c20 = vi[2, 0] / c00
-        c11 = math.sqrt(vi[1, 1] - c10 * c10)
-        c21 = (vi[2, 1] - c20 * c10) / c11
-        c22 = math.sqrt(vi[2, 2] - c20 * c20 - c21 * c21)
+        c00, c10, c20, c11, c21, c22 = _cholesky3(vi)
         if y.shape[0] < n_o:
             y = np.empty((n_o, q, 3))
             z = np.empty((n_o, q, 3))
@@ -207,13 +202,7 @@ def _one_observation(
     construction, as the general path's ``z z^T``, at two products per element instead
     of three.
     """
-    # C: Cholesky of V^-1 (lower).
-    c00 = math.sqrt(vi[0, 0])
-    c10 = vi[1, 0] / c00
-    c20 = vi[2, 0] / c00
-    c11 = math.sqrt(vi[1, 1] - c10 * c10)
-    c21 = (vi[2, 1] - c20 * c10) / c11
-    c22 = math.sqrt(vi[2, 2] - c20 * c20 - c21 * c21)
+    c00, c10, c20, c11, c21, c22 = _cholesky3(vi)  # C C^T = V^-1, lower
     # Rows r of W B (3-vectors): U = W B C and e = W B V^-1 b_x.
     w = w_t[o, 0]
     b0, b1, b2 = w * b_t[o, 0, 0], w * b_t[o, 0, 1], w * b_t[o, 0, 2]
@@ -252,6 +241,18 @@ def _one_observation(
         x0, x1 = p0[i], p1[i]
         for j in range(i, n):
             block[col1, col_of[act[j]]] -= x0 * p0[j] + x1 * p1[j]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _cholesky3(m: F64) -> tuple[float, float, float, float, float, float]:
+    """``(l00, l10, l20, l11, l21, l22)`` of the lower Cholesky factor of a 3x3 SPD ``m``."""
+    l00 = math.sqrt(m[0, 0])
+    l10 = m[1, 0] / l00
+    l20 = m[2, 0] / l00
+    l11 = math.sqrt(m[1, 1] - l10 * l10)
+    l21 = (m[2, 1] - l20 * l10) / l11
+    l22 = math.sqrt(m[2, 2] - l20 * l20 - l21 * l21)
+    return l00, l10, l20, l11, l21, l22
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
