@@ -76,8 +76,14 @@ def test_linearisation_compiled_equals_numpy_reference():
 
 
 def _captured_rows(monkeypatch, net, loss="linear"):
-    """The arguments of every ``linearize_rows`` call of one linearisation."""
+    """The arguments of every ``linearize_rows`` call of one linearisation, in layout order.
+
+    One thread: with more, the calls arrive in the order the chunks finish, and the
+    tests that edit the first chunk would edit another one from run to run (its rows
+    3-400 may then lie in pattern 0 already, leaving no short run to test).
+    """
     solver = _solver(net, False)
+    solver.cfg = solver.cfg.model_copy(update={"threads": 1})
     solver.loss = loss
     fn = solver.normal_kernels()
     calls = []
