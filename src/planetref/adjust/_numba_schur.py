@@ -229,7 +229,7 @@ def _one_observation(
         p1[i] = l11 * a1
     if pooled:  # ``block`` is the pattern's: += P^T P over its active columns
         # Whole rows (both triangles): a loop from 0 vectorises, one from i did not
-        # (hiric-strip NCC network: ~270 against ~575 ns per point).
+        # (the tiny demo's NCC network: the update ~270 against ~575 ns per point).
         for i in range(n):
             x0, x1 = p0[i], p1[i]
             row = block[i]

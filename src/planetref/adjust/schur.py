@@ -203,7 +203,7 @@ class SchurMixin:
         lin, chunks, _, xyz, xyz0, unknown = at
         p = self.n_params
         n_u = len(unknown)
-        starts = np.concatenate([ch.obs[0] + ch.starts for ch in chunks] + [[len(lin.a_t)]])
+        starts = _point_starts(chunks, len(lin.a_t))
         pw = self.point_prior_w[unknown]
         prior_g = np.einsum("pij,pj->pi", pw, xyz[unknown] - xyz0[unknown])
         vinv, bx, dx = np.empty((n_u, 3, 3)), np.empty((n_u, 3)), np.empty((n_u, 3))
@@ -214,7 +214,7 @@ class SchurMixin:
             lin.r_t,
             lin.gpat_t,
             self.cols,
-            starts.astype(np.intp),
+            starts,
             np.ascontiguousarray(pw),
             prior_g,
             float(lam),
@@ -252,7 +252,7 @@ class SchurMixin:
         k = _compiled()
         if k is not None and chunks:
             pts = np.concatenate([ch.pts for ch in chunks])
-            starts = np.concatenate([ch.obs[0] + ch.starts for ch in chunks] + [[len(lin.a_t)]])
+            starts = _point_starts(chunks, len(lin.a_t))
             vinv = np.concatenate([b[0] for b in blocks])
             bx = np.concatenate([b[1] for b in blocks])
             step = np.empty((len(pts), 3))
@@ -262,7 +262,7 @@ class SchurMixin:
                 lin.weight_t,
                 lin.gpat_t,
                 self.cols,
-                starts.astype(np.intp),
+                starts,
                 vinv,
                 bx,
                 dc_pad,
@@ -311,6 +311,15 @@ class SchurMixin:
         )
         scale[act] = np.sqrt(np.einsum("ij,ij->i", u_inv, u_inv)) / d
         return delta, scale
+
+
+def _point_starts(chunks: list[_TieChunk], n_rows: int) -> NDArray[np.intp]:
+    """First tie row of each unknown point, in chunk order, then ``n_rows``.
+
+    The compiled kernels' layout: the chunks' rows are contiguous, point after point.
+    """
+    starts = [ch.obs[0] + ch.starts for ch in chunks] + [[n_rows]]
+    return np.concatenate(starts).astype(np.intp)
 
 
 def _first_singular(v: F64) -> int:

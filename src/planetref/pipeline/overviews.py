@@ -130,7 +130,6 @@ class OverviewPyramid:
         top = factors[-1] if factors else 1
         if width % top or height % top:
             raise ValueError(f"{width} x {height} pixels is not a multiple of {top}")
-        self.factors = factors
         self.dtype = np.dtype(dtype)
         self.nodata = float(nodata)
         self._kernel = kernel
