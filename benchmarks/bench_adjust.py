@@ -41,7 +41,7 @@ planetref solve (before scipy runs); ``--no-scipy`` skips scipy (e.g. at 1e6).
 neighbouring CCDs (2 observations each, eliminated by the Schur complement).
 
 Threads: the adjustment evaluates and accumulates its chunks in
-:func:`planetref.threads.compute_threads` threads (``OMP_NUM_THREADS`` when set, else the
+:func:`planetref.runtime.threads.compute_threads` threads (``OMP_NUM_THREADS`` when set, else the
 cores), printed as ``threads``; ``OMP_NUM_THREADS`` also sets scipy's BLAS threads, so
 both sides run under the same thread count (compare ``OMP_NUM_THREADS=1`` and ``=2``).
 
@@ -83,7 +83,7 @@ from planetref.adjust import Network, adjust, linearization, schur
 from planetref.camera.linescan import compiled
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.geometry.geodesy import ray_ellipsoid_intersection
-from planetref.threads import compute_threads
+from planetref.runtime.threads import compute_threads
 
 
 def peak_rss_mb() -> float:

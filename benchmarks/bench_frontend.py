@@ -4,7 +4,7 @@ For each matcher (whose weights are present), the script matches every tile of a
 simulated scene through the whole front end -- footprint, orthorectification (or
 downsampling) of the CCD tile, windowed reads of the reference, coarse stage, fine
 stage, USAC_MAGSAC verification and mapping back to raw pixels -- with the run's own
-matcher settings (``planetref.pipeline.matchers``: NCC dense on the fine stage, with a
+matcher settings (``planetref.frontend.matchers``: NCC dense on the fine stage, with a
 wide-radius coarse instance), and prints per tile, as means over the tiles:
 
 * ``planetref``: seconds of the whole front end (``TileResult.timings["total"]``);
@@ -89,9 +89,9 @@ def simulate(out: Path) -> Path:
 
 def load(root: Path) -> dict:
     from planetref.camera.linescan import LineScanCamera
-    from planetref.pipeline.scene import load_manifest
     from planetref.raster.dem import GridTerrain
     from planetref.raster.ortho import ReferenceOrtho
+    from planetref.scene.manifest import load_manifest
 
     man, root = load_manifest(root)
     strip = man.strips[0]
@@ -110,7 +110,7 @@ def load(root: Path) -> dict:
 
 
 def truth_error(s: dict, r) -> float:
-    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.camera.mapping import image_to_ref_pixel
 
     if s["true"] is None or r.status != "ok":
         return float("nan")
@@ -133,18 +133,17 @@ def bench(
     max_tiles: int = 0,
 ) -> dict:
     import planetref.frontend.tile as tile_module
+    from planetref.frontend.matchers import matcher_options
     from planetref.frontend.orthorectify import lattice_cache
     from planetref.frontend.tile import match_tile
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching import get_matcher
     from planetref.matching.registry import MATCHERS
-    from planetref.pipeline.config import GeorefConfig
-    from planetref.pipeline.matchers import matcher_options
     from planetref.raster.image import CcdImage
 
     # The run's own matcher settings (NCC: dense fine stage, wide coarse search).
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
-    fine_opts, coarse_opts = matcher_options(name, GeorefConfig(frontend=cfg), gsd)
+    fine_opts, coarse_opts = matcher_options(name, {}, cfg, gsd)
     if device != "cpu" and MATCHERS[name].weights:
         fine_opts = {**fine_opts, "device": device}
         coarse_opts = None if coarse_opts is None else {**coarse_opts, "device": device}

@@ -166,12 +166,11 @@ def _mcps(strip) -> np.ndarray:
 def bench_frontend(name: str, args, weights: Path | None, s: dict) -> dict:
     """Match every tile of the scene's strip tile by tile, then batched (``--batch``)."""
     from planetref.frontend.config import FrontendConfig
+    from planetref.frontend.matchers import matcher_options
     from planetref.frontend.strip import match_strip
     from planetref.frontend.tile import match_tile
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching import get_matcher
-    from planetref.pipeline.config import GeorefConfig
-    from planetref.pipeline.matchers import matcher_options
     from planetref.raster.image import CcdImage
 
     cfg = FrontendConfig(
@@ -181,7 +180,7 @@ def bench_frontend(name: str, args, weights: Path | None, s: dict) -> dict:
         fine_upsample=args.fine_upsample,
     )
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
-    fine_opts, coarse_opts = matcher_options(name, GeorefConfig(frontend=cfg), gsd)
+    fine_opts, coarse_opts = matcher_options(name, {}, cfg, gsd)
     extra: dict = {"device": args.device}
     if args.keypoints is not None:  # else the run's own budget
         extra["max_keypoints"] = args.keypoints

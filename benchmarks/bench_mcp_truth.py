@@ -36,8 +36,8 @@ import numpy as np
 import pyarrow.parquet as pq
 from numpy.typing import NDArray
 
-from planetref.pipeline.inputs import truth_inputs
-from planetref.pipeline.scene import load_manifest
+from planetref.scene.inputs import truth_inputs
+from planetref.scene.manifest import load_manifest
 
 F64 = NDArray[np.float64]
 

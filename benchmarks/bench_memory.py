@@ -27,8 +27,8 @@ import numpy as np
 
 
 def _lines(scene: str) -> int:
-    from planetref.pipeline.inputs import scene_path, strip_cameras
-    from planetref.pipeline.scene import load_manifest
+    from planetref.scene.inputs import scene_path, strip_cameras
+    from planetref.scene.manifest import load_manifest
 
     manifest, root = load_manifest(scene_path(scene))
     camera, images = strip_cameras(manifest, root, manifest.strips[0])

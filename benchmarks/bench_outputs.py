@@ -43,9 +43,9 @@ from typing import Any
 #: Stage -> functions (``module:attribute``) whose time it is; each is wrapped where the
 #: pipeline looks it up (module globals of georef, or the module of a local import).
 STAGES = {
-    "matching": ("planetref.pipeline.georef:_match", "planetref.control:mcps_from_tiles"),
+    "matching": ("planetref.pipeline.georef:_match", "planetref.control.mcp:mcps_from_tiles"),
     "adjustment": ("planetref.adjust.api:adjust",),
-    "adjustment_files": ("planetref.adjust.report:write_outputs",),
+    "adjustment_files": ("planetref.report.adjustment:write_outputs",),
     "isd": ("planetref.pipeline.georef:camera_isds",),
     "exports": ("planetref.pipeline.georef:control_exports",),
     "orthoimages": ("planetref.pipeline.georef:orthoimages",),
@@ -86,7 +86,7 @@ def main() -> int:
     ap.add_argument("--profile", default=None, help="Also write cProfile stats here.")
     args = ap.parse_args()
 
-    from planetref.threads import ThreadBudget, apply_thread_budget
+    from planetref.runtime.threads import ThreadBudget, apply_thread_budget
 
     apply_thread_budget(ThreadBudget.resolve(args.threads))
     from machine import describe

@@ -34,7 +34,7 @@ OLD_REV = "3663937"  # main before the lattice/streaming rewrite of pipeline/ort
 
 CHILD = r"""
 import json, resource, sys
-from planetref.threads import ThreadBudget, apply_thread_budget
+from planetref.runtime.threads import ThreadBudget, apply_thread_budget
 apply_thread_budget(ThreadBudget.resolve(int(sys.argv[5])))
 from planetref.pipeline.georef import run_georef
 out = run_georef(sys.argv[1], sys.argv[2], sys.argv[3], weights_dir=sys.argv[4] or None,
@@ -49,9 +49,9 @@ print(json.dumps({"timing_s": r["timing_s"], "ncp": r["matching"]["ncp"],
 def scene_area_km2(scene: Path) -> float:
     """Imaged ground area (km^2): every CCD's pixels times its GSD squared."""
     from planetref.camera.io import load_camera
-    from planetref.frontend.geometry import image_gsd_m
-    from planetref.pipeline.scene import load_manifest
+    from planetref.camera.mapping import image_gsd_m
     from planetref.raster.dem import GridTerrain
+    from planetref.scene.manifest import load_manifest
 
     manifest, root = load_manifest(scene)
     dem = GridTerrain.from_geotiff(manifest.resolve(root, manifest.reference.dem))
@@ -68,7 +68,7 @@ def scene_area_km2(scene: Path) -> float:
 def _old_orthorectify(rev: str) -> Any:
     """``orthorectify_ccd`` of the previous implementation, loaded from git."""
     src = subprocess.run(
-        ["git", "show", f"{rev}:src/planetref/pipeline/orthoimage.py"],
+        ["git", "show", f"{rev}:src/planetref/products/orthoimage.py"],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -88,12 +88,12 @@ def ortho_old_vs_new(scene: Path, rev: str, out: Path) -> dict[str, Any]:
     import rasterio
 
     from planetref.camera.io import load_camera
-    from planetref.frontend.geometry import image_gsd_m
-    from planetref.pipeline.orthoimage import orthorectify_ccd
-    from planetref.pipeline.scene import load_manifest
+    from planetref.camera.mapping import image_gsd_m
+    from planetref.products.ortho_strip import orthorectify_ccd
     from planetref.raster.dem import GridTerrain
     from planetref.raster.image import CcdImage
     from planetref.raster.ortho import ReferenceOrtho
+    from planetref.scene.manifest import load_manifest
 
     old_fn = _old_orthorectify(rev)
     manifest, root = load_manifest(scene)
@@ -201,7 +201,7 @@ def main() -> int:
         }
     ortho = None
     if not args.no_ortho:
-        from planetref.threads import ThreadBudget, apply_thread_budget
+        from planetref.runtime.threads import ThreadBudget, apply_thread_budget
 
         apply_thread_budget(ThreadBudget.resolve(args.threads))
         with tempfile.TemporaryDirectory(dir=base) as tmp:

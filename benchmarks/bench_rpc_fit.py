@@ -3,7 +3,7 @@
 Fits an RPC to each CCD of a three-CCD orbital line-scan camera (HiRIC-like layout) with
 torch loaded and its intra-op threads busy in a background thread (as in the pipeline,
 where matchers run while cameras are refitted), once with numpy's BLAS at its default
-thread count and once inside :func:`planetref.blas.single_threaded_blas` (what
+thread count and once inside :func:`planetref.runtime.blas.single_threaded_blas` (what
 ``fit_rpc`` does). Prints the median time per least-squares solve and per fit.
 Run without OMP_NUM_THREADS set: ``python benchmarks/bench_rpc_fit.py``.
 """

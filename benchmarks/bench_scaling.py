@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
-    from planetref.execute import DaskExecutor
+    from planetref.runtime.execute import DaskExecutor
 
     with tempfile.TemporaryDirectory(prefix="bench_scaling_") as tmp:
         tmp_path = Path(tmp)

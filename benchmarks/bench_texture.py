@@ -125,7 +125,7 @@ def simulated_images(scene: Path) -> list[tuple[str, F64, float]]:
     import rasterio
     from rasterio.errors import NotGeoreferencedWarning
 
-    from planetref.tomlfile import read_toml
+    from planetref.runtime.tomlfile import read_toml
 
     man = read_toml(scene / "scene.toml", "scene manifest")
     errors = json.loads((scene / "truth" / "errors.json").read_text())

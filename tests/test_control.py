@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from affine import Affine
 
-from planetref.control import (
+from planetref.control.mcp import (
     MCP_COLUMNS,
     McpTable,
     mcps_from_matches,
@@ -224,7 +224,7 @@ def test_errors(tmp_path, ref_and_dem):
 
 def test_ground_sigmas_from_gsd_slope_and_round_trip(ref_and_dem, tmp_path):
     """Planimetric: half the 5 m GSD; height: slope terms of a planar DEM, curvature 0."""
-    from planetref.control import GROUND_SIGMA_H_FLOOR_M, ground_sigmas
+    from planetref.control.mcp import GROUND_SIGMA_H_FLOOR_M, ground_sigmas
 
     ref, dem = ref_and_dem
     x, y = _points(ref)

@@ -10,13 +10,13 @@ import pyarrow.parquet as pq
 import pytest
 
 from planetref.errors import InputError
-from planetref.execute import (
+from planetref.pipeline.georef import run_georef
+from planetref.runtime.execute import (
     DaskExecutor,
     InProcessExecutor,
     LocalPoolExecutor,
     make_executor,
 )
-from planetref.pipeline.georef import run_georef
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from planetref.adjust.metrics import geolocation_error, image_grid
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
-from planetref.metrics import geolocation_error, image_grid
 
 
 @pytest.fixture(scope="module")

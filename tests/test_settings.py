@@ -6,7 +6,7 @@ import pytest
 from pydantic import Field, ValidationError
 
 from planetref.errors import InputError
-from planetref.settings import Settings, deep_merge, validate_settings
+from planetref.runtime.settings import Settings, deep_merge, validate_settings
 
 
 class Inner(Settings):
@@ -83,7 +83,7 @@ def _package_modules():
 
 
 def test_settings_is_the_only_pydantic_base_and_error_translator():
-    # Every settings model derives from planetref.settings.Settings (frozen, unknown keys
+    # Every settings model derives from planetref.runtime.settings.Settings (frozen, unknown keys
     # rejected): no other module builds a pydantic base, sets a model_config, or reads
     # a ValidationError's errors() itself.
     import ast

@@ -7,7 +7,7 @@ import os
 import pytest
 
 from planetref.errors import InputError
-from planetref.threads import (
+from planetref.runtime.threads import (
     ThreadBudget,
     apply_thread_budget,
     available_cores,
@@ -34,7 +34,7 @@ def test_apply_sets_torch_opencv_blas_and_worker_environment(monkeypatch):
     import cv2
     import torch
 
-    from planetref.blas import _openblas
+    from planetref.runtime.blas import _openblas
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         if var in os.environ:  # restored by monkeypatch after the test

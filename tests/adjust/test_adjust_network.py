@@ -8,7 +8,7 @@ from click.testing import CliRunner
 
 from planetref.adjust import adjust
 from planetref.adjust.config import validate_config
-from planetref.adjust.network import read_network
+from planetref.adjust.network_file import read_network
 from planetref.cli.adjust import adjust_command
 from planetref.errors import InputError, MissingFileError
 

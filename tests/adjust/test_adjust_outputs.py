@@ -6,8 +6,8 @@ import pytest
 from adjust_synth import mcp_problem, shared_data
 
 from planetref.adjust import adjust
-from planetref.adjust.report import write_outputs
-from planetref.metrics import geolocation_error, reprojection_metrics
+from planetref.adjust.metrics import geolocation_error, reprojection_metrics
+from planetref.report.adjustment import write_outputs
 
 
 def test_reprojection_metrics_definitions():
@@ -72,7 +72,7 @@ def test_real_ctx_network_adjusts_below_a_pixel(tmp_path):
     """Defaults: tie points at 200 m a priori (the datum cannot float), VCE on."""
     data = shared_data()
     pytest.importorskip("planetref.camera.csm", reason="the CSM camera module is missing")
-    from planetref.adjust.network import read_network
+    from planetref.adjust.network_file import read_network
 
     t0 = time.perf_counter()
     nf = read_network(data / "ctx_syrtis" / "network.toml")

@@ -1,7 +1,7 @@
 """What the adjustment computes around the solve, against its numpy references.
 
-Grouped reprojection metrics (:mod:`planetref._numba_metrics`) against
-:func:`~planetref.metrics.reprojection_metrics` per group, bit for bit; the metric
+Grouped reprojection metrics (:mod:`planetref.adjust._numba_metrics`) against
+:func:`~planetref.adjust.metrics.reprojection_metrics` per group, bit for bit; the metric
 blocks of :func:`~planetref.adjust.evaluation.reprojection_blocks` with and without the
 compiled kernel; the variance components' group passes
 (:mod:`planetref.adjust._numba_groups`) against their numpy twins; the redundancy
@@ -16,17 +16,18 @@ import numpy as np
 import pytest
 from adjust_synth import mcp_problem
 
-from planetref import metrics
-from planetref._optional import optional_module
-from planetref.adjust import linearization, variance
+from planetref.adjust import linearization, metrics, variance
 from planetref.adjust.config import validate_config
 from planetref.adjust.evaluation import reprojection_blocks
 from planetref.adjust.models import parameterize
-from planetref.adjust.problem import Network
 from planetref.adjust.redundancy import redundancy
 from planetref.adjust.solver import BundleSolver
+from planetref.control.network import Network
+from planetref.runtime.optional import optional_module
 
-compiled_metrics = optional_module("planetref._numba_metrics", "compiled reprojection metrics")
+compiled_metrics = optional_module(
+    "planetref.adjust._numba_metrics", "compiled reprojection metrics"
+)
 needs_numba = pytest.mark.skipif(
     compiled_metrics is None, reason="numba is not installed (the numpy references run)"
 )

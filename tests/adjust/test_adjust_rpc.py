@@ -11,6 +11,7 @@ from adjust_synth import N_LINES, N_SAMPLES, ground_points, perturb, true_strip
 from click.testing import CliRunner
 
 from planetref.adjust import Network, adjust
+from planetref.adjust.metrics import geolocation_error
 from planetref.adjust.models import parameterize
 from planetref.adjust.models.rpc import RpcParameterization
 from planetref.adjust.rpc_config import RpcParameters
@@ -19,7 +20,6 @@ from planetref.camera.rpc.bias import BIAS_TERMS, BiasedRpcCamera, RpcBias
 from planetref.camera.rpc.strip import RpcStripCamera, write_refined_rpcs
 from planetref.cli.adjust import adjust_command
 from planetref.errors import AdjustmentError, InputError
-from planetref.metrics import geolocation_error
 
 HEIGHTS = (-3000.0, 3000.0)
 TRUE_BIAS = (2.5, -1.75, 1.2, -0.8, 0.6, 0.9)

@@ -428,7 +428,7 @@ def test_unprojectable_observations_are_unusable():
 
 def test_smooth_weak_nodes_extrapolate_the_observed_correction():
     """Nodes beyond the observed lines follow their neighbours instead of staying wrong."""
-    from planetref.metrics import geolocation_error
+    from planetref.adjust.metrics import geolocation_error
 
     true = true_strip(n_nodes=8)
     net, _true, _ = mcp_problem(600, seed=12, true=true, init=perturb(true_strip(n_nodes=8)))

@@ -23,7 +23,7 @@ from planetref.adjust.redundancy import redundancy
 from planetref.adjust.solver import BundleSolver
 from planetref.adjust.variance import _groups, _image_group_of
 from planetref.errors import InputError
-from planetref.threads import compute_threads
+from planetref.runtime.threads import compute_threads
 
 CONFIG = {
     "solver": {"loss": "linear", "chunk_size": 256},

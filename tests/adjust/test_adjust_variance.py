@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from adjust_synth import N_LINES, N_SAMPLES, ground_points, mcp_problem, perturb, true_strip
 
-from planetref.adjust import Network, adjust, write_outputs
+from planetref.adjust import Network, adjust
 from planetref.adjust.diagnostics import SELF_CALIBRATION
-from planetref.adjust.problem import enu_rotation
+from planetref.control.network import enu_rotation
+from planetref.report.adjustment import write_outputs
 
 LINEAR = {"solver": {"loss": "linear"}, "outliers": {"enabled": False}}
 
@@ -253,7 +254,7 @@ def test_points_csv_and_movement_warnings(tmp_path):
 
 
 def test_per_axis_metrics_hand_computed():
-    from planetref.metrics import reprojection_metrics
+    from planetref.adjust.metrics import reprojection_metrics
 
     m = reprojection_metrics([3.0, -1.0, 50.0], [4.0, 1.0, 0.0], [True, True, False])
     assert m["rmse_x_px"] == pytest.approx(np.sqrt(5.0))

@@ -28,7 +28,7 @@ from planetref.camera.csm import (
     read_isd,
     write_isd,
 )
-from planetref.camera.csm.distortion import _apply_distortion, _remove_distortion
+from planetref.camera.csm.distortion import apply_distortion, remove_distortion
 from planetref.errors import GeometryError, InputError, MissingFileError, UnsupportedFormatError
 from planetref.geometry.geodesy import Ellipsoid, xyz_to_lonlat
 
@@ -390,32 +390,32 @@ def test_distortion_models():
     # usgscsm Transverse.distortMe_AlternatingOnes / transverse.removeDistortion_
     # AlternatingOnes and Radial.testUndistortDistort (1e-8).
     alt = np.array([1.0, 0.0] * 5 + [0.0, 1.0] * 5)
-    dx, dy = _apply_distortion("transverse", alt, np.array([7.5]), np.array([7.5]))
+    dx, dy = apply_distortion("transverse", alt, np.array([7.5]), np.array([7.5]))
     np.testing.assert_allclose([dx[0], dy[0]], [908.5, 963.75], atol=1e-8)
-    ux, uy = _remove_distortion("transverse", alt, np.array([908.5]), np.array([963.75]))
+    ux, uy = remove_distortion("transverse", alt, np.array([908.5]), np.array([963.75]))
     np.testing.assert_allclose([ux[0], uy[0]], [7.5, 7.5], atol=1e-8)
     radial = np.array([0.03, 0.00001, 0.000004])
-    ux, uy = _remove_distortion("radial", radial, np.array([0.1]), np.array([0.0]))
-    dx, dy = _apply_distortion("radial", radial, ux, uy)
+    ux, uy = remove_distortion("radial", radial, np.array([0.1]), np.array([0.0]))
+    dx, dy = apply_distortion("radial", radial, ux, uy)
     np.testing.assert_allclose([dx[0], dy[0]], [0.1, 0.0], atol=1e-12)
     # CTX coefficients over its focal plane (+-17.8 mm): inverse to 1e-12 mm.
     ctx = np.array([-0.0073433925920054505, 2.8375878636241697e-05, 1.2841989124027099e-08])
     x = np.linspace(-17.8, 17.8, 41)
-    ux, uy = _remove_distortion("radial", ctx, x, 0.3 * x)
-    dx, dy = _apply_distortion("radial", ctx, ux, uy)
+    ux, uy = remove_distortion("radial", ctx, x, 0.3 * x)
+    dx, dy = apply_distortion("radial", ctx, ux, uy)
     np.testing.assert_allclose(np.stack([dx, dy]), np.stack([x, 0.3 * x]), atol=1e-12)
     # usgscsm RadTanInversionTest (k1, k2, p1, p2, k3; f = 1000 mm): apply, then remove.
     rt = np.array([0.000031, -0.000056, 1.3e-5, -1.7e-6, 2.9e-8])
-    dx, dy = _apply_distortion("radtan", rt, np.array([5.0]), np.array([6.0]), focal_length_mm=1e3)
+    dx, dy = apply_distortion("radtan", rt, np.array([5.0]), np.array([6.0]), focal_length_mm=1e3)
     np.testing.assert_allclose([dx[0], dy[0]], [5.0000006007539586, 6.0000016383447505], atol=1e-12)
-    ux, uy = _remove_distortion("radtan", rt, dx, dy, focal_length_mm=1e3)
+    ux, uy = remove_distortion("radtan", rt, dx, dy, focal_length_mm=1e3)
     np.testing.assert_allclose([ux[0], uy[0]], [5.0, 6.0], atol=1e-12)
     # A strong radtan lens over a 40 mm focal plane (f = 100 mm): remove inverts apply.
     strong = np.array([-0.2, 0.05, 1e-3, -2e-3, 0.01])
     x = np.linspace(-20.0, 20.0, 41)
-    dx, dy = _apply_distortion("radtan", strong, x, -0.5 * x, focal_length_mm=100.0)
+    dx, dy = apply_distortion("radtan", strong, x, -0.5 * x, focal_length_mm=100.0)
     assert np.max(np.hypot(dx - x, dy + 0.5 * x)) > 0.1  # mm: a real distortion
-    ux, uy = _remove_distortion("radtan", strong, dx, dy, focal_length_mm=100.0)
+    ux, uy = remove_distortion("radtan", strong, dx, dy, focal_length_mm=100.0)
     np.testing.assert_allclose(np.stack([ux, uy]), np.stack([x, -0.5 * x]), atol=1e-12)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planetref.camera.rpc.terms import _terms, _terms_dh, _terms_dl, _terms_dp
+from planetref.camera.rpc.terms import terms, terms_dh, terms_dl, terms_dp
 
 
 def test_terms_in_rpc00b_order():
@@ -13,16 +13,16 @@ def test_terms_in_rpc00b_order():
     # NITF RPC00B / GDAL RPCComputeTerms, written out independently
     expected = [1, L, P, H, L * P, L * H, P * H, L**2, P**2, H**2, P * L * H, L**3]
     expected += [L * P**2, L * H**2, L**2 * P, P**3, P * H**2, L**2 * H, P**2 * H, H**3]
-    np.testing.assert_allclose(_terms(L, P, H), expected, rtol=1e-15)
+    np.testing.assert_allclose(terms(L, P, H), expected, rtol=1e-15)
 
 
-@pytest.mark.parametrize(("derivative", "axis"), [(_terms_dl, 0), (_terms_dp, 1), (_terms_dh, 2)])
+@pytest.mark.parametrize(("derivative", "axis"), [(terms_dl, 0), (terms_dp, 1), (terms_dh, 2)])
 def test_derivatives_match_finite_differences(derivative, axis):
     rng = np.random.default_rng(3)
     lph = rng.uniform(-1.2, 1.2, (3, 50))
     step = np.zeros((3, 1))
     step[axis] = 1e-6
-    numeric = (_terms(*(lph + step)) - _terms(*(lph - step))) / 2e-6
+    numeric = (terms(*(lph + step)) - terms(*(lph - step))) / 2e-6
     analytic = derivative(*lph)
     assert analytic.shape == (50, 20)
     np.testing.assert_allclose(analytic, numeric, atol=1e-8)

@@ -169,7 +169,7 @@ def test_dense_ncc_reaches_the_ccd_edges(scene, ref):
     stops short of the CCD's edges; masked templates reach them, as accurately as the
     interior (measured: edge band median 0.05 ref px, p90 0.07; interior the same).
     """
-    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.camera.mapping import image_to_ref_pixel
     from planetref.matching.ncc import NccMatcher
 
     cfg = CFG.model_copy(update={"tile_size_ref_px": 64})
@@ -224,7 +224,7 @@ def test_dense_ncc_reaches_the_ccd_edges(scene, ref):
 
 def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
     """Without a coarse offset, a first fine pass's offset places the fine window."""
-    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.camera.mapping import image_to_ref_pixel
     from planetref.matching.ncc import NccMatcher
 
     plan = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, CFG)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planetref.control import mcps_from_tiles, read_mcps, write_mcps
+from planetref.control.mcp import mcps_from_tiles, read_mcps, write_mcps
 from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.stats import sdu_per_ccd
@@ -32,8 +32,8 @@ def _is_png(path, min_w=200, min_h=150):
 
 
 def test_strip_to_mcps_and_figures(scene, tmp_path):
+    from planetref.frontend.tile_panels import PanelStore
     from planetref.matching import get_matcher
-    from planetref.report.tile_panels import PanelStore
 
     # Fine stage on the reference grid, as the other front-end tests (fast).
     cfg = FrontendConfig(tile_size_ref_px=96, uncertainty_m=150.0, coarse_factor=2, fine_upsample=1)

@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
+from planetref.camera.mapping import image_to_ref_pixel
 from planetref.frontend.config import FrontendConfig
-from planetref.frontend.geometry import image_to_ref_pixel
 from planetref.frontend.result import TileResult
 from planetref.frontend.robust import robust_translation, verify_points
 from planetref.frontend.strip import match_strip

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from planetref.camera.mapping import image_to_ref_pixel
 from planetref.frontend.config import FrontendConfig
-from planetref.frontend.geometry import image_to_ref_pixel
 from planetref.frontend.orthorectify import downsample_tile, orthorectify
 from planetref.frontend.tiles import plan_tiles, tile_footprint
 from planetref.raster.image import CcdImage
@@ -268,7 +268,7 @@ def test_lattice_nodes_do_not_depend_on_tile_order(setup):
     lx, ly, line, sample = a[0]
     col, row = wins[0].to_ref_pixel(*np.meshgrid(lx, ly))
     mx, my = ref.pixel_to_map(col, row)
-    from planetref.frontend.geometry import map_to_ground, project_to_image
+    from planetref.camera.mapping import map_to_ground, project_to_image
 
     xyz, *_ = map_to_ground(ref, scene.dem, mx.ravel(), my.ravel())
     el, es = project_to_image(scene.init_cam, "ccd1", xyz)
@@ -377,8 +377,8 @@ def test_guided_lattice_equals_probed_search(setup):
 
 def test_compiled_block_sampling_equals_scipy():
     """The compiled bilinear sampling gives scipy's float32 values and valid fractions."""
-    from planetref._optional import optional_module
     from planetref.frontend.resample import bilinear_blocks, bilinear_blocks_numpy
+    from planetref.runtime.optional import optional_module
 
     if optional_module("planetref.frontend._numba_resample", "compiled resampling") is None:
         pytest.skip("numba is not available: only the scipy way runs")

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from planetref.camera.mapping import image_to_ref_pixel
 from planetref.frontend.config import FrontendConfig
-from planetref.frontend.geometry import image_to_ref_pixel
 from planetref.frontend.result import STATUSES
 from planetref.frontend.strip import match_strip
 
@@ -29,9 +29,9 @@ LEARNED_CCDS = ("ccd2",)
 
 def _load(root):
     from planetref.camera.linescan import LineScanCamera
-    from planetref.pipeline.scene import load_manifest
     from planetref.raster.dem import GridTerrain
     from planetref.raster.ortho import ReferenceOrtho
+    from planetref.scene.manifest import load_manifest
 
     man, root = load_manifest(root)
     strip = man.strips[0]

@@ -305,8 +305,8 @@ def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path, ref_gr
 def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
     # A DEM holding only its northern rows: the strip still overlaps it (the run goes on)
     # but part of each CCD's footprint has no terrain, and a new user is told how much.
-    from planetref.pipeline.inputs import check_strips, open_reference
-    from planetref.pipeline.scene import load_manifest
+    from planetref.scene.inputs import check_strips, open_reference
+    from planetref.scene.manifest import load_manifest
 
     scene = _copy_scene(tiny_scene, tmp_path / "scene")
     dem = scene / "reference" / "dem.tif"

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import rasterio
 
-from planetref.pipeline import ortho_strip
-from planetref.pipeline.ortho_strip import PixelType, orthorectify_strip
-from planetref.pipeline.orthoimage import _cell, bilinear_lattice
+from planetref.products import ortho_strip
+from planetref.products.ortho_strip import PixelType, orthorectify_strip
+from planetref.products.orthoimage import _cell, bilinear_lattice
 
-kernel = pytest.importorskip("planetref.pipeline._ortho_kernel")
+kernel = pytest.importorskip("planetref.products._numba_ortho")
 cv2 = pytest.importorskip("cv2")
 
 TOL_DN = 1e-3
@@ -134,9 +134,9 @@ def test_cast_kernel_matches_pixel_type(dtype):
 def test_compiled_orthoimages_equal_the_reference(tiny_scene, tmp_path, monkeypatch):
     """One CCD of the tiny scene through both paths: the same file, pixel for pixel."""
     from planetref.camera.io import load_camera
-    from planetref.pipeline.inputs import open_reference
-    from planetref.pipeline.scene import load_manifest
     from planetref.raster.image import CcdImage
+    from planetref.scene.inputs import open_reference
+    from planetref.scene.manifest import load_manifest
 
     m, root = load_manifest(tiny_scene)
     ref, dem = open_reference(m, root)

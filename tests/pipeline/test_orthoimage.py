@@ -10,21 +10,21 @@ import pytest
 import rasterio
 
 from planetref.camera.io import load_camera
-from planetref.frontend.geometry import image_gsd_m
+from planetref.camera.mapping import image_gsd_m
 from planetref.geometry.geodesy import CrsGround
-from planetref.pipeline.orthoimage import (
+from planetref.products.ortho_strip import orthorectify_ccd
+from planetref.products.orthoimage import (
     LatticeProjector,
     OrthoGrid,
     OrthoSettings,
     _cell,
-    _footprint,
     bilinear_lattice,
-    orthorectify_ccd,
+    footprint,
 )
-from planetref.pipeline.scene import load_manifest
 from planetref.raster.dem import GridTerrain
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
+from planetref.scene.manifest import load_manifest
 
 # Every output pixel projected exactly (the reference the lattice is measured against).
 EXACT = OrthoSettings(lattice_step=1, max_error_px=None)
@@ -44,7 +44,7 @@ def ccd1(tiny_scene):
 
 def _grid(cam, ccd, dem, crs, gsd) -> OrthoGrid:
     ground = CrsGround(crs)
-    x0, y0, x1, y1 = _footprint(cam, ccd, dem, ground)
+    x0, y0, x1, y1 = footprint(cam, ccd, dem, ground)
     return OrthoGrid(ground, x0, y1, gsd, math.ceil((x1 - x0) / gsd), math.ceil((y1 - y0) / gsd))
 
 

@@ -11,8 +11,8 @@ from rasterio.enums import Resampling
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
-from planetref.pipeline import _ortho_kernel as kernel
-from planetref.pipeline.overviews import (
+from planetref.products import _numba_ortho as kernel
+from planetref.products.overviews import (
     OverviewPyramid,
     halve_reference,
     overview_factors,

@@ -12,21 +12,21 @@ import rasterio
 from rasterio.enums import Resampling
 
 from planetref.camera.io import load_camera
-from planetref.errors import InputError
-from planetref.frontend.geometry import image_gsd_m
-from planetref.geometry.geodesy import Ellipsoid, lonlat_to_xyz
-from planetref.pipeline.inputs import open_reference
-from planetref.pipeline.ortho_strip import PixelType, orthorectify_strip, round_gsd
-from planetref.pipeline.orthoimage import _compression
-from planetref.pipeline.scene import load_manifest
-from planetref.raster.image import CcdImage
-from planetref.report.control_exports import (
+from planetref.camera.mapping import image_gsd_m
+from planetref.control.exports import (
     CNET_COLUMNS,
     FREE_SIGMA_M,
     ControlPoints,
     write_asp_gcp,
     write_isis_cnet_csv,
 )
+from planetref.errors import InputError
+from planetref.geometry.geodesy import Ellipsoid, lonlat_to_xyz
+from planetref.products.ortho_strip import PixelType, orthorectify_strip, round_gsd
+from planetref.products.orthoimage import compression
+from planetref.raster.image import CcdImage
+from planetref.scene.inputs import open_reference
+from planetref.scene.manifest import load_manifest
 
 
 def test_round_gsd_and_pixel_types():
@@ -161,7 +161,7 @@ def test_overviews_are_internal(strip, tmp_path):
         ):
             assert np.array_equal(a.read(1), b.read(1), equal_nan=True)
     gdal.unlink()
-    assert written == _compression()["compress"]
+    assert written == compression()["compress"]
     from rasterio.io import MemoryFile
 
     try:
@@ -266,7 +266,7 @@ def test_scene_manifest_datum_keys(tiny_scene, tmp_path):
 def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
     """The same scene declared above a +150 m areoid: every MCP's ground point lies 150 m
     above the scene's DEM (to float precision), whatever the matches."""
-    from planetref.control import read_mcps
+    from planetref.control.mcp import read_mcps
     from planetref.geometry.geodesy import xyz_to_lonlat
     from planetref.pipeline.georef import run_georef
     from planetref.raster.dem import GridTerrain

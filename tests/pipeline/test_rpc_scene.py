@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from planetref.adjust import Network, adjust
+from planetref.adjust.metrics import geolocation_error
 from planetref.camera.io import load_camera
 from planetref.camera.rpc import RpcCamera, RpcStripCamera
 from planetref.errors import InputError
-from planetref.metrics import geolocation_error
 from planetref.pipeline.georef import run_georef
-from planetref.pipeline.inputs import strip_cameras, truth_inputs
-from planetref.pipeline.scene import load_manifest, write_manifest
+from planetref.scene.inputs import strip_cameras, truth_inputs
+from planetref.scene.manifest import load_manifest, write_manifest
 
 
 def _rms(values):

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from planetref.errors import InputError, MissingFileError
-from planetref.pipeline.scene import (
+from planetref.scene.manifest import (
     CcdSpec,
     ReferenceSpec,
     SceneManifest,

@@ -136,8 +136,8 @@ def test_parallel_workers_read_the_converted_dem(tmp_path):
     """A DEM above the areoid reaches tile workers as one body-height file in the run folder."""
     from types import SimpleNamespace
 
-    from planetref.pipeline.inputs import worker_dem
     from planetref.pipeline.rundir import RunDir
+    from planetref.scene.inputs import worker_dem
 
     dem_path, _ = _dem(tmp_path)
     areoid = _linear_areoid(tmp_path, 321.0, 10.0, -5.0)

@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from planetref.camera.mapping import rays_to_ground
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
 from planetref.camera.rpc import RpcCamera, fit_rpc
-from planetref.frontend.geometry import rays_to_ground
 from planetref.geometry.geodesy import (
     MARS_IAU2015_SPHERE,
     ray_ellipsoid_intersection,

@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from reliability_helpers import REPO, one_line_error, run_cli, run_subprocess
 
-from planetref.atomic import write_json_atomic
 from planetref.errors import RunDirError
 from planetref.pipeline.rundir import LOCK_NAME, MARKER, RunDir
+from planetref.runtime.atomic import write_json_atomic
 
 
 def _foreign_tool_folder(root: Path) -> Path:
@@ -288,8 +288,8 @@ def test_an_output_folder_that_cannot_be_created(tmp_path: Path) -> None:
 def test_a_read_only_file_is_never_replaced(tmp_path: Path) -> None:
     # Every planetref write goes through atomic_path: a file marked read-only for everyone
     # (shared data, an archive) is refused by its mode bits, so even root does not replace it.
-    from planetref.atomic import write_bytes_atomic
     from planetref.errors import OutputError
+    from planetref.runtime.atomic import write_bytes_atomic
 
     target = tmp_path / "archive.tif"
     target.write_bytes(b"original")
@@ -330,7 +330,7 @@ def test_a_failed_download_is_not_a_failed_write(tmp_path: Path) -> None:
     # (URLError: ... Name or service not known)"; the source failed, not the disk.
     import urllib.error
 
-    from planetref.atomic import atomic_path
+    from planetref.runtime.atomic import atomic_path
 
     target = tmp_path / "w.ckpt"
     with pytest.raises(urllib.error.URLError), atomic_path(target):

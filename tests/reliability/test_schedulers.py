@@ -12,7 +12,7 @@ import pytest
 from reliability_helpers import REPO, one_line_error, run_cli
 
 from planetref.errors import InputError
-from planetref.execute import CONNECT_TIMEOUT_S, DaskExecutor, make_executor
+from planetref.runtime.execute import CONNECT_TIMEOUT_S, DaskExecutor, make_executor
 
 
 @pytest.mark.parametrize(
@@ -49,7 +49,7 @@ def test_timeout_setting_is_parsed() -> None:
 _CONNECT = textwrap.dedent(
     """
     import sys
-    from planetref.execute import make_executor, SchedulerError
+    from planetref.runtime.execute import make_executor, SchedulerError
     try:
         make_executor(sys.argv[1]).client
     except SchedulerError as exc:

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from planetref.frontend.result import StageDebug, TileResult
+from planetref.frontend.tile_panels import MatchPanel, PanelStore
 from planetref.frontend.tiles import Tile
 from planetref.report.figure_jobs import FigureJobs
-from planetref.report.figures_matching import MatchPanel, figure_tile_matches
-from planetref.report.tile_panels import PanelStore
+from planetref.report.figures_matching import figure_tile_matches
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -74,8 +74,8 @@ def test_panel_store_round_trip_and_cleanup():
 
 
 def test_panel_store_adopts_and_records_a_worker_file(tmp_path):
-    from planetref.atomic import watch_outputs
-    from planetref.report.tile_panels import save_panels
+    from planetref.frontend.tile_panels import save_panels
+    from planetref.runtime.atomic import watch_outputs
 
     class Recorder:
         def __init__(self):

@@ -163,12 +163,12 @@ def test_read_report_html_rejects_bad_base64(tmp_path, bad):
 
 
 def test_save_draws_once_with_the_pixels_of_savefig(tmp_path, monkeypatch):
-    """``_save`` (one draw, layout inside it) writes the pixels ``savefig`` (two draws) does."""
+    """``save`` (one draw, layout inside it) writes the pixels ``savefig`` (two draws) does."""
     import matplotlib.image as mpimg
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from planetref.report.figures_matching import _save
+    from planetref.report.figures_matching import save
 
     def figure():
         fig = Figure(figsize=(6.0, 3.0), layout="constrained")
@@ -192,7 +192,7 @@ def test_save_draws_once_with_the_pixels_of_savefig(tmp_path, monkeypatch):
         return orig(self, renderer)
 
     monkeypatch.setattr(Figure, "draw", counted)
-    _save(fig, tmp_path / "one.png", 90)
+    save(fig, tmp_path / "one.png", 90)
     assert len(draws) == 1
     a, b = mpimg.imread(tmp_path / "ref.png"), mpimg.imread(tmp_path / "one.png")
     assert a.shape == b.shape == (270, 540, 4)

@@ -12,8 +12,8 @@ from rasterio.errors import NotGeoreferencedWarning
 
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import InputError
-from planetref.pipeline.scene import load_manifest
 from planetref.raster.dem import GridTerrain
+from planetref.scene.manifest import load_manifest
 from planetref.simulate.scene import simulate_scene
 
 
@@ -169,8 +169,8 @@ def test_an_areoid_scene_declares_its_datum_and_reads_back_body_heights(
     surface; the scene carries that surface (``reference/areoid.tif``) and declares
     ``dem_datum = "areoid"``, so the DEM read by the pipeline equals the same scene's
     DEM without an areoid (heights above the sphere) to float32 rounding."""
-    from planetref.pipeline.inputs import open_reference
     from planetref.raster.datum import open_reference_dem
+    from planetref.scene.inputs import open_reference
 
     mola = {"areoid": True, "areoid_offset_m": 250.0, "areoid_tilt_m_per_km": 40.0}
     out = tmp_path / "areoid"

@@ -4,8 +4,9 @@ The entry point is :func:`adjust`, which takes a :class:`Network` (cameras, grou
 points, image observations) and an :class:`AdjustConfig` and returns an
 :class:`AdjustmentResult` (adjusted cameras, parameters with a-posteriori sigmas and
 correlations, residuals, inlier flags, metrics before/after). :func:`read_network`
-reads a ``NETWORK.toml`` control network; :func:`write_outputs` writes the adjusted
-cameras, residual table, report.json/report.md and residual plots. See docs/adjust.md.
+reads a ``NETWORK.toml`` control network (:mod:`planetref.adjust.network_file`);
+:func:`planetref.report.adjustment.write_outputs` writes the adjusted cameras, residual
+table, report.json/report.md and residual plots. See docs/adjust.md.
 """
 
 from planetref.adjust.api import adjust
@@ -17,11 +18,10 @@ from planetref.adjust.models import (
     LineScanParameterization,
     parameterize,
 )
-from planetref.adjust.network import NetworkFile, read_network
-from planetref.adjust.problem import Network
+from planetref.adjust.network_file import NetworkFile, read_network
 from planetref.adjust.rays import triangulate
-from planetref.adjust.report import write_outputs
 from planetref.adjust.result import AdjustmentResult
+from planetref.control.network import Network
 
 __all__ = [
     "AdjustConfig",
@@ -37,5 +37,4 @@ __all__ = [
     "read_network",
     "triangulate",
     "validate_config",
-    "write_outputs",
 ]

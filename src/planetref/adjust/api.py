@@ -1,4 +1,4 @@
-"""The adjustment as one call: :func:`adjust` a :class:`~planetref.adjust.problem.Network`.
+"""The adjustment as one call: :func:`adjust` a :class:`~planetref.control.network.Network`.
 
 Steps: parameterise every camera, triangulate free points without coordinates, drop
 observations that cannot be projected or whose free point has too few rays, check that
@@ -28,14 +28,14 @@ from planetref.adjust.evaluation import (
 )
 from planetref.adjust.models import parameterize
 from planetref.adjust.outliers import classify_inliers, robust_scale, supported
-from planetref.adjust.problem import Network
 from planetref.adjust.rays import rays, triangulate
 from planetref.adjust.result import STATUSES, AdjustmentResult
 from planetref.adjust.solver import BundleSolver
 from planetref.adjust.variance import variance_components
-from planetref.blas import single_threaded_blas
+from planetref.control.network import Network
 from planetref.errors import AdjustmentError
-from planetref.threads import compute_threads
+from planetref.runtime.blas import single_threaded_blas
+from planetref.runtime.threads import compute_threads
 
 __all__ = ["STATUSES", "AdjustmentResult", "adjust", "rays", "triangulate"]
 
@@ -62,7 +62,7 @@ def adjust(
         (``"cameras"``) and each of its CCDs (``"cameras"[id]["ccds"]``, also flat in
         ``"ccds"``, keyed by CCD name for one camera and ``"id/ccd"`` otherwise), the
         reprojection metrics
-        (:func:`~planetref.metrics.reprojection_metrics`) ``"before"`` (initial
+        (:func:`~planetref.adjust.metrics.reprojection_metrics`) ``"before"`` (initial
         residuals of the final inliers), ``"before_all"`` (initial residuals of every
         usable observation) and ``"after"``; and ``"check"`` with the held-out
         observations' RMS/max in pixels and metres before and after.

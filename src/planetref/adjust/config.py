@@ -27,7 +27,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BeforeValidator, Field, model_validator
 
 from planetref.adjust.rpc_config import RpcParameters
-from planetref.settings import Settings, validate_settings
+from planetref.runtime.settings import Settings, validate_settings
 
 __all__ = [
     "DEFAULT_TIE_SIGMA_M",
@@ -440,7 +440,7 @@ class SolverConfig(Settings):
             as the seed's rule defines the solution; ``all``: every round is robust.
         chunk_size: Observations evaluated at once (memory/speed trade-off).
         threads: Threads evaluating and accumulating chunks in parallel (``None``: the
-            process's thread budget, :func:`planetref.threads.compute_threads`). Each
+            process's thread budget, :func:`planetref.runtime.threads.compute_threads`). Each
             thread sums its own contiguous share of the chunks; the shares are added
             in order, so a given thread count gives the same numbers every run.
         min_rcond: Reciprocal condition number of the (Jacobi-scaled) reduced normal

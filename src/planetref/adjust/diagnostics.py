@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import DiagnosticsConfig
-from planetref.adjust.problem import Network, small_unique
+from planetref.control.network import Network, small_unique
 from planetref.geometry.geodesy import xyz_to_lonlat
 
 __all__ = [
@@ -67,15 +67,15 @@ def point_table(
         sigma_prior: A-priori sigmas used in the final adjustment (after variance
             component scaling), in each point's sigma frame, ``(P, 3)``.
         frame: Rotations XYZ -> sigma frame, indexed like ``(P, 3, 3)`` (an array or
-            :class:`~planetref.adjust.problem.PointFrames`).
+            :class:`~planetref.control.network.PointFrames`).
         cofactor: ``(points, blocks)``: indices of the unknown points ``(u,)`` and
             their 3x3 cofactor blocks (XYZ), ``(u, 3, 3)``.
         sigma0: A-posteriori sigma of unit weight.
 
     Returns:
-        Column name -> array (see :func:`planetref.adjust.report.write_points`).
+        Column name -> array (see :func:`planetref.report.adjustment.write_points`).
     """
-    from planetref.adjust.problem import enu_rotation
+    from planetref.control.network import enu_rotation
 
     ell = net.cameras[0].ellipsoid
     n = net.n_points
@@ -162,7 +162,7 @@ def point_summary(
     """Movement statistics of the points per kind and the warning lines.
 
     ``kind_codes``: ``(kinds, code)`` of ``table["kind"]`` when already known
-    (:attr:`~planetref.adjust.problem.Network.point_kind_codes`).
+    (:attr:`~planetref.control.network.Network.point_kind_codes`).
     """
     out: dict[str, Any] = {}
     warnings: list[str] = []

@@ -20,10 +20,10 @@ from planetref.adjust.diagnostics import (
     point_table,
     self_calibration,
 )
-from planetref.adjust.problem import Network
+from planetref.adjust.metrics import grouped_reprojection_metrics
 from planetref.adjust.rays import ground_error_m
 from planetref.adjust.solver import BundleSolver, LmReport
-from planetref.metrics import grouped_reprojection_metrics
+from planetref.control.network import Network
 
 __all__ = ["check_metrics", "diagnostics", "reprojection_blocks", "round_summary"]
 
@@ -117,7 +117,7 @@ def reprojection_blocks(
     Returns:
         ``{"all": ..., "cameras": {id: ...}, "ccds": {name: ...}}``, each with
         ``"before"``, ``"before_all"`` and ``"after"``
-        (:func:`~planetref.metrics.reprojection_metrics`); check observations excluded.
+        (:func:`~planetref.adjust.metrics.reprojection_metrics`); check observations excluded.
     """
     # Group codes per level (-1: not in a group): 0 all adjusted observations, then
     # one per camera (when there are several), then one per CCD of multi-CCD cameras.

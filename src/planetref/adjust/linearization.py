@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref._optional import optional_module
 from planetref.adjust.robust import robust_rho
-from planetref.threads import compute_threads
+from planetref.runtime.optional import optional_module
+from planetref.runtime.threads import compute_threads
 
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
@@ -36,7 +36,7 @@ F64 = NDArray[np.float64]
 
 
 @dataclass
-class _Linearization:
+class Linearization:
     cost: float
     r: F64  # (M, 2) residuals (line, sample)
     valid: NDArray[np.bool_]
@@ -52,14 +52,14 @@ class _Linearization:
     r_t: F64  # (Mt, 2) residuals in the order of a_t (0 where invalid)
     rate: F64  # (M,) the models' line-rate hints (NaN if none)
     obs: NDArray[np.intp]  # network observation index of each row
-    slot_n: F64  # (n_slot, P_m + 1, P_m + 1) A^T W A per slot (see _Layout.slot)
+    slot_n: F64  # (n_slot, P_m + 1, P_m + 1) A^T W A per slot (see Layout.slot)
     loss: str  # the loss its weights were made with
     seconds: float = 0.0  # wall and CPU time of a linearisation made by ``linearize``
     cpu_seconds: float = 0.0
 
 
 @dataclass
-class _Layout:
+class Layout:
     """The observations of one LM run in a contiguous order.
 
     Every (camera, CCD) group is a contiguous range sorted by line, and the
@@ -98,7 +98,7 @@ class LinearizationMixin:
     ``_prior_cost`` and ``_active_cache``.
     """
 
-    def _layout(self, obs: NDArray[np.intp]) -> _Layout:
+    def _layout(self, obs: NDArray[np.intp]) -> Layout:
         groups = self._groups(obs)
         order = np.concatenate([g[2] for g in groups]) if groups else np.zeros(0, np.intp)
         obs = obs[order]
@@ -132,7 +132,7 @@ class LinearizationMixin:
         else:
             out = {k: f() for k, f in jobs.items()}
         slot, slot_obs, size = out["slots"]
-        return _Layout(
+        return Layout(
             obs,
             ranges,
             point,
@@ -154,7 +154,7 @@ class LinearizationMixin:
         fixed_rows: NDArray[np.bool_],
         ranges: list[tuple[int, int, int, int]],
     ) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:
-        """Slots of the rows of a layout (see :attr:`_Layout.slot`), one observation each.
+        """Slots of the rows of a layout (see :attr:`Layout.slot`), one observation each.
 
         ``ranges``: the layout's ``(model, ccd, start, stop)`` groups, which give every
         row's image without gathering the network's camera and CCD columns.
@@ -185,12 +185,12 @@ class LinearizationMixin:
         self,
         c: F64,
         xyz: F64,
-        lay: _Layout,
+        lay: Layout,
         tie_pos: NDArray[np.intp],
         n_tie: int,
         unknown: NDArray[np.intp],
         xyz0: F64,
-    ) -> _Linearization:
+    ) -> Linearization:
         p = self.n_params
         m = len(lay.obs)
         q = self.q
@@ -316,11 +316,11 @@ class LinearizationMixin:
         cost += self._prior_cost(c)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
-            cost += 0.5 * _quadratic(self.point_prior_w[unknown], dx)
+            cost += 0.5 * quadratic(self.point_prior_w[unknown], dx)
         inv = np.empty(n_tie, np.intp)
         sel = tie_pos >= 0
         inv[tie_pos[sel]] = np.flatnonzero(sel)
-        return _Linearization(
+        return Linearization(
             cost,
             r,
             valid,
@@ -340,7 +340,7 @@ class LinearizationMixin:
             self.loss,
         )
 
-    def chunk_parts(self, lay: _Layout) -> list[list[tuple[int, int, int, int]]]:
+    def chunk_parts(self, lay: Layout) -> list[list[tuple[int, int, int, int]]]:
         """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares.
 
         ``cfg.chunk_size`` observations per chunk, never across a (camera, CCD) range;
@@ -350,7 +350,7 @@ class LinearizationMixin:
 
     def map_chunks(
         self,
-        lay: _Layout,
+        lay: Layout,
         parts: list[list[tuple[int, int, int, int]]],
         c: F64,
         pxyz: F64,
@@ -514,7 +514,7 @@ def run_shares(n: int, run: Callable[[int], None], threads: int) -> None:
 _COUNTING_KEYS = 1 << 24
 
 
-def _group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
+def group_order(key: NDArray[np.int64], line: F64) -> NDArray[np.intp]:
     """The stable order of observations by ``(group key, observed line)``.
 
     Compiled: a counting sort by group and line bin (bins of a power-of-two fraction
@@ -578,6 +578,6 @@ _NO_WEIGHTS = np.ones((1, 1))
 _NO_BASIS = (np.empty(0), np.empty(0, np.intp), np.empty((0, 0, 0)))
 
 
-def _quadratic(w: F64, dx: F64) -> float:
+def quadratic(w: F64, dx: F64) -> float:
     """``sum_p dx_p^T W_p dx_p`` of per-point 3x3 weights."""
     return float(np.einsum("pi,pij,pj->", dx, w, dx))

@@ -17,15 +17,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # pragma: no cover
-    from planetref.adjust.linearization import _Linearization
-    from planetref.adjust.solver import BundleSolver
+    from planetref.adjust.linearization import Linearization
 
 __all__ = [
     "ANDERSON_DEPTH",
     "CORRECT_MAX_LAMBDA",
     "LmReport",
     "anderson_correction",
-    "camera_gradient",
     "cost_resolution",
 ]
 
@@ -130,7 +128,7 @@ def anderson_correction(
     return corr
 
 
-def cost_resolution(lin: _Linearization) -> float:
+def cost_resolution(lin: Linearization) -> float:
     """Three standard deviations of the cost's noise from the projections' precision.
 
     ``cost = 0.5 sum w r^2`` moves by ``sum w r delta`` when every projection moves by an
@@ -139,12 +137,3 @@ def cost_resolution(lin: _Linearization) -> float:
     """
     wr = lin.weight * np.where(lin.valid[:, None], lin.r, 0.0)
     return 3.0 * PROJECTION_PX * float(np.sqrt(np.sum(wr * wr)))
-
-
-def camera_gradient(lin: _Linearization, solver: BundleSolver, c: F64) -> F64:
-    """Gradient of the cost w.r.t. the camera parameters (observations and priors)."""
-    p = solver.n_params
-    grad = lin.g_c[:p] + solver.prior_w * (c - solver.x0)
-    if solver.con_n is not None:
-        grad = grad + solver.con_n @ (c - solver.x0)
-    return grad

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.adjust.problem import Network
+from planetref.control.network import Network
 from planetref.geometry.geodesy import ray_ellipsoid_intersection, xyz_to_lonlat
 
 __all__ = ["ground_error_m", "rays", "triangulate"]

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.adjust.linearization import _Layout, _Linearization
+from planetref.adjust.linearization import Layout, Linearization
 from planetref.adjust.solver import BundleSolver
 
 if TYPE_CHECKING:
@@ -158,7 +158,7 @@ def redundancy(
     obs: NDArray[np.intp],
     xyz0: F64,
     cofactor: F64,
-    lin: _Linearization | None = None,
+    lin: Linearization | None = None,
 ) -> Redundancy:
     """Redundancy numbers of every equation at a solution (plain least-squares weights).
 
@@ -204,7 +204,7 @@ def redundancy(
     return _finish(solver, (c, xyz, xyz0), lay, cofactor, eqs, (tpos, a_u, gpat_u, b_u))
 
 
-def _reusable(solver: BundleSolver, lin: _Linearization | None, lay: _Layout) -> bool:
+def _reusable(solver: BundleSolver, lin: Linearization | None, lay: Layout) -> bool:
     """Whether a linearisation can stand in for a fresh evaluation (see :func:`redundancy`)."""
     if (
         lin is None
@@ -222,7 +222,7 @@ def _reusable(solver: BundleSolver, lin: _Linearization | None, lay: _Layout) ->
     return np.array_equal(lin.weight, np.where(lin.valid[:, None], lay.w0, 0.0))
 
 
-def _slot_redundancy(solver: BundleSolver, lin: _Linearization, lay: _Layout, cofactor: F64) -> F64:
+def _slot_redundancy(solver: BundleSolver, lin: Linearization, lay: Layout, cofactor: F64) -> F64:
     """``r_s = n_s - tr(Q N_s)`` per slot (its equations less their cofactor trace)."""
     on = lay.slot >= 0
     n_eq = 2.0 * np.bincount(lay.slot[on], minlength=len(lay.slot_obs))
@@ -235,7 +235,7 @@ def _slot_redundancy(solver: BundleSolver, lin: _Linearization, lay: _Layout, co
 
 
 def _evaluate(
-    solver: BundleSolver, c: F64, xyz: F64, lay: _Layout, cofactor: F64
+    solver: BundleSolver, c: F64, xyz: F64, lay: Layout, cofactor: F64
 ) -> tuple[F64, F64, NDArray[np.intp], F64, NDArray[np.intp], F64]:
     """The reference: evaluate the models again over the layout.
 
@@ -288,7 +288,7 @@ def _evaluate(
 def _finish(
     solver: BundleSolver,
     sol: tuple[F64, F64, F64],
-    lay: _Layout,
+    lay: Layout,
     cofactor: F64,
     eqs: tuple[F64, F64 | None, F64, F64],
     kept: tuple[NDArray[np.intp], F64, NDArray[np.intp], F64],

@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig, validate_config
 from planetref.adjust.models import Evaluation, LineScanParameterization, parameterize
-from planetref.adjust.problem import Network
 from planetref.adjust.solver import BundleSolver
+from planetref.control.network import Network
 from planetref.errors import InputError
 
 __all__ = ["ScipyProblem", "solve_with_scipy"]

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig
 from planetref.adjust.models import AdjustableCamera
-from planetref.adjust.problem import Network
+from planetref.control.network import Network
 
 __all__ = ["STATUSES", "AdjustmentResult"]
 

@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import model_validator
 
-from planetref.settings import Settings
+from planetref.runtime.settings import Settings
 
 __all__ = ["RpcParameters"]
 

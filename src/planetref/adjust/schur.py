@@ -15,9 +15,9 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-from planetref._optional import optional_module
-from planetref.adjust.linearization import _Layout, _Linearization
+from planetref.adjust.linearization import Layout, Linearization
 from planetref.errors import AdjustmentError
+from planetref.runtime.optional import optional_module
 
 __all__ = ["SchurMixin"]
 
@@ -44,7 +44,7 @@ class Iterate(NamedTuple):
     ``(lin, chunks, c, xyz, xyz0, unknown)``.
     """
 
-    lin: _Linearization  # the linearisation at (c, xyz)
+    lin: Linearization  # the linearisation at (c, xyz)
     chunks: list[_TieChunk]  # the observations of unknown points, by point
     c: F64  # global camera vector
     xyz: F64  # every network point, (P, 3)
@@ -53,8 +53,8 @@ class Iterate(NamedTuple):
 
 
 @dataclass
-class _Structure:
-    lay: _Layout
+class Structure:
+    lay: Layout
     unknown: NDArray[np.intp]  # network indices of the points whose XYZ are unknowns
     tie_pos: NDArray[np.intp]  # per layout row: row in the tie arrays, or -1
     chunks: list[_TieChunk]
@@ -237,7 +237,7 @@ class SchurMixin:
 
     def _back_substitute(
         self,
-        lin: _Linearization,
+        lin: Linearization,
         chunks: list[_TieChunk],
         blocks: list[tuple[F64, F64, F64]],
         delta_c: F64,

@@ -26,11 +26,11 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import SolverConfig
 from planetref.adjust.linearization import (
+    Layout,
+    Linearization,
     LinearizationMixin,
-    _group_order,
-    _Layout,
-    _Linearization,
     chunk_shares,
+    group_order,
     run_shares,
 )
 from planetref.adjust.lm_steps import (
@@ -38,16 +38,15 @@ from planetref.adjust.lm_steps import (
     CORRECT_MAX_LAMBDA,
     LmReport,
     anderson_correction,
-    camera_gradient,
     cost_resolution,
 )
 from planetref.adjust.models import AdjustableCamera, Evaluation
-from planetref.adjust.problem import Network, PointFrames, PointMatrices
 from planetref.adjust.robust import robust_rho
-from planetref.adjust.schur import Iterate, SchurMixin, _Structure
+from planetref.adjust.schur import Iterate, SchurMixin, Structure
 from planetref.adjust.statistics import StatisticsMixin
+from planetref.control.network import Network, PointFrames, PointMatrices
 from planetref.errors import AdjustmentError
-from planetref.threads import compute_threads
+from planetref.runtime.threads import compute_threads
 
 __all__ = ["BundleSolver", "LmReport", "robust_rho"]
 
@@ -125,7 +124,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         self._group_cache: (
             tuple[NDArray[np.intp], list[tuple[int, int, NDArray[np.intp]]]] | None
         ) = None
-        self._structure_cache: tuple[NDArray[np.intp], _Structure] | None = None
+        self._structure_cache: tuple[NDArray[np.intp], Structure] | None = None
 
     # ------------------------------------------------------------------ setup
     def set_point_sigma(self, sigma_m: F64) -> None:
@@ -162,7 +161,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         """Rotations from body-fixed XYZ to each point's sigma frame.
 
         Indexed like ``(P, 3, 3)``, computed for the indexed points only
-        (:meth:`~planetref.adjust.problem.Network.point_frame_matrices`).
+        (:meth:`~planetref.control.network.Network.point_frame_matrices`).
         """
         return PointFrames(self.net)
 
@@ -229,6 +228,14 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             self.con_w = np.zeros(0)
             self.con_n = None
 
+    def _camera_gradient(self, lin: Linearization, c: F64) -> F64:
+        """Gradient of the cost w.r.t. the camera parameters (observations and priors)."""
+        p = self.n_params
+        grad = lin.g_c[:p] + self.prior_w * (c - self.x0)
+        if self.con_n is not None:
+            grad = grad + self.con_n @ (c - self.x0)
+        return grad
+
     def _prior_cost(self, c: F64) -> float:
         """``0.5 (c - x0)^T (P + A^T W A) (c - x0)``: a-priori weights and constraints."""
         dc = c - self.x0
@@ -257,7 +264,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         net = self.net
         base = max(len(cam.ccd_names) for cam in net.cameras)
         key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
-        order = _group_order(key, net.obs_line[obs])
+        order = group_order(key, net.obs_line[obs])
         ks = key[order]
         cut = np.flatnonzero(np.diff(ks)) + 1
         out = []
@@ -317,7 +324,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             self.rate_guess[o] = np.where(ev.valid, ev.line_rate, np.nan)
 
     # --------------------------------------------------------------- LM loop
-    def _structure(self, obs: NDArray[np.intp], guesses: bool = True) -> _Structure:
+    def _structure(self, obs: NDArray[np.intp], guesses: bool = True) -> Structure:
         """Layout and tie-point structure of an observation set (cached for the last set).
 
         Args:
@@ -342,16 +349,16 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             umap = np.full(self.net.n_points, -1, np.intp)
             umap[unknown] = np.arange(len(unknown))
             tie_pos, chunks, n_tie = self._tie_structure(lay.obs, umap[pts], len(unknown))
-        st = _Structure(lay, unknown, tie_pos, chunks, n_tie)
+        st = Structure(lay, unknown, tie_pos, chunks, n_tie)
         self._structure_cache = (obs.copy(), st)
         return st
 
-    def refresh_guesses(self, lay: _Layout) -> None:
+    def refresh_guesses(self, lay: Layout) -> None:
         """Copy the solver's guesses into a layout: they may have improved since it was built."""
         self.line_guess.take(lay.obs, out=lay.line_guess)
         self.rate_guess.take(lay.obs, out=lay.rate_guess)
 
-    def linearize(self, c: F64, xyz: F64, obs: NDArray[np.intp], xyz0: F64) -> _Linearization:
+    def linearize(self, c: F64, xyz: F64, obs: NDArray[np.intp], xyz0: F64) -> Linearization:
         """Residuals, validity and normal-equation pieces of ``obs`` at ``(c, xyz)``.
 
         With the plain least-squares loss the result can be handed to :meth:`run` as its
@@ -376,9 +383,9 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         obs: NDArray[np.intp],
         xyz0: F64,
         *,
-        initial: _Linearization | None = None,
+        initial: Linearization | None = None,
         check_rank: bool = True,
-    ) -> tuple[F64, F64, LmReport, _Linearization, dict[str, object]]:
+    ) -> tuple[F64, F64, LmReport, Linearization, dict[str, object]]:
         """Minimise the cost over the observations ``obs`` from ``(c, xyz)``.
 
         Args:
@@ -411,7 +418,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         c = c.copy()
         rep = LmReport()
 
-        def linearize(cc: F64, xx: F64) -> _Linearization:
+        def linearize(cc: F64, xx: F64) -> Linearization:
             rep.evaluations += 1
             return self._linearize(cc, xx, lay, tie_pos, n_tie, unknown, xyz0)
 
@@ -471,7 +478,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 delta_c = delta_c + corr  # a new array: gn_step stays the plain step
             dx, bx, dd = self._back_substitute(lin, chunks, blocks, delta_c, len(unknown))
             if corr is None:
-                grad_c = camera_gradient(lin, self, c)
+                grad_c = self._camera_gradient(lin, c)
                 pred = 0.5 * (
                     lam * float(np.sum(d_c * delta_c**2))
                     - float(grad_c @ delta_c)
@@ -573,7 +580,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         return c, xyz, rep, lin, stats
 
 
-def _take_guesses(lay: _Layout, lin: _Linearization) -> None:
+def _take_guesses(lay: Layout, lin: Linearization) -> None:
     """Start the next evaluation from ``lin``'s lines and rates where it is valid."""
     np.copyto(lay.line_guess, lin.line, where=lin.valid)
     lay.rate_guess[:] = np.where(lin.valid, lin.rate, np.nan)

@@ -15,7 +15,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-from planetref.adjust.linearization import _quadratic
+from planetref.adjust.linearization import quadratic
 from planetref.adjust.schur import Iterate
 from planetref.errors import AdjustmentError
 
@@ -109,7 +109,7 @@ class StatisticsMixin:
         n_prior = int(np.count_nonzero(self.prior_w)) + len(self.con_w)
         if len(unknown):
             dx = xyz[unknown] - xyz0[unknown]
-            vtpv += _quadratic(self.point_prior_w[unknown], dx)
+            vtpv += quadratic(self.point_prior_w[unknown], dx)
             n_prior += int(np.count_nonzero(self.point_prior_axis_w[unknown]))
         n_obs = 2 * int(np.count_nonzero(lin.valid))
         n_unk = len(act) + 3 * len(unknown)

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import VarianceConfig
-from planetref.adjust.linearization import _Linearization, group_kernels
+from planetref.adjust.linearization import Linearization, group_kernels
 from planetref.adjust.redundancy import Redundancy, group_sum, redundancy
 from planetref.adjust.solver import BundleSolver
 from planetref.errors import AdjustmentError
@@ -284,7 +284,7 @@ def variance_components(
     stats: dict[str, Any],
     cfg: VarianceConfig,
     progress: Callable[[str], None] | None = None,
-    lin: _Linearization | None = None,
+    lin: Linearization | None = None,
 ) -> tuple[F64, F64, dict[str, Any], VceResult]:
     """Estimate the variance components by re-weighting and re-adjusting.
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from planetref.camera.base import Camera
 from planetref.errors import MissingFileError, UnsupportedFormatError
-from planetref.jsonfile import read_json
+from planetref.runtime.jsonfile import read_json
 
 __all__ = ["detect_camera_format", "load_camera"]
 

@@ -18,7 +18,7 @@ from typing import Any
 import click
 
 from planetref.errors import InputError
-from planetref.settings import deep_merge
+from planetref.runtime.settings import deep_merge
 
 __all__ = ["adjust_command"]
 
@@ -58,7 +58,7 @@ def _load_config_file(path: Path) -> dict[str, Any]:
 def _validated(cfg: dict[str, Any], source: Path | None, what: str) -> None:
     """Check the configuration as layered so far, naming where the layer came from."""
     from planetref.adjust.config import AdjustConfig
-    from planetref.settings import validate_settings
+    from planetref.runtime.settings import validate_settings
 
     validate_settings(AdjustConfig, cfg, source=None if source is None else str(source), what=what)
 
@@ -211,9 +211,9 @@ def adjust_command(
 
     Prints the headline numbers as JSON (the 'adjustment' block of report.json).
     """
-    from planetref.adjust.network import read_network
+    from planetref.adjust.network_file import read_network
     from planetref.pipeline.rundir import RunDir, config_digest
-    from planetref.tomlfile import read_toml
+    from planetref.runtime.tomlfile import read_toml
 
     quiet = bool(ctx.obj.get("quiet")) if ctx.obj else False
     if out_dir.exists() and not out_dir.is_dir():
@@ -283,8 +283,8 @@ def _adjust_into(
     import tomli_w
 
     from planetref.adjust.api import adjust
-    from planetref.adjust.report import write_outputs
-    from planetref.atomic import write_text_atomic
+    from planetref.report.adjustment import write_outputs
+    from planetref.runtime.atomic import write_text_atomic
 
     def progress(msg: str) -> None:
         if not quiet:

@@ -16,9 +16,9 @@ from typing import Any
 import click
 import numpy as np
 
-from planetref.atomic import json_safe
 from planetref.errors import GeometryError, InputError
 from planetref.geometry.geodesy import lonlat_to_xyz, xyz_to_lonlat
+from planetref.runtime.atomic import json_safe
 
 __all__ = ["EXTRAPOLATION_MARGIN", "HEIGHT_LIMIT_FRACTION", "camera_group"]
 

@@ -15,7 +15,7 @@ __all__ = ["compare_command", "demo_command", "georef_command"]
 
 
 def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
-    from planetref.execute import make_executor
+    from planetref.runtime.execute import make_executor
 
     make_executor(value)  # parse only (an InputError is one line); nothing starts yet
     return value
@@ -113,7 +113,7 @@ def _runtime(
     """Apply the thread budget and load the config, with ``device`` on the learned matchers."""
     from planetref.matching.registry import MATCHERS
     from planetref.pipeline.config import load_config
-    from planetref.threads import ThreadBudget, apply_thread_budget, scheduler_workers
+    from planetref.runtime.threads import ThreadBudget, apply_thread_budget, scheduler_workers
 
     apply_thread_budget(ThreadBudget.resolve(threads, scheduler_workers(scheduler)))
     cfg = load_config(config_path)

@@ -16,7 +16,6 @@ import click
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.atomic import atomic_path
 from planetref.cli.weights import WEIGHTS_DIR_OPTION
 from planetref.errors import (
     InputError,
@@ -26,6 +25,7 @@ from planetref.errors import (
     library_reason,
 )
 from planetref.matching.registry import MATCHERS, available_matchers, get_matcher
+from planetref.runtime.atomic import atomic_path
 
 __all__ = ["match_command", "matchers_command", "read_band", "write_matches_csv"]
 

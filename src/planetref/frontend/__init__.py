@@ -6,7 +6,7 @@ fine against the reference orthoimage (:mod:`~planetref.frontend.tile`, robust f
 :mod:`~planetref.frontend.robust`); results (:mod:`~planetref.frontend.result`) are
 journalled (:mod:`~planetref.frontend.journal`) and a strip's tiles dispatched in process
 or to workers (:mod:`~planetref.frontend.strip`, :mod:`~planetref.frontend.tasks`); the
-inliers become matched control points (:mod:`planetref.control`). NCP and SDU are in
+inliers become matched control points (:mod:`planetref.control.mcp`). NCP and SDU are in
 :mod:`~planetref.frontend.stats`.
 
 Importing this package loads no matcher, torch or OpenCV.

@@ -22,7 +22,7 @@ from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 from scipy.spatial import QhullError
 
 from planetref.camera.base import Camera, Terrain
-from planetref.frontend.geometry import image_to_ref_pixel
+from planetref.camera.mapping import image_to_ref_pixel
 from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = ["LineGuide"]

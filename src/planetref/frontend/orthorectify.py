@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from planetref.camera.base import Camera, Terrain
-from planetref.frontend.geometry import (
+from planetref.camera.mapping import (
     image_to_ref_pixel,
     map_to_ground,
     project_to_image,

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from planetref._optional import optional_module
+from planetref.runtime.optional import optional_module
 
 __all__ = ["bilinear_blocks", "bilinear_blocks_numpy"]
 

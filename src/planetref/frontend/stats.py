@@ -133,7 +133,7 @@ def ncp_per_ccd(table: Any, ccds: Sequence[str] | None = None) -> dict[str, int]
     """NCP per CCD image of an MCP table (anything indexable by column name).
 
     Args:
-        table: An :class:`~planetref.control.McpTable` or a mapping with a ``ccd`` column.
+        table: An :class:`~planetref.control.mcp.McpTable` or a mapping with a ``ccd`` column.
         ccds: CCDs to report even when they have no point (default: those present).
     """
     out = dict.fromkeys(ccds or (), 0)

@@ -2,7 +2,7 @@
 
 :func:`match_strip` plans the tiles of each CCD (:mod:`~planetref.frontend.tiles`),
 resumes from the journal (:mod:`~planetref.frontend.journal`), and matches the pending
-tiles here or on a parallel executor (:mod:`planetref.execute`) through the tile tasks of
+tiles here or on a parallel executor (:mod:`planetref.runtime.execute`) through the tile tasks of
 :mod:`~planetref.frontend.tasks`. Results are journalled as they arrive and returned in
 plan order whatever the executor.
 """
@@ -15,7 +15,6 @@ from os import PathLike
 
 from planetref.camera.base import Camera, Terrain
 from planetref.errors import InputError
-from planetref.execute import Executor
 from planetref.frontend.batched import TileSteps, run_batched, run_steps
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.journal import DEFAULT_MAX_ATTEMPTS, TileJournal, journal_digest
@@ -26,6 +25,7 @@ from planetref.frontend.tiles import Tile, TilePlan, plan_tiles
 from planetref.matching.base import Matcher
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho
+from planetref.runtime.execute import Executor
 
 __all__ = ["match_strip"]
 
@@ -88,11 +88,11 @@ def match_strip(
             Figures keep what they need from the matching pass instead of matching again.
         panels_dir: With a parallel ``executor`` and ``debug_sink``: the folder where the
             workers write the stage images of the tiles they match
-            (:func:`planetref.report.tile_panels.save_panels`, a
-            :class:`~planetref.report.tile_panels.PanelStore`'s folder); each such result
+            (:func:`planetref.frontend.tile_panels.save_panels`, a
+            :class:`~planetref.frontend.tile_panels.PanelStore`'s folder); each such result
             then goes to ``debug_sink`` too, without stage images, before it is recorded.
         coarse_matcher: Matcher of the coarse stage (default: ``matcher``).
-        executor: A :class:`planetref.execute.Executor` for the tiles (default: in this
+        executor: A :class:`planetref.runtime.execute.Executor` for the tiles (default: in this
             process, one after another). A parallel one sends each worker a
             :class:`~planetref.frontend.tasks.TileTask`; ``debug_tiles`` are matched here.
         sources: The strip's file paths; required by a parallel ``executor``.

@@ -1,4 +1,4 @@
-"""Tile tasks that the executors of :mod:`planetref.execute` run in worker processes.
+"""Tile tasks that the executors of :mod:`planetref.runtime.execute` run in worker processes.
 
 A task carries only descriptions, never arrays or matcher instances: the strip's file
 paths (:class:`TileSources`), the matchers as typed recipes (:class:`MatcherRecipe`: a
@@ -113,7 +113,7 @@ class TileTask:
         ratio: Image pixels per reference pixel of the tile's CCD (the plan's).
         raise_errors: Re-raise an exception of the matching instead of status ``error``.
         panels: A folder where the worker writes the tile's stage images for figures
-            (:func:`planetref.report.tile_panels.save_panels`), or None.
+            (:func:`planetref.frontend.tile_panels.save_panels`), or None.
     """
 
     sources: str
@@ -206,7 +206,7 @@ def run_tile_task(task: TileTask) -> dict[str, Any]:
         res = error_result(task.tile, name, task.config.geometry, exc)
     if task.panels is not None and res.debug:
         from planetref.errors import PlanetrefError
-        from planetref.report.tile_panels import save_panels
+        from planetref.frontend.tile_panels import save_panels
 
         try:
             save_panels(task.panels, res)

@@ -319,7 +319,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         return finish("no_overlap", "no ray of the tile's border meets the DEM")
     base = fp.window
     if ratio is None and cfg.geometry == "downsample":
-        from planetref.frontend.geometry import image_gsd_m
+        from planetref.camera.mapping import image_gsd_m
 
         lc, sc = tile.centre
         ratio = float(np.sqrt(fp.gsd_m[0] * fp.gsd_m[1])) / image_gsd_m(

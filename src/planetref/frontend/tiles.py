@@ -20,9 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.camera.base import Camera, Terrain
+from planetref.camera.mapping import image_gsd_m, image_to_ref_pixel
 from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
-from planetref.frontend.geometry import image_gsd_m, image_to_ref_pixel
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
 __all__ = ["Footprint", "Tile", "TilePlan", "plan_tiles", "tile_footprint"]

@@ -2,8 +2,8 @@
 
 One implementation for every lattice of the package: the front end's orthorectified tiles
 (:class:`planetref.frontend.orthorectify.OrthoTile`) and the orthoimages
-(:mod:`planetref.pipeline.orthoimage`, whose compiled twin is
-:mod:`planetref.pipeline._ortho_kernel`).
+(:mod:`planetref.products.orthoimage`, whose compiled twin is
+:mod:`planetref.products._numba_ortho`).
 
 * :func:`lattice_cell`: positions in lattice units (node ``i`` at ``i``) -> cell and
   fraction, linear extrapolation beyond the end nodes;

@@ -21,8 +21,9 @@ import contextlib
 import inspect
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
+from types import MappingProxyType
 from typing import Any, ClassVar, Literal, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
@@ -217,6 +218,9 @@ class MatcherSpec:
             :mod:`planetref.matching.weights`); empty when it needs none.
         factory: Callable building the matcher. It takes ``weights_dir`` and ``device``
             keywords (ignored by matchers without weights) and matcher-specific options.
+        load_class: Imports and returns the matcher's class (its declarations, e.g.
+            :attr:`BaseMatcher.pixel_options`, without building it); ``None`` when the
+            entry has no class.
     """
 
     name: str
@@ -224,6 +228,13 @@ class MatcherSpec:
     paradigm: Paradigm
     weights: tuple[str, ...]
     factory: Callable[..., Matcher]
+    load_class: Callable[[], type[BaseMatcher]] | None = None
+
+    def matcher_class(self) -> type[BaseMatcher]:
+        """The matcher's class (imports its module only)."""
+        if self.load_class is None:
+            raise InputError(f"matcher {self.name!r} has no class to describe its options")
+        return self.load_class()
 
     def __post_init__(self) -> None:
         if self.paradigm not in PARADIGMS:
@@ -389,6 +400,21 @@ class BaseMatcher(ABC):
     name: ClassVar[str] = "base"
     #: type of the settings value the constructor takes first (``None``: keywords only)
     settings_type: ClassVar[type[TorchSettings] | None] = None
+    #: Options that are lengths in pixels of the grid the matcher works on. The front end
+    #: sets them in reference pixels and scales them to its fine grid, so a finer grid keeps
+    #: their ground size.
+    pixel_options: ClassVar[tuple[str, ...]] = ()
+    #: The option that bounds the search around the same pixel of the other image (an
+    #: area-based matcher), or ``None`` for a matcher that searches the whole window. The
+    #: front end sets it to cover the window's pad (fine stage) or the a-priori
+    #: uncertainty (coarse stage), so such a matcher gets its own coarse-stage instance.
+    search_option: ClassVar[str | None] = None
+    #: Options of the coarse-stage instance (under the user's own), for a matcher with a
+    #: :attr:`search_option`.
+    coarse_defaults: ClassVar[Mapping[str, Any]] = MappingProxyType({})
+    #: The option that turns on dense mode (one match per grid cell of this many pixels),
+    #: which the front end uses on the fine stage when the matcher takes it.
+    dense_option: ClassVar[str] = "dense_spacing_px"
 
     def __init__(self) -> None:
         self.timings: dict[str, float] = {}
@@ -406,6 +432,16 @@ class BaseMatcher(ABC):
             if p.kind is inspect.Parameter.KEYWORD_ONLY
         ]
         return (*shared, *own)
+
+    @classmethod
+    def runs_dense(cls) -> bool:
+        """Whether the matcher takes :attr:`dense_option` (has a dense mode)."""
+        return cls.dense_option in cls.option_names()
+
+    @classmethod
+    def option_default(cls, option: str) -> Any:
+        """The constructor's default of one keyword option."""
+        return inspect.signature(cls).parameters[option].default
 
     @classmethod
     def from_options(cls, **options: Any) -> BaseMatcher:

@@ -17,9 +17,9 @@ from collections.abc import Sequence
 from os import PathLike
 from pathlib import Path
 
-from planetref.atomic import atomic_path
 from planetref.errors import WeightsError
 from planetref.matching.weights import WEIGHT_FILES, WeightFile, weights_dir
+from planetref.runtime.atomic import atomic_path
 
 __all__ = ["download_weight", "weight_names"]
 

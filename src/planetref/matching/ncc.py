@@ -22,7 +22,9 @@ Coordinates: template centre pixel ``(row r, column c)`` is reported at ``(c + 0
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Any, ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -179,6 +181,9 @@ class NccMatcher(BaseMatcher):
     """
 
     name: ClassVar[str] = "ncc"
+    pixel_options: ClassVar[tuple[str, ...]] = ("template_radius",)
+    search_option: ClassVar[str | None] = "search_radius"
+    coarse_defaults: ClassVar[Mapping[str, Any]] = MappingProxyType({"spacing": 8})
 
     def __init__(
         self,

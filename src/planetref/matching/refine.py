@@ -47,7 +47,7 @@ from pydantic import Field
 
 from planetref.errors import InputError
 from planetref.matching.correlation import INVALID, quadratic_peaks, zncc_surfaces
-from planetref.settings import Settings
+from planetref.runtime.settings import Settings
 
 __all__ = ["RefineConfig", "RefineResult", "refine_matches"]
 

@@ -12,7 +12,7 @@ from os import PathLike
 from typing import Any, NamedTuple
 
 from planetref.errors import InputError
-from planetref.matching.base import Matcher, MatcherSpec, Paradigm
+from planetref.matching.base import BaseMatcher, Matcher, MatcherSpec, Paradigm
 from planetref.matching.weights import missing_weights, resolve_weight
 
 __all__ = ["MATCHERS", "MatcherAvailability", "available_matchers", "get_matcher"]
@@ -58,7 +58,11 @@ def _spec(
     """
     module, cls = target.split(".")
     factory = _factory(module, cls, learned=bool(weights))
-    return MatcherSpec(name, description, paradigm, weights, factory)
+
+    def load_class() -> type[BaseMatcher]:
+        return getattr(importlib.import_module(f"planetref.matching.{module}"), cls)  # type: ignore[no-any-return]
+
+    return MatcherSpec(name, description, paradigm, weights, factory, load_class)
 
 
 MATCHERS: dict[str, MatcherSpec] = {

@@ -30,6 +30,9 @@ from typing import Any
 from planetref.errors import InputError, PlanetrefError, WeightsError
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
+from planetref.scene.inputs import scene_input_files
+from planetref.scene.inputs import scene_path as scene_path_of
+from planetref.scene.manifest import load_manifest
 
 __all__ = ["CompareOutcome", "resolve_matchers", "run_compare"]
 
@@ -124,7 +127,7 @@ def run_compare(
         InputError: Unknown matcher names, a bad scene, or an output directory holding
             another run.
     """
-    from planetref.execute import Executor, make_executor
+    from planetref.runtime.execute import Executor, make_executor
 
     owned = executor is not None and not isinstance(executor, Executor)
     ex = make_executor(executor)
@@ -145,16 +148,14 @@ def _run_compare(
     progress: bool,
     executor: Any,
 ) -> CompareOutcome:
-    from planetref.pipeline.georef import _scene_path, run_georef
+    from planetref.pipeline.georef import run_georef
     from planetref.report.georef import figure_headline_bars, write_compare_report
 
     cfg = config or GeorefConfig()
     names, skipped = resolve_matchers(matchers, weights_dir)
-    scene_path = _scene_path(scene)
+    scene_path = scene_path_of(scene)
     if not scene_path.is_file():
         raise InputError("scene manifest not found", path=scene_path)
-    from planetref.pipeline.georef import scene_input_files
-    from planetref.pipeline.scene import load_manifest
 
     manifest, root = load_manifest(scene_path)
     identity = {"scene": str(scene_path), "config": config_digest(cfg.identity_json())}
@@ -227,14 +228,6 @@ _FIGURE_CAPTIONS = {
 }
 
 
-def _load_manifest(scene_path: Path) -> Any:
-    try:
-        from planetref.pipeline.scene import load_manifest
-    except ImportError:  # before the manifest moved to the pipeline package
-        from planetref.simulate.manifest import load_manifest  # type: ignore[no-redef]
-    return load_manifest(scene_path)
-
-
 def _raster_fact(path: Path) -> str:
     import rasterio
 
@@ -266,7 +259,7 @@ def _context(
     ctx = CompareContext(scene=scene_name, scene_path=str(scene_path), headline=headline)
     ctx.scene_facts.append(("manifest", f"`{scene_path}`"))
     try:
-        manifest, root = _load_manifest(scene_path)
+        manifest, root = load_manifest(scene_path)
     except PlanetrefError as exc:
         ctx.scene_facts.append(("scene", f"not readable again: {exc}"))
         manifest = None
@@ -326,7 +319,7 @@ def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, 
     """The options a matcher ran with beyond the shared settings.
 
     Its entry of the configuration's ``matchers`` table, and what the pipeline derives
-    for it (NCC's template spacing and search radii).
+    for it from the matcher's declarations (e.g. NCC's template spacing and search radii).
     """
     out: dict[str, Any] = {}
     try:
@@ -334,20 +327,22 @@ def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, 
     except (OSError, ValueError):
         conf = {}
     out.update({f"option {k}": v for k, v in (conf.get("matchers") or {}).get(name, {}).items()})
-    if name == "ncc":
-        from planetref.pipeline.georef import matcher_options
+    # The options the front end derives (pixel lengths on the fine grid, search radii),
+    # read from the matcher's own declarations: shown where they add to the user's.
+    from planetref.frontend.matchers import matcher_options
 
-        try:
-            manifest, root = _load_manifest(Path(conf.get("scene", "")))
-            import rasterio
+    try:
+        manifest, root = load_manifest(Path(conf.get("scene", "")))
+        import rasterio
 
-            with rasterio.open(manifest.resolve(root, manifest.reference.ortho)) as ds:
-                gsd = float(abs(ds.res[0]))
-            fine, coarse = matcher_options(name, cfg, gsd)
-            out.update({f"fine {k}": v for k, v in fine.items()})
-            out.update({f"coarse {k}": v for k, v in (coarse or {}).items()})
-        except (PlanetrefError, OSError, ValueError) as exc:
-            out["derived options"] = f"not available ({exc})"
+        with rasterio.open(manifest.resolve(root, manifest.reference.ortho)) as ds:
+            gsd = float(abs(ds.res[0]))
+        fine, coarse = matcher_options(name, cfg.matchers.get(name, {}), cfg.frontend, gsd)
+        user = (conf.get("matchers") or {}).get(name, {})
+        out.update({f"fine {k}": v for k, v in fine.items() if user.get(k) != v})
+        out.update({f"coarse {k}": v for k, v in (coarse or {}).items()})
+    except (PlanetrefError, OSError, ValueError) as exc:
+        out["derived options"] = f"not available ({exc})"
     return out
 
 

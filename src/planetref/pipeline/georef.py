@@ -37,7 +37,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planetref import __version__
+from planetref.control.networks import StripMcps, joint_network, mcp_ground_sigmas
 from planetref.errors import MatchingError
+from planetref.frontend.matchers import (
+    MatcherPair,
+    build_matchers,
+    matcher_options,
+    matcher_recipes,
+    matcher_weight_files,
+)
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.georef_outputs import (
     camera_isds,
@@ -51,7 +59,10 @@ from planetref.pipeline.georef_outputs import (
     part_timed,
     timed,
 )
-from planetref.pipeline.georef_report import (
+from planetref.pipeline.job import StripJob
+from planetref.pipeline.rundir import RunDir, config_digest
+from planetref.products.ortho_strip import GDAL_CACHE_MB
+from planetref.report.blocks import (
     adjustment_block,
     check_block,
     combined_report,
@@ -59,8 +70,8 @@ from planetref.pipeline.georef_report import (
     result_block,
     rmse_px,
 )
-from planetref.pipeline.inputs import (
-    TruthDem,
+from planetref.runtime.threads import single_threaded_blas
+from planetref.scene.inputs import (
     check_body,
     check_strips,
     open_reference,
@@ -71,32 +82,15 @@ from planetref.pipeline.inputs import (
     truth_terrain,
     worker_dem,
 )
-from planetref.pipeline.matchers import (
-    MatcherPair,
-    build_matchers,
-    matcher_options,
-    matcher_recipes,
-    matcher_weight_files,
-)
-from planetref.pipeline.networks import StripMcps, joint_network, mcp_ground_sigmas
-from planetref.pipeline.ortho_strip import GDAL_CACHE_MB
-from planetref.pipeline.rundir import RunDir, config_digest
-from planetref.threads import single_threaded_blas
-
-_scene_path = scene_path  # the name compare.py imports
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
-    from planetref.execute import Executor
     from planetref.frontend.result import StripMatches
     from planetref.frontend.tasks import MatcherRecipe
+    from planetref.frontend.tile_panels import PanelStore
     from planetref.matching.base import Matcher
-    from planetref.pipeline.scene import SceneManifest, StripSpec
-    from planetref.raster.dem import GridTerrain
     from planetref.raster.image import CcdImage
-    from planetref.raster.ortho import ReferenceOrtho
-    from planetref.report.figure_jobs import FigureJobs
-    from planetref.report.tile_panels import PanelStore
+    from planetref.runtime.execute import Executor
 
 __all__ = [
     "GeorefOutcome",
@@ -128,54 +122,6 @@ class GeorefOutcome:
     files: dict[str, Any] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class StripJob:
-    """Everything the georeferencing of one strip needs (one typed value, not 13 arguments).
-
-    Attributes:
-        run: The run directory.
-        manifest: The scene manifest.
-        root: Folder the manifest's relative paths start from.
-        ref: The reference orthoimage.
-        dem: The reference DEM.
-        matchers: The run's matchers.
-        cfg: The run's settings.
-        executor: Where tiles are matched.
-        progress: Show progress bars.
-        truth_cameras: True camera per strip id (simulated scenes), else empty.
-        truth_dem: True DEM (simulated scenes, read when used), else None.
-        timing: Seconds per step, summed over the strips (updated in place).
-        figures: Draws the figures in a child process while the run goes on.
-        strip: The strip (None in the run-wide template that :meth:`for_strip` copies).
-    """
-
-    run: RunDir
-    manifest: SceneManifest
-    root: Path
-    ref: ReferenceOrtho
-    dem: GridTerrain
-    matchers: MatcherPair
-    cfg: GeorefConfig
-    executor: Executor
-    progress: bool
-    truth_cameras: dict[str, Camera]
-    truth_dem: TruthDem | None
-    timing: dict[str, float]
-    figures: FigureJobs
-    strip: StripSpec | None = None
-
-    def for_strip(self, strip: StripSpec) -> StripJob:
-        """This job for one strip."""
-        return replace(self, strip=strip)
-
-    @property
-    def spec(self) -> StripSpec:
-        """The strip (a job made by :meth:`for_strip`)."""
-        if self.strip is None:
-            raise RuntimeError("a run-wide StripJob has no strip")
-        return self.strip
-
-
 def run_georef(
     scene: str | os.PathLike[str],
     matcher: str,
@@ -199,7 +145,7 @@ def run_georef(
         overwrite: Replace a different previous run in ``out``.
         progress: Show progress bars.
         matchers: Prebuilt ``(fine, coarse)`` matchers (reused across runs by ``compare``).
-        executor: Where the tiles are matched: a :class:`planetref.execute.Executor`
+        executor: Where the tiles are matched: a :class:`planetref.runtime.execute.Executor`
             (left open), or a ``--scheduler`` spec (``"pool:4"``, ``"dask-local:4"``,
             ``"tcp://HOST:PORT"``; started for this run and closed after). Default: in
             this process. The results do not depend on it.
@@ -213,10 +159,10 @@ def run_georef(
     """
     import rasterio
 
-    from planetref.execute import Executor, make_executor
-    from planetref.pipeline.scene import load_manifest
     from planetref.report.figure_jobs import FigureJobs
     from planetref.report.georef import write_georef_markdown
+    from planetref.runtime.execute import Executor, make_executor
+    from planetref.scene.manifest import load_manifest
 
     owned = executor is not None and not isinstance(executor, Executor)
     ex = make_executor(executor)
@@ -234,7 +180,13 @@ def run_georef(
         check_body(body, dem, "reference DEM", manifest.resolve(root, manifest.reference.dem))
         check_strips(manifest, root, ref, dem)
         ref_gsd = float(np.mean(ref.ground_sampling_m()))
-        pair = matcher_recipes(matcher, cfg, ref_gsd, weights_dir=weights_dir)
+        pair = matcher_recipes(
+            matcher,
+            cfg.matchers.get(matcher, {}),
+            cfg.frontend,
+            ref_gsd,
+            weights_dir=weights_dir,
+        )
         if matchers is not None:
             pair = replace(pair, instances=matchers)
         else:
@@ -376,9 +328,9 @@ def _match(
 
 def _strip_mcps(job: StripJob) -> StripMcps:
     """Match a strip's tiles, write its MCPs and draw its check points."""
-    from planetref.control import mcps_from_tiles, write_mcps
+    from planetref.control.mcp import mcps_from_tiles, write_mcps
+    from planetref.frontend.tile_panels import PanelStore
     from planetref.report.figures_matching import select_tiles
-    from planetref.report.tile_panels import PanelStore
 
     strip, cfg = job.spec, job.cfg
     camera, images = strip_cameras(job.manifest, job.root, strip)  # checked by check_strips
@@ -431,8 +383,8 @@ def _strip_mcps(job: StripJob) -> StripMcps:
 def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     """Adjust one strip on its own with its MCPs and write its outputs."""
     from planetref.adjust.api import adjust
-    from planetref.adjust.problem import Network
-    from planetref.adjust.report import write_outputs
+    from planetref.control.network import Network
+    from planetref.report.adjustment import write_outputs
 
     cfg, run, table, out = job.cfg, job.run, prep.table, prep.out
     network = Network.mcps(
@@ -508,8 +460,8 @@ def _adjust_together(
         adjustment's).
     """
     from planetref.adjust.api import adjust
-    from planetref.adjust.report import write_outputs
-    from planetref.pipeline.campaign import find_tie_points
+    from planetref.frontend.tiepoints import find_tie_points
+    from planetref.report.adjustment import write_outputs
 
     cfg, run, timing = job.cfg, job.run, job.timing
     opts = cfg.campaign

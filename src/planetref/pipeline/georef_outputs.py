@@ -15,11 +15,11 @@ from planetref.errors import PlanetrefError
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
-    from planetref.control import McpTable
+    from planetref.control.mcp import McpTable
     from planetref.frontend.result import StripMatches, TileResult
-    from planetref.pipeline.georef import StripJob
+    from planetref.frontend.tile_panels import PanelStore
+    from planetref.pipeline.job import StripJob
     from planetref.raster.image import CcdImage
-    from planetref.report.tile_panels import PanelStore
 
 __all__ = [
     "camera_isds",
@@ -69,11 +69,11 @@ def orthoimages(
     """Orthoimage of each CCD and their mosaic through the adjusted camera; the paths.
 
     One round pixel size per strip (``[ortho] gsd_m``, else the CCDs' median GSD
-    rounded by :func:`~planetref.pipeline.ortho_strip.round_gsd`); the mosaic is
-    ``<strip>/ortho/mosaic.tif`` (see :mod:`planetref.pipeline.ortho_strip`).
+    rounded by :func:`~planetref.products.ortho_strip.round_gsd`); the mosaic is
+    ``<strip>/ortho/mosaic.tif`` (see :mod:`planetref.products.ortho_strip`).
     """
-    from planetref.frontend.geometry import image_gsd_m
-    from planetref.pipeline.ortho_strip import orthorectify_strip, round_gsd
+    from planetref.camera.mapping import image_gsd_m
+    from planetref.products.ortho_strip import orthorectify_strip, round_gsd
 
     gsd = job.cfg.ortho.gsd_m or round_gsd(
         float(np.median([image_gsd_m(camera, ccd, job.dem) for ccd in images]))
@@ -103,8 +103,8 @@ def camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
     A digest of the camera and the settings (``<strip>.inputs.sha256`` next to the ISDs)
     lets a resumed run keep ISDs whose camera did not change.
     """
-    from planetref.atomic import atomic_path
     from planetref.camera.csm import write_linescan_isds
+    from planetref.runtime.atomic import atomic_path
 
     paths, stamp = isd_files(job, strip, camera)
     if stamp is None:  # not a native line-scan camera
@@ -170,10 +170,10 @@ def control_exports(
     Args:
         job: The run.
         name: File stem.
-        points: A :class:`~planetref.report.control_exports.ControlPoints`.
+        points: A :class:`~planetref.control.exports.ControlPoints`.
         folder: Folder parts inside the run folder.
     """
-    from planetref.report.control_exports import write_asp_gcp, write_isis_cnet_csv
+    from planetref.control.exports import write_asp_gcp, write_isis_cnet_csv
 
     body = job.manifest.body.ellipsoid()
     gcp = write_asp_gcp(points, body, job.run.file(*folder, f"{name}.gcp"))
@@ -182,10 +182,10 @@ def control_exports(
 
 
 def mcp_points(prep: Any, cfg: Any) -> Any:
-    """A strip's MCPs (a :class:`~planetref.pipeline.networks.StripMcps`) for the exports."""
+    """A strip's MCPs (a :class:`~planetref.control.networks.StripMcps`) for the exports."""
     from pathlib import Path
 
-    from planetref.report.control_exports import ControlPoints
+    from planetref.control.exports import ControlPoints
 
     paths = {c: str(Path(img.path).resolve()) for c, img in prep.images.items()}
     return ControlPoints.from_mcps(
@@ -197,7 +197,7 @@ def campaign_points(preps: list[Any], ties: Any, cfg: Any) -> Any:
     """Every strip's MCPs and the tie points between strips, for the exports."""
     from pathlib import Path
 
-    from planetref.report.control_exports import ControlPoints
+    from planetref.control.exports import ControlPoints
 
     paths = {(p.id, c): str(Path(img.path).resolve()) for p in preps for c, img in p.images.items()}
     parts = [mcp_points(p, cfg) for p in preps]
@@ -292,9 +292,9 @@ def figure_residuals(
     """The residual-vector figure of camera ``index`` of a result (drawn by ``job.figures``).
 
     Only what the figure reads of the result travels to the figure process
-    (:func:`~planetref.pipeline.georef_report.camera_view`).
+    (:func:`~planetref.report.blocks.camera_view`).
     """
-    from planetref.pipeline.georef_report import camera_view
+    from planetref.report.blocks import camera_view
     from planetref.report.georef import figure_residual_vectors
 
     job.figures.submit(

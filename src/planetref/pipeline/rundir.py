@@ -20,7 +20,7 @@ files and the weights' sha256) and the list of every file the run wrote. The rul
 
 Files appear in the list as soon as :meth:`RunDir.file` hands out their path (so a run
 killed half-way can still be replaced), as soon as any atomic write
-(:mod:`planetref.atomic`) lands inside the folder while the run is active, and, when the
+(:mod:`planetref.runtime.atomic`) lands inside the folder while the run is active, and, when the
 run ends, every file that appeared in the folder during the run.
 """
 
@@ -36,9 +36,9 @@ from pathlib import Path
 from typing import Any
 
 from planetref import __version__
-from planetref.atomic import json_safe, read_only_mode, watch_outputs
-from planetref.atomic import write_json_atomic as _write_json
 from planetref.errors import InputError, OutputError, RunDirError
+from planetref.runtime.atomic import json_safe, read_only_mode, watch_outputs
+from planetref.runtime.atomic import write_json_atomic as _write_json
 
 __all__ = [
     "FORMAT",

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from planetref.atomic import write_text_atomic
-from planetref.report.tables import _fmt, _numeric, format_markdown_table
+from planetref.report.tables import fmt, format_markdown_table, numeric_column
+from planetref.runtime.atomic import write_text_atomic
 
 __all__ = ["DEFINITIONS", "Document", "Figure", "HtmlContents", "Table", "read_report_html"]
 
@@ -141,12 +141,12 @@ class Document:
         for b in self.blocks:
             if isinstance(b, Table):
                 n_tab += 1
-                numeric = [_numeric(b.rows, i) for i in range(len(b.header))]
+                numeric = [numeric_column(b.rows, i) for i in range(len(b.header))]
                 head = "".join(f"<th>{e(str(h))}</th>" for h in b.header)
                 rows = "".join(
                     "<tr>"
                     + "".join(
-                        f'<td class="{"n" if num else "t"}">{e(_fmt(v))}</td>'
+                        f'<td class="{"n" if num else "t"}">{e(fmt(v))}</td>'
                         for v, num in zip(r, numeric, strict=True)
                     )
                     + "</tr>"

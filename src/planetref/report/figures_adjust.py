@@ -14,7 +14,7 @@
   true error before/after) with the scene, units and which direction is better.
 
 Residuals are ``(line, sample)`` in pixels, projected minus observed (as
-:mod:`planetref.metrics` defines them); ``x`` is the sample, ``y`` the line.
+:mod:`planetref.adjust.metrics` defines them); ``x`` is the sample, ``y`` the line.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from planetref.report.ccd_panels import ccd_panels, finish_ccd_panel
-from planetref.report.figures_matching import _save, ccd_colour
+from planetref.report.figures_matching import ccd_colour, save
 
 __all__ = [
     "PATTERN_MAX_P",
@@ -243,7 +243,7 @@ def figure_residual_vectors(
         fontsize=8,
         color="#b2182b" if pattern.systematic else "black",
     )
-    return _save(fig, path, dpi)
+    return save(fig, path, dpi)
 
 
 def _label(v: float) -> str:
@@ -439,4 +439,4 @@ def figure_headline(
         frameon=False,
     )
     fig.suptitle(f"Matcher comparison{': ' + scene if scene else ''}", fontsize=11)
-    return _save(fig, path, dpi)
+    return save(fig, path, dpi)

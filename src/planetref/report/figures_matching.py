@@ -28,9 +28,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.atomic import atomic_path
 from planetref.errors import InputError, PlanetrefError
+from planetref.frontend.tile_panels import MatchPanel, panels_from_tile
 from planetref.report.ccd_panels import ccd_panels, finish_ccd_panel
+from planetref.runtime.atomic import atomic_path
 
 __all__ = [
     "CCD_COLOURS",
@@ -61,31 +62,6 @@ def ccd_colour(index: int) -> str:
 
 
 @dataclass
-class MatchPanel:
-    """One image pair with its matches.
-
-    Attributes:
-        title: Panel title (e.g. ``"coarse"``).
-        image0: Left image (the CCD tile in the common geometry).
-        image1: Right image (the reference window).
-        keypoints0: ``(N, 2)`` ``(x, y)`` on ``image0``.
-        keypoints1: ``(N, 2)`` on ``image1``.
-        inliers: ``(N,)`` kept matches (default: all).
-        valid0: Validity of ``image0`` (invalid pixels drawn blank).
-        valid1: Validity of ``image1``.
-    """
-
-    title: str
-    image0: NDArray[Any]
-    image1: NDArray[Any]
-    keypoints0: NDArray[np.float64]
-    keypoints1: NDArray[np.float64]
-    inliers: NDArray[np.bool_] | None = None
-    valid0: NDArray[np.bool_] | None = None
-    valid1: NDArray[np.bool_] | None = None
-
-
-@dataclass
 class TileRow:
     """One row of :func:`figure_tile_grid`: a tile's stages with a label.
 
@@ -96,26 +72,6 @@ class TileRow:
 
     label: str
     panels: list[MatchPanel]
-
-
-def panels_from_tile(result: Any) -> list[MatchPanel]:
-    """Panels of a :class:`~planetref.frontend.result.TileResult` matched with ``debug``.
-
-    Raises:
-        InputError: If the result holds no stage images (match it with ``debug=True``).
-    """
-    stages = getattr(result, "debug", None) or []
-    if not stages:
-        raise InputError(
-            f"tile {getattr(result, 'tile_id', '?')} has no stage images; "
-            "match it with debug=True (or list it in debug_tiles)"
-        )
-    return [
-        MatchPanel(
-            s.stage, s.image0, s.image1, s.keypoints0, s.keypoints1, s.inliers, s.valid0, s.valid1
-        )
-        for s in stages
-    ]
 
 
 def verified_count(tile: Any) -> int:
@@ -179,7 +135,7 @@ def tile_selection_rows(
     Args:
         tiles: The strip's tile results.
         panels_of: A tile result's stages as panels: kept from the matching pass (see
-            :class:`~planetref.report.tile_panels.PanelStore`), or from matching its tile
+            :class:`~planetref.frontend.tile_panels.PanelStore`), or from matching its tile
             again with ``debug=True`` (:func:`panels_from_tile`); may raise
             :class:`~planetref.errors.PlanetrefError` (the tile is then left out).
     """
@@ -223,7 +179,7 @@ def _display(image: NDArray[Any], valid: NDArray[np.bool_] | None) -> NDArray[np
     return out
 
 
-def _save(fig: Any, path: str | PathLike[str], dpi: int) -> Path:
+def save(fig: Any, path: str | PathLike[str], dpi: int) -> Path:
     """Write ``fig`` as a PNG at ``dpi`` in one draw.
 
     ``Figure.savefig`` draws a figure with a layout engine twice: once without rendering
@@ -372,7 +328,7 @@ def figure_tile_grid(
     if title:
         fig.suptitle(title, fontsize=10)
     _legend(fig, max_lines)
-    return _save(fig, path, dpi)
+    return save(fig, path, dpi)
 
 
 def figure_tile_matches(
@@ -409,7 +365,7 @@ def figure_tile_matches(
     if title:
         fig.suptitle(title, fontsize=11)
     _legend(fig, max_lines)
-    return _save(fig, path, dpi)
+    return save(fig, path, dpi)
 
 
 def figure_pair_matches(
@@ -463,7 +419,7 @@ def figure_pair_matches(
     a0.set_ylabel("y = line (px)", fontsize=8)
     fig.suptitle(f"{title}: {n_in} matches kept" + (f", {n_out} rejected" if n_out else ""))
     _legend(fig, max_lines)
-    return _save(fig, path, dpi)
+    return save(fig, path, dpi)
 
 
 def figure_mcp_distribution(
@@ -485,7 +441,7 @@ def figure_mcp_distribution(
     its occupied cells shaded; the title gives NCP and SDU (all grids).
 
     Args:
-        table: MCPs (:class:`~planetref.control.McpTable` or any mapping with ``ccd``,
+        table: MCPs (:class:`~planetref.control.mcp.McpTable` or any mapping with ``ccd``,
             ``line`` and ``sample`` columns).
         image_sizes: CCD name -> ``(n_lines, n_samples)``, in strip order (left to right
             across track) unless ``ccd_order`` says otherwise.
@@ -549,7 +505,7 @@ def figure_mcp_distribution(
         + f"\ngrid: {g} x {g} SDU cells (occupied shaded); SDU = mean over grids {list(gs)}",
         fontsize=9,
     )
-    return _save(fig, path, dpi)
+    return save(fig, path, dpi)
 
 
 def mcp_distribution_sdu(

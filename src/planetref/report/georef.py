@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from planetref.atomic import write_text_atomic
 from planetref.report.document import DEFINITIONS, Document
 from planetref.report.figures_adjust import figure_headline, figure_residual_vectors
 from planetref.report.tables import (
@@ -33,6 +32,7 @@ from planetref.report.tables import (
     timing_rows,
     truth_rows,
 )
+from planetref.runtime.atomic import write_text_atomic
 
 __all__ = [
     "ADJ_COLUMNS",

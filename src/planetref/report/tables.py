@@ -52,7 +52,7 @@ FUNNEL_STAGES = ("raw", "coarse_gate", "ransac", "consensus", "backprojection", 
 """Front-end stages in order (see ``TileResult.funnel``)."""
 
 
-def _fmt(v: Any, digits: int = 3) -> str:
+def fmt(v: Any, digits: int = 3) -> str:
     if v is None:
         return "-"
     if isinstance(v, bool):
@@ -64,15 +64,15 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
-def _numeric(rows: Sequence[Sequence[Any]], i: int) -> bool:
+def numeric_column(rows: Sequence[Sequence[Any]], i: int) -> bool:
     return all(isinstance(r[i], int | float) or r[i] is None for r in rows)
 
 
 def format_markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """A GitHub-flavoured Markdown table (numbers right-aligned, text left-aligned)."""
-    cells = [[_fmt(v) for v in r] for r in rows]
+    cells = [[fmt(v) for v in r] for r in rows]
     widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
-    numeric = [_numeric(rows, i) for i in range(len(header))]
+    numeric = [numeric_column(rows, i) for i in range(len(header))]
     out = [
         "| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |",
         "|"
@@ -114,7 +114,7 @@ def format_latex_table(
     header: Sequence[str], rows: Sequence[Sequence[Any]], *, caption: str = "", label: str = ""
 ) -> str:
     r"""A LaTeX ``booktabs`` table (needs ``\\usepackage{booktabs}``)."""
-    align = "".join("r" if _numeric(rows, i) else "l" for i in range(len(header)))
+    align = "".join("r" if numeric_column(rows, i) else "l" for i in range(len(header)))
     lines = [r"\begin{table}[htbp]", r"\centering"]
     if caption:
         lines.append(rf"\caption{{{_tex(caption)}}}")
@@ -126,7 +126,7 @@ def format_latex_table(
         " & ".join(_tex(str(h)) for h in header) + r" \\",
         r"\midrule",
     ]
-    lines += [" & ".join(_tex(_fmt(v)) for v in r) + r" \\" for r in rows]
+    lines += [" & ".join(_tex(fmt(v)) for v in r) + r" \\" for r in rows]
     lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
     return "\n".join(lines)
 

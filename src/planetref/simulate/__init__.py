@@ -4,7 +4,7 @@ The simulator builds a truth terrain (fractal relief, craters, wrinkle ridges, s
 plains, dunes), renders HiRIC-like line-scan CCD images through the rigorous line-scan
 camera model, a CTX-like reference orthoimage and a MOLA-like reference DEM, and
 writes them as a scene directory described by ``scene.toml``
-(see :mod:`planetref.pipeline.scene` and ``docs/scene-manifest.md``).
+(see :mod:`planetref.scene.manifest` and ``docs/scene-manifest.md``).
 
 Importing this package has no side effects; the heavy modules are imported lazily by
 :func:`simulate_scene`.

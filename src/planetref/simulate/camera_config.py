@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from planetref.settings import Settings
+from planetref.runtime.settings import Settings
 
 __all__ = [
     "CameraConfig",

@@ -24,7 +24,8 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from planetref.errors import InputError
-from planetref.settings import Settings, deep_merge, validate_settings
+from planetref.runtime.settings import Settings, deep_merge, validate_settings
+from planetref.runtime.tomlfile import read_toml
 from planetref.simulate.camera_config import (
     CameraConfig,
     InitialErrorConfig,
@@ -38,7 +39,6 @@ from planetref.simulate.realism import (
     SurfaceChangeConfig,
     TruthMismatchConfig,
 )
-from planetref.tomlfile import read_toml
 
 __all__ = [
     "DIFFICULTIES",

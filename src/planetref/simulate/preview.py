@@ -78,7 +78,7 @@ def write_preview(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from planetref.pipeline.scene import load_manifest
+    from planetref.scene.manifest import load_manifest
 
     manifest, root = load_manifest(scene, check_files=False)
     ortho, _ = _read(manifest.resolve(root, manifest.reference.ortho), max_size)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from pydantic import Field
 
-from planetref.settings import Settings
+from planetref.runtime.settings import Settings
 
 __all__ = [
     "MolaConfig",

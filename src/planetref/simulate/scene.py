@@ -317,7 +317,7 @@ def _build(
 ) -> SceneResult:
     from tqdm import tqdm
 
-    from planetref.pipeline.scene import (
+    from planetref.scene.manifest import (
         CcdSpec,
         ReferenceSpec,
         SceneManifest,

@@ -42,10 +42,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
-from planetref.camera.csm.distortion import _apply_distortion, _remove_distortion
+from planetref.camera.csm.distortion import apply_distortion, remove_distortion
 from planetref.camera.csm.ephemeris import CsmEphemeris
 from planetref.camera.csm.isd import CsmCorrection, CsmIsd
-from planetref.camera.csm.orientation import _euler_matrix
+from planetref.camera.csm.orientation import euler_matrix
 from planetref.camera.csm.reader import read_isd
 from planetref.errors import GeometryError, InputError
 from planetref.geometry.geodesy import Ellipsoid, LatitudeKind, ray_ellipsoid_intersection
@@ -288,7 +288,7 @@ class CsmLineScanCamera:
         omega = (c.omega_m + c.omega_rate_m * n + c.omega_accel_m * n2) / self.flying_height_m
         phi = (c.phi_m + c.phi_rate_m * n + c.phi_accel_m * n2) / self.flying_height_m
         kappa = (c.kappa_m + c.kappa_rate_m * n + c.kappa_accel_m * n2) / self.half_swath_m
-        return _euler_matrix(omega, phi, kappa)
+        return euler_matrix(omega, phi, kappa)
 
     @property
     def _focal_length(self) -> float:
@@ -317,7 +317,7 @@ class CsmLineScanCamera:
         t = self.image_time(line)
         pos, _, rot = self._exterior(t)
         dx, dy = self._focal_plane(sample)
-        ux, uy = _remove_distortion(
+        ux, uy = remove_distortion(
             self._isd.distortion_model,
             np.asarray(self._isd.distortion_coefficients),
             dx,
@@ -436,7 +436,7 @@ class CsmLineScanCamera:
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             scale = self._focal_length / cam[:, 2]
             fx, fy = cam[:, 0] * scale, cam[:, 1] * scale
-            dx, dy = _apply_distortion(
+            dx, dy = apply_distortion(
                 isd.distortion_model,
                 np.asarray(isd.distortion_coefficients),
                 fx,

@@ -114,7 +114,7 @@ def _newton_inverse(forward: _Forward, dx: F64, dy: F64) -> tuple[F64, F64]:
     return ux, uy
 
 
-def _remove_distortion(
+def remove_distortion(
     model: str, coeffs: F64, dx: F64, dy: F64, *, focal_length_mm: float | None = None
 ) -> tuple[F64, ...]:
     """Distorted -> undistorted focal-plane coordinates (mm).
@@ -131,7 +131,7 @@ def _remove_distortion(
     return _newton_inverse(_transverse_forward(coeffs), dx, dy)
 
 
-def _apply_distortion(
+def apply_distortion(
     model: str, coeffs: F64, ux: F64, uy: F64, *, focal_length_mm: float | None = None
 ) -> tuple[F64, ...]:
     """Undistorted -> distorted focal-plane coordinates (mm).

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.camera.csm.interpolation import _hermite, _lagrange, _natural_spline
+from planetref.camera.csm.interpolation import hermite, lagrange, natural_spline
 from planetref.camera.csm.isd import J2000, MIN_EPHEMERIS_NODES, CsmIsd
-from planetref.camera.csm.orientation import _AleOrientations, _qmatrix
+from planetref.camera.csm.orientation import AleOrientations, qmatrix
 
 __all__ = ["CsmEphemeris"]
 
@@ -66,7 +66,7 @@ class CsmEphemeris:
     def from_isd(cls, isd: CsmIsd) -> CsmEphemeris:
         """The tables usgscsm builds from a checked ISD."""
         center = isd.center_ephemeris_time
-        body = _AleOrientations.from_isd(isd.body_rotation)
+        body = AleOrientations.from_isd(isd.body_rotation)
         body_frame = isd.body_frame
         # Positions: resample evenly to >= 25 epochs (Hermite with the velocities),
         # rotate to body-fixed with the omega x r velocity term, km -> m.
@@ -77,18 +77,18 @@ class CsmEphemeris:
         grid = times[0] + step * np.arange(n)
         vel_in = ip.velocities_km_s
         if vel_in is not None and np.any(vel_in != 0):
-            pos, vel = _hermite(times, np.asarray(ip.positions_km), np.asarray(vel_in), grid)
+            pos, vel = hermite(times, np.asarray(ip.positions_km), np.asarray(vel_in), grid)
         else:
-            pos = _natural_spline(times, np.asarray(ip.positions_km), grid)
+            pos = natural_spline(times, np.asarray(ip.positions_km), grid)
             vel = (
                 np.zeros_like(pos)
                 if vel_in is None
-                else _natural_spline(times, np.asarray(vel_in), grid)
+                else natural_spline(times, np.asarray(vel_in), grid)
             )
         if ip.reference_frame == J2000 or ip.reference_frame != body_frame:
             pos, vel = body.rotate_states(grid, pos, vel)
         # Pointing: sensor -> body on the union of the time grids, resampled by SLERP.
-        pointing = _AleOrientations.from_isd(isd.instrument_pointing)
+        pointing = AleOrientations.from_isd(isd.instrument_pointing)
         if (
             isd.instrument_pointing.reference_frame == J2000
             or isd.instrument_pointing.reference_frame != body_frame
@@ -133,16 +133,16 @@ class CsmEphemeris:
 
     def position(self, t: F64) -> F64:
         """Body-fixed sensor positions (m) at times ``t``, ``(M, 3)``."""
-        return _lagrange(self.positions, self.t0_position, self.dt_position, t, self.order)
+        return lagrange(self.positions, self.t0_position, self.dt_position, t, self.order)
 
     def velocity(self, t: F64) -> F64:
         """Body-fixed sensor velocities (m/s) at times ``t``, ``(M, 3)``."""
-        return _lagrange(self.velocities, self.t0_position, self.dt_position, t, self.order)
+        return lagrange(self.velocities, self.t0_position, self.dt_position, t, self.order)
 
     def rotation(self, t: F64) -> F64:
         """Sensor -> body rotation matrices at times ``t``, ``(M, 3, 3)``."""
-        q = _lagrange(self.quaternions, self.t0_pointing, self.dt_pointing, t, self.pointing_order)
-        return _qmatrix(q / np.linalg.norm(q, axis=1, keepdims=True))
+        q = lagrange(self.quaternions, self.t0_pointing, self.dt_pointing, t, self.pointing_order)
+        return qmatrix(q / np.linalg.norm(q, axis=1, keepdims=True))
 
     def coverage_problems(self, n_lines: int) -> list[str]:
         """Jumps in the line -> time table and image times outside the ephemeris.

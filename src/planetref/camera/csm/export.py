@@ -66,7 +66,7 @@ from planetref.camera.csm.isd import (
     CsmStates,
     write_isd,
 )
-from planetref.camera.csm.orientation import _quat_from_matrix
+from planetref.camera.csm.orientation import quat_from_matrix
 from planetref.camera.linescan.lens import ideal_position
 from planetref.errors import InputError
 
@@ -139,7 +139,7 @@ def linescan_to_isd(
     )[:, None]
     # J2000 (= body) -> sensor rotations as scalar-first quaternions, signs continuous.
     body_to_sensor = np.swapaxes(rot @ _FLIP, 1, 2)
-    quats = np.array([_quat_from_matrix(m) for m in body_to_sensor])
+    quats = np.array([quat_from_matrix(m) for m in body_to_sensor])
     for i in range(1, n):
         if np.dot(quats[i], quats[i - 1]) < 0:
             quats[i] = -quats[i]

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 __all__ = []
 
 
-def _interp_index(
+def interp_index(
     times: NDArray[np.float64], t: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     """ALE's ``interpolationIndex`` and the fraction within the interval."""
@@ -26,7 +26,7 @@ def _interp_index(
 # ---------------------------------------------------------------------------------------
 
 
-def _hermite(
+def hermite(
     times: NDArray[np.float64],
     pos: NDArray[np.float64],
     vel: NDArray[np.float64],
@@ -36,7 +36,7 @@ def _hermite(
     base = (times[0] + times[-1]) / 2.0
     x = times - base
     s = t - base
-    idx, _ = _interp_index(x, s)
+    idx, _ = interp_index(x, s)
     x0, x1 = x[idx], x[idx + 1]
     h = (x1 - x0)[:, None]
     u = ((s - x0) / (x1 - x0))[:, None]
@@ -56,19 +56,19 @@ def _hermite(
     return p, v
 
 
-def _natural_spline(
+def natural_spline(
     times: NDArray[np.float64], values: NDArray[np.float64], t: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """GSL's ``cspline`` (natural cubic spline), linear for two points."""
     if len(times) < 3:
-        idx, frac = _interp_index(times, t)
+        idx, frac = interp_index(times, t)
         return values[idx] + frac[:, None] * (values[idx + 1] - values[idx])
     from scipy.interpolate import CubicSpline
 
     return CubicSpline(times, values, axis=0, bc_type="natural")(t)
 
 
-def _lagrange(
+def lagrange(
     values: NDArray[np.float64], t0: float, dt: float, t: NDArray[np.float64], max_order: int
 ) -> NDArray[np.float64]:
     """Port of usgscsm's ``lagrangeInterp`` on evenly spaced nodes, vectorised.

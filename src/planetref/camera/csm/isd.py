@@ -21,10 +21,10 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.atomic import write_text_atomic
 from planetref.errors import (
     InputError,
 )
+from planetref.runtime.atomic import write_text_atomic
 
 __all__ = [
     "CORRECTION_KEY",
@@ -93,7 +93,7 @@ class CsmIsdSource(Protocol):
         ...
 
 
-def _frozen_array(a: ArrayLike) -> NDArray[np.float64]:
+def frozen_array(a: ArrayLike) -> NDArray[np.float64]:
     arr = np.array(a, dtype=np.float64)
     arr.flags.writeable = False
     return arr

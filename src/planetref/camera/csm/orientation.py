@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.camera.csm.interpolation import _interp_index
+from planetref.camera.csm.interpolation import interp_index
 from planetref.camera.csm.isd import CsmOrientations
 
 __all__ = []
@@ -58,7 +58,7 @@ def _qslerp(
     return s0[..., None] * a + s1[..., None] * b
 
 
-def _qmatrix(q: NDArray[np.float64]) -> NDArray[np.float64]:
+def qmatrix(q: NDArray[np.float64]) -> NDArray[np.float64]:
     """Eigen's ``toRotationMatrix`` (exact rotation only for unit quaternions)."""
     w, x, y, z = np.moveaxis(q, -1, 0)
     tx, ty, tz = 2 * x, 2 * y, 2 * z
@@ -82,7 +82,7 @@ def _qmatrix(q: NDArray[np.float64]) -> NDArray[np.float64]:
     return m.reshape((*q.shape[:-1], 3, 3))
 
 
-def _quat_from_matrix(m: NDArray[np.float64]) -> NDArray[np.float64]:
+def quat_from_matrix(m: NDArray[np.float64]) -> NDArray[np.float64]:
     """Eigen's rotation matrix -> quaternion (Shoemake), ``[w, x, y, z]``."""
     t = float(np.trace(m))
     q = np.zeros(4)
@@ -109,7 +109,7 @@ def _quat_from_matrix(m: NDArray[np.float64]) -> NDArray[np.float64]:
     return q
 
 
-class _AleOrientations:
+class AleOrientations:
     """The part of ALE's ``Orientations`` that usgscsm uses (SLERP interpolation)."""
 
     def __init__(
@@ -125,18 +125,18 @@ class _AleOrientations:
         self.const = const
 
     @classmethod
-    def from_isd(cls, o: CsmOrientations) -> _AleOrientations:
+    def from_isd(cls, o: CsmOrientations) -> AleOrientations:
         return cls(
             np.array(o.quaternions),
             np.array(o.times),
             None if o.angular_velocities is None else np.array(o.angular_velocities),
-            _quat_from_matrix(np.asarray(o.constant_rotation)),
+            quat_from_matrix(np.asarray(o.constant_rotation)),
         )
 
     def interpolate(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         t = np.asarray(t, dtype=np.float64)
         if len(self.times) > 1:
-            idx, frac = _interp_index(self.times, t)
+            idx, frac = interp_index(self.times, t)
             q = _qslerp(self.rotations[idx], self.rotations[idx + 1], frac)
         elif self.avs is None:
             q = np.broadcast_to(self.rotations[0], (*t.shape, 4))
@@ -157,28 +157,28 @@ class _AleOrientations:
             return np.zeros((*t.shape, 3))
         if len(self.times) == 1:
             return np.broadcast_to(self.avs[0], (*t.shape, 3)).copy()
-        idx, frac = _interp_index(self.times, t)
+        idx, frac = interp_index(self.times, t)
         a, b = self.avs[idx], self.avs[idx + 1]
         return a + frac[..., None] * (b - a)
 
-    def inverse(self) -> _AleOrientations:
+    def inverse(self) -> AleOrientations:
         # The constant rotation is folded into the time-dependent ones (ALE's inverse()).
         rots = _qmul(_qinv(self.rotations), _qinv(self.const)[None, :])
-        return _AleOrientations(rots, self.times, None, np.array([1.0, 0.0, 0.0, 0.0]))
+        return AleOrientations(rots, self.times, None, np.array([1.0, 0.0, 0.0, 0.0]))
 
-    def compose(self, rhs: _AleOrientations) -> _AleOrientations:
+    def compose(self, rhs: AleOrientations) -> AleOrientations:
         """``self * rhs`` on the union of both time grids (ALE's ``operator*=``)."""
         times = np.unique(np.concatenate([self.times, rhs.times]))
         inv_const = _qinv(self.const)
         lhs_rot = _qmul(np.broadcast_to(inv_const, (len(times), 4)), self.interpolate(times))
         rots = _qmul(lhs_rot, rhs.interpolate(times))
-        return _AleOrientations(rots, times, None, self.const)
+        return AleOrientations(rots, times, None, self.const)
 
     def rotate_states(
         self, t: NDArray[np.float64], pos: NDArray[np.float64], vel: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """ALE's ``rotateStateAt``: ``p' = R p`` and ``v' = R v + R [av]^T p``."""
-        rot = _qmatrix(self.interpolate(t))
+        rot = qmatrix(self.interpolate(t))
         av = self.interpolate_av(t)
         ax, ay, az = av[:, 0], av[:, 1], av[:, 2]
         zero = np.zeros_like(ax)
@@ -194,7 +194,7 @@ class _AleOrientations:
 # ---------------------------------------------------------------------------------------
 
 
-def _euler_matrix(
+def euler_matrix(
     a: NDArray[np.float64], b: NDArray[np.float64], c: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """Port of usgscsm's ``calculateRotationMatrixFromEuler`` (row-major), shape ``(M, 3, 3)``."""

@@ -26,13 +26,13 @@ from planetref.camera.csm.isd import (
     CsmIsd,
     CsmOrientations,
     CsmStates,
-    _frozen_array,
+    frozen_array,
 )
 from planetref.errors import (
     InputError,
     UnsupportedFormatError,
 )
-from planetref.jsonfile import read_json
+from planetref.runtime.jsonfile import read_json
 
 __all__ = ["read_isd"]
 
@@ -149,9 +149,9 @@ def _read_states(f: _Fields, key: str) -> CsmStates:
     known = {"ephemeris_times", "positions", "velocities", "reference_frame"}
     extra = {k: v for k, v in f.raw(key).items() if k not in known}
     return CsmStates(
-        _frozen_array(times),
-        _frozen_array(pos),
-        None if vel is None else _frozen_array(vel),
+        frozen_array(times),
+        frozen_array(pos),
+        None if vel is None else frozen_array(vel),
         frame,
         extra,
     )
@@ -207,10 +207,10 @@ def _read_orientations(f: _Fields, key: str) -> CsmOrientations:
     }
     extra = {k: v for k, v in f.raw(key).items() if k not in known}
     return CsmOrientations(
-        _frozen_array(times),
-        _frozen_array(q),
-        None if av is None else _frozen_array(av),
-        _frozen_array(const),
+        frozen_array(times),
+        frozen_array(q),
+        None if av is None else frozen_array(av),
+        frozen_array(const),
         frame,
         frames("constant_frames"),
         frames("time_dependent_frames"),
@@ -347,10 +347,10 @@ def _isd_from_dict(data: Any, path: str | None) -> CsmIsd:
         image_samples=int(f.number("image_samples", positive=True, integer=True)),
         center_ephemeris_time=f.number("center_ephemeris_time"),
         starting_ephemeris_time=f.number("starting_ephemeris_time"),
-        line_scan_rate=_frozen_array(rate),
+        line_scan_rate=frozen_array(rate),
         focal_length_mm=f.number("focal_length_model.focal_length", positive=True),
-        focal2pixel_lines=_frozen_array(f2l),
-        focal2pixel_samples=_frozen_array(f2s),
+        focal2pixel_lines=frozen_array(f2l),
+        focal2pixel_samples=frozen_array(f2s),
         detector_center_line=f.number("detector_center.line"),
         detector_center_sample=f.number("detector_center.sample"),
         starting_detector_line=f.number("starting_detector_line"),
@@ -358,7 +358,7 @@ def _isd_from_dict(data: Any, path: str | None) -> CsmIsd:
         detector_line_summing=f.number("detector_line_summing", positive=True),
         detector_sample_summing=f.number("detector_sample_summing", positive=True),
         distortion_model=model,
-        distortion_coefficients=_frozen_array(coeffs),
+        distortion_coefficients=frozen_array(coeffs),
         semi_major_km=a_km,
         semi_minor_km=b_km,
         min_height_m=min_h,

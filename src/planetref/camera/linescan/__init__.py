@@ -1,7 +1,8 @@
 """The rigorous push-broom (line-scan) camera.
 
-* :mod:`~planetref.camera.linescan.model` - the camera (orientation image model) and
-  its parts: line-rate table, interior orientation, CCD placement.
+* :mod:`~planetref.camera.linescan.model` - the camera (orientation image model).
+* :mod:`~planetref.camera.linescan.sensor` - its fixed parts: line-rate table, interior
+  orientation, CCD placement.
 * :mod:`~planetref.camera.linescan.kernel` - the one projection-and-partials kernel
   (ground -> image with every partial), called by the camera and the adjustment.
 * :mod:`~planetref.camera.linescan.schema` - validation of the native JSON file.

@@ -57,7 +57,7 @@ from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
 from planetref.geometry.rotations import rotate_to_camera
 
 if TYPE_CHECKING:
-    from planetref.camera.linescan.model import CcdGeometry, LineRateTable
+    from planetref.camera.linescan.sensor import CcdGeometry, LineRateTable
 
 __all__ = [
     "CHORD_TOL",

@@ -13,8 +13,8 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, ValidationError, field_validator
 
 from planetref.errors import InputError, UnsupportedFormatError
-from planetref.jsonfile import read_json
-from planetref.settings import Settings, validation_problems
+from planetref.runtime.jsonfile import read_json
+from planetref.runtime.settings import Settings, validation_problems
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -89,7 +89,7 @@ class CameraDoc(_Model):
 
 
 def load_json(path: str | os.PathLike[str]) -> Any:
-    """Read a camera JSON file with one-line errors (:func:`planetref.jsonfile.read_json`)."""
+    """Read a camera JSON file with one-line errors (see :mod:`planetref.runtime.jsonfile`)."""
     return read_json(path, "camera file")
 
 
@@ -97,7 +97,7 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
     """Validate a decoded native camera document and build the camera with ``factory``."""
     import numpy as np
 
-    from planetref.camera.linescan.model import CcdGeometry, InteriorOrientation, LineRateTable
+    from planetref.camera.linescan.sensor import CcdGeometry, InteriorOrientation, LineRateTable
     from planetref.geometry.geodesy import Ellipsoid
 
     if not isinstance(doc, dict) or doc.get("format") != "planetref-linescan":

@@ -48,7 +48,6 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.atomic import atomic_path
 from planetref.camera.base import ImagePoints, OnMiss, Terrain
 from planetref.camera.rpc.body import RpcBody
 from planetref.camera.rpc.camera import RpcCamera
@@ -57,6 +56,7 @@ from planetref.camera.rpc.formats import write_rpc
 from planetref.camera.rpc.model import Rpc
 from planetref.camera.rpc.stable import fit_rpc_stable
 from planetref.errors import InputError
+from planetref.runtime.atomic import atomic_path
 
 __all__ = [
     "BIAS_MODELS",

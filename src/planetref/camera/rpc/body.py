@@ -18,7 +18,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from planetref.camera.rpc.model import _fmt, _parse_number
+from planetref.camera.rpc.model import fmt, parse_number
 from planetref.errors import (
     InputError,
 )
@@ -87,8 +87,8 @@ class RpcBody:
     def _items(self) -> dict[str, str]:
         return {
             "BODY_NAME": self.ellipsoid.name,
-            "SEMI_MAJOR_M": _fmt(self.ellipsoid.semi_major_m),
-            "SEMI_MINOR_M": _fmt(self.ellipsoid.semi_minor_m),
+            "SEMI_MAJOR_M": fmt(self.ellipsoid.semi_major_m),
+            "SEMI_MINOR_M": fmt(self.ellipsoid.semi_minor_m),
             "LATITUDE": self.latitude_kind,
         }
 
@@ -99,8 +99,8 @@ class RpcBody:
         upper = {k.upper(): v for k, v in items.items()}
         if "SEMI_MAJOR_M" not in upper:
             return None
-        a = _parse_number(upper["SEMI_MAJOR_M"], path, prefix + "SEMI_MAJOR_M")
-        b = _parse_number(upper.get("SEMI_MINOR_M", ""), path, prefix + "SEMI_MINOR_M")
+        a = parse_number(upper["SEMI_MAJOR_M"], path, prefix + "SEMI_MAJOR_M")
+        b = parse_number(upper.get("SEMI_MINOR_M", ""), path, prefix + "SEMI_MINOR_M")
         kind = upper.get("LATITUDE", "").strip().strip('"').lower()
         if kind not in ("planetocentric", "planetographic"):
             raise InputError(

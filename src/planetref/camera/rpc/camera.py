@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.rpc.body import EARTH_BODY, RpcBody
-from planetref.camera.rpc.formats import _read
+from planetref.camera.rpc.formats import read
 from planetref.camera.rpc.model import Rpc
 from planetref.errors import (
     GeometryError,
@@ -120,7 +120,7 @@ class RpcCamera:
                 errors of :func:`read_rpc`.
         """
         p = Path(path)
-        rpc, stored = _read(p)
+        rpc, stored = read(p)
         if body is None:
             resolved = RpcBody.resolve(stored or EARTH_BODY, latitude_kind)
         else:

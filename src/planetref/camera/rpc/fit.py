@@ -3,7 +3,7 @@
 The camera is sampled on a grid of image points at several heights; the rational
 polynomials are solved for with the denominators linearised and iterated (the standard
 "terrain-independent" RPC fit). The solves run with a single-threaded BLAS
-(:func:`planetref.blas.single_threaded_blas`): its threads gain nothing on these
+(:func:`planetref.runtime.blas.single_threaded_blas`): its threads gain nothing on these
 small systems and fight torch's and other processes' threads.
 """
 
@@ -15,9 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.blas import single_threaded_blas
-from planetref.camera.rpc.model import _N_TERMS, Rpc
-from planetref.camera.rpc.terms import _terms
+from planetref.camera.rpc.model import N_TERMS, Rpc
+from planetref.camera.rpc.terms import terms
 from planetref.errors import (
     GeometryError,
     InputError,
@@ -27,6 +26,7 @@ from planetref.geometry.geodesy import (
     wrap_longitude,
     xyz_to_lonlat,
 )
+from planetref.runtime.blas import single_threaded_blas
 
 __all__ = ["FitReport", "fit_rpc"]
 
@@ -169,8 +169,8 @@ def _solve_rational(
         Aw = np.vstack([A * (w / math.sqrt(n))[:, None], ridge])
         bw = np.concatenate([y * w / math.sqrt(n), np.zeros(A.shape[1])])
         x, *_ = np.linalg.lstsq(Aw, bw, rcond=None)
-        num = x[:_N_TERMS]
-        den = np.concatenate([[1.0], x[_N_TERMS:]])
+        num = x[:N_TERMS]
+        den = np.concatenate([[1.0], x[N_TERMS:]])
         d = T @ den
         with np.errstate(divide="ignore", invalid="ignore"):
             rms = float(np.sqrt(np.mean((T @ num / d - y) ** 2)))
@@ -276,7 +276,7 @@ def fit_rpc(
     samp_off, samp_scale = 0.5 * n_samples - 0.5, 0.5 * n_samples
 
     def normalised(s: _Samples) -> NDArray[np.float64]:
-        return _terms(
+        return terms(
             wrap_longitude(s.lon - long_off) / long_scale,
             (s.lat - lat_off) / lat_scale,
             (s.h - height_off) / height_scale,

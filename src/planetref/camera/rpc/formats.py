@@ -21,24 +21,24 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from planetref.atomic import atomic_path, write_text_atomic
 from planetref.camera.rpc.body import RpcBody
 from planetref.camera.rpc.model import (
-    _COEFFS,
-    _N_TERMS,
-    _OPTIONAL,
-    _SCALARS,
+    COEFFS,
+    N_TERMS,
+    OPTIONAL,
+    SCALARS,
     Rpc,
-    _build,
-    _fmt,
-    _parse_list,
-    _parse_number,
+    build,
+    fmt,
+    parse_list,
+    parse_number,
 )
 from planetref.errors import (
     InputError,
     MissingFileError,
     UnsupportedFormatError,
 )
+from planetref.runtime.atomic import atomic_path, write_text_atomic
 
 __all__ = [
     "RpcFormat",
@@ -77,7 +77,7 @@ def read_rpc(path: str | os.PathLike[str]) -> Rpc:
         InputError: If it is truncated, garbled, misses a field or holds invalid
             numbers; the message names the file and the field.
     """
-    return _read(path)[0]
+    return read(path)[0]
 
 
 def read_rpc_body(path: str | os.PathLike[str]) -> RpcBody | None:
@@ -86,10 +86,10 @@ def read_rpc_body(path: str | os.PathLike[str]) -> RpcBody | None:
     Raises:
         The errors of :func:`read_rpc`.
     """
-    return _read(path)[1]
+    return read(path)[1]
 
 
-def _read(path: str | os.PathLike[str]) -> tuple[Rpc, RpcBody | None]:
+def read(path: str | os.PathLike[str]) -> tuple[Rpc, RpcBody | None]:
     p = Path(path)
     if not p.exists():
         raise MissingFileError("RPC file not found", path=p)
@@ -179,29 +179,29 @@ def _read_rpb(p: Path) -> tuple[Rpc, RpcBody | None]:
         items.setdefault(m.group(1).lower(), m.group(2).strip())
     if "(" in text and text.count("(") != text.count(")"):
         # An unterminated coefficient list: name the first list that is not closed.
-        for _, _, rpb_name in _COEFFS:
+        for _, _, rpb_name in COEFFS:
             m = re.search(rf"\b{rpb_name}\s*=\s*\(([^()]*)(\(|$)", text, re.I)
             if m:
                 raise InputError(
                     "unterminated coefficient list (truncated file?)", path=p, field=rpb_name
                 )
     values: dict[str, object] = {}
-    for _, attr, rpb_name in _SCALARS:
+    for _, attr, rpb_name in SCALARS:
         raw = items.get(rpb_name.lower())
         if raw is None:
-            if attr in _OPTIONAL:
+            if attr in OPTIONAL:
                 continue
             raise InputError("missing", path=p, field=rpb_name)
-        values[attr] = _parse_number(raw, p, rpb_name)
-    for _, attr, rpb_name in _COEFFS:
+        values[attr] = parse_number(raw, p, rpb_name)
+    for _, attr, rpb_name in COEFFS:
         raw = items.get(rpb_name.lower())
         if raw is None:
             raise InputError("missing", path=p, field=rpb_name)
         raw = raw.strip()
         if not (raw.startswith("(") and raw.endswith(")")):
             raise InputError(f"expected '(c1, ..., c20)', got {raw[:40]!r}", path=p, field=rpb_name)
-        values[attr] = _parse_list(raw[1:-1], p, rpb_name)
-    rpc = _build(values, p, {a: r for _, a, r in _SCALARS + _COEFFS})
+        values[attr] = parse_list(raw[1:-1], p, rpb_name)
+    rpc = build(values, p, {a: r for _, a, r in SCALARS + COEFFS})
     body_items = {
         k[len("planetref") :].upper(): v for k, v in items.items() if k.startswith("planetref")
     }
@@ -229,25 +229,25 @@ def _read_txt(p: Path) -> tuple[Rpc, RpcBody | None]:
             raise InputError(f"line {lineno}: expected 'KEY: value', got {line[:40]!r}", path=p)
         items.setdefault(m.group(1).upper(), (m.group(2), lineno))
     values: dict[str, object] = {}
-    for gdal_name, attr, _ in _SCALARS:
+    for gdal_name, attr, _ in SCALARS:
         if gdal_name not in items:
-            if attr in _OPTIONAL:
+            if attr in OPTIONAL:
                 continue
             raise InputError("missing", path=p, field=gdal_name)
-        values[attr] = _parse_number(items[gdal_name][0], p, gdal_name)
-    for gdal_name, attr, _ in _COEFFS:
+        values[attr] = parse_number(items[gdal_name][0], p, gdal_name)
+    for gdal_name, attr, _ in COEFFS:
         coeffs = []
-        for i in range(1, _N_TERMS + 1):
+        for i in range(1, N_TERMS + 1):
             key = f"{gdal_name}_{i}"
             if key not in items:
                 raise InputError("missing", path=p, field=key)
-            coeffs.append(_parse_number(items[key][0], p, key))
-        if f"{gdal_name}_{_N_TERMS + 1}" in items:
+            coeffs.append(parse_number(items[key][0], p, key))
+        if f"{gdal_name}_{N_TERMS + 1}" in items:
             raise InputError(
-                "more than 20 coefficients", path=p, field=f"{gdal_name}_{_N_TERMS + 1}"
+                "more than 20 coefficients", path=p, field=f"{gdal_name}_{N_TERMS + 1}"
             )
         values[attr] = tuple(coeffs)
-    rpc = _build(values, p, {a: g for g, a, _ in _SCALARS + _COEFFS})
+    rpc = build(values, p, {a: g for g, a, _ in SCALARS + COEFFS})
     body_items = {
         k[len("PLANETREF_") :]: v for k, (v, _) in items.items() if k.startswith("PLANETREF_")
     }
@@ -293,12 +293,12 @@ def write_rpc_rpb(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | Non
     """
     p = Path(path)
     out = ['satId = "NONE";', 'bandId = "P";', 'SpecId = "RPC00B";', "BEGIN_GROUP = IMAGE"]
-    for _, attr, rpb_name in _SCALARS:
+    for _, attr, rpb_name in SCALARS:
         value = getattr(rpc, attr)
         if value is not None:
-            out.append(f"\t{rpb_name} = {_fmt(value)};")
-    for _, attr, rpb_name in _COEFFS:
-        coeffs = [_fmt(v) for v in getattr(rpc, attr)]
+            out.append(f"\t{rpb_name} = {fmt(value)};")
+    for _, attr, rpb_name in COEFFS:
+        coeffs = [fmt(v) for v in getattr(rpc, attr)]
         out.append(f"\t{rpb_name} = (")
         out.extend(f"\t\t\t{c}," for c in coeffs[:-1])
         out.append(f"\t\t\t{coeffs[-1]});")
@@ -335,12 +335,12 @@ def write_rpc_txt(rpc: Rpc, path: str | os.PathLike[str], *, body: RpcBody | Non
     """
     p = Path(path)
     out = []
-    for gdal_name, attr, _ in _SCALARS:
+    for gdal_name, attr, _ in SCALARS:
         value = getattr(rpc, attr)
         if value is not None:
-            out.append(f"{gdal_name}: {_fmt(value)}")
-    for gdal_name, attr, _ in _COEFFS:
-        out.extend(f"{gdal_name}_{i}: {_fmt(v)}" for i, v in enumerate(getattr(rpc, attr), 1))
+            out.append(f"{gdal_name}: {fmt(value)}")
+    for gdal_name, attr, _ in COEFFS:
+        out.extend(f"{gdal_name}_{i}: {fmt(v)}" for i, v in enumerate(getattr(rpc, attr), 1))
     if body is not None:
         out.extend(f"PLANETREF_{k}: {_quote_safe(v)[:60]}" for k, v in body._items().items())
     write_text_atomic(p, "\n".join(out) + "\n", encoding="ascii")

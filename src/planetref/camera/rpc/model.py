@@ -37,7 +37,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.camera.rpc.terms import _terms, _terms_dh, _terms_dl, _terms_dp
+from planetref.camera.rpc.terms import terms, terms_dh, terms_dl, terms_dp
 from planetref.errors import (
     InputError,
 )
@@ -50,7 +50,7 @@ __all__ = ["Rpc"]
 
 # GDAL metadata names of the scalar fields, in GDAL's _RPC.TXT order, with the
 # attribute of Rpc and the DigitalGlobe .RPB keyword of each.
-_SCALARS: tuple[tuple[str, str, str], ...] = (
+SCALARS: tuple[tuple[str, str, str], ...] = (
     ("ERR_BIAS", "err_bias", "errBias"),
     ("ERR_RAND", "err_rand", "errRand"),
     ("LINE_OFF", "line_off", "lineOffset"),
@@ -66,7 +66,7 @@ _SCALARS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-_COEFFS: tuple[tuple[str, str, str], ...] = (
+COEFFS: tuple[tuple[str, str, str], ...] = (
     ("LINE_NUM_COEFF", "line_num_coeff", "lineNumCoef"),
     ("LINE_DEN_COEFF", "line_den_coeff", "lineDenCoef"),
     ("SAMP_NUM_COEFF", "samp_num_coeff", "sampNumCoef"),
@@ -74,13 +74,13 @@ _COEFFS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-_OPTIONAL = ("err_bias", "err_rand")
+OPTIONAL = ("err_bias", "err_rand")
 
 
 _SCALES = ("line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale")
 
 
-_N_TERMS = 20
+N_TERMS = 20
 
 
 # --------------------------------------------------------------------------- model
@@ -158,12 +158,12 @@ class Rpc:
             A dict suitable for ``rasterio.open(..., rpcs=...)`` or ``SetMetadata``.
         """
         out: dict[str, str] = {}
-        for gdal_name, attr, _ in _SCALARS:
+        for gdal_name, attr, _ in SCALARS:
             value = getattr(self, attr)
             if value is not None:
-                out[gdal_name] = _fmt(value)
-        for gdal_name, attr, _ in _COEFFS:
-            out[gdal_name] = " ".join(_fmt(v) for v in getattr(self, attr))
+                out[gdal_name] = fmt(value)
+        for gdal_name, attr, _ in COEFFS:
+            out[gdal_name] = " ".join(fmt(v) for v in getattr(self, attr))
         return out
 
     @classmethod
@@ -184,19 +184,19 @@ class Rpc:
         """
         upper = {str(k).upper(): str(v) for k, v in metadata.items()}
         values: dict[str, object] = {}
-        for gdal_name, attr, _ in _SCALARS:
+        for gdal_name, attr, _ in SCALARS:
             raw = upper.get(gdal_name)
-            if raw is None or (attr in _OPTIONAL and not raw.strip()):
-                if attr in _OPTIONAL:
+            if raw is None or (attr in OPTIONAL and not raw.strip()):
+                if attr in OPTIONAL:
                     continue
                 raise InputError("missing", path=path, field=gdal_name)
-            values[attr] = _parse_number(raw, path, gdal_name)
-        for gdal_name, attr, _ in _COEFFS:
+            values[attr] = parse_number(raw, path, gdal_name)
+        for gdal_name, attr, _ in COEFFS:
             raw = upper.get(gdal_name)
             if raw is None:
                 raise InputError("missing", path=path, field=gdal_name)
-            values[attr] = _parse_list(raw, path, gdal_name)
-        return _build(values, path, {a: g for g, a, _ in _SCALARS + _COEFFS})
+            values[attr] = parse_list(raw, path, gdal_name)
+        return build(values, path, {a: g for g, a, _ in SCALARS + COEFFS})
 
     def to_rasterio(self) -> object:
         """The model as a ``rasterio.rpc.RPC`` (floats; absent errors become None)."""
@@ -271,7 +271,7 @@ class Rpc:
             ``(line_n, sample_n)``; NaN where a denominator is exactly zero.
         """
         v = (
-            _terms(np.asarray(L, np.float64), np.asarray(P, np.float64), np.asarray(H, np.float64))
+            terms(np.asarray(L, np.float64), np.asarray(P, np.float64), np.asarray(H, np.float64))
             @ self._coeff_array
         )
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -310,10 +310,10 @@ class Rpc:
         # L and P (and H with ``height``: two more, dl_dH and ds_dH), by the quotient
         # rule on the analytic term derivatives.
         c = self._coeff_array
-        v = _terms(L, P, H) @ c
-        derivs = [_terms_dl(L, P, H) @ c, _terms_dp(L, P, H) @ c]
+        v = terms(L, P, H) @ c
+        derivs = [terms_dl(L, P, H) @ c, terms_dp(L, P, H) @ c]
         if height:
-            derivs.append(_terms_dh(L, P, H) @ c)
+            derivs.append(terms_dh(L, P, H) @ c)
         with np.errstate(divide="ignore", invalid="ignore"):
             line = v[..., 0] / v[..., 1] * self.line_scale + self.line_off + 0.5
             samp = v[..., 2] / v[..., 3] * self.samp_scale + self.samp_off + 0.5
@@ -439,7 +439,7 @@ class Rpc:
         return lon.reshape(shape), lat.reshape(shape)
 
 
-def _fmt(value: float) -> str:
+def fmt(value: float) -> str:
     # repr() is the shortest string that round-trips a double (also through strtod).
     return repr(float(value))
 
@@ -457,7 +457,7 @@ def _validate(rpc: Rpc, path: str | os.PathLike[str] | None, names: Mapping[str,
                 raise InputError(
                     f"expected 20 numbers, got {value!r}", path=path, field=name
                 ) from None
-            if len(seq) != _N_TERMS:
+            if len(seq) != N_TERMS:
                 raise InputError(f"expected 20 coefficients, got {len(seq)}", path=path, field=name)
             bad = [i for i, v in enumerate(seq) if not math.isfinite(v)]
             if bad:
@@ -468,7 +468,7 @@ def _validate(rpc: Rpc, path: str | os.PathLike[str] | None, names: Mapping[str,
                 raise InputError("all denominator coefficients are zero", path=path, field=name)
             object.__setattr__(rpc, f.name, seq)
         else:
-            if value is None and f.name in _OPTIONAL:
+            if value is None and f.name in OPTIONAL:
                 continue
             try:
                 num = float(value)
@@ -483,7 +483,7 @@ def _validate(rpc: Rpc, path: str | os.PathLike[str] | None, names: Mapping[str,
             object.__setattr__(rpc, f.name, num)
 
 
-def _build(
+def build(
     values: Mapping[str, object], path: str | os.PathLike[str] | None, names: Mapping[str, str]
 ) -> Rpc:
     # Validate with the file's own field names before the dataclass validates again
@@ -503,7 +503,7 @@ _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
 _UNITS = {"pixel", "pixels", "degree", "degrees", "deg", "meter", "meters", "metre", "metres", "m"}
 
 
-def _parse_number(raw: str, path: str | os.PathLike[str] | None, name: str) -> float:
+def parse_number(raw: str, path: str | os.PathLike[str] | None, name: str) -> float:
     words = raw.strip().rstrip(";").split()
     # GeoEye _rpc.txt files append a unit to some values ("+0123.000 meters").
     if not words or len(words) > 2 or (len(words) == 2 and words[1].lower() not in _UNITS):
@@ -519,8 +519,8 @@ def _parse_number(raw: str, path: str | os.PathLike[str] | None, name: str) -> f
     return value
 
 
-def _parse_list(raw: str, path: str | os.PathLike[str] | None, name: str) -> tuple[float, ...]:
+def parse_list(raw: str, path: str | os.PathLike[str] | None, name: str) -> tuple[float, ...]:
     tokens = [t for t in re.split(r"[\s,]+", raw.strip()) if t]
-    if len(tokens) != _N_TERMS:
+    if len(tokens) != N_TERMS:
         raise InputError(f"expected 20 coefficients, got {len(tokens)}", path=path, field=name)
-    return tuple(_parse_number(t, path, f"{name}[{i + 1}]") for i, t in enumerate(tokens))
+    return tuple(parse_number(t, path, f"{name}[{i + 1}]") for i, t in enumerate(tokens))

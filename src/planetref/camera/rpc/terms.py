@@ -58,25 +58,25 @@ def _monomials(
     return np.stack(columns, axis=-1)
 
 
-def _terms(
+def terms(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     return _monomials(L, P, H)
 
 
-def _terms_dl(
+def terms_dl(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     return _monomials(L, P, H, "L")
 
 
-def _terms_dp(
+def terms_dp(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     return _monomials(L, P, H, "P")
 
 
-def _terms_dh(
+def terms_dh(
     L: NDArray[np.float64], P: NDArray[np.float64], H: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     return _monomials(L, P, H, "H")

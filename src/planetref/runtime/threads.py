@@ -12,7 +12,7 @@ threads fighting torch's. The policy here:
   a single-threaded BLAS (:func:`single_threaded_blas`).
 
 BLAS threads are limited through threadpoolctl when it is installed, otherwise through
-OpenBLAS's own entry points (see :mod:`planetref.blas`); OpenMP-based libraries
+OpenBLAS's own entry points (see :mod:`planetref.runtime.blas`); OpenMP-based libraries
 read ``OMP_NUM_THREADS``, which is set for child processes started afterwards.
 """
 
@@ -22,8 +22,8 @@ import contextlib
 import os
 from dataclasses import dataclass
 
-from planetref.blas import single_threaded_blas
 from planetref.errors import InputError
+from planetref.runtime.blas import single_threaded_blas
 
 __all__ = [
     "ThreadBudget",
@@ -114,7 +114,7 @@ def _limit_blas(n: int) -> None:
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:
-        from planetref import blas as _blas
+        from planetref.runtime import blas as _blas
 
         for _getter, setter in _blas._openblas():
             with contextlib.suppress(OSError, ValueError):

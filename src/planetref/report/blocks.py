@@ -1,7 +1,7 @@
 """The blocks of a georef report.json: adjustment, true geolocation error, several strips.
 
 :func:`adjustment_block` is the one place that maps reprojection metrics
-(:func:`planetref.metrics.reprojection_metrics`) to the report's ``adjustment`` block,
+(:func:`planetref.adjust.metrics.reprojection_metrics`) to the report's ``adjustment`` block,
 whether for a strip alone, a strip of a joint network, the joint network, or several
 strips pooled.
 """
@@ -18,7 +18,7 @@ from planetref import __version__
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
-    from planetref.control import McpTable
+    from planetref.control.mcp import McpTable
     from planetref.frontend.result import StripMatches
     from planetref.raster.dem import GridTerrain
 
@@ -112,7 +112,7 @@ def adjustment_block(
 ) -> dict[str, Any]:
     """The ``adjustment`` block of report.json, from reprojection metrics after adjustment.
 
-    The one place that maps :func:`planetref.metrics.reprojection_metrics` keys to the
+    The one place that maps :func:`planetref.adjust.metrics.reprojection_metrics` keys to the
     report's (a strip alone, a strip of a joint network, the joint network, several
     strips pooled). Per-axis RMSE (``rmse_x_px``, ``rmse_y_px``) is passed on when the
     metrics have it.
@@ -179,7 +179,7 @@ def check_block(
     result: AdjustmentResult, truth: dict[str, Camera], truth_dem: GridTerrain | None
 ) -> dict[str, Any]:
     """True geolocation error before and after adjustment of one strip (simulated scenes)."""
-    from planetref.metrics import geolocation_error
+    from planetref.adjust.metrics import geolocation_error
 
     ((sid, true_cam),) = truth.items()
     before, after = [], []
@@ -224,7 +224,7 @@ def combined_report(
             (refinement, fine-stage resolution, dense spacing, thinning), stated in the
             ``matching`` block so that tables can say so.
     """
-    from planetref.metrics import reprojection_metrics
+    from planetref.adjust.metrics import reprojection_metrics
 
     ccds: dict[str, Any] = {}
     for sid, s in strips.items():

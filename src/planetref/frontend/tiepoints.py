@@ -24,9 +24,8 @@ from planetref.errors import PlanetrefError
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera, Terrain
-    from planetref.frontend.config import FrontendConfig
+    from planetref.frontend.config import CampaignOptions, FrontendConfig
     from planetref.matching.base import Matcher
-    from planetref.pipeline.config import CampaignOptions
     from planetref.raster.image import CcdImage
     from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
@@ -121,7 +120,7 @@ def _match_window(
         ``(xyz, line_a, sample_a, line_b, sample_b)``, or None when the window gives too
         few verified matches.
     """
-    from planetref.frontend.geometry import map_to_ground
+    from planetref.camera.mapping import map_to_ground
     from planetref.frontend.orthorectify import orthorectify
     from planetref.frontend.robust import robust_translation, spread_select, verify_points
     from planetref.frontend.tile import inference_mode
@@ -195,7 +194,7 @@ def find_tie_points(
         matcher: The run's (fine) matcher.
         frontend: :class:`~planetref.frontend.config.FrontendConfig` (RANSAC settings,
             lattice step, consensus radius).
-        options: :class:`~planetref.pipeline.config.CampaignOptions`.
+        options: :class:`~planetref.frontend.config.CampaignOptions`.
 
     Returns:
         The tie points (possibly none).

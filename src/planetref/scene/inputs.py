@@ -18,10 +18,10 @@ from planetref.errors import InputError, PlanetrefError, library_reason
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
-    from planetref.pipeline.scene import SceneManifest, StripSpec
     from planetref.raster.dem import GridTerrain
     from planetref.raster.image import CcdImage
     from planetref.raster.ortho import ReferenceOrtho
+    from planetref.scene.manifest import SceneManifest, StripSpec
 
 __all__ = [
     "MARS_SEMI_MAJOR_M",
@@ -203,7 +203,7 @@ def check_overlap(
     is a warning naming the share per CCD: those parts can get no MCPs, and a strip end
     beyond the DEM or the ortho is then held only by the weak-node rule.
     """
-    from planetref.frontend.geometry import image_to_ref_pixel
+    from planetref.camera.mapping import image_to_ref_pixel
 
     check_body(camera.ellipsoid, ref, "reference ortho")
     check_body(camera.ellipsoid, dem, "reference DEM")
@@ -316,7 +316,7 @@ def worker_dem(manifest: SceneManifest, root: Path, dem: GridTerrain, target: Pa
     A DEM above the areoid is converted once (to ``target``, in the run folder) so that
     every worker reads the same body-relative heights as this process.
     """
-    from planetref.atomic import atomic_path
+    from planetref.runtime.atomic import atomic_path
 
     if manifest.reference.dem_datum == "body":
         return manifest.resolve(root, manifest.reference.dem)

@@ -49,8 +49,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.atomic import write_text_atomic
 from planetref.geometry.geodesy import Ellipsoid, xyz_to_lonlat
+from planetref.runtime.atomic import write_text_atomic
 
 __all__ = [
     "CNET_COLUMNS",
@@ -130,7 +130,7 @@ class ControlPoints:
         check: NDArray[np.bool_] | None = None,
         prefix: str = "",
     ) -> ControlPoints:
-        """MCPs of one strip (an :class:`~planetref.control.McpTable`).
+        """MCPs of one strip (an :class:`~planetref.control.mcp.McpTable`).
 
         Args:
             table: The MCP table.
@@ -171,7 +171,7 @@ class ControlPoints:
         sigma_m: float | None,
         sigma_px: float,
     ) -> ControlPoints:
-        """Tie points of a campaign (a :class:`~planetref.pipeline.campaign.TiePoints`).
+        """Tie points of a campaign (a :class:`~planetref.frontend.tiepoints.TiePoints`).
 
         Args:
             ties: The tie points (two measures each).

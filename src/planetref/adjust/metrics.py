@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref._optional import optional_module
 from planetref.errors import InputError
+from planetref.runtime.optional import optional_module
 
 __all__ = [
     "geolocation_error",
@@ -101,7 +101,7 @@ def grouped_reprojection_metrics(
     """:func:`reprojection_metrics` of many groups of residuals in one pass.
 
     Equal bit for bit to ``reprojection_metrics(dx[m], dy[m], inlier[m])`` with ``m``
-    the rows of each group (compiled, :mod:`planetref._numba_metrics`; without numba,
+    the rows of each group (compiled, :mod:`planetref.adjust._numba_metrics`; without numba,
     that loop itself).
 
     Args:
@@ -117,7 +117,7 @@ def grouped_reprojection_metrics(
         One metrics dict per group code.
     """
     group = np.atleast_2d(np.asarray(group, np.intp))
-    fn = optional_module("planetref._numba_metrics", "compiled reprojection metrics")
+    fn = optional_module("planetref.adjust._numba_metrics", "compiled reprojection metrics")
     if fn is None:
         out: list[dict[str, float | int]] = [{} for _ in range(n_groups)]
         for row in group:

@@ -1,6 +1,6 @@
 """numba implementation of grouped reprojection sums (lazy import).
 
-The twin of :func:`planetref.metrics.reprojection_metrics` called once per group (the
+The twin of :func:`planetref.adjust.metrics.reprojection_metrics` called once per group (the
 numpy reference; a test binds both bit for bit): one pass sorts the kept residuals of
 every group into a contiguous buffer (stable, so each group keeps the observations'
 order), then each group's sums follow numpy's own pairwise summation (``np.add.reduce``

@@ -15,11 +15,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # pragma: no cover
-    from planetref.adjust.problem import Network
     from planetref.camera.base import Camera
-    from planetref.control import McpTable
-    from planetref.pipeline.campaign import TiePoints
-    from planetref.pipeline.config import GeorefConfig
+    from planetref.control.config import McpOptions
+    from planetref.control.mcp import McpTable
+    from planetref.control.network import Network
+    from planetref.frontend.config import CampaignOptions
+    from planetref.frontend.tiepoints import TiePoints
     from planetref.raster.image import CcdImage
 
 __all__ = ["StripMcps", "joint_network", "mcp_ground_sigmas"]
@@ -48,11 +49,19 @@ def mcp_ground_sigmas(table: Any) -> dict[str, Any]:
     return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
 
 
-def joint_network(preps: list[StripMcps], ties: TiePoints, cfg: GeorefConfig) -> Network:
-    """One network of every strip's camera, all MCPs and the tie points between strips."""
-    from planetref.adjust.problem import Network
+def joint_network(
+    preps: list[StripMcps], ties: TiePoints, mcp: McpOptions, opts: CampaignOptions
+) -> Network:
+    """One network of every strip's camera, all MCPs and the tie points between strips.
 
-    opts = cfg.campaign
+    Args:
+        preps: The strips after matching.
+        ties: Tie points between the strips.
+        mcp: How MCPs enter (their image sigma).
+        opts: The campaign's tie-point sigmas.
+    """
+    from planetref.control.network import Network
+
     obs_cam: list[str] = []
     obs_pt: list[str] = []
     obs_ccd: list[str] = []
@@ -78,7 +87,7 @@ def joint_network(preps: list[StripMcps], ties: TiePoints, cfg: GeorefConfig) ->
         obs_ccd += list(np.asarray(t["ccd"]).astype(str))
         line.append(np.asarray(t["line"], float))
         sample.append(np.asarray(t["sample"], float))
-        sig_px.append(np.full(len(t), cfg.mcp.sigma_px))
+        sig_px.append(np.full(len(t), mcp.sigma_px))
         check.append(p.check)
     tie_sigma = np.inf if opts.tie_sigma_m is None else float(opts.tie_sigma_m)
     for i, pid in enumerate(ties.point_ids):

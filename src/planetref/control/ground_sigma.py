@@ -67,7 +67,7 @@ def ground_sigmas(
     res = getattr(dem, "sampling_m", None)
     if not x.size or res is None:
         return s_xy, s_h
-    from planetref.frontend.geometry import map_to_ground
+    from planetref.camera.mapping import map_to_ground
 
     res = float(res)
 

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.adjust.records import NetworkRecords, check_in_images, point_value
 from planetref.camera.base import Camera
+from planetref.control.records import NetworkRecords, check_in_images, point_value
 from planetref.errors import InputError
 
 __all__ = ["Network", "PointFrames", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]

@@ -48,8 +48,8 @@ from pydantic import Field, model_validator
 
 from planetref.errors import InputError, MissingFileError
 from planetref.geometry.geodesy import Ellipsoid
-from planetref.settings import Settings, validate_settings
-from planetref.tomlfile import read_toml
+from planetref.runtime.settings import Settings, validate_settings
+from planetref.runtime.tomlfile import read_toml
 
 __all__ = [
     "MANIFEST_FORMAT",

@@ -1,23 +1,23 @@
 """The matchers of a georef run: recipes for the workers, instances in process.
 
-NCC runs in dense mode on the fine stage (one template per ``dense_spacing_ref_px`` grid
-cell) with a search radius that covers the fine window's pad, and gets a coarse-stage
-instance whose radius covers the a-priori uncertainty; the other matchers run with their
-own defaults (keypoint budgets included) and serve both stages.
+Each matcher's class declares what the front end must set (its pixel-length options, a
+bounded search, a dense mode; :class:`~planetref.matching.base.BaseMatcher`), and
+:func:`matcher_options` is the one place that turns those declarations and the front
+end's settings into the options of the fine and coarse instances.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from planetref.pipeline.config import GeorefConfig
-
 if TYPE_CHECKING:  # pragma: no cover
+    from planetref.frontend.config import FrontendConfig
     from planetref.frontend.tasks import MatcherRecipe
     from planetref.matching.base import Matcher
 
@@ -55,70 +55,63 @@ class MatcherPair:
 
 
 def matcher_options(
-    name: str, cfg: GeorefConfig, ref_gsd_m: float
+    name: str, options: Mapping[str, Any], fe: FrontendConfig, ref_gsd_m: float
 ) -> tuple[dict[str, Any], dict[str, Any] | None]:
     """The registry options of a run's fine and coarse matchers.
 
-    Area-based NCC searches a fixed radius around each template, so its coarse-stage
-    instance gets a radius that covers the a-priori uncertainty at the coarse scale; the
-    fine stage runs in dense mode: one template per ``dense_spacing_ref_px`` grid cell.
-    Cell, search radius and template radius are set in reference pixels and passed in
-    fine-grid pixels (times ``fine_upsample``): the same template count, template ground
-    size and ground search on any fine grid. The other matchers search the whole window
-    with their own defaults and serve both stages.
+    What each matcher needs is read from its class's declarations, never from its name
+    (:class:`~planetref.matching.base.BaseMatcher`): its pixel-length options are set in
+    reference pixels and passed in fine-grid pixels (times ``fine_upsample``), so a finer
+    grid keeps their ground size; a matcher with a dense mode runs it on the fine stage,
+    one match per ``dense_spacing_ref_px`` cell; a matcher that searches a bounded radius
+    around the same pixel (area-based NCC) gets a fine radius covering the window's pad
+    plus what the coarse stage leaves, and a coarse-stage instance whose radius covers
+    the a-priori uncertainty at the coarse scale. The others search the whole window with
+    their own defaults and serve both stages.
+
+    Args:
+        name: Registry name of the matcher.
+        options: The user's options of that matcher (``[matchers.<name>]``).
+        fe: The front end's settings.
+        ref_gsd_m: Ground sampling distance of the reference ortho (metres).
 
     Returns:
         ``(fine_options, coarse_options)``; ``coarse_options`` is None when the fine
         matcher serves both stages.
     """
-    options = dict(cfg.matchers.get(name, {}))
-    fe = cfg.frontend
-    if name != "ncc":
-        if name == "loftr" and _loftr_is_dense():
-            options.setdefault("dense_spacing_px", fe.dense_spacing_ref_px * fe.fine_upsample)
+    from planetref.matching.registry import MATCHERS
+
+    options = dict(options)
+    spec = MATCHERS.get(name)
+    if spec is None or spec.load_class is None:  # unknown names fail when built
         return options, None
+    cls = spec.matcher_class()
     up = fe.fine_upsample
-    # NCC looks for each template around the same pixel of the other window, and the
-    # front end's windows are padded: the fine stage must reach the pad plus what the
-    # coarse stage leaves; the coarse stage the whole a-priori uncertainty.
-    fine_radius = (fe.fine_pad_ref_px + int(np.ceil(fe.coarse_radius_ref_px)) + 4) * up
-    coarse_radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_factor))) + 4
-    coarse_opts = {"spacing": 8, **options}
-    coarse_opts["search_radius"] = max(coarse_radius, int(coarse_opts.get("search_radius", 0)))
-    dense = fe.dense_spacing_ref_px * up
-    # The template keeps its ground size too (the fine grid is ``up`` times finer), so a
-    # finer grid adds detail to each template instead of halving the ground it sees.
-    template = int(options.get("template_radius", _ncc_default("template_radius"))) * up
-    fine_opts = {
-        "search_radius": fine_radius,
-        "dense_spacing_px": dense,
-        **options,
-        "template_radius": template,
-    }
-    return fine_opts, coarse_opts
-
-
-def _ncc_default(option: str) -> Any:
-    """The NCC matcher's own default of one option (imports its module only)."""
-    import inspect
-
-    from planetref.matching.ncc import NccMatcher
-
-    return inspect.signature(NccMatcher).parameters[option].default
-
-
-def _loftr_is_dense() -> bool:
-    """Whether this LoFTR takes a ``dense_spacing_px`` option (imports its module only)."""
-    import inspect
-
-    from planetref.matching.loftr import LoftrMatcher
-
-    return "dense_spacing_px" in inspect.signature(LoftrMatcher).parameters
+    fine = dict(options)
+    if cls.runs_dense():
+        fine.setdefault(cls.dense_option, fe.dense_spacing_ref_px * up)
+    # The pixel lengths keep their ground size on the fine grid (``up`` times finer), so
+    # a finer grid adds detail to each template instead of halving the ground it sees.
+    for opt in cls.pixel_options:
+        fine[opt] = int(options.get(opt, cls.option_default(opt))) * up
+    if cls.search_option is None:
+        return fine, None
+    # A bounded search looks around the same pixel of the other window, and the front
+    # end's windows are padded: the fine stage must reach the pad plus what the coarse
+    # stage leaves; the coarse stage the whole a-priori uncertainty.
+    fine.setdefault(
+        cls.search_option, (fe.fine_pad_ref_px + int(np.ceil(fe.coarse_radius_ref_px)) + 4) * up
+    )
+    coarse = {**cls.coarse_defaults, **options}
+    radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_factor))) + 4
+    coarse[cls.search_option] = max(radius, int(coarse.get(cls.search_option, 0)))
+    return fine, coarse
 
 
 def matcher_recipes(
     name: str,
-    cfg: GeorefConfig,
+    options: Mapping[str, Any],
+    fe: FrontendConfig,
     ref_gsd_m: float,
     *,
     weights_dir: str | os.PathLike[str] | None = None,
@@ -127,14 +120,15 @@ def matcher_recipes(
     from planetref.frontend.tasks import MatcherRecipe
 
     wd = None if weights_dir is None else str(Path(weights_dir).resolve())
-    fine_opts, coarse_opts = matcher_options(name, cfg, ref_gsd_m)
+    fine_opts, coarse_opts = matcher_options(name, options, fe, ref_gsd_m)
     coarse = None if coarse_opts is None else MatcherRecipe(name, coarse_opts, wd)
     return MatcherPair(MatcherRecipe(name, fine_opts, wd), coarse)
 
 
 def build_matchers(
     name: str,
-    cfg: GeorefConfig,
+    options: Mapping[str, Any],
+    fe: FrontendConfig,
     ref_gsd_m: float,
     *,
     weights_dir: str | os.PathLike[str] | None = None,
@@ -144,7 +138,7 @@ def build_matchers(
     Returns:
         ``(fine, coarse)`` matchers (the same object when one serves both stages).
     """
-    return matcher_recipes(name, cfg, ref_gsd_m, weights_dir=weights_dir).built()
+    return matcher_recipes(name, options, fe, ref_gsd_m, weights_dir=weights_dir).built()
 
 
 def matcher_weight_files(name: str, weights_dir: str | os.PathLike[str] | None) -> list[Path]:

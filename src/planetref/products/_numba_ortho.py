@@ -1,13 +1,13 @@
 """Compiled orthoimage block kernels (numba, ``nogil``): lattice to maps, resampling, cast.
 
-The numpy/OpenCV reference is :func:`planetref.pipeline.ortho_strip._resample_reference`
+The numpy/OpenCV reference is :func:`planetref.products.ortho_strip._resample_reference`
 (``bilinear_lattice`` in float64, float32 maps, ``cv2.remap`` bilinear with a NaN
-border, then :meth:`~planetref.pipeline.ortho_strip.PixelType.cast`); these kernels do
+border, then :meth:`~planetref.products.ortho_strip.PixelType.cast`); these kernels do
 the same arithmetic in one pass per stage and release the GIL, so the blocks of several
 CCDs run in threads at once:
 
 - :func:`lattice_maps`: the dense ``(line, sample)`` of a block from its lattice, exactly
-  as :func:`~planetref.pipeline.orthoimage.bilinear_lattice` (rows first, ``a (1 - f) +
+  as :func:`~planetref.products.orthoimage.bilinear_lattice` (rows first, ``a (1 - f) +
   b f`` in float64, a zero weight ignores its end), rounded to float32, with the range of
   lines inside the image (the raw window to read).
 - :func:`resample_bilinear`: bilinear sampling of the raw window as OpenCV 5's
@@ -19,7 +19,7 @@ CCDs run in threads at once:
 - :func:`cast_block`: float values (NaN = no data) to the output integer type (round half
   to even, clip, nodata), as ``PixelType.cast``.
 - :func:`halve_rows`: one overview level from the previous one, as GDAL's ``AVERAGE``
-  (the numpy reference is :func:`planetref.pipeline.overviews.halve_reference`).
+  (the numpy reference is :func:`planetref.products.overviews.halve_reference`).
 """
 
 from __future__ import annotations

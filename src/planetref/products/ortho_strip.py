@@ -18,20 +18,20 @@ of them, in one pass over block rows of a common north-up grid:
   i.e. saturated, is written one DN below it).
 * **Overviews.** Internal overviews (factors 2, 4, ... while the smaller side stays
   >= 256 pixels), averaged over valid pixels: GDAL's ``AVERAGE`` bit for bit, but
-  computed from each block as it is written (:mod:`planetref.pipeline.overviews`)
+  computed from each block as it is written (:mod:`planetref.products.overviews`)
   instead of reading the finished file back.
 * **Mosaic, overlap rule.** Where CCDs overlap, a mosaic pixel takes the CCD whose image
   point lies farthest from that CCD's first/last sample (the distance to its nearer
   side edge), so seams run along the middle of each overlap, where both CCDs are
   farthest from their edges; ties go to the CCD listed first.
 * **Streaming and atomic writes.** Each block of ``block_rows`` rows is projected
-  (:class:`~planetref.pipeline.orthoimage.LatticeProjector`), resampled from the raw
+  (:class:`~planetref.products.orthoimage.LatticeProjector`), resampled from the raw
   lines it needs and written with windowed writes into temporary files renamed when
   complete; memory is bounded by the block size (and GDAL's block cache by
   :data:`GDAL_CACHE_MB`).
 * **Compiled, parallel blocks.** A block's lattice becomes dense maps and the raw lines
   are sampled bilinearly in compiled kernels that release the GIL
-  (:mod:`planetref.pipeline._ortho_kernel`; the numpy/OpenCV path
+  (:mod:`planetref.products._numba_ortho`; the numpy/OpenCV path
   :func:`_resample_reference` is their reference and the fallback without numba, with
   the same pixels on OpenCV 5, whereas OpenCV 4 quantises positions to 1/32 pixel), so
   the CCDs of a block row run in ``threads`` threads; each raw line is read and decoded
@@ -57,22 +57,22 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.atomic import atomic_path
 from planetref.camera.base import Camera, Terrain
 from planetref.errors import GeometryError, InputError
-from planetref.pipeline.orthoimage import (
+from planetref.products.orthoimage import (
     DIGEST_SUFFIX,
     LatticeProjector,
     OrthoGrid,
     OrthoSettings,
-    _compression,
-    _file_id,
-    _footprint,
-    _terrain_id,
+    compression,
+    file_id,
+    footprint,
+    terrain_id,
 )
-from planetref.pipeline.overviews import OverviewPyramid, overview_factors, padded_size
+from planetref.products.overviews import OverviewPyramid, overview_factors, padded_size
+from planetref.runtime.atomic import atomic_path
 
-__all__ = ["PixelType", "StripOrthoResult", "orthorectify_strip", "round_gsd"]
+__all__ = ["PixelType", "StripOrthoResult", "orthorectify_ccd", "orthorectify_strip", "round_gsd"]
 
 F32 = NDArray[np.float32]
 #: Round pixel sizes (times a power of ten) that :func:`round_gsd` chooses from.
@@ -236,8 +236,8 @@ def _strip_digest(
     to_dict = getattr(camera, "to_dict", None)
     doc = {
         "camera": to_dict() if callable(to_dict) else repr(camera),
-        "images": {c: _file_id(getattr(im, "path", None)) for c, im in images.items()},
-        "dem": _terrain_id(terrain),
+        "images": {c: file_id(getattr(im, "path", None)) for c, im in images.items()},
+        "dem": terrain_id(terrain),
         "crs": str(crs),
         "gsd_m": float(gsd_m),
         "settings": [s.lattice_step, s.min_lattice_step, s.max_error_px, s.block_rows],
@@ -253,10 +253,10 @@ def _digest_ok(path: Path, digest: str) -> bool:
 
 
 def _kernel() -> Any:
-    """The compiled block kernels (:mod:`planetref.pipeline._ortho_kernel`), or None."""
-    from planetref._optional import optional_module
+    """The compiled block kernels (:mod:`planetref.products._numba_ortho`), or None."""
+    from planetref.runtime.optional import optional_module
 
-    return optional_module("planetref.pipeline._ortho_kernel", "compiled orthoimage kernel")
+    return optional_module("planetref.products._numba_ortho", "compiled orthoimage kernel")
 
 
 def _resample(job: _CcdJob, r0: int, r1: int, want_dist: bool) -> tuple[F32, F32 | None]:
@@ -362,7 +362,7 @@ def orthorectify_strip(
         resume: Keep existing outputs whose inputs digest matches.
         overviews: Build internal overviews.
         threads: CCDs resampled at once, and files whose overviews are written at
-            once (default: OpenCV's thread budget, see :mod:`planetref.threads`); the
+            once (default: OpenCV's thread budget, see :mod:`planetref.runtime.threads`); the
             output does not depend on it.
 
     Returns:
@@ -399,7 +399,7 @@ def orthorectify_strip(
     boxes: dict[str, tuple[int, int, int, int]] = {}
     for ccd in images:
         try:
-            x0, y0, x1, y1 = _footprint(camera, ccd, terrain, ground)
+            x0, y0, x1, y1 = footprint(camera, ccd, terrain, ground)
         except GeometryError:
             continue
         boxes[ccd] = (
@@ -455,7 +455,7 @@ def orthorectify_strip(
             "blockxsize": TILE,
             "blockysize": TILE,
             "BIGTIFF": "IF_SAFER",
-            **_compression(),
+            **compression(),
         }
 
     for p in every:
@@ -591,3 +591,50 @@ def _write_block(
 def _write_digest(path: Path, digest: str) -> None:
     with atomic_path(path.with_name(path.name + DIGEST_SUFFIX)) as tmp:
         tmp.write_text(digest + "\n", encoding="utf-8")
+
+
+def orthorectify_ccd(
+    image: Any,
+    camera: Camera,
+    ccd: str,
+    terrain: Terrain,
+    crs: Any,
+    path: str | os.PathLike[str],
+    *,
+    gsd_m: float,
+    settings: OrthoSettings | None = None,
+    resume: bool = True,
+) -> Path:
+    """Write the orthoimage of one CCD image, streamed block by block.
+
+    One CCD of :func:`~planetref.products.ortho_strip.orthorectify_strip` (its grid,
+    data type, nodata, overviews and resume rules), without a mosaic.
+
+    Args:
+        image: A :class:`~planetref.raster.image.CcdImage` (windowed reads).
+        camera: The camera (e.g. the adjusted one).
+        ccd: CCD name.
+        terrain: The DEM the image is projected onto.
+        crs: The output CRS (the reference ortho's), a projected CRS in metres.
+        path: Output GeoTIFF (written to a temporary name, renamed at the end).
+        gsd_m: Output pixel size in CRS units (metres).
+        settings: Lattice and block settings (defaults: :class:`OrthoSettings`).
+        resume: Keep an existing orthoimage whose inputs digest matches.
+
+    Returns:
+        The path written. Pixels outside the image or the DEM are nodata.
+
+    Raises:
+        GeometryError: The image's border does not meet the DEM.
+    """
+    res = orthorectify_strip(
+        {ccd: image},
+        camera,
+        terrain,
+        crs,
+        {ccd: path},
+        gsd_m=gsd_m,
+        settings=settings,
+        resume=resume,
+    )
+    return res.ccds[ccd]

@@ -29,14 +29,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planetref.atomic import atomic_path
-from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
-from planetref.ground_sigma import (
+from planetref.control.ground_sigma import (
     GROUND_SIGMA_H_FLOOR_M,
     GROUND_SIGMA_XY_REF_PX,
     ground_sigmas,
     reference_gsd_m,
 )
+from planetref.errors import InputError, MissingFileError, UnsupportedFormatError
+from planetref.runtime.atomic import atomic_path
 
 __all__ = [
     "GROUND_SIGMA_H_FLOOR_M",
@@ -325,7 +325,7 @@ def mcps_from_matches(
     Returns:
         The table, with ``counts`` telling what was dropped.
     """
-    from planetref.frontend.geometry import map_to_ground
+    from planetref.camera.mapping import map_to_ground
 
     line_a = np.asarray(line, np.float64).ravel()
     n = len(line_a)

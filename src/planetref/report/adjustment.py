@@ -34,15 +34,15 @@ from typing import Any
 
 import numpy as np
 
-from planetref.adjust.network import safe_name
-from planetref.adjust.report_md import MODE_NAMES, report_md, top_correlations
+from planetref.adjust.metrics import geolocation_error
+from planetref.adjust.network_file import safe_name
 from planetref.adjust.result import AdjustmentResult
-from planetref.atomic import json_safe, write_bytes_atomic, write_text_atomic
 from planetref.camera.linescan import LineScanCamera
 from planetref.camera.rpc.stable import fit_rpc_stable
 from planetref.errors import PlanetrefError
 from planetref.geometry.geodesy import xyz_to_lonlat
-from planetref.metrics import geolocation_error
+from planetref.report.adjustment_md import MODE_NAMES, report_md, top_correlations
+from planetref.runtime.atomic import json_safe, write_bytes_atomic, write_text_atomic
 
 __all__ = ["POINT_COLUMNS", "geolocation_metrics", "write_outputs", "write_points"]
 
@@ -72,7 +72,7 @@ def geolocation_metrics(
 
     Returns:
         ``{camera_id: {ccd: {"before": {...}, "after": {...}}}}`` with the fields of
-        :func:`~planetref.metrics.geolocation_error` (metres and pixels, RMS and max).
+        :func:`~planetref.adjust.metrics.geolocation_error` (metres and pixels, RMS and max).
     """
     out: dict[str, Any] = {}
     for cid, true_cam in truth.items():

@@ -21,17 +21,64 @@ import re
 import tempfile
 import zipfile
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from planetref.atomic import atomic_path, record_output
-from planetref.report.figures_matching import MatchPanel
+from planetref.errors import InputError
+from planetref.runtime.atomic import atomic_path, record_output
 
-__all__ = ["PanelStore", "save_panels"]
+__all__ = ["MatchPanel", "PanelStore", "panels_from_tile", "save_panels"]
 
 _FIELDS = ("image0", "valid0", "image1", "valid1", "keypoints0", "keypoints1", "inliers")
+
+
+@dataclass
+class MatchPanel:
+    """One image pair with its matches.
+
+    Attributes:
+        title: Panel title (e.g. ``"coarse"``).
+        image0: Left image (the CCD tile in the common geometry).
+        image1: Right image (the reference window).
+        keypoints0: ``(N, 2)`` ``(x, y)`` on ``image0``.
+        keypoints1: ``(N, 2)`` on ``image1``.
+        inliers: ``(N,)`` kept matches (default: all).
+        valid0: Validity of ``image0`` (invalid pixels drawn blank).
+        valid1: Validity of ``image1``.
+    """
+
+    title: str
+    image0: NDArray[Any]
+    image1: NDArray[Any]
+    keypoints0: NDArray[np.float64]
+    keypoints1: NDArray[np.float64]
+    inliers: NDArray[np.bool_] | None = None
+    valid0: NDArray[np.bool_] | None = None
+    valid1: NDArray[np.bool_] | None = None
+
+
+def panels_from_tile(result: Any) -> list[MatchPanel]:
+    """Panels of a :class:`~planetref.frontend.result.TileResult` matched with ``debug``.
+
+    Raises:
+        InputError: If the result holds no stage images (match it with ``debug=True``).
+    """
+    stages = getattr(result, "debug", None) or []
+    if not stages:
+        raise InputError(
+            f"tile {getattr(result, 'tile_id', '?')} has no stage images; "
+            "match it with debug=True (or list it in debug_tiles)"
+        )
+    return [
+        MatchPanel(
+            s.stage, s.image0, s.image1, s.keypoints0, s.keypoints1, s.inliers, s.valid0, s.valid1
+        )
+        for s in stages
+    ]
 
 
 def _file_name(tile_id: str) -> str:
@@ -127,7 +174,7 @@ class PanelStore:
 
         A result without stage images (matched by a parallel worker) adopts the file the
         worker wrote into :attr:`folder`, if there is one, and records it as written for
-        this process (:func:`~planetref.atomic.record_output`). Only tiles that ended
+        this process (:func:`~planetref.runtime.atomic.record_output`). Only tiles that ended
         ``ok`` are kept.
         """
         if getattr(result, "status", "ok") != "ok":

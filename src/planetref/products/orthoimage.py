@@ -42,12 +42,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.camera.base import Camera, Terrain
+from planetref.camera.mapping import project_to_image, rays_to_ground
 from planetref.errors import GeometryError
-from planetref.frontend.geometry import project_to_image, rays_to_ground
 from planetref.geometry.lattice import bilinear_lattice
 from planetref.geometry.lattice import lattice_cell as _cell
 
-__all__ = ["LatticeProjector", "OrthoGrid", "OrthoSettings", "bilinear_lattice", "orthorectify_ccd"]
+__all__ = ["LatticeProjector", "OrthoGrid", "OrthoSettings", "bilinear_lattice"]
 
 F64 = NDArray[np.float64]
 DIGEST_SUFFIX = ".inputs.sha256"
@@ -96,7 +96,7 @@ class OrthoGrid:
         return self.x0 + cols * self.gsd_m, self.y1 - rows * self.gsd_m
 
 
-def _footprint(
+def footprint(
     camera: Camera, ccd: str, terrain: Terrain, ground: Any, n_edge: int = 17
 ) -> tuple[float, float, float, float]:
     n_lines, n_samples = camera.image_size(ccd)
@@ -272,7 +272,7 @@ class LatticeProjector:
 
 
 @functools.cache
-def _compression() -> dict[str, Any]:
+def compression() -> dict[str, Any]:
     """ZSTD level 1 where GDAL has it (~4x faster than DEFLATE, same size), else DEFLATE.
 
     GDAL's ZSTD codec is optional: a one-pixel GeoTIFF written in memory and read back
@@ -296,7 +296,7 @@ def _compression() -> dict[str, Any]:
     return {"compress": "deflate", "zlevel": 1}
 
 
-def _file_id(path: Any) -> list[Any]:
+def file_id(path: Any) -> list[Any]:
     try:
         st = os.stat(path)
     except (OSError, TypeError):
@@ -304,7 +304,7 @@ def _file_id(path: Any) -> list[Any]:
     return [str(Path(path).resolve()), st.st_size, st.st_mtime_ns]
 
 
-def _terrain_id(terrain: Terrain) -> list[Any]:
+def terrain_id(terrain: Terrain) -> list[Any]:
     heights = getattr(terrain, "heights", None)
     if heights is None:
         return [repr(terrain)]
@@ -321,60 +321,11 @@ def inputs_digest(
     doc = {
         "camera": cam_doc,
         "ccd": ccd,
-        "image": _file_id(getattr(image, "path", None)),
-        "dem": _terrain_id(terrain),
+        "image": file_id(getattr(image, "path", None)),
+        "dem": terrain_id(terrain),
         "crs": str(crs),
         "gsd_m": float(gsd_m),
         "settings": [s.lattice_step, s.min_lattice_step, s.max_error_px, s.block_rows],
     }
     blob = json.dumps(doc, sort_keys=True, default=repr).encode()
     return hashlib.sha256(blob).hexdigest()
-
-
-def orthorectify_ccd(
-    image: Any,
-    camera: Camera,
-    ccd: str,
-    terrain: Terrain,
-    crs: Any,
-    path: str | os.PathLike[str],
-    *,
-    gsd_m: float,
-    settings: OrthoSettings | None = None,
-    resume: bool = True,
-) -> Path:
-    """Write the orthoimage of one CCD image, streamed block by block.
-
-    One CCD of :func:`~planetref.pipeline.ortho_strip.orthorectify_strip` (its grid,
-    data type, nodata, overviews and resume rules), without a mosaic.
-
-    Args:
-        image: A :class:`~planetref.raster.image.CcdImage` (windowed reads).
-        camera: The camera (e.g. the adjusted one).
-        ccd: CCD name.
-        terrain: The DEM the image is projected onto.
-        crs: The output CRS (the reference ortho's), a projected CRS in metres.
-        path: Output GeoTIFF (written to a temporary name, renamed at the end).
-        gsd_m: Output pixel size in CRS units (metres).
-        settings: Lattice and block settings (defaults: :class:`OrthoSettings`).
-        resume: Keep an existing orthoimage whose inputs digest matches.
-
-    Returns:
-        The path written. Pixels outside the image or the DEM are nodata.
-
-    Raises:
-        GeometryError: The image's border does not meet the DEM.
-    """
-    from planetref.pipeline.ortho_strip import orthorectify_strip
-
-    res = orthorectify_strip(
-        {ccd: image},
-        camera,
-        terrain,
-        crs,
-        {ccd: path},
-        gsd_m=gsd_m,
-        settings=settings,
-        resume=resume,
-    )
-    return res.ccds[ccd]

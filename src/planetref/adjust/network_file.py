@@ -39,12 +39,12 @@ from typing import Any
 import numpy as np
 
 from planetref.adjust.config import AdjustConfig, validate_config
-from planetref.adjust.problem import Network
-from planetref.adjust.records import IMAGE_MARGIN_PX
 from planetref.camera.base import isis_to_csm
 from planetref.camera.io import load_camera
+from planetref.control.network import Network
+from planetref.control.records import IMAGE_MARGIN_PX
 from planetref.errors import InputError, MissingFileError
-from planetref.tomlfile import read_toml
+from planetref.runtime.tomlfile import read_toml
 
 __all__ = ["NetworkFile", "read_network", "safe_name"]
 

@@ -1,7 +1,7 @@
 """A network's records and their checks: measures inside their images, points' 3-vectors.
 
-Shared by :meth:`planetref.adjust.problem.Network.from_records` (networks built in code)
-and :func:`planetref.adjust.network.read_network` (network files), so that both refuse the
+Shared by :meth:`planetref.control.network.Network.from_records` (networks built in code)
+and :func:`planetref.adjust.network_file.read_network` (network files), so that both refuse the
 same records.
 """
 

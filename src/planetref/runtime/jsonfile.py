@@ -1,4 +1,4 @@
-"""Reading JSON files (cameras, ISDs) with one-line errors, like :mod:`planetref.tomlfile`."""
+"""Reading JSON files (cameras, ISDs) with one-line errors, like the TOML reader."""
 
 from __future__ import annotations
 

@@ -1,0 +1,1 @@
+"""Control: matched control points, their ground sigmas, networks and exports."""

@@ -1,0 +1,26 @@
+"""Settings of the control stage: how matched control points enter the adjustment."""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from planetref.runtime.settings import Settings
+
+__all__ = ["McpOptions"]
+
+
+class McpOptions(Settings):
+    """How matched control points enter the adjustment.
+
+    Attributes:
+        sigma_px: Standard deviation of an MCP's image measure (pixels of the CCD image).
+        check_fraction: Share of MCPs held out as check points (not adjusted; their
+            residuals are reported), drawn with ``seed``.
+        seed: Seed of the check-point draw.
+        min_mcps: Fewest MCPs a strip needs to be adjusted.
+    """
+
+    sigma_px: float = Field(1.0, gt=0.0)
+    check_fraction: float = Field(0.1, ge=0.0, lt=1.0)
+    seed: int = 0
+    min_mcps: int = Field(12, ge=1)

@@ -1,0 +1,1 @@
+"""Products of an adjusted strip: orthoimages with overviews."""

@@ -1,0 +1,1 @@
+"""Infrastructure: atomic files, settings, TOML/JSON reading, threads, executors."""

@@ -1,0 +1,1 @@
+"""The scene: its manifest (``scene.toml``) and its inputs, opened and checked."""
