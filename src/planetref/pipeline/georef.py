@@ -480,7 +480,7 @@ def _adjust_together(
     )
     timing["tie_points"] = time.perf_counter() - t0
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
-    network = joint_network(preps, ties, cfg)
+    network = joint_network(preps, ties, cfg.mcp, cfg.campaign)
     t0 = time.perf_counter()
     result = adjust(network, cfg.adjust)
     timing["adjustment"] += time.perf_counter() - t0
