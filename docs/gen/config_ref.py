@@ -71,6 +71,8 @@ def _attribute_docs(model: type) -> dict[str, str]:
     """``{name: description}`` from the ``Attributes:`` sections of a class and its bases."""
     out: dict[str, str] = {}
     for cls in reversed(model.__mro__):
+        if cls.__module__.split(".")[0] in {"pydantic", "builtins"}:
+            continue  # BaseModel's own docstring documents its internals
         doc = inspect.getdoc(cls) if cls.__doc__ else None
         if not doc:
             continue
