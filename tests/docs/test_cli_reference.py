@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 import shlex
 from pathlib import Path
@@ -47,7 +48,9 @@ def _quoted_commands() -> list[tuple[str, str]]:
     out = []
     for f in files:
         in_code = False
-        for line in f.read_text(encoding="utf-8").splitlines():
+        # continuation lines (a trailing backslash) belong to the command
+        text = f.read_text(encoding="utf-8").replace("\\\n", " ")
+        for line in text.splitlines():
             if line.lstrip().startswith("```"):
                 in_code = not in_code
                 continue
@@ -104,3 +107,42 @@ def test_readme_links_point_at_files():
         if "://" in target:
             continue
         assert (ROOT / target).exists(), f"README links to a missing file: {target}"
+
+
+def _documented_outputs() -> list[tuple[str, str, str]]:
+    """(file, command, printed output) where a quoted command is followed by ``# {...}``."""
+    out = []
+    for f in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
+        lines = f.read_text(encoding="utf-8").splitlines()
+        for line, nxt in itertools.pairwise(lines):
+            cmd, expected = line.strip(), nxt.strip()
+            if cmd.startswith("planetref camera ") and expected.startswith("# {"):
+                out.append((str(f.relative_to(ROOT)), cmd, expected[2:]))
+    return out
+
+
+DOCUMENTED = _documented_outputs()
+
+
+def test_documented_outputs_were_found():
+    assert len(DOCUMENTED) >= 2
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize(("source", "command", "expected"), DOCUMENTED)
+def test_documented_command_prints_what_the_docs_say(source, command, expected, monkeypatch):
+    """The camera commands the tutorials quote, run on ../shared, print the quoted numbers."""
+    import json
+
+    args = shlex.split(command)[1:]
+    files = [a for a in args if a.startswith("../shared/")]
+    if not all((ROOT / a).exists() for a in files):
+        pytest.skip("../shared data not found")
+    monkeypatch.chdir(ROOT)
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    actual = json.loads(result.output)
+    for key, value in json.loads(expected).items():
+        # as many decimals as the docs print
+        decimals = len(str(value).split(".")[1]) if "." in str(value) else 0
+        assert actual[key] == pytest.approx(value, abs=0.6 * 10.0**-decimals), (source, key)
