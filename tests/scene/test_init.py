@@ -183,3 +183,32 @@ def test_a_dem_on_the_sphere_under_an_ellipsoid_camera_is_reported(tmp_path):
     result = init_scene(tmp_path / "s", [CcdInput(image, CTX_ISD)], ortho, dem, dem_datum="body")
     assert len(result.warnings) == 1
     assert "polar radius 3396190 m" in result.warnings[0] and "19990 m" in result.warnings[0]
+
+
+def test_append_adds_a_strip_on_the_scenes_reference(tiny_scene, tmp_path):
+    scene = tmp_path / "campaign"
+    shutil.copytree(tiny_scene / "reference", scene / "reference")
+    shutil.copytree(tiny_scene / "strips", scene / "strips")
+    strip = scene / "strips" / "strip1"
+    ccds = [CcdInput(strip / f"{c}.tif", strip / "camera.json") for c in ("ccd1", "ccd2")]
+    with pytest.raises(InputError, match="no scene manifest to add the strip to"):
+        init_scene(scene, ccds, None, None, strip_id="b", append=True)
+    ortho, dem = scene / "reference" / "ortho.tif", scene / "reference" / "dem.tif"
+    init_scene(scene, ccds, ortho, dem, strip_id="a", dem_datum="body")
+    with pytest.raises(InputError, match="--append to add a strip"):
+        init_scene(scene, ccds, ortho, dem, strip_id="b", dem_datum="body")
+    # The same CCDs again as a second strip: on the scene's reference, datum and body.
+    added = init_scene(scene, ccds[:1], None, None, strip_id="b", append=True)
+    assert added.dem_datum == "body" and added.outside_share == {"ccd1": 0.0}
+    manifest, _ = load_manifest(scene)
+    assert [s.id for s in manifest.strips] == ["a", "b"]
+    assert [c.name for c in manifest.strips[1].ccds] == ["ccd1"]
+    assert manifest.reference.ortho == "reference/ortho.tif"
+    with pytest.raises(InputError, match="already has a strip 'b'"):
+        init_scene(scene, ccds, None, None, strip_id="b", append=True)
+    with pytest.raises(InputError, match="a scene has one reference"):
+        init_scene(
+            scene, ccds, tiny_scene / "reference" / "ortho.tif", None, strip_id="c", append=True
+        )
+    with pytest.raises(InputError, match="declares dem_datum = 'body'"):
+        init_scene(scene, ccds, None, None, strip_id="c", dem_datum="areoid", append=True)

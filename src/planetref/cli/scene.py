@@ -30,15 +30,13 @@ def scene_group() -> None:
 )
 @click.option(
     "--ortho",
-    required=True,
     type=click.Path(dir_okay=False, path_type=Path),
-    help="Reference orthoimage (any map CRS of the cameras' body).",
+    help="Reference orthoimage (any map CRS of the cameras' body); with --append, the scene's.",
 )
 @click.option(
     "--dem",
-    required=True,
     type=click.Path(dir_okay=False, path_type=Path),
-    help="Reference DEM, heights in metres (any map CRS of the body).",
+    help="Reference DEM, heights in metres (any map CRS of the body); with --append, the scene's.",
 )
 @click.option(
     "--dem-datum",
@@ -68,11 +66,16 @@ def scene_group() -> None:
     help="Write the ortho and DEM cut to that window into SCENE_DIR/reference/ and use them.",
 )
 @click.option("--overwrite", is_flag=True, help="Replace an existing SCENE_DIR/scene.toml.")
+@click.option(
+    "--append",
+    is_flag=True,
+    help="Add this strip to the existing SCENE_DIR/scene.toml (a campaign of several strips).",
+)
 def scene_init_command(
     scene_dir: Path,
     ccds: tuple[tuple[Path, Path], ...],
-    ortho: Path,
-    dem: Path,
+    ortho: Path | None,
+    dem: Path | None,
     dem_datum: str | None,
     areoid: Path | None,
     strip_id: str,
@@ -80,13 +83,15 @@ def scene_init_command(
     margin_m: float,
     crop: bool,
     overwrite: bool,
+    append: bool,
 ) -> None:
     """Check one strip's images and cameras against a reference; write SCENE_DIR/scene.toml.
 
     Checks that every camera and image opens and has its camera's size, that the
     reference is on the cameras' body, how much of each CCD's footprint (through its
     camera onto the DEM) the reference covers, and the DEM's datum (refused when its
-    heights cannot tell). Prints what it found as JSON.
+    heights cannot tell). With --append the strip is added to an existing scene (a
+    campaign), on the scene's reference. Prints what it found as JSON.
     """
     from planetref.scene.init import CcdInput, init_scene
 
@@ -102,6 +107,7 @@ def scene_init_command(
         margin_m=margin_m,
         crop=crop,
         overwrite=overwrite,
+        append=append,
     )
     click.echo(
         json.dumps(

@@ -184,6 +184,27 @@ def resolve_dem_datum(
     )
 
 
+def _scene_reference(
+    scene, root: Path, ortho, dem, dem_datum: str | None
+) -> tuple[Path, Path, str, Path | None]:
+    """The reference files and datum of an existing scene; given files must be those."""
+    spec = scene.reference
+    mine = {"ortho": scene.resolve(root, spec.ortho), "dem": scene.resolve(root, spec.dem)}
+    for key, given in (("ortho", ortho), ("dem", dem)):
+        if given is not None and os.path.abspath(given) != os.path.abspath(mine[key]):
+            raise InputError(
+                f"the scene's reference {key} is {mine[key]}; a scene has one reference",
+                path=given,
+            )
+    if dem_datum is not None and dem_datum != spec.dem_datum:
+        raise InputError(
+            f"the scene declares dem_datum = {spec.dem_datum!r}, not {dem_datum!r}",
+            path=mine["dem"],
+        )
+    areoid = None if spec.areoid is None else scene.resolve(root, spec.areoid)
+    return mine["ortho"], mine["dem"], spec.dem_datum, areoid
+
+
 def _footprint(camera, ccd: str, ref, dem) -> tuple[np.ndarray, np.ndarray]:
     """Ground points (XYZ, m) of a grid of the CCD's image points on the DEM, and coverage."""
     from planetref.frontend.geometry import rays_to_ground
@@ -254,8 +275,8 @@ def _write_crop(src: Path, bounds: list[float], crs_src: object, out: Path, band
 def init_scene(
     out_dir: str | os.PathLike[str],
     ccds: list[CcdInput],
-    ortho: str | os.PathLike[str],
-    dem: str | os.PathLike[str],
+    ortho: str | os.PathLike[str] | None,
+    dem: str | os.PathLike[str] | None,
     *,
     strip_id: str = "strip1",
     name: str | None = None,
@@ -264,6 +285,7 @@ def init_scene(
     margin_m: float = 600.0,
     crop: bool = False,
     overwrite: bool = False,
+    append: bool = False,
 ) -> SceneInit:
     """Check the inputs of one strip against a reference and write ``out_dir/scene.toml``.
 
@@ -285,6 +307,9 @@ def init_scene(
         crop: Write the ortho and DEM cut to that window into ``out_dir/reference/`` and
             name those in the manifest.
         overwrite: Replace an existing ``scene.toml`` (and cropped files).
+        append: Add the strip to the existing ``scene.toml`` (a campaign of several
+            strips): its reference, body and datum are the scene's (``ortho`` and
+            ``dem`` may be ``None``; given, they must be the scene's files).
 
     Returns:
         What was checked and written.
@@ -309,8 +334,23 @@ def init_scene(
 
     root = Path(out_dir)
     target = root / MANIFEST_NAME
-    if target.exists() and not overwrite:
-        raise InputError("the scene manifest exists; pass --overwrite to replace it", path=target)
+    existing = None
+    if append:
+        if not target.exists():
+            raise InputError("no scene manifest to add the strip to", path=target)
+        if crop:
+            raise InputError("--crop cuts the reference when a scene is made, not with --append")
+        existing, _ = load_manifest(target)
+        ortho, dem, dem_datum, areoid = _scene_reference(existing, root, ortho, dem, dem_datum)
+        if any(s.id == strip_id for s in existing.strips):
+            raise InputError(f"the scene already has a strip {strip_id!r}", path=target)
+    elif target.exists() and not overwrite:
+        raise InputError(
+            "the scene manifest exists; pass --overwrite to replace it or --append to add a strip",
+            path=target,
+        )
+    if ortho is None or dem is None:
+        raise InputError("a new scene needs its reference ortho and DEM (--ortho, --dem)")
     ortho, dem = Path(ortho), Path(dem)
     areoid = None if areoid is None else Path(areoid)
     for p, what in ((ortho, "reference ortho"), (dem, "reference DEM"), (areoid, "areoid")):
@@ -332,6 +372,16 @@ def init_scene(
         for image in images.values():
             image.close()
         body = camera.ellipsoid
+        if existing is not None and (
+            abs(existing.body.semi_major_m - float(body.semi_major_m)) > 1.0
+            or abs(existing.body.semi_minor_m - float(body.semi_minor_m)) > 1.0
+        ):
+            raise InputError(
+                f"the cameras' body ({float(body.semi_major_m):.0f} / "
+                f"{float(body.semi_minor_m):.0f} m) is not the scene's "
+                f"({existing.body.semi_major_m:.0f} / {existing.body.semi_minor_m:.0f} m)",
+                path=ccds[0].camera,
+            )
         check_body(body, ref, "reference ortho", ortho)
         check_body(body, terrain, "reference DEM", dem)
         result = SceneInit(target, (float(body.semi_major_m), float(body.semi_minor_m)))
@@ -396,6 +446,10 @@ def init_scene(
             "semi_major_m": result.body[0],
             "semi_minor_m": result.body[1],
         }
+        if existing is not None:  # the scene as it is, plus this strip
+            whole = manifest_to_dict(existing)
+            whole["strips"].append(doc["strips"][0])  # type: ignore[index]
+            doc = whole
         manifest = validate_settings(SceneManifest, doc, source=str(target), what="scene manifest")
     finally:
         ref.close()
