@@ -212,3 +212,54 @@ def test_append_adds_a_strip_on_the_scenes_reference(tiny_scene, tmp_path):
         )
     with pytest.raises(InputError, match="declares dem_datum = 'body'"):
         init_scene(scene, ccds, None, None, strip_id="c", dem_datum="areoid", append=True)
+
+
+PLEIADES = SHARED / "data" / "pleiades_rpc" / "img_01.tif"
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not PLEIADES.exists(), reason="../shared/data/pleiades_rpc not found")
+def test_a_real_rpc_product_on_an_earth_reference(tmp_path):
+    """A Pléiades crop whose RPC is in its own tags: the body is the Earth's, as is the CRS."""
+    with rasterio.open(PLEIADES) as ds:
+        n_lines, n_samples = ds.height, ds.width
+    camera = load_camera(PLEIADES)
+    corners = camera.image_to_ground(
+        [0.5, 0.5, n_lines - 0.5, n_lines - 0.5],
+        [0.5, n_samples - 0.5, 0.5, n_samples - 0.5],
+        100.0,
+    )
+    lon, lat, _ = xyz_to_lonlat(corners, camera.ellipsoid, "planetographic")
+    # A geographic WGS 84 reference (geodetic latitudes) around the crop, and a flat DEM
+    # 100 m above the ellipsoid.
+    res = 1e-4  # degrees (~11 m)
+    west, north = float(lon.min()) - 0.01, float(lat.max()) + 0.01
+    w = int((lon.max() - lon.min() + 0.02) / res)
+    h = int((lat.max() - lat.min() + 0.02) / res)
+    for name, value, dtype in (("ortho", 100, np.uint8), ("dem", 100.0, np.float32)):
+        with rasterio.open(
+            tmp_path / f"{name}.tif",
+            "w",
+            driver="GTiff",
+            width=w,
+            height=h,
+            count=1,
+            dtype=dtype,
+            crs="EPSG:4326",
+            transform=from_origin(west, north, res, res),
+        ) as ds:
+            ds.write(np.full((h, w), value, dtype), 1)
+    ccd = [CcdInput(PLEIADES, PLEIADES, name="img_01")]
+    with pytest.raises(InputError, match="cannot tell the DEM's datum"):
+        init_scene(tmp_path / "s", ccd, tmp_path / "ortho.tif", tmp_path / "dem.tif")
+    result = init_scene(
+        tmp_path / "s", ccd, tmp_path / "ortho.tif", tmp_path / "dem.tif", dem_datum="body"
+    )
+    assert result.body[0] == pytest.approx(6378137.0)
+    assert result.outside_share == {"img_01": 0.0}
+    # The footprint is reported in planetocentric (geocentric) latitudes.
+    lon, lat, _ = xyz_to_lonlat(corners, camera.ellipsoid)
+    expected = [lon.min(), lat.min(), lon.max(), lat.max()]
+    assert result.footprints["img_01"] == pytest.approx(expected, abs=1e-5)
+    manifest, _ = load_manifest(result.path)
+    assert manifest.strips[0].ccds[0].camera == str(PLEIADES.resolve())
