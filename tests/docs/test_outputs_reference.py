@@ -32,3 +32,14 @@ def test_every_file_of_a_georef_run_is_documented(tiny_sift_run):
     assert not undocumented, (
         f"files of a georef run missing from docs/reference/outputs.md: {undocumented}"
     )
+
+
+def test_every_column_of_the_mcp_table_is_documented(tiny_sift_run):
+    import pyarrow.parquet as pq
+
+    text = (ROOT / "docs" / "reference" / "outputs.md").read_text(encoding="utf-8")
+    section = text.split("**The MCP table**", 1)[1].split("**Orthoimages**", 1)[0]
+    documented = set(re.findall(r"`([a-z_]+)`", section))
+    columns = pq.read_schema(Path(tiny_sift_run.run_dir) / "strip1" / "mcps.parquet").names
+    assert len(columns) > 10
+    assert not set(columns) - documented, sorted(set(columns) - documented)
