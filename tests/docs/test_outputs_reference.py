@@ -43,3 +43,16 @@ def test_every_column_of_the_mcp_table_is_documented(tiny_sift_run):
     columns = pq.read_schema(Path(tiny_sift_run.run_dir) / "strip1" / "mcps.parquet").names
     assert len(columns) > 10
     assert not set(columns) - documented, sorted(set(columns) - documented)
+
+
+def test_every_key_of_a_georef_report_is_documented(tiny_sift_run):
+    import json
+
+    text = (ROOT / "docs" / "reference" / "outputs.md").read_text(encoding="utf-8")
+    section = text.split("## `report.json` of a georef run", 1)[1].split("\n## ", 1)[0]
+    documented = set(re.findall(r"`([A-Za-z_0-9]+)", section))
+    report = json.loads((Path(tiny_sift_run.run_dir) / "report.json").read_text())
+    missing = {k for k in report if k not in documented}
+    for block in ("matching", "adjustment", "check", "timing_s"):
+        missing |= {f"{block}.{k}" for k in report.get(block) or {} if k not in documented}
+    assert not missing, sorted(missing)
