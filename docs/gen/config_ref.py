@@ -231,6 +231,8 @@ def walk(model: type[BaseModel], prefix: str = "") -> Iterator[Key]:
 
 
 def _cell(text: str) -> str:
+    # Sphinx roles of the docstrings (:class:`~a.b.C`) read as plain code here
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"`\1`", text)
     return text.replace("|", "\\|").replace("\n", " ")
 
 
