@@ -32,6 +32,7 @@ COMMANDS: dict[str, str] = {
     "georef": "planetref.cli.georef:georef_command",
     "compare": "planetref.cli.georef:compare_command",
     "demo": "planetref.cli.georef:demo_command",
+    "scene": "planetref.cli.scene:scene_group",
     "weights": "planetref.cli.weights:weights_group",
 }
 

@@ -40,6 +40,17 @@ class GeorefConfig(Settings):
     adjust``) and runs with its own default options unless ``[matchers.<name>]`` says
     otherwise, so that all matchers run on equal terms. Sub-pixel refinement is one
     setting for all matchers (``[frontend.refine]``).
+
+    Attributes:
+        frontend: Tiling, matching stages and verification of the front end.
+        adjust: The bundle adjustment (the same settings as ``planetref adjust``).
+        mcp: How matched control points enter the adjustment.
+        ortho: The orthoimages written through the adjusted cameras.
+        campaign: How the strips of a multi-strip scene are adjusted.
+        matchers: Options per matcher, ``[matchers.<name>]`` (keywords of that matcher's
+            constructor, e.g. ``max_keypoints`` of ``disk-lightglue``; ``planetref
+            matchers`` and ``Matcher.option_names()`` list them); unknown options are
+            refused when the matcher is built.
     """
 
     frontend: FrontendConfig = FrontendConfig()

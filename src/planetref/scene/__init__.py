@@ -1,1 +1,1 @@
-"""The scene: its manifest (``scene.toml``) and its inputs, opened and checked."""
+"""The scene: its manifest (``scene.toml``), its inputs opened and checked, and ``scene init``."""
