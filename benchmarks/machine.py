@@ -77,6 +77,6 @@ def result_record(
 
 def write_result(path: str, record: dict[str, object]) -> None:
     """Write a result record as JSON, atomically (temporary name, then rename)."""
-    from planetref.atomic import write_json_atomic
+    from planetref.runtime.atomic import write_json_atomic
 
     write_json_atomic(path, record, indent=1)

@@ -207,7 +207,7 @@ def _scene_reference(
 
 def _footprint(camera, ccd: str, ref, dem) -> tuple[np.ndarray, np.ndarray]:
     """Ground points (XYZ, m) of a grid of the CCD's image points on the DEM, and coverage."""
-    from planetref.frontend.geometry import rays_to_ground
+    from planetref.camera.mapping import rays_to_ground
 
     n_lines, n_samples = camera.image_size(ccd)
     line, sample = np.meshgrid(
@@ -243,7 +243,7 @@ def _write_crop(src: Path, bounds: list[float], crs_src: object, out: Path, band
     from rasterio.warp import transform_bounds
     from rasterio.windows import Window, from_bounds
 
-    from planetref.atomic import atomic_path
+    from planetref.runtime.atomic import atomic_path
 
     with rasterio.open(src) as ds:
         b = bounds
@@ -319,9 +319,9 @@ def init_scene(
             image of the wrong size, a reference on another body, no overlap, a datum
             that cannot be told.
     """
-    from planetref.atomic import write_text_atomic
-    from planetref.pipeline.inputs import check_body, strip_cameras
-    from planetref.pipeline.scene import (
+    from planetref.runtime.atomic import write_text_atomic
+    from planetref.scene.inputs import check_body, strip_cameras
+    from planetref.scene.manifest import (
         MANIFEST_FORMAT,
         MANIFEST_NAME,
         SceneManifest,
@@ -330,7 +330,7 @@ def init_scene(
     )
     from planetref.raster.dem import GridTerrain
     from planetref.raster.ortho import ReferenceOrtho
-    from planetref.settings import validate_settings
+    from planetref.runtime.settings import validate_settings
 
     root = Path(out_dir)
     target = root / MANIFEST_NAME
