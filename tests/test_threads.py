@@ -7,11 +7,11 @@ import os
 import pytest
 
 from planetref.errors import InputError
+from planetref.runtime.execute import SchedulerSpec, make_executor, parse_scheduler
 from planetref.runtime.threads import (
     ThreadBudget,
     apply_thread_budget,
     available_cores,
-    scheduler_workers,
     worker_threads,
 )
 
@@ -19,10 +19,22 @@ from planetref.runtime.threads import (
 def test_worker_share_and_scheduler_parsing():
     assert worker_threads(16, 4) == 4
     assert worker_threads(2, 4) == 1  # never zero: oversubscription is bounded at 1 each
-    assert scheduler_workers("pool:3") == 3
-    assert scheduler_workers("dask-local:2") == 2
-    assert scheduler_workers("tcp://127.0.0.1:8786") == 0
-    assert scheduler_workers(None) == 0
+    assert parse_scheduler("pool:3").local_workers == 3
+    assert parse_scheduler("dask-local:2").local_workers == 2
+    tcp = parse_scheduler("tcp://127.0.0.1:8786?timeout=5")
+    assert (tcp.kind, tcp.local_workers, tcp.address, tcp.timeout_s) == (
+        "tcp",
+        0,
+        "tcp://127.0.0.1:8786",
+        5.0,
+    )
+    assert parse_scheduler(None) == SchedulerSpec() and SchedulerSpec().local_workers == 0
+    # One parser: a parsed spec passes through unchanged, an executor is built from it.
+    spec = parse_scheduler("pool:2")
+    assert parse_scheduler(spec) is spec
+    assert make_executor(spec).name == "pool:2"
+    with pytest.raises(InputError, match="unknown scheduler"):
+        parse_scheduler("pool")
     b = ThreadBudget.resolve(8, 3)
     assert (b.threads, b.per_worker) == (8, 2)
     assert ThreadBudget.resolve(None).threads == available_cores()

@@ -17,6 +17,6 @@ def test_csm_bracketed_fallback_finds_the_lines_of_a_real_isd():
     xyz = cam.image_to_ground(line, sample, -1500.0)
     found, ok = cam._bracket_lines(xyz)
     assert ok.all()
-    off = cam._detector_offset(found, xyz)[0]
+    off = cam.detector_offset(found, xyz)[0]
     assert np.abs(off).max() < 1e-9
     assert np.abs(found + off - line).max() < 1e-6

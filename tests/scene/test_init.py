@@ -16,8 +16,8 @@ from planetref.camera.io import load_camera
 from planetref.cli import main
 from planetref.errors import CrsError, InputError
 from planetref.geometry.geodesy import xyz_to_lonlat
-from planetref.scene.manifest import load_manifest
 from planetref.scene.init import CcdInput, init_scene, resolve_dem_datum
+from planetref.scene.manifest import load_manifest
 
 SHARED = Path(__file__).resolve().parents[3] / "shared"
 CTX_ISD = SHARED / "data" / "ale" / "ctx_isd.json"

@@ -7,18 +7,21 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
+
+if TYPE_CHECKING:  # pragma: no cover
+    from planetref.runtime.execute import SchedulerSpec
 
 __all__ = ["compare_command", "demo_command", "georef_command"]
 
 
-def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
-    from planetref.runtime.execute import make_executor
+def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> Any:
+    """Parse ``--scheduler`` once into a typed spec (an InputError is one line)."""
+    from planetref.runtime.execute import parse_scheduler
 
-    make_executor(value)  # parse only (an InputError is one line); nothing starts yet
-    return value
+    return parse_scheduler(value)
 
 
 @dataclass(frozen=True)
@@ -28,7 +31,7 @@ class _RunOptions:
     config_path: str | None
     weights_dir: str | None
     overwrite: bool
-    scheduler: str | None
+    scheduler: SchedulerSpec
     threads: int | None
     device: str
 
@@ -56,7 +59,7 @@ def _common(command: Any) -> Any:
         config_path: str | None,
         weights_dir: str | None,
         overwrite: bool,
-        scheduler: str | None,
+        scheduler: SchedulerSpec,
         threads: int | None,
         device: str,
         **kwargs: Any,
@@ -108,14 +111,14 @@ def _common(command: Any) -> Any:
 
 
 def _runtime(
-    config_path: str | None, threads: int | None, device: str, scheduler: str | None
+    config_path: str | None, threads: int | None, device: str, scheduler: SchedulerSpec
 ) -> Any:
     """Apply the thread budget and load the config, with ``device`` on the learned matchers."""
     from planetref.matching.registry import MATCHERS
     from planetref.pipeline.config import load_config
-    from planetref.runtime.threads import ThreadBudget, apply_thread_budget, scheduler_workers
+    from planetref.runtime.threads import ThreadBudget, apply_thread_budget
 
-    apply_thread_budget(ThreadBudget.resolve(threads, scheduler_workers(scheduler)))
+    apply_thread_budget(ThreadBudget.resolve(threads, scheduler.local_workers))
     cfg = load_config(config_path)
     if device != "cpu":
         # Checked here, before any work (one line when the device does not exist); "auto"

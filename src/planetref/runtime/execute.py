@@ -35,8 +35,10 @@ __all__ = [
     "InProcessExecutor",
     "LocalPoolExecutor",
     "SchedulerError",
+    "SchedulerSpec",
     "TaskOutcome",
     "make_executor",
+    "parse_scheduler",
 ]
 
 SCHEDULER_HELP = "inprocess (default), pool:N, dask-local:N, or tcp://HOST:PORT[?timeout=SECONDS]"
@@ -288,27 +290,56 @@ class DaskExecutor(Executor):
             self._cluster = None
 
 
-def make_executor(spec: str | Executor | None) -> Executor:
-    """An executor from a ``--scheduler`` spec.
+@dataclass(frozen=True)
+class SchedulerSpec:
+    """A ``--scheduler`` spec, parsed once (:func:`parse_scheduler`).
+
+    Attributes:
+        kind: ``"inprocess"``, ``"pool"``, ``"dask-local"`` or ``"tcp"``.
+        workers: Worker processes started on this machine (``pool``/``dask-local``), else 0.
+        address: ``tcp://HOST:PORT`` of a running Dask scheduler (``tcp`` only).
+        timeout_s: Connection timeout of a ``tcp`` scheduler (seconds).
+    """
+
+    kind: str = "inprocess"
+    workers: int = 0
+    address: str | None = None
+    timeout_s: float = CONNECT_TIMEOUT_S
+
+    @property
+    def local_workers(self) -> int:
+        """Worker processes the spec starts on this machine (0: none or remote)."""
+        return self.workers if self.kind in ("pool", "dask-local") else 0
+
+    def executor(self) -> Executor:
+        """A new executor of this kind (nothing is started until it is first used)."""
+        if self.kind == "pool":
+            return LocalPoolExecutor(self.workers)
+        if self.kind == "dask-local":
+            return DaskExecutor(f"dask-local:{self.workers}")
+        if self.kind == "tcp":
+            return DaskExecutor(str(self.address), connect_timeout_s=self.timeout_s)
+        return InProcessExecutor()
+
+
+def parse_scheduler(spec: str | SchedulerSpec | None) -> SchedulerSpec:
+    """Parse a ``--scheduler`` spec (the one parser of it).
 
     Args:
         spec: None or ``"inprocess"``; ``"pool:N"``; ``"dask-local:N"`` (N from 1 to
             :data:`MAX_WORKERS`); ``"tcp://HOST:PORT"`` (port 1-65535), optionally with
             ``?timeout=SECONDS`` (connection timeout, default :data:`CONNECT_TIMEOUT_S`);
-            or an executor (returned as is).
-
-    Returns:
-        The executor (nothing is started until it is first used).
+            or a parsed spec (returned as is).
 
     Raises:
         InputError: Any other spec (the message lists the valid forms), a worker count or
             port out of range.
     """
-    if spec is None or isinstance(spec, Executor):
-        return spec or InProcessExecutor()
-    s = str(spec).strip()
+    if isinstance(spec, SchedulerSpec):
+        return spec
+    s = "" if spec is None else str(spec).strip()
     if s.lower() in ("", "inprocess", "in-process"):
-        return InProcessExecutor()
+        return SchedulerSpec()
     m = re.fullmatch(r"(pool|dask-local):(\d{1,12})", s)
     if m:
         n = int(m.group(2))
@@ -318,7 +349,7 @@ def make_executor(spec: str | Executor | None) -> Executor:
                 f"valid: {SCHEDULER_HELP}",
                 field="scheduler",
             )
-        return LocalPoolExecutor(n) if m.group(1) == "pool" else DaskExecutor(f"dask-local:{n}")
+        return SchedulerSpec(m.group(1), n)
     m = re.fullmatch(
         r"(tcp://(?:[^\s:/?\[\]]+|\[[0-9A-Fa-f:.]+\]):(\d{1,12}))/?(?:\?timeout=([^&\s]+))?", s
     )
@@ -337,8 +368,23 @@ def make_executor(spec: str | Executor | None) -> Executor:
                     f"timeout={m.group(3)} must be a number of seconds in (0, 3600]",
                     field="scheduler",
                 )
-        return DaskExecutor(m.group(1), connect_timeout_s=timeout)
+        return SchedulerSpec("tcp", 0, m.group(1), timeout)
     raise InputError(
         f"unknown scheduler {spec!r}; valid: {SCHEDULER_HELP} (N a positive integer)",
         field="scheduler",
     )
+
+
+def make_executor(spec: str | SchedulerSpec | Executor | None) -> Executor:
+    """An executor from a ``--scheduler`` spec (see :func:`parse_scheduler`).
+
+    Returns:
+        The executor given, or a new one of the spec's kind (nothing is started until it
+        is first used).
+
+    Raises:
+        InputError: An invalid spec (one line).
+    """
+    if isinstance(spec, Executor):
+        return spec
+    return parse_scheduler(spec).executor()

@@ -30,7 +30,6 @@ __all__ = [
     "apply_thread_budget",
     "available_cores",
     "compute_threads",
-    "scheduler_workers",
     "single_threaded_blas",
     "worker_threads",
 ]
@@ -98,16 +97,6 @@ class ThreadBudget:
         if total < 1:
             raise InputError(f"--threads must be >= 1, got {total}", field="threads")
         return cls(total, worker_threads(total, n_workers) if n_workers > 0 else total)
-
-
-def scheduler_workers(spec: str | None) -> int:
-    """Worker processes a ``--scheduler`` spec starts on this machine (0: none or remote)."""
-    if not spec:
-        return 0
-    head, _, n = spec.partition(":")
-    if head in ("pool", "dask-local") and n.isdigit():
-        return int(n)
-    return 0
 
 
 def _limit_blas(n: int) -> None:

@@ -319,7 +319,10 @@ def init_scene(
             image of the wrong size, a reference on another body, no overlap, a datum
             that cannot be told.
     """
+    from planetref.raster.dem import GridTerrain
+    from planetref.raster.ortho import ReferenceOrtho
     from planetref.runtime.atomic import write_text_atomic
+    from planetref.runtime.settings import validate_settings
     from planetref.scene.inputs import check_body, strip_cameras
     from planetref.scene.manifest import (
         MANIFEST_FORMAT,
@@ -328,9 +331,6 @@ def init_scene(
         load_manifest,
         manifest_to_dict,
     )
-    from planetref.raster.dem import GridTerrain
-    from planetref.raster.ortho import ReferenceOrtho
-    from planetref.runtime.settings import validate_settings
 
     root = Path(out_dir)
     target = root / MANIFEST_NAME

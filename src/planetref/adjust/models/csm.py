@@ -182,7 +182,7 @@ class CsmParameterization:
         shifts = np.concatenate([np.eye(3), -np.eye(3)]) * g
         pts = np.concatenate([xyz, xyz, (xyz[None, :, :] + shifts[:, None, :]).reshape(-1, 3)])
         lines = np.concatenate([at + dl, at - dl, np.tile(at, 6)])
-        off, smp, _ = cam._detector_offset(lines, pts)
+        off, smp, _ = cam.detector_offset(lines, pts)
         off, smp = off.reshape(8, m), smp.reshape(8, m)
         with np.errstate(invalid="ignore", divide="ignore"):
             g_l = (off[0] - off[1]) / (2 * dl)
@@ -198,8 +198,8 @@ class CsmParameterization:
                 xp, xm = x.copy(), x.copy()
                 xp[j] += h
                 xm[j] -= h
-                op, sp_, _ = self._camera(xp)._detector_offset(at, xyz)
-                om, sm, _ = self._camera(xm)._detector_offset(at, xyz)
+                op, sp_, _ = self._camera(xp).detector_offset(at, xyz)
+                om, sm, _ = self._camera(xm).detector_offset(at, xyz)
                 d_params[:, 0, j] = -((op - om) / (2 * h)) / g_l
                 d_params[:, 1, j] = (sp_ - sm) / (2 * h) + s_l * d_params[:, 0, j]
         self._camera(x)  # leave the cache on the nominal parameters

@@ -417,10 +417,19 @@ class CsmLineScanCamera:
 
     # -- ground -> image ----------------------------------------------------------------
 
-    def _detector_offset(
+    def detector_offset(
         self, line: NDArray[np.float64], xyz: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Port of usgscsm's ``calcDetectorLineErr``: where the detector sees ``xyz`` at ``line``.
+
+        Public because the adjustment's partials are built on it: the implicit partials of
+        ``ground_to_image`` follow from its derivatives along the line and the ground (the
+        line that images a point is the root of its line offset), as usgscsm's sensor and
+        ground partials do.
+
+        Args:
+            line: Image lines (pixel-corner convention), ``(M,)``.
+            xyz: Body-fixed points (metres), ``(M, 3)``.
 
         Returns:
             ``(line_offset, sample, look_z)``: the image-line offset of the point from the
@@ -496,9 +505,9 @@ class CsmLineScanCamera:
         """Secant iterations on the detector line offset (usgscsm's groundToImage)."""
         nl = float(self._isd.image_lines)
         l0 = line0.copy()
-        g0 = self._detector_offset(l0, xyz)[0]
+        g0 = self.detector_offset(l0, xyz)[0]
         l1 = l0 + 0.1
-        g1 = self._detector_offset(l1, xyz)[0]
+        g1 = self.detector_offset(l1, xyz)[0]
         done = np.abs(g1) < _G2I_TOLERANCE_PX
         for _ in range(40):
             act = np.flatnonzero(~done & np.isfinite(g1) & np.isfinite(g0))
@@ -509,7 +518,7 @@ class CsmLineScanCamera:
             step = np.where(np.isfinite(step), step, g1[act])
             step = np.clip(step, -nl, nl)
             l2 = l1[act] + step
-            g2 = self._detector_offset(l2, xyz[act])[0]
+            g2 = self.detector_offset(l2, xyz[act])[0]
             l0[act], g0[act] = l1[act], g1[act]
             l1[act], g1[act] = l2, g2
             done[act] = np.abs(g2) < _G2I_TOLERANCE_PX
@@ -530,7 +539,7 @@ class CsmLineScanCamera:
         nl = float(self._isd.image_lines)
 
         def residual(x: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.float64]:
-            return self._detector_offset(x, xyz[rows])[0]
+            return self.detector_offset(x, xyz[rows])[0]
 
         bracket = bracket_first_sign_change(
             residual, np.linspace(-0.5 * nl, 1.5 * nl, 65), len(xyz)
@@ -571,7 +580,7 @@ class CsmLineScanCamera:
         xs = np.where(finite[:, None], x, 0.0)
         line, ok = self._solve_lines(xs, self._initial_lines(xs))
         line = np.where(ok, line, self._isd.image_lines / 2.0)
-        offset, sample, depth = self._detector_offset(line, xs)
+        offset, sample, depth = self.detector_offset(line, xs)
         line = line + offset
         valid = (
             ok
