@@ -336,3 +336,18 @@ def test_a_failed_download_is_not_a_failed_write(tmp_path: Path) -> None:
     with pytest.raises(urllib.error.URLError), atomic_path(target):
         raise urllib.error.URLError("Name or service not known")
     assert list(tmp_path.iterdir()) == []  # nothing left behind
+
+
+def test_one_json_writer_refuses_nan_unless_told_to_write_null(tmp_path: Path) -> None:
+    import numpy as np
+
+    doc = {"rmse": float("nan"), "n": np.int64(3), "v": np.array([1.5, np.inf])}
+    with pytest.raises(ValueError, match="JSON compliant"):
+        write_json_atomic(tmp_path / "camera.json", {"rmse": float("nan")})
+    assert not (tmp_path / "camera.json").exists()  # nothing half-written
+    write_json_atomic(tmp_path / "report.json", doc, nan_as_null=True)
+    assert json.loads((tmp_path / "report.json").read_text()) == {
+        "rmse": None,
+        "n": 3,
+        "v": [1.5, None],
+    }

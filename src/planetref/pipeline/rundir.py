@@ -38,7 +38,7 @@ from typing import Any
 from planetref import __version__
 from planetref.errors import InputError, OutputError, RunDirError
 from planetref.runtime.atomic import json_safe, read_only_mode, watch_outputs
-from planetref.runtime.atomic import write_json_atomic as _write_json
+from planetref.runtime.atomic import write_json_atomic
 
 __all__ = [
     "FORMAT",
@@ -49,7 +49,6 @@ __all__ = [
     "check_output_file",
     "config_digest",
     "file_fingerprint",
-    "write_json_atomic",
 ]
 
 MARKER = "run.json"
@@ -68,11 +67,6 @@ def config_digest(doc: Mapping[str, Any]) -> str:
     """A short stable digest of a JSON-serialisable configuration."""
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def write_json_atomic(path: str | os.PathLike[str], doc: Any) -> Path:
-    """Write JSON (numpy values converted, NaN written as null) atomically."""
-    return _write_json(path, json_safe(doc), indent=2)
 
 
 def file_fingerprint(path: str | os.PathLike[str], *, full: bool = False) -> dict[str, Any]:
@@ -395,7 +389,7 @@ class RunDir:
         }
         self._saving = True
         try:
-            write_json_atomic(self.path / MARKER, doc)
+            write_json_atomic(self.path / MARKER, doc, indent=2, nan_as_null=True)
         finally:
             self._saving = False
 
@@ -448,7 +442,7 @@ class RunDir:
 
     def write_json(self, name: str, doc: Any) -> Path:
         """Write ``doc`` as JSON to ``name`` inside the run folder, atomically."""
-        return write_json_atomic(self.file(name), doc)
+        return write_json_atomic(self.file(name), doc, indent=2, nan_as_null=True)
 
     def finish(self) -> None:
         """Record every file that appeared during the run, and release the lock."""

@@ -214,6 +214,19 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
-def write_json_atomic(path: str | os.PathLike[str], doc: Any, *, indent: int = 1) -> Path:
-    """Write JSON atomically; NaN and infinities are refused (``allow_nan=False``)."""
+def write_json_atomic(
+    path: str | os.PathLike[str], doc: Any, *, indent: int = 1, nan_as_null: bool = False
+) -> Path:
+    """Write JSON atomically (the one JSON writer).
+
+    Args:
+        path: The file.
+        doc: JSON types, or numpy values and paths when ``nan_as_null``.
+        indent: Indentation.
+        nan_as_null: Convert with :func:`json_safe` first: numpy values to Python, NaN
+            and infinities to ``null`` (reports, where "not measured" is a value). Off, a
+            NaN or infinity is refused (``allow_nan=False``: cameras, where it is a bug).
+    """
+    if nan_as_null:
+        doc = json_safe(doc)
     return write_text_atomic(path, json.dumps(doc, indent=indent, allow_nan=False) + "\n")
