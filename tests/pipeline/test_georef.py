@@ -212,6 +212,36 @@ def test_rerun_resumes_and_never_clobbers(
     assert (foreign / "precious.txt").read_text() == "keep me"
 
 
+def test_deleted_adjustment_redoes_only_the_adjustment_and_what_follows(
+    tiny_scene, tmp_path, ref_grid, monkeypatch, tiny_sift_run
+):
+    """Each stage's artefact is found on disk: a lost adjustment is redone, nothing before it."""
+    import planetref.frontend.tile
+
+    first = tiny_sift_run
+    out = tmp_path / "run"
+    shutil.copytree(first.run_dir, out)
+    journal = (out / "strip1" / "tiles.jsonl").read_text()
+    mcps = (out / "strip1" / "mcps.parquet").read_bytes()
+    residuals = (out / "strip1" / "adjustment" / "residuals.csv").read_text()
+    shutil.rmtree(out / "strip1" / "adjustment")
+    calls = []
+    real = planetref.frontend.tile.match_tile
+    monkeypatch.setattr(
+        planetref.frontend.tile, "match_tile", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    again = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
+    assert calls == []  # matching came from the journal: no tile matched again
+    assert (out / "strip1" / "tiles.jsonl").read_text() == journal
+    assert (out / "strip1" / "mcps.parquet").read_bytes() == mcps  # the same MCPs
+    # The adjustment and its outputs are back, identical (deterministic for the inputs).
+    assert (out / "strip1" / "adjustment" / "residuals.csv").read_text() == residuals
+    assert sorted((out / "strip1" / "adjustment" / "isd").glob("*.json"))
+    assert again.report["strips"]["strip1"]["adjustment"] == first.report["strips"]["strip1"][
+        "adjustment"
+    ]
+
+
 def test_georef_cli(tiny_scene, tmp_path, ref_grid_toml):
     args = ["-q", "georef", str(tiny_scene), "--matcher", "sift", "--out", str(tmp_path / "cli")]
     r = CliRunner().invoke(main, [*args, "--config", str(ref_grid_toml)])
