@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from planetref.errors import InputError
 from planetref.matching.base import BaseMatcher, Matches
 
-__all__ = ["NccMatcher", "refine_matches_ncc"]
+__all__ = ["NccMatcher", "correlate_batch", "correlate_shared", "refine_matches_ncc"]
 
 Subpixel = Literal["quadratic", "parabola"]
 
@@ -285,7 +285,9 @@ class NccMatcher(BaseMatcher):
             else:
                 rows, cols = self._dense_grid(score)
             dx0, dy0 = self.initial_offset
-            out = correlate_batch(
+            # Dense templates overlap: the compiled path shares their products.
+            correlate = correlate_batch if self.dense_spacing_px is None else correlate_shared
+            out = correlate(
                 image0,
                 image1,
                 bad1,
@@ -393,6 +395,217 @@ def correlate_batch(
         y1[sl] = r1[sl] - radius + i + dy + 0.5
         conf[sl] = np.minimum(value, 1.0)
         ok[sl] = good & reachable[sl]
+    return x1, y1, conf, ok
+
+
+#: Templates correlated together by :func:`correlate_shared` (memory: BAND x
+#: (2 search_radius + 1)^2 x 4 B, 45 MB at the fine stage's 105 x 105 surfaces).
+BAND = 1024
+#: Block of template centres sharing one set of running sums (rows, columns): the sums
+#: cost ``(2t + 2 BLOCK_ROWS) x (BLOCK_COLS + 2t)`` per displacement, about 70 products
+#: per template and displacement at the fine stage's 41 px templates every 4 px.
+BLOCK_ROWS = 96
+BLOCK_COLS = 128
+
+
+def correlate_shared(
+    image0: NDArray[np.float32],
+    image1: NDArray[np.float32],
+    bad1: NDArray[np.bool_],
+    r0: NDArray[np.int64],
+    c0: NDArray[np.int64],
+    r1: NDArray[np.int64],
+    c1: NDArray[np.int64],
+    settings: NccMatcher,
+    valid0: NDArray[np.bool_] | None = None,
+    *,
+    compiled: bool = True,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """:func:`correlate_batch` with the templates' overlap shared (compiled), same results.
+
+    Dense templates a few pixels apart cover nearly the same pixels, and they all look
+    for the same displacement range when their predicted positions differ from their
+    centres by one offset (the dense fine stage). Whole templates (no invalid pixel)
+    then go through :mod:`planetref.matching._numba_ncc`: one pass of box sums of
+    products per candidate displacement for a band of templates, instead of one FFT
+    correlation per template; the surfaces equal the reference's to its float32
+    rounding and the peak rules are its own. Partial templates (``valid0``), scattered
+    offsets, templates not inside image 0, or numba missing (``compiled=False``, or the
+    import fails): :func:`correlate_batch` itself.
+
+    Returns:
+        ``(x1, y1, ncc, ok)`` per template, corner-convention pixels.
+    """
+    from planetref._optional import optional_module
+    from planetref.matching.correlation import quadratic_peaks
+
+    mod = optional_module("planetref.matching._numba_ncc", "compiled NCC") if compiled else None
+    n = len(r0)
+    t, radius = settings.template_radius, settings.search_radius
+    h0, w0 = image0.shape
+    h1, w1 = image1.shape
+    dr, dc = r1 - r0, c1 - c0
+    if (
+        mod is None
+        or n == 0
+        or np.ptp(dr) > 0
+        or np.ptp(dc) > 0
+        or r0.min() < t
+        or c0.min() < t
+        or r0.max() >= h0 - t
+        or c0.max() >= w0 - t
+    ):
+        return correlate_batch(image0, image1, bad1, r0, c0, r1, c1, settings, valid0)
+    side, span = 2 * t + 1, 2 * radius + 1
+    x1 = np.zeros(n)
+    y1 = np.zeros(n)
+    conf = np.zeros(n)
+    ok = np.zeros(n, bool)
+    partial = np.zeros(n, bool)
+    if valid0 is not None:
+        holes = cv2.boxFilter(
+            (~valid0).astype(np.float64),
+            -1,
+            (side, side),
+            normalize=False,
+            borderType=cv2.BORDER_CONSTANT,
+        )
+        partial = holes[r0, c0] > 0.5
+    d_r, d_c = int(dr[0]), int(dc[0])
+    # image 1's region that the search windows read, zeros outside image 1 (blocked)
+    top = int(r0.min()) + d_r - radius - t
+    left = int(c0.min()) + d_c - radius - t
+    bottom = int(r0.max()) + d_r + radius + t + 1
+    right = int(c0.max()) + d_c + radius + t + 1
+    b = np.zeros((bottom - top, right - left))
+    blocked = np.ones(b.shape, bool)
+    rr, cc = np.mgrid[0:h1, 0:w1]
+    inside = (rr >= t) & (rr < h1 - t) & (cc >= t) & (cc < w1 - t)
+    sr0, sr1 = max(top, 0), min(bottom, h1)
+    sc0, sc1 = max(left, 0), min(right, w1)
+    if sr1 > sr0 and sc1 > sc0:
+        part = image1[sr0:sr1, sc0:sc1].astype(np.float64)
+        # ZNCC ignores a constant: centred images keep the running sums well conditioned.
+        b[sr0 - top : sr1 - top, sc0 - left : sc1 - left] = np.nan_to_num(
+            part - np.nanmean(part), nan=0.0, posinf=0.0, neginf=0.0
+        )
+        blocked[sr0 - top : sr1 - top, sc0 - left : sc1 - left] = (
+            bad1[sr0:sr1, sc0:sc1] | ~inside[sr0:sr1, sc0:sc1]
+        )
+    ko = np.arange(side)
+    # candidate centre (r0 + d_r - radius + i, ...) in the region's indices
+    off_r, off_c = d_r - radius - top, d_c - radius - left
+    surf = np.empty((min(BAND, n), span, span), np.float32)
+
+    def finish(sel: NDArray[np.int64], res: NDArray[np.float32]) -> None:
+        m = len(sel)
+        pi = np.empty(m, np.int64)
+        pj = np.empty(m, np.int64)
+        peak = np.empty(m)
+        patch = np.empty((m, 3, 3))
+        good = np.empty(m, bool)
+        mod.surface_peaks(
+            res, settings.min_ncc, settings.ambiguity_ratio, pi, pj, peak, patch, good
+        )
+        dx, dy, value, found = quadratic_peaks(patch, settings.subpixel)
+        x1[sel] = c1[sel] - radius + pj + dx + 0.5
+        y1[sel] = r1[sel] - radius + pi + dy + 0.5
+        conf[sel] = np.minimum(value, 1.0)
+        reach = (r1[sel] >= 0) & (r1[sel] < h1) & (c1[sel] >= 0) & (c1[sel] < w1)
+        ok[sel] = good & found & reach
+
+    def templates(sel: NDArray[np.int64]) -> NDArray[np.float32]:
+        idx_r = (r0[sel] - t)[:, None, None] + ko[:, None]
+        idx_c = (c0[sel] - t)[:, None, None] + ko
+        return np.ascontiguousarray(image0[idx_r, idx_c], np.float32)
+
+    def is_flat(tv: NDArray[np.float32], wt: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
+        """The reference's flat-template rule (:func:`zncc_surfaces`)."""
+        flat = tv.reshape(len(tv), -1).astype(np.float64)
+        w = np.ones_like(flat) if wt is None else wt.reshape(len(tv), -1)
+        cnt = np.maximum(w.sum(axis=1), 1)
+        mean = (flat * w).sum(axis=1) / cnt
+        spread = np.sqrt(((flat - mean[:, None]) ** 2 * w).sum(axis=1) / cnt)
+        return spread <= 1e-7 * (1.0 + np.abs(flat * w).max(axis=1))
+
+    # Partial templates: OpenCV's masked ZNCC on the reference's own windows (the
+    # shared sums would need the mask's sums of image 1 too), the compiled peak tests.
+    sub = np.flatnonzero(partial)
+    if len(sub):
+        m = t + radius
+        img1 = np.pad(image1.astype(np.float32), m, mode="edge")
+        r1c = np.clip(r1, 0, h1 - 1)
+        c1c = np.clip(c1, 0, w1 - 1)
+        big = 2 * m + 1
+        for s in range(0, len(sub), BAND):
+            sel = sub[s : s + BAND]
+            tv = templates(sel)
+            masks = valid0[  # type: ignore[index]
+                (r0[sel] - t)[:, None, None] + ko[:, None], (c0[sel] - t)[:, None, None] + ko
+            ]
+            res = surf[: len(sel)]
+            for q, k in enumerate(sel):
+                win = img1[r1c[k] : r1c[k] + big, c1c[k] : c1c[k] + big]
+                res[q] = cv2.matchTemplate(
+                    win, tv[q], cv2.TM_CCOEFF_NORMED, mask=masks[q].astype(np.float32)
+                )
+            # blocked cells of the (clipped) search centre, in the region's indices
+            mod.finish_surfaces(
+                res,
+                blocked,
+                r1c[sel] - radius - top,
+                c1c[sel] - radius - left,
+                is_flat(tv, masks),
+            )
+            finish(sel, res)
+    whole = np.flatnonzero(~partial)
+    if len(whole) == 0:
+        return x1, y1, conf, ok
+    a = np.nan_to_num(image0.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    a -= a.mean()
+    box = (side, side)
+    s1 = cv2.boxFilter(b, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    s2 = cv2.boxFilter(b * b, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    # Blocks of BLOCK_ROWS x BLOCK_COLS centres: the running sums cover only the
+    # columns and rows around a block's templates, not the empty parts of a band.
+    block = (r0[whole] // BLOCK_ROWS) * (w0 // BLOCK_COLS + 1) + c0[whole] // BLOCK_COLS
+    order = whole[np.lexsort((c0[whole], r0[whole], block))]
+    block = (r0[order] // BLOCK_ROWS) * (w0 // BLOCK_COLS + 1) + c0[order] // BLOCK_COLS
+    cuts = np.flatnonzero(np.diff(block)) + 1
+    rows, cols = r0[order], c0[order]
+    tmean = np.empty(len(order))
+    tnorm = np.empty(len(order))
+    for s in range(0, len(order), CHUNK):
+        sl = slice(s, s + CHUNK)
+        tv = templates(order[sl])
+        flat = is_flat(tv, None)
+        av = a[(rows[sl] - t)[:, None, None] + ko[:, None], (cols[sl] - t)[:, None, None] + ko]
+        av = av.reshape(len(av), -1)
+        tmean[sl] = av.mean(axis=1)
+        tnorm[sl] = np.where(flat, 0.0, np.sqrt(((av - tmean[sl, None]) ** 2).sum(axis=1)))
+    for s, e in zip(np.r_[0, cuts], np.r_[cuts, len(order)], strict=True):
+        for s2_ in range(s, e, BAND):
+            e2 = min(e, s2_ + BAND)
+            res = surf[: e2 - s2_]
+            mod.band_surfaces(
+                a,
+                b,
+                rows,
+                cols,
+                s2_,
+                e2,
+                t,
+                span,
+                off_r,
+                off_c,
+                tmean,
+                tnorm,
+                s1,
+                s2,
+                blocked,
+                res,
+            )
+            finish(order[s2_:e2], res)
     return x1, y1, conf, ok
 
 
