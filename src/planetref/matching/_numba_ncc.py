@@ -1,20 +1,23 @@
 """numba implementation of the dense NCC matcher's correlation and peak tests (lazy import).
 
-The twin of :func:`planetref.matching.ncc.correlate_batch` for whole templates that share
-one predicted displacement (the dense fine stage): the numpy reference correlates every
-template with its own search window by OpenCV's ``matchTemplate`` (an FFT per template);
-here the templates' overlap is shared instead. For one candidate displacement
-``(di, dj)``, the raw cross product of template ``n`` with its window is the box sum of
-the product image ``a(x) b(x + d)`` over the template's footprint: the column sums of the
-products are carried down the rows of a band of templates (one new row added, one old
+The twin of :func:`planetref.matching.ncc.correlate_batch` for templates that share one
+predicted displacement (the dense fine stage): the numpy reference correlates every
+template with its own search window by OpenCV's ``matchTemplate`` (an FFT per template,
+float32); here the templates' overlap is shared instead. For one candidate displacement
+``d``, the raw cross product of template ``n`` with its window is the box sum of the
+product image ``a(x) b(x + d)`` over the template's footprint: the column sums of the
+products are carried down the rows of a block of templates (one new row added, one old
 row taken off per row), and each template row reads its box sums from one prefix sum
-across the columns. With templates every few pixels, a product is computed twice per
-(pixel, displacement) instead of ``(2t + 1)^2 / spacing^2`` times per template, and the
-inner loop runs over the displacements' columns, contiguous in memory, where LLVM
-vectorises it. Window sums and sums of squares come from box sums of image 1 computed
-once per call (the numpy side), template means and norms once per template, and the
-normalisation is OpenCV's ``TM_CCOEFF_NORMED`` rule, so the surfaces agree with the
-reference to its float32 rounding; a test binds both.
+across the columns. With templates every few pixels, a product is computed about twice
+per (pixel, displacement) instead of ``(2t + 1)^2 / spacing^2`` times per template, and
+the inner loop runs over the displacements' columns, contiguous in memory, where LLVM
+vectorises it (given row views). Sums in float64: the surfaces are the exact ZNCC to
+float32 rounding (OpenCV's FFT differs from it by up to ~2e-4 on real texture), with
+OpenCV's ``TM_CCOEFF_NORMED`` rules: for whole templates the window sums come from box
+sums of image 1 computed once per call and OpenCV's guard of the division is kept; for
+partial templates (masked) the window's sums over the template's valid pixels are
+carried as two more running sums. Tests bind both to an exact float64 reference and to
+the OpenCV one.
 
 The peak rules (strict interior maximum, no invalid value in the 3x3 patch, the
 ambiguity test against other local maxima more than 2 pixels away) are the reference's,
@@ -155,6 +158,141 @@ def band_surfaces(
 
 
 @numba.njit(cache=True, nogil=True)
+def band_surfaces_masked(
+    a: NDArray[np.float64],
+    v: NDArray[np.float64],
+    b: NDArray[np.float64],
+    bb: NDArray[np.float64],
+    rows: NDArray[np.int64],
+    cols: NDArray[np.int64],
+    start: int,
+    stop: int,
+    t: int,
+    span: int,
+    off_r: int,
+    off_c: int,
+    tmean: NDArray[np.float64],
+    tnorm: NDArray[np.float64],
+    count: NDArray[np.float64],
+    blocked: NDArray[np.bool_],
+    out: NDArray[np.float32],
+) -> None:
+    """:func:`band_surfaces` for partial templates: ZNCC over each template's valid pixels.
+
+    OpenCV's masked ``TM_CCOEFF_NORMED`` with a 0/1 mask: the window's mean and variance
+    are taken over the same pixels as the template's, so besides the products ``a b``
+    the running sums carry ``v b`` and ``v b^2`` (``v`` image 0's validity); a window
+    without variance there is undefined (:data:`INVALID`, OpenCV's NaN), and values
+    above 1 (rounding) are 1.
+
+    Args:
+        a: Image 0, float64, a constant subtracted, 0 where invalid.
+        v: Validity of image 0 as 0.0 / 1.0.
+        b: Image 1 region as for :func:`band_surfaces`.
+        bb: ``b ** 2``.
+        rows: Template centre rows, ascending over ``start .. stop - 1``.
+        cols: Template centre columns.
+        start: First template of the band.
+        stop: One past the last template of the band.
+        t: Template half size, pixels.
+        span: Surface side.
+        off_r: As for :func:`band_surfaces`.
+        off_c: As for :func:`band_surfaces`.
+        tmean: Mean of each template over its valid pixels.
+        tnorm: ``sqrt(sum((template - mean)^2))`` over its valid pixels; ``<= 0``: flat.
+        count: Valid pixels of each template.
+        blocked: Per pixel of ``b``: a candidate centre there is excluded.
+        out: ``(stop - start, span, span)`` surfaces (written).
+    """
+    ra = rows[start]
+    rb = rows[stop - 1]
+    cmin = cols[start]
+    cmax = cols[start]
+    for k in range(start, stop):
+        cmin = min(cmin, cols[k])
+        cmax = max(cmax, cols[k])
+    c_lo = cmin - t
+    nc = cmax + t - c_lo + 1
+    colsum = np.zeros((3, nc, span))
+    pre = np.zeros((3, nc + 1, span))
+    for i in range(span):
+        colsum[:, :, :] = 0.0
+        for u in range(ra - t, ra + t + 1):
+            br = u + off_r + i
+            for c in range(nc):
+                av = a[u, c_lo + c]
+                vv = v[u, c_lo + c]
+                if vv == 0.0:
+                    continue  # nothing to add (a is 0 there too)
+                bc = c_lo + c + off_c
+                cs0 = colsum[0, c]
+                cs1 = colsum[1, c]
+                cs2 = colsum[2, c]
+                bv = b[br, bc : bc + span]
+                bq = bb[br, bc : bc + span]
+                for j in range(span):
+                    cs0[j] += av * bv[j]
+                    cs1[j] += vv * bv[j]
+                    cs2[j] += vv * bq[j]
+        k = start
+        for r in range(ra, rb + 1):
+            if r > ra:
+                un = r + t
+                uo = r - t - 1
+                brn = un + off_r + i
+                bro = uo + off_r + i
+                for c in range(nc):
+                    an = a[un, c_lo + c]
+                    ao = a[uo, c_lo + c]
+                    vn = v[un, c_lo + c]
+                    vo = v[uo, c_lo + c]
+                    if vn == 0.0 and vo == 0.0:
+                        continue
+                    bc = c_lo + c + off_c
+                    cs0 = colsum[0, c]
+                    cs1 = colsum[1, c]
+                    cs2 = colsum[2, c]
+                    bn = b[brn, bc : bc + span]
+                    bo = b[bro, bc : bc + span]
+                    qn = bb[brn, bc : bc + span]
+                    qo = bb[bro, bc : bc + span]
+                    for j in range(span):
+                        cs0[j] += an * bn[j] - ao * bo[j]
+                        cs1[j] += vn * bn[j] - vo * bo[j]
+                        cs2[j] += vn * qn[j] - vo * qo[j]
+            if k >= stop or rows[k] != r:
+                continue
+            for q in range(3):
+                for c in range(nc):
+                    p0 = pre[q, c]
+                    p1 = pre[q, c + 1]
+                    cs = colsum[q, c]
+                    for j in range(span):
+                        p1[j] = p0[j] + cs[j]
+            while k < stop and rows[k] == r:
+                lo = cols[k] - t - c_lo
+                hi = cols[k] + t + 1 - c_lo
+                cr = r + off_r + i
+                cb = cols[k] + off_c
+                m = tmean[k]
+                tn = tnorm[k]
+                cnt = count[k]
+                for j in range(span):
+                    if tn <= 0.0 or blocked[cr, cb + j]:
+                        out[k - start, i, j] = INVALID
+                        continue
+                    w1 = pre[1, hi, j] - pre[1, lo, j]
+                    w2 = pre[2, hi, j] - pre[2, lo, j]
+                    num = (pre[0, hi, j] - pre[0, lo, j]) - m * w1
+                    den = math.sqrt(max(w2 - w1 * w1 / cnt, 0.0)) * tn
+                    if den > 0.0:
+                        out[k - start, i, j] = min(num / den, 1.0)
+                    else:
+                        out[k - start, i, j] = INVALID
+                k += 1
+
+
+@numba.njit(cache=True, nogil=True)
 def surface_peaks(
     res: NDArray[np.float32],
     min_ncc: float,
@@ -227,29 +365,3 @@ def surface_peaks(
                 if not ok:
                     break
         good[k] = ok
-
-
-@numba.njit(cache=True, nogil=True)
-def finish_surfaces(
-    res: NDArray[np.float32],
-    blocked: NDArray[np.bool_],
-    top: NDArray[np.int64],
-    left: NDArray[np.int64],
-    flat: NDArray[np.bool_],
-) -> None:
-    """The reference's clean-up of OpenCV's surfaces, in place.
-
-    Non-finite values (a masked template over a flat window) and the surfaces of flat
-    templates become :data:`INVALID`, values above 1 become 1, and so do excluded
-    candidate centres: surface ``(i, j)`` of template ``k`` is ``blocked[top[k] + i,
-    left[k] + j]``.
-    """
-    n, sh, sw = res.shape
-    for k in range(n):
-        for i in range(sh):
-            for j in range(sw):
-                v = res[k, i, j]
-                if flat[k] or blocked[top[k] + i, left[k] + j] or not math.isfinite(v):
-                    res[k, i, j] = INVALID
-                elif v > 1.0:
-                    res[k, i, j] = 1.0

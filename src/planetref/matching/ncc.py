@@ -22,6 +22,7 @@ Coordinates: template centre pixel ``(row r, column c)`` is reported at ``(c + 0
 
 from __future__ import annotations
 
+import itertools
 from typing import ClassVar, Literal
 
 import cv2
@@ -402,10 +403,10 @@ def correlate_batch(
 #: (2 search_radius + 1)^2 x 4 B, 45 MB at the fine stage's 105 x 105 surfaces).
 BAND = 1024
 #: Block of template centres sharing one set of running sums (rows, columns): the sums
-#: cost ``(2t + 2 BLOCK_ROWS) x (BLOCK_COLS + 2t)`` per displacement, about 70 products
+#: cost ``(2t + 2 rows) x (columns + 2t)`` per displacement, about 70 products
 #: per template and displacement at the fine stage's 41 px templates every 4 px.
-BLOCK_ROWS = 96
-BLOCK_COLS = 128
+BLOCK = (96, 128)
+MASKED_BLOCK = (96, 128)
 
 
 def correlate_shared(
@@ -425,13 +426,14 @@ def correlate_shared(
 
     Dense templates a few pixels apart cover nearly the same pixels, and they all look
     for the same displacement range when their predicted positions differ from their
-    centres by one offset (the dense fine stage). Whole templates (no invalid pixel)
-    then go through :mod:`planetref.matching._numba_ncc`: one pass of box sums of
-    products per candidate displacement for a band of templates, instead of one FFT
-    correlation per template; the surfaces equal the reference's to its float32
-    rounding and the peak rules are its own. Partial templates (``valid0``), scattered
-    offsets, templates not inside image 0, or numba missing (``compiled=False``, or the
-    import fails): :func:`correlate_batch` itself.
+    centres by one offset (the dense fine stage). They then go through
+    :mod:`planetref.matching._numba_ncc`: one pass of box sums of products per candidate
+    displacement for a block of templates, instead of one FFT correlation per template
+    (whole templates and, with ``valid0``, partial ones by OpenCV's masked rule); the
+    surfaces are the exact ZNCC to float32 rounding (the reference's OpenCV FFT is
+    within ~2e-4 of it) and the peak rules are the reference's. Scattered offsets,
+    templates not inside image 0, or numba missing (``compiled=False``, or the import
+    fails): :func:`correlate_batch` itself.
 
     Returns:
         ``(x1, y1, ncc, ok)`` per template, corner-convention pixels.
@@ -514,11 +516,6 @@ def correlate_shared(
         reach = (r1[sel] >= 0) & (r1[sel] < h1) & (c1[sel] >= 0) & (c1[sel] < w1)
         ok[sel] = good & found & reach
 
-    def templates(sel: NDArray[np.int64]) -> NDArray[np.float32]:
-        idx_r = (r0[sel] - t)[:, None, None] + ko[:, None]
-        idx_c = (c0[sel] - t)[:, None, None] + ko
-        return np.ascontiguousarray(image0[idx_r, idx_c], np.float32)
-
     def is_flat(tv: NDArray[np.float32], wt: NDArray[np.bool_] | None) -> NDArray[np.bool_]:
         """The reference's flat-template rule (:func:`zncc_surfaces`)."""
         flat = tv.reshape(len(tv), -1).astype(np.float64)
@@ -528,84 +525,73 @@ def correlate_shared(
         spread = np.sqrt(((flat - mean[:, None]) ** 2 * w).sum(axis=1) / cnt)
         return spread <= 1e-7 * (1.0 + np.abs(flat * w).max(axis=1))
 
-    # Partial templates: OpenCV's masked ZNCC on the reference's own windows (the
-    # shared sums would need the mask's sums of image 1 too), the compiled peak tests.
-    sub = np.flatnonzero(partial)
-    if len(sub):
-        m = t + radius
-        img1 = np.pad(image1.astype(np.float32), m, mode="edge")
-        r1c = np.clip(r1, 0, h1 - 1)
-        c1c = np.clip(c1, 0, w1 - 1)
-        big = 2 * m + 1
-        for s in range(0, len(sub), BAND):
-            sel = sub[s : s + BAND]
-            tv = templates(sel)
-            masks = valid0[  # type: ignore[index]
-                (r0[sel] - t)[:, None, None] + ko[:, None], (c0[sel] - t)[:, None, None] + ko
-            ]
-            res = surf[: len(sel)]
-            for q, k in enumerate(sel):
-                win = img1[r1c[k] : r1c[k] + big, c1c[k] : c1c[k] + big]
-                res[q] = cv2.matchTemplate(
-                    win, tv[q], cv2.TM_CCOEFF_NORMED, mask=masks[q].astype(np.float32)
-                )
-            # blocked cells of the (clipped) search centre, in the region's indices
-            mod.finish_surfaces(
-                res,
-                blocked,
-                r1c[sel] - radius - top,
-                c1c[sel] - radius - left,
-                is_flat(tv, masks),
-            )
-            finish(sel, res)
-    whole = np.flatnonzero(~partial)
-    if len(whole) == 0:
-        return x1, y1, conf, ok
+    # ZNCC ignores a constant: centred images keep the running sums well conditioned.
     a = np.nan_to_num(image0.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     a -= a.mean()
     box = (side, side)
     s1 = cv2.boxFilter(b, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    s2 = cv2.boxFilter(b * b, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    # Blocks of BLOCK_ROWS x BLOCK_COLS centres: the running sums cover only the
-    # columns and rows around a block's templates, not the empty parts of a band.
-    block = (r0[whole] // BLOCK_ROWS) * (w0 // BLOCK_COLS + 1) + c0[whole] // BLOCK_COLS
-    order = whole[np.lexsort((c0[whole], r0[whole], block))]
-    block = (r0[order] // BLOCK_ROWS) * (w0 // BLOCK_COLS + 1) + c0[order] // BLOCK_COLS
-    cuts = np.flatnonzero(np.diff(block)) + 1
-    rows, cols = r0[order], c0[order]
-    tmean = np.empty(len(order))
-    tnorm = np.empty(len(order))
-    for s in range(0, len(order), CHUNK):
-        sl = slice(s, s + CHUNK)
-        tv = templates(order[sl])
-        flat = is_flat(tv, None)
-        av = a[(rows[sl] - t)[:, None, None] + ko[:, None], (cols[sl] - t)[:, None, None] + ko]
-        av = av.reshape(len(av), -1)
-        tmean[sl] = av.mean(axis=1)
-        tnorm[sl] = np.where(flat, 0.0, np.sqrt(((av - tmean[sl, None]) ** 2).sum(axis=1)))
-    for s, e in zip(np.r_[0, cuts], np.r_[cuts, len(order)], strict=True):
-        for s2_ in range(s, e, BAND):
-            e2 = min(e, s2_ + BAND)
-            res = surf[: e2 - s2_]
-            mod.band_surfaces(
-                a,
-                b,
-                rows,
-                cols,
-                s2_,
-                e2,
-                t,
-                span,
-                off_r,
-                off_c,
-                tmean,
-                tnorm,
-                s1,
-                s2,
-                blocked,
-                res,
-            )
-            finish(order[s2_:e2], res)
+    bb = b * b
+    s2 = cv2.boxFilter(bb, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    def blocks(
+        sel: NDArray[np.int64], size: tuple[int, int]
+    ) -> tuple[NDArray[np.int64], list[tuple[int, int]]]:
+        """``sel`` ordered by block of centres, row and column, and each block's span.
+
+        Blocks of ``size`` (rows, columns) of centres (spans of at most BAND templates): the
+        running sums cover only the rows and columns around a block's templates.
+        """
+        key = (r0[sel] // size[0]) * (w0 // size[1] + 1) + c0[sel] // size[1]
+        order = sel[np.lexsort((c0[sel], r0[sel], key))]
+        key = np.sort(key)
+        cuts = np.r_[0, np.flatnonzero(np.diff(key)) + 1, len(order)]
+        spans = []
+        for s, e in itertools.pairwise(cuts):
+            spans += [(q, min(e, q + BAND)) for q in range(s, e, BAND)]
+        return order, spans
+
+    def stats(order: NDArray[np.int64], av: NDArray[np.float64], w: NDArray[np.bool_] | None):
+        """Template mean and norm over the (valid) pixels, 0 norm for a flat one."""
+        sl_r = (r0[order] - t)[:, None, None] + ko[:, None]
+        sl_c = (c0[order] - t)[:, None, None] + ko
+        vals = av[sl_r, sl_c].reshape(len(order), -1)
+        wt = np.ones_like(vals) if w is None else w[sl_r, sl_c].reshape(len(order), -1)
+        cnt = wt.sum(axis=1)
+        mean = (vals * wt).sum(axis=1) / cnt
+        norm = np.sqrt((((vals - mean[:, None]) * wt) ** 2).sum(axis=1))
+        tv = image0[sl_r, sl_c].astype(np.float32)
+        flat = is_flat(tv, None if w is None else w[sl_r, sl_c])
+        return mean, np.where(flat, 0.0, norm), cnt
+
+    # Whole templates: OpenCV's unmasked rule; partial ones (cut by image 0's no-data):
+    # its masked rule, with the sums of image 1 over each template's valid pixels.
+    for masked in (False, True):
+        sel = np.flatnonzero(partial == masked)
+        if len(sel) == 0:
+            continue
+        order, spans = blocks(sel, MASKED_BLOCK if masked else BLOCK)
+        rows, cols = r0[order], c0[order]
+        tmean = np.empty(len(order))
+        tnorm = np.empty(len(order))
+        count = np.empty(len(order))
+        v = valid0.astype(np.float64) if masked else None  # type: ignore[union-attr]
+        av = a * v if v is not None else a
+        for s in range(0, len(order), CHUNK):
+            sl = slice(s, s + CHUNK)
+            tmean[sl], tnorm[sl], count[sl] = stats(order[sl], av, valid0 if masked else None)
+        for s, e in spans:
+            res = surf[: e - s]
+            if masked:
+                mod.band_surfaces_masked(
+                    av, v, b, bb, rows, cols, s, e, t, span, off_r, off_c,
+                    tmean, tnorm, count, blocked, res,
+                )  # fmt: skip
+            else:
+                mod.band_surfaces(
+                    av, b, rows, cols, s, e, t, span, off_r, off_c, tmean, tnorm, s1, s2,
+                    blocked, res,
+                )  # fmt: skip
+            finish(order[s:e], res)
     return x1, y1, conf, ok
 
 
