@@ -532,7 +532,8 @@ def correlate_shared(
         spread = np.sqrt(((flat - mean[:, None]) ** 2 * w).sum(axis=1) / cnt)
         return spread <= 1e-7 * (1.0 + np.abs(flat * w).max(axis=1))
 
-    # ZNCC ignores a constant: centred images keep the running sums well conditioned.
+    # Image 0 centred too, non-finite values to 0: invalid pixels enter the running sums
+    # but no whole template's box; partial templates read image 0 times its validity.
     a = np.nan_to_num(image0.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     a -= a.mean()
     box = (side, side)
