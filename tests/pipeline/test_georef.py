@@ -237,9 +237,10 @@ def test_deleted_adjustment_redoes_only_the_adjustment_and_what_follows(
     # The adjustment and its outputs are back, identical (deterministic for the inputs).
     assert (out / "strip1" / "adjustment" / "residuals.csv").read_text() == residuals
     assert sorted((out / "strip1" / "adjustment" / "isd").glob("*.json"))
-    assert again.report["strips"]["strip1"]["adjustment"] == first.report["strips"]["strip1"][
-        "adjustment"
-    ]
+    assert (
+        again.report["strips"]["strip1"]["adjustment"]
+        == first.report["strips"]["strip1"]["adjustment"]
+    )
 
 
 def test_georef_cli(tiny_scene, tmp_path, ref_grid_toml):

@@ -37,8 +37,7 @@ from typing import Any
 
 from planetref import __version__
 from planetref.errors import InputError, OutputError, RunDirError
-from planetref.runtime.atomic import json_safe, read_only_mode, watch_outputs
-from planetref.runtime.atomic import write_json_atomic
+from planetref.runtime.atomic import json_safe, read_only_mode, watch_outputs, write_json_atomic
 
 __all__ = [
     "FORMAT",
