@@ -282,7 +282,12 @@ def run(
         if covariance:
             cmd.append("--covariance")
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, check=False, timeout=timeout)
+        env = dict(os.environ)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[var] = str(threads)  # any BLAS under Ceres: the same thread count
+        proc = subprocess.run(
+            cmd, capture_output=True, text=True, check=False, timeout=timeout, env=env
+        )
         wall = time.perf_counter() - t0
         if proc.returncode != 0 or not out.is_file():
             raise RuntimeError(f"linescan_ba failed ({proc.returncode}): {proc.stderr.strip()}")

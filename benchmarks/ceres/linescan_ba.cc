@@ -407,10 +407,16 @@ double CpuSeconds() {
   return u.ru_utime.tv_sec + u.ru_stime.tv_sec + 1e-6 * (u.ru_utime.tv_usec + u.ru_stime.tv_usec);
 }
 
-double PeakRssMb() {
-  rusage u;
-  getrusage(RUSAGE_SELF, &u);
-  return u.ru_maxrss / 1024.0;
+// A /proc/self/status field in MB (VmHWM: peak resident size of this program; unlike
+// getrusage's ru_maxrss it does not carry the parent's peak over the exec).
+double StatusMb(const char* field) {
+  std::ifstream f("/proc/self/status");
+  std::string line;
+  const std::string key = std::string(field) + ":";
+  while (std::getline(f, line)) {
+    if (line.rfind(key, 0) == 0) return std::stod(line.substr(key.size())) / 1024.0;
+  }
+  return NAN;
 }
 
 double CurrentRssMb() {
@@ -628,7 +634,7 @@ int Run(const Args& a) {
   j << ", \"ceres_jacobian_evaluation_s\": " << summary.jacobian_evaluation_time_in_seconds;
   j << ", \"rss_start_mb\": " << rss_start;
   j << ", \"rss_built_mb\": " << rss_built;
-  j << ", \"peak_rss_mb\": " << PeakRssMb();
+  j << ", \"peak_rss_mb\": " << StatusMb("VmHWM");
   j << ", \"ceres_version\": " << JsonString(CERES_VERSION_STRING);
   j << "}";
   std::cout << j.str() << std::endl;
