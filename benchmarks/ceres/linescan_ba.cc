@@ -180,24 +180,51 @@ Model ReadModel(const std::string& path) {
   return m;
 }
 
-// The collinearity at one time: offset, sample, depth and (full) the partials of offset
-// and sample w.r.t. the interpolated EO (S: columns 0-2, angles: 3-5), as planetref's
-// kernel.state / _numba_kernel.project.
+// The collinearity at one time: offset, sample, depth and the intermediate terms the
+// partials need (Partials), as planetref's kernel.state / _numba_kernel.collinear.
 struct Collinear {
-  double off, samp, w;
-  double doff[6], dsmp[6];
+  double off = 0.0, samp = 0.0, w = 0.0;
+  double u = 0.0, v = 0.0, a0 = 0.0, a2 = 0.0, b1 = 0.0;
+  double cp = 1.0, sp = 0.0, co = 1.0, so = 0.0, ck = 1.0, sk = 0.0;
+  double phi = 0.0, omega = 0.0, kappa = 0.0;
+  double doff[6], dsmp[6];  // d(offset, sample)/d(S; phi, omega, kappa), by Partials
 };
 
+// Angle changes below which cos/sin are updated from a nearby angle's (rad): planetref's
+// _NEAR_RAD (chord steps move the attitude by ~1e-9 rad; the 5th-order series of the
+// angle-addition formulas are exact to double precision there).
+constexpr double kNearRad = 1e-4;
+
+inline void CosSin(double a, double a0, double c0, double s0, bool near, double* c,
+                   double* s) {
+  const double d = a - a0;
+  if (near && std::abs(d) < kNearRad) {
+    const double d2 = d * d;
+    const double cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0));
+    const double sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)));
+    *c = c0 * cd - s0 * sd;
+    *s = s0 * cd + c0 * sd;
+  } else {
+    *c = std::cos(a);
+    *s = std::sin(a);
+  }
+}
+
+// ``prev``: an earlier evaluation of the same point (its cosines seed this one's), or
+// nullptr.
 void Collinearity(const Model& m, const double* eo, const double* p, const double* ccd,
-                  bool full, Collinear* out) {
+                  const Collinear* prev, Collinear* out) {
   const double* r0 = m.r0;
   const double e0 = p[0] - eo[0], e1 = p[1] - eo[1], e2 = p[2] - eo[2];
   const double d0 = e0 * r0[0] + e1 * r0[3] + e2 * r0[6];
   const double d1 = e0 * r0[1] + e1 * r0[4] + e2 * r0[7];
   const double d2 = e0 * r0[2] + e1 * r0[5] + e2 * r0[8];
-  const double cp = std::cos(eo[3]), sp = std::sin(eo[3]);
-  const double co = std::cos(eo[4]), so = std::sin(eo[4]);
-  const double ck = std::cos(eo[5]), sk = std::sin(eo[5]);
+  const bool near = prev != nullptr;
+  const Collinear& q = near ? *prev : *out;
+  double cp, sp, co, so, ck, sk;
+  CosSin(eo[3], q.phi, q.cp, q.sp, near, &cp, &sp);
+  CosSin(eo[4], q.omega, q.co, q.so, near, &co, &so);
+  CosSin(eo[5], q.kappa, q.ck, q.sk, near, &ck, &sk);
   const double a0 = cp * d0 + sp * d2;
   const double a2 = -sp * d0 + cp * d2;
   const double b1 = co * d1 + so * a2;
@@ -206,14 +233,33 @@ void Collinearity(const Model& m, const double* eo, const double* p, const doubl
   const double v = -sk * a0 + ck * b1;
   const double inv_w = 1.0 / b2;
   const double xn = u * inv_w, yn = v * inv_w;
-  const double x0 = m.io[0], y0 = m.io[1], f = m.io[2];
   const double pitch = ccd[3], sa = ccd[4], ca = ccd[5];
-  const double dx = x0 - f * xn - ccd[0];
-  const double dy = y0 - f * yn - ccd[1];
+  const double dx = m.io[0] - m.io[2] * xn - ccd[0];
+  const double dy = m.io[1] - m.io[2] * yn - ccd[1];
   out->off = (dx * ca - dy * sa) / pitch;
   out->samp = (dx * sa + dy * ca) / pitch;
   out->w = b2;
-  if (!full) return;
+  out->u = u;
+  out->v = v;
+  out->a0 = a0;
+  out->a2 = a2;
+  out->b1 = b1;
+  out->cp = cp;
+  out->sp = sp;
+  out->co = co;
+  out->so = so;
+  out->ck = ck;
+  out->sk = sk;
+  out->phi = eo[3];
+  out->omega = eo[4];
+  out->kappa = eo[5];
+}
+
+// The partials of offset and sample w.r.t. the interpolated EO at an evaluation.
+void Partials(const Model& m, const double* ccd, Collinear* ev) {
+  const double* r0 = m.r0;
+  const double cp = ev->cp, sp = ev->sp, co = ev->co, so = ev->so, ck = ev->ck, sk = ev->sk;
+  const double a0 = ev->a0, a2 = ev->a2, b1 = ev->b1, b2 = ev->w, u = ev->u, v = ev->v;
   double jac[6][3];
   const double bp1 = so * (-a0);
   jac[3][0] = ck * a2 + sk * bp1;
@@ -234,7 +280,10 @@ void Collinearity(const Model& m, const double* eo, const double* p, const doubl
     jac[r][1] = -sk * ga0 + ck * gb1;
     jac[r][2] = -so * g1 + co * ga2;
   }
-  const double fw = -f * inv_w / pitch;
+  const double inv_w = 1.0 / b2;
+  const double xn = u * inv_w, yn = v * inv_w;
+  const double pitch = ccd[3], sa = ccd[4], ca = ccd[5];
+  const double fw = -m.io[2] * inv_w / pitch;
   const double c_ca = fw * ca, c_sa = fw * sa;
   for (int q = 0; q < 6; ++q) {
     const double dxq = jac[q][0] - xn * jac[q][2];
@@ -245,8 +294,8 @@ void Collinearity(const Model& m, const double* eo, const double* p, const doubl
       doff = -doff;
       dsmp = -dsmp;
     }
-    out->doff[q] = doff;
-    out->dsmp[q] = dsmp;
+    ev->doff[q] = doff;
+    ev->dsmp[q] = dsmp;
   }
 }
 
@@ -306,26 +355,29 @@ class LineScanCost final : public ceres::CostFunction {
     double line = std::isfinite(line_) ? line_ : 0.5 * (m.lo + m.hi);
     line = std::clamp(line, m.lo, m.hi);
     if (!interpolate(line, false)) return false;
-    Collinearity(m, eo, p, ccd, false, &ev);
+    Collinearity(m, eo, p, ccd, nullptr, &ev);
     double rate = rate_;
     if (!(std::isfinite(rate) && rate != 0.0)) {
-      const double off0 = ev.off;
       if (!interpolate(line + 1.0, false)) return false;
       Collinear ev1;
-      Collinearity(m, eo, p, ccd, false, &ev1);
-      rate = ev1.off - off0;
+      Collinearity(m, eo, p, ccd, &ev, &ev1);
+      rate = ev1.off - ev.off;
     }
     double step = -ev.off / rate;
     for (int it = 0; it < kChordIterations; ++it) {
       if (!(std::isfinite(step) && std::abs(step) > kChordTol)) break;
       line = std::clamp(line + step, m.lo, m.hi);
       if (!interpolate(line, false)) return false;
-      Collinearity(m, eo, p, ccd, false, &ev);
+      Collinear next;
+      Collinearity(m, eo, p, ccd, &ev, &next);
+      ev = next;
       step = -ev.off / rate;
     }
-    // The full evaluation at the last line: analytic slopes, first-order Newton step.
+    // The last evaluation is the final one (as planetref's kernel): its terms give the
+    // partials; the window's weights and the EO's time derivative at that line, then
+    // the analytic slopes and a first-order Newton step.
     if (!interpolate(line, true)) return false;
-    Collinearity(m, eo, p, ccd, true, &ev);
+    Partials(m, ccd, &ev);
     double rate_f = 0.0, srate = 0.0;
     for (int q = 0; q < 6; ++q) {
       rate_f += ev.doff[q] * deo[q];
