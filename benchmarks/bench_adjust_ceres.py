@@ -27,7 +27,11 @@ times planetref's sigma0 (Ceres's covariance is of unit weight).
 
 Without unknown points (every point is a known MCP) Ceres's Schur solvers have no point
 blocks to eliminate: with the default ordering Ceres eliminates an independent set of
-node blocks instead (``linear_solver_ordering_used``, e.g. ``[3, 9]``).
+node blocks instead (``linear_solver_ordering_used``, e.g. ``[3, 9]``), and the dense
+normal equations (DENSE_NORMAL_CHOLESKY) run as a reference. ``--tie-fraction F`` puts
+a share F of the observations on free tie points (``bench_adjust.py --n-tie``: two
+observations each in the CCD overlaps, 20 m off at the start): Ceres then eliminates the
+points first (ordering ``[points, nodes]``), as planetref's Schur complement does.
 
 Timing: every run is a fresh process (planetref: a worker of this script that builds
 the same network from the seed and loads the compiled kernels before the clock starts;
@@ -47,6 +51,8 @@ Usage::
 
     python benchmarks/bench_adjust.py --vs ceres --sizes 20000,200000,1000000 --repeat 3 \\
         --json --out benchmarks/results/bench_adjust_ceres.json
+    python benchmarks/bench_adjust.py --vs ceres --sizes 20000,200000 --tie-fraction 0.5 \\
+        --json --out benchmarks/results/bench_adjust_ceres_ties.json
 """
 
 from __future__ import annotations
@@ -117,7 +123,7 @@ def _phase_timers() -> tuple[dict[str, list[float]], list[tuple[object, str, obj
     return acc, saved
 
 
-def worker(n_obs: int, seed: int, out: Path | None) -> dict[str, object]:
+def worker(n_obs: int, seed: int, n_tie: int, out: Path | None) -> dict[str, object]:
     """One planetref adjustment in this process (threads from ``OMP_NUM_THREADS``)."""
     from bench_adjust import CONFIG, build_problem
 
@@ -127,7 +133,7 @@ def worker(n_obs: int, seed: int, out: Path | None) -> dict[str, object]:
 
     if compiled.available() and compiled.warm_up():
         adjust(build_problem(2000, seed + 1, 0.3, 12, 0)[0], CONFIG)
-    net, _ = build_problem(n_obs, seed, 0.3, 12, 0)
+    net, _ = build_problem(n_obs, seed, 0.3, 12, n_tie)
     acc, saved = _phase_timers()
     rss_before = vm_kb("VmRSS")
     try:
@@ -160,11 +166,13 @@ def worker(n_obs: int, seed: int, out: Path | None) -> dict[str, object]:
     }
 
 
-def run_worker(n_obs: int, seed: int, threads: int, out: Path | None) -> dict[str, object]:
+def run_worker(
+    n_obs: int, seed: int, n_tie: int, threads: int, out: Path | None
+) -> dict[str, object]:
     env = dict(os.environ)
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         env[var] = str(threads)
-    cmd = [sys.executable, str(Path(__file__)), "--worker", str(n_obs), str(seed)]
+    cmd = [sys.executable, str(Path(__file__)), "--worker", str(n_obs), str(seed), str(n_tie)]
     if out is not None:
         cmd.append(str(out))
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
@@ -260,11 +268,12 @@ def bench_size(exe: Path | None, n_obs: int, args: argparse.Namespace, log) -> d
     import ceres_problem
     from bench_adjust import build_problem
 
-    out: dict[str, object] = {"n_obs": n_obs}
+    n_tie = round(args.tie_fraction * n_obs / 2)
+    out: dict[str, object] = {"n_obs": n_obs, "n_tie_points": n_tie}
     with tempfile.TemporaryDirectory(prefix="ceres-bench-") as tmp:
         tmpd = Path(tmp)
         problem = tmpd / "problem.bin"
-        net, _ = build_problem(n_obs, args.seed, 0.3, 12, 0)
+        net, _ = build_problem(n_obs, args.seed, 0.3, 12, n_tie)
         ceres_problem.write_problem(
             ceres_problem.problem_of(net, position_free=False, attitude_free=True), problem
         )
@@ -280,7 +289,7 @@ def bench_size(exe: Path | None, n_obs: int, args: argparse.Namespace, log) -> d
         out["repeat"] = repeat
         for rep in range(repeat):
             for t in args.threads:
-                r = run_worker(n_obs, args.seed, t, ref if rep == 0 and not pr[t] else None)
+                r = run_worker(n_obs, args.seed, n_tie, t, ref if rep == 0 else None)
                 pr[t].append(r)
                 log(f"n={n_obs} rep={rep} threads={t} planetref {r['s']:.3f} s")
                 if exe is None:
@@ -351,12 +360,25 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--large", type=int, default=1_000_000, help="see --repeat-large")
     ap.add_argument("--threads", default="1,2", help="thread counts, comma-separated")
-    ap.add_argument("--solvers", default=",".join(SOLVERS), help="Ceres linear solvers")
+    ap.add_argument(
+        "--tie-fraction",
+        type=float,
+        default=0.0,
+        help="share of the observations on free tie points (2 each; Schur-eliminated)",
+    )
+    ap.add_argument(
+        "--solvers",
+        default=None,
+        help="Ceres linear solvers, comma-separated (default: the Schur solvers, and "
+        "DENSE_NORMAL_CHOLESKY without tie points: with them it is dense in the points)",
+    )
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     ap.add_argument("--vs", default="ceres", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     args.threads = [int(t) for t in args.threads.split(",")]
+    if args.solvers is None:
+        args.solvers = ",".join(SOLVERS if args.tie_fraction == 0 else SOLVERS[:3])
     args.solvers = [s.strip().upper() for s in args.solvers.split(",")]
     sizes = [int(float(s)) for s in args.sizes.split(",")]
 
@@ -431,8 +453,8 @@ def print_table(result: dict[str, object]) -> None:
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         sys.path.insert(0, str(HERE))
-        n, seed = int(sys.argv[2]), int(sys.argv[3])
-        dest = Path(sys.argv[4]) if len(sys.argv) > 4 else None
-        print(json.dumps(worker(n, seed, dest)))
+        n, seed, n_tie = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+        dest = Path(sys.argv[5]) if len(sys.argv) > 5 else None
+        print(json.dumps(worker(n, seed, n_tie, dest)))
         sys.exit(0)
     sys.exit(main())

@@ -17,10 +17,12 @@ File format ``PRCERES1`` (little-endian; ``N`` nodes, ``R`` line-rate rows, ``C`
     f64[N,6]  nodes: X, Y, Z (m), phi, omega, kappa (rad)
     f64[3]    interior x0, y0, f (mm)
     f64[C,4]  CCDs: x_mm, y_mm, angle_rad, pixel_pitch_mm
-    f64[P,3]  ground points (m, body-fixed; all known: MCPs)
+    f64[P,3]  ground points (m, body-fixed): known (MCPs) or initial values (tie points)
     f64[M]    observed lines, then f64[M] samples
     f64[M,2]  sigmas of (line, sample) (px)
     int32[M]  CCD index, then int32[M] point index
+    int32[P]  1 where the point is unknown (a free tie point, eliminated first by the
+              Schur solvers), 0 where it is known
 
 The program writes the adjusted nodes (f64[N,6]) and, with ``--covariance``, the
 attitude sigmas (f64[N,3], unit weight; NaN without) into ``--out``, and one JSON
@@ -72,14 +74,16 @@ class CeresProblem:
     obs_sigma: F64
     obs_ccd: NDArray[np.int32]
     obs_point: NDArray[np.int32]
+    point_free: NDArray[np.int32]
 
 
 def problem_of(net: Network, *, position_free: bool, attitude_free: bool) -> CeresProblem:
-    """The Ceres problem of a one-strip network whose points are all known.
+    """The Ceres problem of a one-strip network of known and unknown points.
 
     Args:
-        net: A network with one :class:`LineScanCamera` and fixed points only (MCPs with
-            zero ground sigma), interior held fixed.
+        net: A network with one :class:`LineScanCamera`, interior held fixed, whose
+            points are known (MCPs, zero ground sigma) or unknown (tie points, infinite
+            sigma); weighted ground (finite non-zero sigma) is not modelled.
         position_free: Whether node positions are adjusted.
         attitude_free: Whether node attitudes are adjusted.
 
@@ -89,8 +93,12 @@ def problem_of(net: Network, *, position_free: bool, attitude_free: bool) -> Cer
     if len(net.cameras) != 1 or not isinstance(net.cameras[0], LineScanCamera):
         raise ValueError("the Ceres twin models one line-scan camera")
     cam = net.cameras[0]
-    if np.any(np.asarray(net.point_sigma_m) != 0.0):
-        raise ValueError("the Ceres twin models known ground points only (MCPs, sigma 0)")
+    sig = np.asarray(net.point_sigma_m, np.float64).reshape(len(net.point_xyz), -1)
+    known, free = np.all(sig == 0.0, axis=1), np.all(np.isinf(sig), axis=1)
+    if not np.all(known | free):
+        raise ValueError(
+            "the Ceres twin models known (sigma 0) or unknown (sigma inf) ground points only"
+        )
     if any(any(c.distortion) for c in cam.ccds):
         raise ValueError("the Ceres twin models CCDs without lens distortion")
     kern = cam.kernel
@@ -114,6 +122,7 @@ def problem_of(net: Network, *, position_free: bool, attitude_free: bool) -> Cer
         ).copy(),
         obs_ccd=np.asarray(net.obs_ccd, np.int32),
         obs_point=np.asarray(net.obs_point, np.int32),
+        point_free=free.astype(np.int32),
     )
 
 
@@ -133,6 +142,7 @@ def _arrays(p: CeresProblem) -> list[NDArray]:
         p.obs_sigma.astype(f),
         p.obs_ccd.astype(np.int32),
         p.obs_point.astype(np.int32),
+        p.point_free.astype(np.int32),
     ]
 
 
@@ -198,6 +208,7 @@ def read_problem(path: Path) -> CeresProblem:
         obs_sigma=take(2 * m, "<f8", (m, 2)),
         obs_ccd=take(m, "<i4", (m,)),
         obs_point=take(m, "<i4", (m,)),
+        point_free=take(npt, "<i4", (npt,)),
     )
     if at != len(buf):
         raise ValueError(f"{path}: {len(buf) - at} trailing bytes")

@@ -70,6 +70,7 @@ struct Model {
   std::vector<double> xyz;          // n_points x 3
   std::vector<double> obs_line, obs_sample, obs_sigma;  // obs_sigma: (line, sample) pairs
   std::vector<int32_t> obs_ccd, obs_point;
+  std::vector<int32_t> point_free;  // 1: unknown (tie) point, a parameter block
 
   int RowOf(double line) const {
     int j = static_cast<int>(n_rows) - 1;
@@ -177,6 +178,8 @@ Model ReadModel(const std::string& path) {
   ReadInto(f, m.obs_sigma.data(), 2 * m.n_obs);
   ReadInto(f, m.obs_ccd.data(), m.n_obs);
   ReadInto(f, m.obs_point.data(), m.n_obs);
+  m.point_free.resize(m.n_points);
+  ReadInto(f, m.point_free.data(), m.n_points);
   return m;
 }
 
@@ -301,12 +304,19 @@ void Partials(const Model& m, const double* ccd, Collinear* ev) {
 
 // One observation: residual (projected - observed) / sigma of (line, sample).
 // Parameter blocks: the attitudes (3) of nodes first..last when attitudes are free, then
-// their positions (3) when positions are free.
+// their positions (3) when positions are free, then the ground point (3) when it is an
+// unknown (tie) point.
 class LineScanCost final : public ceres::CostFunction {
  public:
   LineScanCost(const Model* m, int64_t obs, int first, int last, double line_guess,
-               double rate_guess)
-      : m_(m), obs_(obs), first_(first), last_(last), line_(line_guess), rate_(rate_guess) {
+               double rate_guess, bool point_block)
+      : m_(m),
+        obs_(obs),
+        first_(first),
+        last_(last),
+        point_block_(point_block),
+        line_(line_guess),
+        rate_(rate_guess) {
     set_num_residuals(2);
     const int n = last - first + 1;
     auto* sizes = mutable_parameter_block_sizes();
@@ -314,15 +324,17 @@ class LineScanCost final : public ceres::CostFunction {
       for (int i = 0; i < n; ++i) sizes->push_back(3);
     if (m->pos_free)
       for (int i = 0; i < n; ++i) sizes->push_back(3);
+    if (point_block) sizes->push_back(3);
   }
 
   bool Evaluate(double const* const* params, double* residuals,
                 double** jacobians) const override {
     const Model& m = *m_;
     const int k = static_cast<int>(m.k);
-    const double* p = &m.xyz[3 * m.obs_point[obs_]];
-    const double* ccd = &m.ccd[6 * m.obs_ccd[obs_]];
     const int n = last_ - first_ + 1;
+    const int point_index = (m.att_free ? n : 0) + (m.pos_free ? n : 0);
+    const double* p = point_block_ ? params[point_index] : &m.xyz[3 * m.obs_point[obs_]];
+    const double* ccd = &m.ccd[6 * m.obs_ccd[obs_]];
     // Node pointers of window s (nullptr when outside this block's node range).
     auto node_value = [&](int node, int c) -> double {
       const int i = node - first_;
@@ -424,6 +436,13 @@ class LineScanCost final : public ceres::CostFunction {
         }
       }
     }
+    if (point_block_ && jacobians[point_index] != nullptr) {
+      double* jb = jacobians[point_index];
+      for (int c = 0; c < 3; ++c) {  // d/dP = -d/dS (the partials before the weights)
+        jb[c] = -imp0[c];
+        jb[3 + c] = -imp1[c];
+      }
+    }
     return true;
   }
 
@@ -434,6 +453,7 @@ class LineScanCost final : public ceres::CostFunction {
   const Model* m_;
   int64_t obs_;
   int first_, last_;
+  bool point_block_;
   mutable double line_, rate_;
 };
 
@@ -441,7 +461,7 @@ class LineScanCost final : public ceres::CostFunction {
 // as planetref's first evaluation: chord steps from the observed line. ``blocks``: the
 // initial values of every node's blocks, in LineScanCost's order.
 double InitialLine(const Model& m, int64_t i, const double* const* blocks, double* rate_out) {
-  LineScanCost probe(&m, i, 0, static_cast<int>(m.n_nodes) - 1, m.obs_line[i], NAN);
+  LineScanCost probe(&m, i, 0, static_cast<int>(m.n_nodes) - 1, m.obs_line[i], NAN, false);
   double r[2];
   if (!probe.Evaluate(blocks, r, nullptr)) return NAN;
   *rate_out = probe.rate();
@@ -539,6 +559,8 @@ int Run(const Args& a) {
       att[3 * n + c] = m.nodes[6 * n + 3 + c];
     }
 
+  std::vector<double> xyz(m.xyz);  // the points' parameter blocks (free points only)
+
   ceres::Problem::Options popt;
   popt.cost_function_ownership = ceres::TAKE_OWNERSHIP;
   ceres::Problem problem(popt);
@@ -565,14 +587,19 @@ int Run(const Args& a) {
     m.Time(std::clamp(lmax, m.lo, m.hi), &t, &period);
     const int last = m.WindowOf(t) + k - 1;
     if (last - first + 1 > k) ++n_wide;
-    auto* cost = new LineScanCost(&m, i, first, last, l0, rate0);
+    const int32_t pt = m.obs_point[i];
+    const bool free_point = m.point_free[pt] != 0;
+    auto* cost = new LineScanCost(&m, i, first, last, l0, rate0, free_point);
     blocks.clear();
     if (m.att_free)
       for (int n = first; n <= last; ++n) blocks.push_back(&att[3 * n]);
     if (m.pos_free)
       for (int n = first; n <= last; ++n) blocks.push_back(&pos[3 * n]);
+    if (free_point) blocks.push_back(&xyz[3 * pt]);
     problem.AddResidualBlock(cost, nullptr, blocks);
   }
+  int64_t n_free_points = 0;
+  for (int32_t f : m.point_free) n_free_points += f != 0;
   if (n_bad) {
     std::cerr << n_bad << " observation(s) cannot be projected with the initial cameras\n";
     return 3;
@@ -596,6 +623,20 @@ int Run(const Args& a) {
   o.initial_trust_region_radius = a.initial_radius;
   o.minimizer_progress_to_stdout = false;
   o.logging_type = ceres::SILENT;
+  if (n_free_points > 0 && (o.linear_solver_type == ceres::DENSE_SCHUR ||
+                            o.linear_solver_type == ceres::SPARSE_SCHUR ||
+                            o.linear_solver_type == ceres::ITERATIVE_SCHUR)) {
+    // The bundle adjustment's ordering: the points are eliminated first (planetref's
+    // Schur complement does the same).
+    auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
+    for (int64_t pt = 0; pt < m.n_points; ++pt)
+      if (m.point_free[pt]) ordering->AddElementToGroup(&xyz[3 * pt], 0);
+    for (int64_t n = 0; n < m.n_nodes; ++n) {
+      if (m.att_free) ordering->AddElementToGroup(&att[3 * n], 1);
+      if (m.pos_free) ordering->AddElementToGroup(&pos[3 * n], 1);
+    }
+    o.linear_solver_ordering = ordering;
+  }
   if (!o.IsValid(&err)) throw std::runtime_error(err);
   ceres::Solver::Summary summary;
   ceres::Solve(o, &problem, &summary);
@@ -667,6 +708,7 @@ int Run(const Args& a) {
   j << ", \"num_residual_blocks\": " << summary.num_residual_blocks_reduced;
   j << ", \"num_parameters\": " << summary.num_effective_parameters_reduced;
   j << ", \"residual_blocks_wider_than_window\": " << n_wide;
+  j << ", \"free_points\": " << n_free_points;
   j << ", \"read_s\": " << t_read - t_start;
   j << ", \"build_s\": " << t_built - t_read;
   j << ", \"build_cpu_s\": " << c_built - c_start;

@@ -34,6 +34,13 @@ def tiny(bench):
     return bench_adjust.build_problem(1500, 3, 0.3, 12, 0)
 
 
+@pytest.fixture(scope="module")
+def tiny_ties(bench):
+    """1500 observations of which 400 on 200 free tie points (20 m off at the start)."""
+    bench_adjust, _ = bench
+    return bench_adjust.build_problem(1500, 4, 0.3, 12, 200)
+
+
 def test_problem_file_round_trips(bench, tiny, tmp_path):
     _, cp = bench
     net, _ = tiny
@@ -60,11 +67,14 @@ def test_problem_file_round_trips(bench, tiny, tmp_path):
         cp.read_problem(path)
 
 
-def test_problem_refuses_unknown_points(bench, tiny):
+def test_problem_refuses_weighted_points(bench, tiny_ties):
     _, cp = bench
-    net, _ = tiny
+    net, _ = tiny_ties
+    p = cp.problem_of(net, position_free=False, attitude_free=True)
+    np.testing.assert_array_equal(p.point_free, np.isinf(net.point_sigma_m[:, 0]))
+    assert p.point_free.sum() == 200
     bad = net.__class__(**{**net.__dict__, "point_sigma_m": np.ones_like(net.point_sigma_m)})
-    with pytest.raises(ValueError, match="known ground points"):
+    with pytest.raises(ValueError, match=r"known .* or unknown"):
         cp.problem_of(bad, position_free=False, attitude_free=True)
 
 
@@ -77,12 +87,15 @@ def ceres_exe(bench):
     return exe
 
 
-@pytest.mark.parametrize("solver", ["DENSE_SCHUR", "SPARSE_SCHUR"])
-def test_ceres_reaches_planetrefs_optimum(bench, tiny, ceres_exe, tmp_path, solver):
+@pytest.mark.parametrize(
+    ("solver", "network"),
+    [("DENSE_SCHUR", "tiny"), ("SPARSE_SCHUR", "tiny"), ("SPARSE_SCHUR", "tiny_ties")],
+)
+def test_ceres_reaches_planetrefs_optimum(bench, request, ceres_exe, tmp_path, solver, network):
     bench_adjust, cp = bench
     from planetref.adjust import adjust
 
-    net, _ = tiny
+    net, _ = request.getfixturevalue(network)
     res = adjust(net, bench_adjust.CONFIG)
     path = tmp_path / "p.bin"
     cp.write_problem(cp.problem_of(net, position_free=False, attitude_free=True), path)
@@ -90,6 +103,11 @@ def test_ceres_reaches_planetrefs_optimum(bench, tiny, ceres_exe, tmp_path, solv
     run = cp.run(ceres_exe, path, n, solver, 1, extra=cp_stop(), covariance=True)
     s = run.summary
     assert s["termination"] == "CONVERGENCE", s["message"]
+    # With tie points, the points are the eliminated group (Ceres's ordering [200, 12]).
+    n_free = int(np.isinf(net.point_sigma_m[:, 0]).sum())
+    assert s["free_points"] == n_free
+    if n_free:
+        assert s["linear_solver_ordering_used"] == [n_free, n]
     # The same model: the same cost at the initial cameras (planetref's cost is half the
     # weighted sum of squares, as Ceres's) and at the optimum.
     rnd = res.rounds[0]
