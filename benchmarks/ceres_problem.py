@@ -228,8 +228,6 @@ def build(quiet: bool = True) -> tuple[Path | None, str]:
     The build folder is named by a hash of the sources, so an edited source is rebuilt
     and a built one is reused.
     """
-    if shutil.which("cmake") is None or shutil.which("g++") is None:
-        return None, f"cmake or g++ not found (set-up: {SETUP})"
     digest = hashlib.sha256()
     for name in ("CMakeLists.txt", "linescan_ba.cc"):
         digest.update((SOURCE_DIR / name).read_bytes())
@@ -237,6 +235,8 @@ def build(quiet: bool = True) -> tuple[Path | None, str]:
     exe = folder / "linescan_ba"
     if exe.is_file():
         return exe, ""
+    if shutil.which("cmake") is None or shutil.which("g++") is None:
+        return None, f"cmake or g++ not found (set-up: {SETUP})"
     folder.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="build-", dir=folder.parent))
     try:
