@@ -34,6 +34,9 @@ Usage::
 
     python benchmarks/bench_adjust.py --n-obs 200000 --json
 
+``--vs ceres`` runs the comparison with Ceres Solver instead (``bench_adjust_ceres.py``:
+the same problem solved by a C++ twin of the model, its own options and set-up line).
+
 prints ``{"n_obs", "planetref_s", "scipy_s", "speedup", "max_param_diff_sigma",
 "peak_rss_mb", ...}``. ``peak_rss_mb`` is the process's peak resident memory after the
 planetref solve (before scipy runs); ``--no-scipy`` skips scipy (e.g. at 1e6).
@@ -208,7 +211,20 @@ CONFIG = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--vs", choices=["scipy", "ceres"], default="scipy")
+    known, rest = pre.parse_known_args(argv)
+    if known.vs == "ceres":  # its own options: bench_adjust_ceres.py --help
+        from bench_adjust_ceres import main as vs_ceres
+
+        return vs_ceres(rest)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument(
+        "--vs",
+        choices=["scipy", "ceres"],
+        default="scipy",
+        help="the peer: scipy (this script) or Ceres Solver (bench_adjust_ceres.py)",
+    )
     ap.add_argument("--n-obs", type=int, default=200_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--noise-px", type=float, default=0.3)
