@@ -129,7 +129,7 @@ def worker(n_obs: int, seed: int, n_tie: int, out: Path | None) -> dict[str, obj
 
     from planetref.adjust import adjust
     from planetref.camera.linescan import compiled
-    from planetref.threads import compute_threads
+    from planetref.runtime.threads import compute_threads
 
     if compiled.available() and compiled.warm_up():
         adjust(build_problem(2000, seed + 1, 0.3, 12, 0)[0], CONFIG)
