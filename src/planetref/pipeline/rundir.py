@@ -36,7 +36,15 @@ from pathlib import Path
 from typing import Any
 
 from planetref import __version__
-from planetref.atomic import json_safe, read_only_mode, watch_outputs
+from planetref.atomic import (
+    TEMP_PREFIX,
+    check_regular,
+    is_planetref_temporary,
+    json_safe,
+    open_regular,
+    read_only_mode,
+    watch_outputs,
+)
 from planetref.atomic import write_json_atomic as _write_json
 from planetref.errors import InputError, OutputError, RunDirError
 
@@ -54,6 +62,10 @@ __all__ = [
 
 MARKER = "run.json"
 LOCK_NAME = ".planetref.lock"
+LOG_NAME = "planetref.log"
+#: The names planetref opens in place (not by an atomic rename): they must be regular
+#: files, never links, before a run claims the folder.
+_OWN_NAMES = (LOCK_NAME, MARKER, LOG_NAME)
 FORMAT = "planetref-run"
 FORMAT_VERSION = 1
 SMALL_FILE_BYTES = 8 << 20
@@ -188,7 +200,10 @@ class _Lock:
         import fcntl
 
         self.path = folder / LOCK_NAME
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:  # never through a link: truncating it would destroy the file it names
+            fd = open_regular(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OutputError as exc:
+            raise RunDirError(str(exc)) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -260,6 +275,7 @@ class RunDir:
                 )
         self.inputs = {str(p.resolve()): file_fingerprint(p) for p in inputs}
         self.weights = {Path(w).name: file_fingerprint(w, full=True)["sha256"] for w in weights}
+        self._check_own_names()
         self._inspect()  # refuse a foreign folder before creating anything in it
         try:
             self.path.mkdir(parents=True, exist_ok=True)
@@ -270,6 +286,7 @@ class RunDir:
         self._lock = _Lock(self.path)
         try:
             previous = self._inspect()
+            self._remove_temporaries()
             self._files: set[str] = set()
             if previous is not None:
                 self._take_over(previous, overwrite=overwrite, resumable=resumable)
@@ -280,6 +297,14 @@ class RunDir:
             raise
 
     # ------------------------------------------------------------------ claiming
+
+    def _check_own_names(self) -> None:
+        """Refuse a folder whose lock, manifest or log is a link or not a regular file."""
+        for name in _OWN_NAMES:
+            try:
+                check_regular(self.path / name)
+            except OutputError as exc:
+                raise RunDirError(str(exc)) from None
 
     def _entries(self) -> list[Path]:
         return [c for c in self.path.iterdir() if c.name != LOCK_NAME] if self.path.is_dir() else []
@@ -308,6 +333,11 @@ class RunDir:
         listed = {str(f) for f in previous["files"] if isinstance(f, str)}
         problem = self._difference(previous)
         if problem is None and resumable and not overwrite:
+            for f in sorted(listed):
+                try:  # a listed file replaced by a link: resuming would write through it
+                    check_regular(self._inside_path(f), folder_ok=True)
+                except OutputError as exc:
+                    raise RunDirError(str(exc)) from None
             self.resumed = True
             self._files = {f for f in listed if (self.path / f).exists()}
             return
@@ -346,8 +376,35 @@ class RunDir:
                 return f"weights changed since this run ({name})"
         return None
 
+    def _inside_path(self, rel: str) -> Path:
+        """The listed file ``rel`` (a path that leaves the folder is refused)."""
+        p = self.path / rel
+        if ".." in Path(rel).parts or Path(rel).is_absolute() or not _inside(p.parent, self.path):
+            raise RunDirError(
+                f"the manifest lists a file outside the folder ({rel}); planetref writes "
+                "and removes nothing there: choose another --out",
+                path=self.path,
+            )
+        return p
+
     def _remove(self, listed: set[str]) -> None:
-        """Remove the listed files (never outside the folder), then emptied folders."""
+        """Remove the listed files (never outside the folder), then emptied folders.
+
+        Nothing is removed when one of them is read-only (no write bit in its mode):
+        ``--overwrite`` obeys the rule every planetref write does.
+        """
+        for rel in sorted(listed):
+            p = self.path / rel
+            if p.is_symlink() or not _inside(p.parent, self.path):
+                continue
+            mode = read_only_mode(p)
+            if mode is not None:
+                raise RunDirError(
+                    f"{rel} is read-only (mode {mode:o}); planetref does not replace or "
+                    "remove it, even with --overwrite: make it writable or choose another "
+                    "--out",
+                    path=self.path,
+                )
         folders: set[Path] = set()
         for rel in sorted(listed):
             p = self.path / rel
@@ -367,6 +424,18 @@ class RunDir:
                 folder.rmdir()
         (self.path / MARKER).unlink(missing_ok=True)
 
+    def _remove_temporaries(self) -> None:
+        """Remove atomic writes' temporaries an interrupted run left (under the lock).
+
+        Pending worker outputs (:data:`~planetref.atomic.PENDING_PREFIX`) stay: their
+        stage adopts or removes them when it resumes.
+        """
+        for dirpath, _dirnames, filenames in os.walk(self.path):
+            for name in filenames:
+                if name.startswith(TEMP_PREFIX):
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(dirpath, name))
+
     def _present(self) -> set[str]:
         """Every file in the folder (relative, POSIX), outside nested run folders."""
         found: set[str] = set()
@@ -378,6 +447,8 @@ class RunDir:
             for name in filenames:
                 if name in (LOCK_NAME,) or (here == self.path and name == MARKER):
                     continue
+                if is_planetref_temporary(name):
+                    continue  # planetref's own, never a user's file nor an output
                 found.add((here / name).relative_to(self.path).as_posix())
         return found
 
@@ -405,7 +476,21 @@ class RunDir:
         rel = Path(os.path.realpath(path.parent)).relative_to(os.path.realpath(self.path))
         return (rel / path.name).as_posix()
 
+    def _check_within(self, path: Path) -> None:
+        """Refuse a path named inside the folder whose real folder is outside (a link)."""
+        lexical = os.path.normpath(os.path.abspath(path))
+        root = os.path.normpath(os.path.abspath(self.path))
+        if lexical.startswith(root.rstrip(os.sep) + os.sep) and not _inside(
+            os.path.dirname(lexical), self.path
+        ):
+            raise RunDirError(
+                "the path leads out of the run folder through a link; planetref writes "
+                "only inside it",
+                path=path,
+            )
+
     def _claim(self, path: Path) -> None:
+        self._check_within(path)
         rel = self._relative(path)
         if rel is None or rel in (MARKER, LOCK_NAME) or rel in self._files:
             return
@@ -424,6 +509,7 @@ class RunDir:
         """Refuse an atomic write over a file of the folder that the run did not write."""
         if self._saving:
             return
+        self._check_within(path)
         rel = self._relative(path)
         if rel is not None and rel in self._foreign:
             self._claim(path)  # raises
@@ -441,9 +527,21 @@ class RunDir:
         Raises:
             RunDirError: The path is a file that planetref did not write.
         """
+        for part in parts:
+            if part in ("", ".", "..") or "/" in part or os.sep in part:
+                raise RunDirError(
+                    f"{part!r} is not a file or folder name of the run (a path component); "
+                    "planetref writes only inside the run folder",
+                    path=self.path,
+                )
         p = self.path.joinpath(*parts)
         self._claim(p)
         p.parent.mkdir(parents=True, exist_ok=True)
+        self._check_within(p)  # the folders just made may not be links either
+        try:
+            check_regular(p, folder_ok=True)  # opened in place: never through a link
+        except OutputError as exc:
+            raise RunDirError(str(exc)) from None
         return p
 
     def write_json(self, name: str, doc: Any) -> Path:
@@ -472,7 +570,7 @@ class RunDir:
         self.close()
 
     @contextlib.contextmanager
-    def logging_to_file(self, name: str = "planetref.log") -> Iterator[Path]:
+    def logging_to_file(self, name: str = LOG_NAME) -> Iterator[Path]:
         """The active run: logs copied to a file, outputs recorded; finished on exit.
 
         planetref's log records (INFO and above) go to ``name``; every atomic write inside
@@ -480,7 +578,12 @@ class RunDir:
         completed and the lock released.
         """
         path = self.file(name)
-        handler = logging.FileHandler(path, mode="a", encoding="utf-8")
+        try:  # appended in place: never through a link or into a hard-linked file
+            fd = open_regular(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        except OutputError as exc:
+            raise RunDirError(str(exc)) from None
+        stream = os.fdopen(fd, "a", encoding="utf-8")
+        handler = logging.StreamHandler(stream)
         handler.setLevel(logging.INFO)
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         logger = logging.getLogger("planetref")
@@ -506,5 +609,6 @@ class RunDir:
         finally:
             logger.removeHandler(handler)
             handler.close()
+            stream.close()
             logger.setLevel(previous_level)
             self.finish()

@@ -69,7 +69,9 @@ MANIFEST_FORMAT = "planetref-scene"
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "scene.toml"
 
-_ID = r"^[A-Za-z0-9_.-]{1,64}$"
+#: Strip and CCD ids name folders of the run: no path component (``.``, ``..``) nor a
+#: hidden name (planetref's temporaries start with a dot), no separator.
+_ID = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
 
 
 _Model = Settings
