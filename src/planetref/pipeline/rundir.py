@@ -19,9 +19,21 @@ files and the weights' sha256) and the list of every file the run wrote. The rul
 * No input of the command may lie inside the run folder.
 
 Files appear in the list as soon as :meth:`RunDir.file` hands out their path (so a run
-killed half-way can still be replaced), as soon as any atomic write
-(:mod:`planetref.atomic`) lands inside the folder while the run is active, and, when the
-run ends, every file that appeared in the folder during the run.
+killed half-way can still be replaced), before any atomic write
+(:mod:`planetref.atomic`) lands inside the folder while the run is active (so a run that
+could not save its manifest, a full disk, wrote nothing unlisted), and, when the run
+ends, every file that appeared in the folder during the run. The manifest says whether
+the run ended normally (``complete``): an interrupted command that cannot resume
+(``simulate``, ``adjust``) starts again on its next run instead of asking for
+``--overwrite``.
+
+planetref never follows a link it did not create: the lock, the manifest and the log
+must be regular files (a folder where one is a link is refused), every path handed out
+must stay inside the folder, and files opened in place are opened with ``O_NOFOLLOW``
+(:func:`planetref.atomic.open_regular`). Names starting with
+:data:`planetref.atomic.TEMP_PREFIX` or :data:`~planetref.atomic.PENDING_PREFIX` are
+planetref's temporaries: never a user's file, never recorded, removed (or adopted) by the
+next run.
 """
 
 from __future__ import annotations
@@ -261,8 +273,19 @@ class RunDir:
         self.kind = kind
         self.identity = json_safe(dict(identity))
         self.resumed = False
+        self._complete = False
         self._saving = False
         self._lock: _Lock | None = None
+        try:  # paths go into run.json, planetref.log and the reports, all UTF-8
+            os.path.abspath(self.path).encode("utf-8")
+        except UnicodeEncodeError:
+            shown = os.fsencode(os.path.abspath(self.path)).decode("utf-8", "backslashreplace")
+            raise RunDirError(
+                "the output folder's name is not valid UTF-8 (undecodable bytes shown as "
+                "\\x..); planetref writes paths into run.json and its logs as UTF-8: "
+                "choose another --out",
+                path=shown,
+            ) from None
         if self.path.exists() and not self.path.is_dir():
             raise RunDirError("the output path exists and is not a folder", path=self.path)
         inputs = [Path(p) for p in inputs]
@@ -332,6 +355,12 @@ class RunDir:
     def _take_over(self, previous: dict[str, Any], *, overwrite: bool, resumable: bool) -> None:
         listed = {str(f) for f in previous["files"] if isinstance(f, str)}
         problem = self._difference(previous)
+        if problem is None and not resumable and previous.get("complete") is False:
+            # The same command, interrupted (Ctrl-C, a kill): nothing of it is worth
+            # keeping and everything listed is its own; start again, as it would resume.
+            _log.info("%s: replacing the files of an interrupted %s run", self.path, self.kind)
+            self._remove(listed)
+            return
         if problem is None and resumable and not overwrite:
             for f in sorted(listed):
                 try:  # a listed file replaced by a link: resuming would write through it
@@ -430,11 +459,18 @@ class RunDir:
         Pending worker outputs (:data:`~planetref.atomic.PENDING_PREFIX`) stay: their
         stage adopts or removes them when it resumes.
         """
-        for dirpath, _dirnames, filenames in os.walk(self.path):
+        import shutil
+
+        for dirpath, dirnames, filenames in os.walk(self.path):
             for name in filenames:
                 if name.startswith(TEMP_PREFIX):
                     with contextlib.suppress(OSError):
                         os.unlink(os.path.join(dirpath, name))
+            for name in [d for d in dirnames if d.startswith(TEMP_PREFIX)]:
+                dirnames.remove(name)
+                target = os.path.join(dirpath, name)
+                if not os.path.islink(target):  # a build folder an interrupted run left
+                    shutil.rmtree(target, ignore_errors=True)
 
     def _present(self) -> set[str]:
         """Every file in the folder (relative, POSIX), outside nested run folders."""
@@ -444,6 +480,7 @@ class RunDir:
             if here != self.path and (here / MARKER).is_file():
                 dirnames[:] = []  # a nested run folder lists its own files
                 continue
+            dirnames[:] = [d for d in dirnames if not is_planetref_temporary(d)]
             for name in filenames:
                 if name in (LOCK_NAME,) or (here == self.path and name == MARKER):
                     continue
@@ -463,6 +500,7 @@ class RunDir:
             "inputs": self.inputs,
             "weights": self.weights,
             "files": sorted(self._files),
+            "complete": self._complete,
         }
         self._saving = True
         try:
@@ -494,6 +532,8 @@ class RunDir:
         rel = self._relative(path)
         if rel is None or rel in (MARKER, LOCK_NAME) or rel in self._files:
             return
+        if any(is_planetref_temporary(part) for part in rel.split("/")):
+            return  # planetref's own temporary (removed, or renamed and claimed, later)
         if rel in self._foreign:
             raise RunDirError(
                 "this file was not written by planetref, so the run does not replace it: "
@@ -506,13 +546,13 @@ class RunDir:
     # ------------------------------------------------------------------ OutputWatcher
 
     def check_output(self, path: Path) -> None:
-        """Refuse an atomic write over a file of the folder that the run did not write."""
+        """Refuse an atomic write over a file the run did not write; record it first."""
         if self._saving:
             return
-        self._check_within(path)
-        rel = self._relative(path)
-        if rel is not None and rel in self._foreign:
-            self._claim(path)  # raises
+        # Recorded before it is written: a file that lands in the folder is always in
+        # the manifest, even when saving the manifest fails afterwards (a full disk).
+        # Otherwise the run's own file would be foreign to every rerun, --overwrite too.
+        self._claim(path)  # raises for a file the run did not write
 
     def output_written(self, path: Path) -> None:
         """Record an atomic write inside the folder."""
@@ -548,10 +588,17 @@ class RunDir:
         """Write ``doc`` as JSON to ``name`` inside the run folder, atomically."""
         return write_json_atomic(self.file(name), doc)
 
-    def finish(self) -> None:
-        """Record every file that appeared during the run, and release the lock."""
+    def finish(self, *, complete: bool = True) -> None:
+        """Record every file that appeared during the run, and release the lock.
+
+        Args:
+            complete: Whether the run ended normally (recorded as ``complete`` in the
+                manifest); an interrupted command that cannot resume starts again on
+                its next run instead of asking for ``--overwrite``.
+        """
         if self._lock is None:
             return
+        self._complete = complete
         try:
             if self.path.is_dir():
                 self._files |= self._present() - self._foreign
@@ -605,10 +652,13 @@ class RunDir:
             )
             record.args = (type(exc).__name__, " ".join(str(exc).split()))
             handler.handle(record)
+            failed = True
             raise
+        else:
+            failed = False
         finally:
             logger.removeHandler(handler)
             handler.close()
             stream.close()
             logger.setLevel(previous_level)
-            self.finish()
+            self.finish(complete=not failed)
