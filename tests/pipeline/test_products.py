@@ -294,6 +294,10 @@ def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
         + rest
     )
     out = run_georef(scene, "sift", tmp_path / "run", progress=False)
+    # The accepted warning (a constant areoid is not Mars' there) is in the run's report
+    # and log, not only on the terminal before the run's log opened.
+    assert any("areoid raster is implausible" in w for w in out.report["input_warnings"])
+    assert "areoid raster is implausible" in (tmp_path / "run" / "planetref.log").read_text()
     table = read_mcps(tmp_path / "run" / "strip1" / "mcps.parquet")
     dem = GridTerrain.from_geotiff(dem_file)
     lon, lat, h = xyz_to_lonlat(table.xyz(), dem.ellipsoid)
