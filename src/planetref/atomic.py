@@ -273,7 +273,8 @@ def atomic_path(
 ) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` when the block ends.
 
-    The temporary name keeps the target's suffix (``.tmp.tif``, ``.tmp.gpkg``...), so
+    The temporary name (``.planetref-tmp.<stem>.<random><suffix>``, see
+    :data:`TEMP_PREFIX`) keeps the target's suffix (``.tif``, ``.gpkg``...), so
     libraries that pick a format from the name still do.
 
     Args:

@@ -462,6 +462,9 @@ class RunDir:
         import shutil
 
         for dirpath, dirnames, filenames in os.walk(self.path):
+            if dirpath != str(self.path) and MARKER in filenames:
+                dirnames[:] = []  # a nested run folder (its own lock) cleans its own
+                continue
             for name in filenames:
                 if name.startswith(TEMP_PREFIX):
                     with contextlib.suppress(OSError):
