@@ -250,7 +250,12 @@ def test_scene_manifest_datum_keys(tiny_scene, tmp_path):
     )
     head, rest = text.split("[reference]\n", 1)
     (scene / "scene.toml").write_text(
-        head + '[reference]\ndem_datum = "areoid"\nareoid = "reference/areoid.tif"\n' + rest
+        head
+        + '[reference]\ndem_datum = "areoid"\nareoid = "reference/areoid.tif"\n'
+        # A constant areoid is not Mars' at the scene's latitude (it is about -3.6 km
+        # there): accepted with a warning, as the scene says.
+        + 'implausible_heights = "warn"\n'
+        + rest
     )
     manifest2, root2 = load_manifest(scene)
     assert "reference/areoid.tif" in manifest2.paths()
@@ -281,9 +286,18 @@ def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
     text = "\n".join(lines) + "\n"
     head, rest = text.split("[reference]\n", 1)
     (scene / "scene.toml").write_text(
-        head + '[reference]\ndem_datum = "areoid"\nareoid = "reference/areoid.tif"\n' + rest
+        head
+        + '[reference]\ndem_datum = "areoid"\nareoid = "reference/areoid.tif"\n'
+        # A constant areoid is not Mars' at the scene's latitude (it is about -3.6 km
+        # there): accepted with a warning, as the scene says.
+        + 'implausible_heights = "warn"\n'
+        + rest
     )
     out = run_georef(scene, "sift", tmp_path / "run", progress=False)
+    # The accepted warning (a constant areoid is not Mars' there) is in the run's report
+    # and log, not only on the terminal before the run's log opened.
+    assert any("areoid raster is implausible" in w for w in out.report["input_warnings"])
+    assert "areoid raster is implausible" in (tmp_path / "run" / "planetref.log").read_text()
     table = read_mcps(tmp_path / "run" / "strip1" / "mcps.parquet")
     dem = GridTerrain.from_geotiff(dem_file)
     lon, lat, h = xyz_to_lonlat(table.xyz(), dem.ellipsoid)

@@ -128,6 +128,8 @@ def test_implausible_heights_for_the_declared_datum_warn(tmp_path, caplog):
         assert not caplog.records
         areoid = _linear_areoid(tmp_path, 0.0, 0.0, 0.0)
         with pytest.raises(InputError):  # the areoid raster is near 20 N, not 75 N
+            open_reference_dem(sub / "dem.tif", datum="areoid", areoid=areoid, implausible="warn")
+        with pytest.raises(InputError, match="implausible"):  # an error unless accepted
             open_reference_dem(sub / "dem.tif", datum="areoid", areoid=areoid)
     assert len(caplog.records) == 1 and "implausible" in caplog.records[0].getMessage()
 

@@ -95,15 +95,22 @@ def test_panel_store_adopts_and_records_a_worker_file(tmp_path):
     folder = tmp_path / "tile_panels"
     rec = Recorder()
     store = PanelStore(persistent=folder)  # the run's store, empty
-    # A worker (another process, nothing watching there) writes the tile's file...
-    written = save_panels(folder, TileResult(tile=tile, matcher="m", status="ok", debug=stages))
-    assert written is not None and written.parent == folder
+    # A worker (another process, nothing watching there) writes the tile's file under its
+    # pending name (never the final one: a run killed before it recorded the file would
+    # find an unrecorded file there)...
+    res = TileResult(tile=tile, matcher="m", status="ok", debug=stages)
+    pending = save_panels(folder, res, pending=True)
+    assert pending is not None and pending.parent == folder
+    assert pending.name == ".planetref-pending.ccd2_r000c001.npz"
+    written = folder / "ccd2_r000c001.npz"
+    assert not written.exists()
     with watch_outputs(rec):
         # ...and its result arrives here without stages: the store adopts the file.
         store.add(TileResult(tile=tile, matcher="m", status="ok"))
         store.add(TileResult(Tile("ccd2:r009c009", "ccd2", 90, 90, 10, 10), "m", "ok"))
     assert "ccd2:r000c001" in store and len(store) == 1  # a tile without a file is not
     assert rec.written == [written.resolve()]  # recorded as written for this process
+    assert written.is_file() and not pending.exists()  # adopted: renamed to its name
     (panel,) = store.panels("ccd2:r000c001")
     assert np.array_equal(panel.image0, img) and np.array_equal(panel.keypoints1, k + 1)
     store.keep_only([])

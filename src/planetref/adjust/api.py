@@ -163,6 +163,9 @@ def _adjust(
         models[i], messages = model.weaken(model.coverage(net.obs_ccd[sel], net.obs_line[sel]))
         for msg in messages:
             warn(msg)
+        check_geometry = getattr(models[i], "check_geometry", None)  # rank, not only counts
+        if check_geometry is not None:
+            check_geometry(net.obs_ccd[sel], net.obs_line[sel], net.obs_sample[sel])
     solver.set_models(models)
 
     # Weighted MCPs: their residuals (metrics, outlier rule) are those of the reference

@@ -268,6 +268,10 @@ def _read_measures(
             raise InputError("not UTF-8 text; save the file as UTF-8", path=path) from None
         except StopIteration:
             raise InputError("empty file (a header row is required)", path=path) from None
+        except csv.Error as exc:  # a field over csv.field_size_limit(), a stray NUL...
+            raise InputError(
+                f"not a valid CSV file (line {reader.line_num}: {exc})", path=path
+            ) from None
         missing = [c for c in REQUIRED_COLUMNS if c not in header]
         if missing:
             raise InputError(f"missing column(s) {missing}; the header is {header}", path=path)
@@ -285,6 +289,10 @@ def _read_measures(
                 f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start} of "
                 "a read block); save the file as UTF-8",
                 path=path,
+            ) from None
+        except csv.Error as exc:
+            raise InputError(
+                f"not a valid CSV file (line {reader.line_num}: {exc})", path=path
             ) from None
     if not rows:
         raise InputError("no measures (only a header)", path=path)

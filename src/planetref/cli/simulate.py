@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ def simulate_run(
         The :class:`~planetref.simulate.scene.SceneResult` (``root`` is ``out_dir``).
     """
     from planetref.pipeline.rundir import RunDir, config_digest
+    from planetref.runtime.atomic import TEMP_PREFIX
     from planetref.simulate.scene import simulate_scene
 
     out = Path(out_dir).resolve()
@@ -43,10 +43,17 @@ def simulate_run(
     }
     run = RunDir(out, "simulate", identity, overwrite=overwrite, resumable=False)
     with run.logging_to_file():
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.simulate-", dir=out.parent))
+        # Built inside the run folder under a temporary name (TEMP_PREFIX): an
+        # interrupted simulation leaves nothing beside it, and the next run (or demo)
+        # removes the folder under the lock and starts again.
+        tmp = out / f"{TEMP_PREFIX}simulate"
+        shutil.rmtree(tmp, ignore_errors=True)
         try:
             result = simulate_scene(cfg, tmp / "scene", preview=preview, progress=progress, log=log)
-            for src in sorted(p for p in (tmp / "scene").rglob("*") if p.is_file()):
+            files = sorted(p for p in (tmp / "scene").rglob("*") if p.is_file())
+            # scene.toml last: a scene folder with a scene.toml is whole (demo reuses it).
+            files.sort(key=lambda p: p.name == "scene.toml")
+            for src in files:
                 os.replace(src, run.file(*src.relative_to(tmp / "scene").parts))
         finally:
             shutil.rmtree(tmp, ignore_errors=True)

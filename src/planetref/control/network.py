@@ -371,6 +371,7 @@ class Network:
                         field="ccd",
                     )
                 ki[k] = names.index(rec.obs_ccd[k])
+        _refuse_duplicate_measures(ci, ki, pi, cam_ids, pids, rec.obs_ids)
         xyz = np.array([point_value(rec.point_xyz, p, "point_xyz", exact=True) for p in pids])
         xyz = xyz.reshape(-1, 3)
         if isinstance(rec.point_sigma_m, Mapping):
@@ -592,3 +593,43 @@ class PointFrames:
     def __getitem__(self, points: NDArray[np.intp]) -> F64:
         """Frames of the points with these indices, ``(len(points), 3, 3)``."""
         return self._net.point_frame_matrices(np.asarray(points, np.intp))
+
+
+def _refuse_duplicate_measures(
+    ci: NDArray[np.intp],
+    ki: NDArray[np.intp],
+    pi: NDArray[np.intp],
+    cam_ids: list[str],
+    pids: list[str],
+    obs_ids: Sequence[Any] | None,
+) -> None:
+    """Refuse a point measured twice in the same image (camera and CCD).
+
+    A duplicated measure row (a file concatenated twice, a copy-paste) would count with
+    double weight and shrink the reported precision; it is refused, naming both rows.
+
+    Raises:
+        InputError: The first duplicate, with both observations' ids (or indices).
+    """
+    if ci.size < 2:
+        return
+    key = np.stack([ci, ki, pi], axis=1)
+    _, counts = np.unique(key, axis=0, return_counts=True)
+    if np.all(counts == 1):
+        return
+    order = np.lexsort((np.arange(ci.size), pi, ki, ci))
+    sk = key[order]
+    same = np.all(sk[1:] == sk[:-1], axis=1)
+    j = int(np.flatnonzero(same)[0])
+    a, b = sorted((int(order[j]), int(order[j + 1])))
+
+    def name(k: int) -> str:
+        return f"{obs_ids[k]!r}" if obs_ids is not None else f"observation {k}"
+
+    n_dup = int(np.sum(counts - 1))
+    raise InputError(
+        f"{name(a)} and {name(b)} measure point {pids[int(pi[a])]!r} in image "
+        f"{cam_ids[int(ci[a])]!r} twice ({n_dup} duplicated measure(s) in all); a duplicate "
+        "would count with double weight: remove it",
+        field="obs_point",
+    )

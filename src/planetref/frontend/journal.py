@@ -27,6 +27,7 @@ from typing import IO, Any
 
 from planetref.errors import InputError
 from planetref.frontend.result import TileResult
+from planetref.runtime.atomic import open_regular
 
 __all__ = ["DEFAULT_MAX_ATTEMPTS", "TileJournal", "journal_digest"]
 
@@ -71,7 +72,7 @@ class TileJournal:
         self.max_attempts = int(max_attempts)
         self.finished: dict[str, TileResult] = {}
         self.attempts: dict[str, int] = {}
-        self._fh: IO[str] | None = None
+        self._fh: IO[bytes] | None = None
 
     def __enter__(self) -> TileJournal:
         self.open()
@@ -91,13 +92,20 @@ class TileJournal:
                 written with another matcher or configuration.
         """
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists():
-            self._read()
-        self._fh = self.path.open("a", encoding="utf-8")
+        # Read, repaired and appended in place: never through a link (a user's file the
+        # link names would be "repaired" as a torn journal) nor a hard-linked file.
+        fh = os.fdopen(open_regular(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND), "a+b")
+        try:
+            fh.seek(0)
+            self._read(fh)
+        except BaseException:
+            fh.close()
+            raise
+        self._fh = fh
         return self.finished
 
-    def _read(self) -> None:
-        data = self.path.read_bytes()
+    def _read(self, fh: IO[bytes]) -> None:
+        data = fh.read()
         lines = data.split(b"\n")  # the last item follows the last newline ("" if intact)
         pos = good_end = 0
         unterminated = False
@@ -137,13 +145,11 @@ class TileJournal:
                 len(data) - good_end,
             )
         if good_end < len(data) or unterminated:
-            with self.path.open("r+b") as fh:
-                fh.truncate(good_end)
-                if unterminated:  # a whole record without its newline: end the line
-                    fh.seek(good_end)
-                    fh.write(b"\n")
-                fh.flush()
-                os.fsync(fh.fileno())
+            fh.truncate(good_end)
+            if unterminated:  # a whole record without its newline: end the line
+                fh.write(b"\n")  # appended: at good_end
+            fh.flush()
+            os.fsync(fh.fileno())
         for tid, res in latest.items():
             if res.status != "error" or self.attempts.get(tid, 0) >= self.max_attempts:
                 self.finished[tid] = res
@@ -160,7 +166,7 @@ class TileJournal:
         if result.status == "error":
             self.attempts[result.tile_id] = attempt
         line = json.dumps({"digest": self.digest, "attempt": attempt, "result": result.to_dict()})
-        self._fh.write(line + "\n")
+        self._fh.write((line + "\n").encode("utf-8"))
         self._fh.flush()
         os.fsync(self._fh.fileno())
 

@@ -209,7 +209,7 @@ def run_tile_task(task: TileTask) -> dict[str, Any]:
         from planetref.frontend.tile_panels import save_panels
 
         try:
-            save_panels(task.panels, res)
+            save_panels(task.panels, res, pending=True)  # the parent adopts it
         except (OSError, PlanetrefError):
             pass  # the figure matches this tile again
         res.debug = []

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.errors import InputError
-from planetref.runtime.atomic import atomic_path, record_output
+from planetref.runtime.atomic import PENDING_PREFIX, adopt_pending, atomic_path, pending_path
 
 __all__ = ["MatchPanel", "PanelStore", "panels_from_tile", "save_panels"]
 
@@ -86,12 +86,14 @@ def _file_name(tile_id: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", tile_id) + ".npz"
 
 
-def save_panels(folder: str | Path, result: Any) -> Path | None:
+def save_panels(folder: str | Path, result: Any, *, pending: bool = False) -> Path | None:
     """Write the stages of a tile result (matched with ``debug``) into ``folder``.
 
     The file a :class:`PanelStore` on ``folder`` reads (written atomically); parallel
-    workers call this for the tiles they match. Only tiles that ended ``ok`` can be drawn
-    (see :func:`~planetref.report.figures_matching.select_tiles`); others are ignored.
+    workers call this for the tiles they match, with ``pending``: they write the pending
+    name (:func:`~planetref.runtime.atomic.pending_path`) that the parent adopts when it records
+    the tile. Only tiles that ended ``ok`` can be drawn (see
+    :func:`~planetref.report.figures_matching.select_tiles`); others are ignored.
 
     Returns:
         The file, or None when the result has no stages to keep.
@@ -108,6 +110,8 @@ def save_panels(folder: str | Path, result: Any) -> Path | None:
         for f in _FIELDS:
             arrays[f"{i}_{f}"] = np.asarray(getattr(s, f))
     path = Path(folder) / _file_name(tile_id)
+    if pending:
+        path = pending_path(path)
     with atomic_path(path) as tmp:
         np.savez(tmp, **arrays)
     return path
@@ -137,6 +141,16 @@ class PanelStore:
             self._dir = Path(self._tmp.name)
             return
         self._dir = Path(persistent)
+        # Tiles that workers of an interrupted run wrote but the run never recorded: a
+        # valid one is adopted (its tile is in the journal or is matched again), a
+        # damaged one removed; neither blocks the run.
+        for path in sorted(self._dir.glob(PENDING_PREFIX + "*.npz")) if self._dir.is_dir() else []:
+            final = path.with_name(path.name[len(PENDING_PREFIX) :])
+            tile_id = self._stored_id(path) if not path.is_symlink() else None
+            if tile_id is not None and _file_name(tile_id) == final.name:
+                adopt_pending(final)
+            elif not path.is_symlink():
+                path.unlink(missing_ok=True)
         for path in sorted(self._dir.glob("*.npz")) if self._dir.is_dir() else []:
             if path.name.startswith("."):
                 continue  # an atomic write's temporary file cut short
@@ -172,10 +186,10 @@ class PanelStore:
     def add(self, result: Any) -> None:
         """Keep the stages of a :class:`~planetref.frontend.result.TileResult` (``debug``).
 
-        A result without stage images (matched by a parallel worker) adopts the file the
-        worker wrote into :attr:`folder`, if there is one, and records it as written for
-        this process (:func:`~planetref.runtime.atomic.record_output`). Only tiles that ended
-        ``ok`` are kept.
+        A result without stage images (matched by a parallel worker) adopts the pending
+        file the worker wrote into :attr:`folder`, if there is one: renamed to its final
+        name and recorded as written for this process
+        (:func:`~planetref.runtime.atomic.adopt_pending`). Only tiles that ended ``ok`` are kept.
         """
         if getattr(result, "status", "ok") != "ok":
             return
@@ -184,8 +198,10 @@ class PanelStore:
             path = save_panels(self._dir, result)
         else:
             path = self._dir / _file_name(tile_id)
-            if path.is_file() and self._stored_id(path) == tile_id:
-                record_output(path)
+            pending = pending_path(path)
+            regular = pending.is_file() and not pending.is_symlink()
+            if regular and self._stored_id(pending) == tile_id:
+                adopt_pending(path)
             else:
                 path = None
         if path is not None:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from planetref.errors import InputError, PlanetrefError, WeightsError
+from planetref.errors import InputError, MatchingError, PlanetrefError, WeightsError
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
 from planetref.scene.inputs import scene_input_files
@@ -212,6 +212,12 @@ def _run_compare(
         files = {k: v for k, v in tables.items() if k != "markdown"}
         if headline is not None:
             files["headline"] = str(headline)
+        if not runs:  # the report says why each failed; the command fails, in one line
+            first = next(iter(skipped.items()), ("", "no matcher to run"))
+            raise MatchingError(
+                f"every matcher failed ({len(skipped)}); the first, {first[0]}: "
+                f"{' '.join(str(first[1]).split())} (see {run.path / 'report.md'})"
+            )
     return CompareOutcome(
         report=report, run_dir=run.path, tables_markdown=tables["markdown"], files=files
     )

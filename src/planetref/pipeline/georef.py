@@ -174,7 +174,8 @@ def run_georef(
         # Inputs checked and matchers built before the run folder is claimed, so a failed
         # start (unknown matcher, missing weights, unreadable reference, camera or image, no
         # overlap) leaves nothing behind.
-        ref, dem = open_reference(manifest, root)
+        input_warnings: list[str] = []  # logged once the run's log is open, and reported
+        ref, dem = open_reference(manifest, root, input_warnings)
         body = manifest.body.ellipsoid()
         check_body(body, ref, "reference ortho")
         check_body(body, dem, "reference DEM", manifest.resolve(root, manifest.reference.dem))
@@ -214,6 +215,8 @@ def run_georef(
                 run.path,
                 " (resuming)" if run.resumed else "",
             )
+            for warning in input_warnings:  # stderr, planetref.log, and report.json below
+                log.warning("%s", warning)
             run.write_json(
                 "config.json",
                 {
@@ -269,6 +272,8 @@ def run_georef(
             if campaign is not None:
                 report["adjustment"] = campaign.pop("adjustment")
                 report["campaign"] = campaign
+            if input_warnings:
+                report["input_warnings"] = list(input_warnings)
             run.write_json("report.json", report)
             write_georef_markdown(report, run.file("report.md"))
     finally:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -29,12 +29,15 @@ __all__ = [
     "figures_matching",
     "isd_files",
     "mcp_points",
+    "optional_output",
     "orthoimages",
     "part_timed",
     "timed",
+    "write_camera_isds",
 ]
 
 log = logging.getLogger("planetref.pipeline.georef")
+T = TypeVar("T")
 
 
 @contextlib.contextmanager
@@ -93,7 +96,37 @@ def orthoimages(
     return [str(p) for p in res.ccds.values()] + ([str(res.mosaic)] if res.mosaic else [])
 
 
+def optional_output(what: str, make: Callable[[], T], empty: T) -> T:
+    """Make an optional output (an ISD, an ASP/ISIS file); on failure warn and go on.
+
+    The run's results (cameras, report, orthoimages) do not depend on these files: an
+    export that cannot be made (a camera the ISD sampling cannot reproduce to its
+    tolerance, a full disk) costs that file only, with a warning naming it and the
+    reason, on every rerun alike, never the run.
+
+    Args:
+        what: The output, for the warning ("strip strip1: CSM ISDs").
+        make: Writes it and returns what the report lists.
+        empty: What the report lists when it failed.
+    """
+    try:
+        return make()
+    except Exception as exc:  # any failure of the export is the export's alone
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        log.warning(
+            "%s not written (%s: %s); the run goes on without it", what, type(exc).__name__, reason
+        )
+        return empty
+
+
 def camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
+    """:func:`write_camera_isds`, optional: a failure is a warning (:func:`optional_output`)."""
+    return optional_output(
+        f"strip {strip}: CSM ISDs", lambda: write_camera_isds(job, strip, camera), []
+    )
+
+
+def write_camera_isds(job: StripJob, strip: str, camera: Camera) -> list[str]:
     """The adjusted native camera as one USGS CSM line-scan ISD per CCD; the paths.
 
     Written to ``<strip>/adjustment/isd/<strip>_<ccd>.json``; each ISD is checked against
@@ -167,6 +200,8 @@ def control_exports(
 ) -> dict[str, str]:
     """MCPs (and tie points) as an ASP GCP file and an ISIS-style control network CSV.
 
+    Optional: a failure is a warning (:func:`optional_output`) and an empty dict.
+
     Args:
         job: The run.
         name: File stem.
@@ -175,10 +210,13 @@ def control_exports(
     """
     from planetref.control.exports import write_asp_gcp, write_isis_cnet_csv
 
-    body = job.manifest.body.ellipsoid()
-    gcp = write_asp_gcp(points, body, job.run.file(*folder, f"{name}.gcp"))
-    cnet = write_isis_cnet_csv(points, body, job.run.file(*folder, f"{name}_cnet.csv"))
-    return {"asp_gcp": str(gcp), "isis_cnet_csv": str(cnet)}
+    def write() -> dict[str, str]:
+        body = job.manifest.body.ellipsoid()
+        gcp = write_asp_gcp(points, body, job.run.file(*folder, f"{name}.gcp"))
+        cnet = write_isis_cnet_csv(points, body, job.run.file(*folder, f"{name}_cnet.csv"))
+        return {"asp_gcp": str(gcp), "isis_cnet_csv": str(cnet)}
+
+    return optional_output(f"{'/'.join(folder)}: ASP GCP and ISIS control files", write, {})
 
 
 def mcp_points(prep: Any, cfg: Any) -> Any:

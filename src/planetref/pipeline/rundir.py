@@ -19,9 +19,21 @@ files and the weights' sha256) and the list of every file the run wrote. The rul
 * No input of the command may lie inside the run folder.
 
 Files appear in the list as soon as :meth:`RunDir.file` hands out their path (so a run
-killed half-way can still be replaced), as soon as any atomic write
-(:mod:`planetref.runtime.atomic`) lands inside the folder while the run is active, and, when the
-run ends, every file that appeared in the folder during the run.
+killed half-way can still be replaced), before any atomic write
+(:mod:`planetref.runtime.atomic`) lands inside the folder while the run is active (so a run that
+could not save its manifest, a full disk, wrote nothing unlisted), and, when the run
+ends, every file that appeared in the folder during the run. The manifest says whether
+the run ended normally (``complete``): an interrupted command that cannot resume
+(``simulate``, ``adjust``) starts again on its next run instead of asking for
+``--overwrite``.
+
+planetref never follows a link it did not create: the lock, the manifest and the log
+must be regular files (a folder where one is a link is refused), every path handed out
+must stay inside the folder, and files opened in place are opened with ``O_NOFOLLOW``
+(:func:`planetref.runtime.atomic.open_regular`). Names starting with
+:data:`planetref.runtime.atomic.TEMP_PREFIX` or :data:`~planetref.runtime.atomic.PENDING_PREFIX` are
+planetref's temporaries: never a user's file, never recorded, removed (or adopted) by the
+next run.
 """
 
 from __future__ import annotations
@@ -37,7 +49,16 @@ from typing import Any
 
 from planetref import __version__
 from planetref.errors import InputError, OutputError, RunDirError
-from planetref.runtime.atomic import json_safe, read_only_mode, watch_outputs, write_json_atomic
+from planetref.runtime.atomic import (
+    TEMP_PREFIX,
+    check_regular,
+    is_planetref_temporary,
+    json_safe,
+    open_regular,
+    read_only_mode,
+    watch_outputs,
+    write_json_atomic,
+)
 
 __all__ = [
     "FORMAT",
@@ -52,6 +73,10 @@ __all__ = [
 
 MARKER = "run.json"
 LOCK_NAME = ".planetref.lock"
+LOG_NAME = "planetref.log"
+#: The names planetref opens in place (not by an atomic rename): they must be regular
+#: files, never links, before a run claims the folder.
+_OWN_NAMES = (LOCK_NAME, MARKER, LOG_NAME)
 FORMAT = "planetref-run"
 FORMAT_VERSION = 1
 SMALL_FILE_BYTES = 8 << 20
@@ -181,7 +206,10 @@ class _Lock:
         import fcntl
 
         self.path = folder / LOCK_NAME
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:  # never through a link: truncating it would destroy the file it names
+            fd = open_regular(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OutputError as exc:
+            raise RunDirError(str(exc)) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -239,8 +267,19 @@ class RunDir:
         self.kind = kind
         self.identity = json_safe(dict(identity))
         self.resumed = False
+        self._complete = False
         self._saving = False
         self._lock: _Lock | None = None
+        try:  # paths go into run.json, planetref.log and the reports, all UTF-8
+            os.path.abspath(self.path).encode("utf-8")
+        except UnicodeEncodeError:
+            shown = os.fsencode(os.path.abspath(self.path)).decode("utf-8", "backslashreplace")
+            raise RunDirError(
+                "the output folder's name is not valid UTF-8 (undecodable bytes shown as "
+                "\\x..); planetref writes paths into run.json and its logs as UTF-8: "
+                "choose another --out",
+                path=shown,
+            ) from None
         if self.path.exists() and not self.path.is_dir():
             raise RunDirError("the output path exists and is not a folder", path=self.path)
         inputs = [Path(p) for p in inputs]
@@ -253,6 +292,7 @@ class RunDir:
                 )
         self.inputs = {str(p.resolve()): file_fingerprint(p) for p in inputs}
         self.weights = {Path(w).name: file_fingerprint(w, full=True)["sha256"] for w in weights}
+        self._check_own_names()
         self._inspect()  # refuse a foreign folder before creating anything in it
         try:
             self.path.mkdir(parents=True, exist_ok=True)
@@ -263,6 +303,7 @@ class RunDir:
         self._lock = _Lock(self.path)
         try:
             previous = self._inspect()
+            self._remove_temporaries()
             self._files: set[str] = set()
             if previous is not None:
                 self._take_over(previous, overwrite=overwrite, resumable=resumable)
@@ -273,6 +314,14 @@ class RunDir:
             raise
 
     # ------------------------------------------------------------------ claiming
+
+    def _check_own_names(self) -> None:
+        """Refuse a folder whose lock, manifest or log is a link or not a regular file."""
+        for name in _OWN_NAMES:
+            try:
+                check_regular(self.path / name)
+            except OutputError as exc:
+                raise RunDirError(str(exc)) from None
 
     def _entries(self) -> list[Path]:
         return [c for c in self.path.iterdir() if c.name != LOCK_NAME] if self.path.is_dir() else []
@@ -300,7 +349,18 @@ class RunDir:
     def _take_over(self, previous: dict[str, Any], *, overwrite: bool, resumable: bool) -> None:
         listed = {str(f) for f in previous["files"] if isinstance(f, str)}
         problem = self._difference(previous)
+        if problem is None and not resumable and previous.get("complete") is False:
+            # The same command, interrupted (Ctrl-C, a kill): nothing of it is worth
+            # keeping and everything listed is its own; start again, as it would resume.
+            _log.info("%s: replacing the files of an interrupted %s run", self.path, self.kind)
+            self._remove(listed)
+            return
         if problem is None and resumable and not overwrite:
+            for f in sorted(listed):
+                try:  # a listed file replaced by a link: resuming would write through it
+                    check_regular(self._inside_path(f), folder_ok=True)
+                except OutputError as exc:
+                    raise RunDirError(str(exc)) from None
             self.resumed = True
             self._files = {f for f in listed if (self.path / f).exists()}
             return
@@ -339,8 +399,35 @@ class RunDir:
                 return f"weights changed since this run ({name})"
         return None
 
+    def _inside_path(self, rel: str) -> Path:
+        """The listed file ``rel`` (a path that leaves the folder is refused)."""
+        p = self.path / rel
+        if ".." in Path(rel).parts or Path(rel).is_absolute() or not _inside(p.parent, self.path):
+            raise RunDirError(
+                f"the manifest lists a file outside the folder ({rel}); planetref writes "
+                "and removes nothing there: choose another --out",
+                path=self.path,
+            )
+        return p
+
     def _remove(self, listed: set[str]) -> None:
-        """Remove the listed files (never outside the folder), then emptied folders."""
+        """Remove the listed files (never outside the folder), then emptied folders.
+
+        Nothing is removed when one of them is read-only (no write bit in its mode):
+        ``--overwrite`` obeys the rule every planetref write does.
+        """
+        for rel in sorted(listed):
+            p = self.path / rel
+            if p.is_symlink() or not _inside(p.parent, self.path):
+                continue
+            mode = read_only_mode(p)
+            if mode is not None:
+                raise RunDirError(
+                    f"{rel} is read-only (mode {mode:o}); planetref does not replace or "
+                    "remove it, even with --overwrite: make it writable or choose another "
+                    "--out",
+                    path=self.path,
+                )
         folders: set[Path] = set()
         for rel in sorted(listed):
             p = self.path / rel
@@ -360,6 +447,28 @@ class RunDir:
                 folder.rmdir()
         (self.path / MARKER).unlink(missing_ok=True)
 
+    def _remove_temporaries(self) -> None:
+        """Remove atomic writes' temporaries an interrupted run left (under the lock).
+
+        Pending worker outputs (:data:`~planetref.runtime.atomic.PENDING_PREFIX`) stay: their
+        stage adopts or removes them when it resumes.
+        """
+        import shutil
+
+        for dirpath, dirnames, filenames in os.walk(self.path):
+            if dirpath != str(self.path) and MARKER in filenames:
+                dirnames[:] = []  # a nested run folder (its own lock) cleans its own
+                continue
+            for name in filenames:
+                if name.startswith(TEMP_PREFIX):
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(dirpath, name))
+            for name in [d for d in dirnames if d.startswith(TEMP_PREFIX)]:
+                dirnames.remove(name)
+                target = os.path.join(dirpath, name)
+                if not os.path.islink(target):  # a build folder an interrupted run left
+                    shutil.rmtree(target, ignore_errors=True)
+
     def _present(self) -> set[str]:
         """Every file in the folder (relative, POSIX), outside nested run folders."""
         found: set[str] = set()
@@ -368,9 +477,12 @@ class RunDir:
             if here != self.path and (here / MARKER).is_file():
                 dirnames[:] = []  # a nested run folder lists its own files
                 continue
+            dirnames[:] = [d for d in dirnames if not is_planetref_temporary(d)]
             for name in filenames:
                 if name in (LOCK_NAME,) or (here == self.path and name == MARKER):
                     continue
+                if is_planetref_temporary(name):
+                    continue  # planetref's own, never a user's file nor an output
                 found.add((here / name).relative_to(self.path).as_posix())
         return found
 
@@ -385,6 +497,7 @@ class RunDir:
             "inputs": self.inputs,
             "weights": self.weights,
             "files": sorted(self._files),
+            "complete": self._complete,
         }
         self._saving = True
         try:
@@ -398,10 +511,26 @@ class RunDir:
         rel = Path(os.path.realpath(path.parent)).relative_to(os.path.realpath(self.path))
         return (rel / path.name).as_posix()
 
+    def _check_within(self, path: Path) -> None:
+        """Refuse a path named inside the folder whose real folder is outside (a link)."""
+        lexical = os.path.normpath(os.path.abspath(path))
+        root = os.path.normpath(os.path.abspath(self.path))
+        if lexical.startswith(root.rstrip(os.sep) + os.sep) and not _inside(
+            os.path.dirname(lexical), self.path
+        ):
+            raise RunDirError(
+                "the path leads out of the run folder through a link; planetref writes "
+                "only inside it",
+                path=path,
+            )
+
     def _claim(self, path: Path) -> None:
+        self._check_within(path)
         rel = self._relative(path)
         if rel is None or rel in (MARKER, LOCK_NAME) or rel in self._files:
             return
+        if any(is_planetref_temporary(part) for part in rel.split("/")):
+            return  # planetref's own temporary (removed, or renamed and claimed, later)
         if rel in self._foreign:
             raise RunDirError(
                 "this file was not written by planetref, so the run does not replace it: "
@@ -414,12 +543,13 @@ class RunDir:
     # ------------------------------------------------------------------ OutputWatcher
 
     def check_output(self, path: Path) -> None:
-        """Refuse an atomic write over a file of the folder that the run did not write."""
+        """Refuse an atomic write over a file the run did not write; record it first."""
         if self._saving:
             return
-        rel = self._relative(path)
-        if rel is not None and rel in self._foreign:
-            self._claim(path)  # raises
+        # Recorded before it is written: a file that lands in the folder is always in
+        # the manifest, even when saving the manifest fails afterwards (a full disk).
+        # Otherwise the run's own file would be foreign to every rerun, --overwrite too.
+        self._claim(path)  # raises for a file the run did not write
 
     def output_written(self, path: Path) -> None:
         """Record an atomic write inside the folder."""
@@ -434,19 +564,38 @@ class RunDir:
         Raises:
             RunDirError: The path is a file that planetref did not write.
         """
+        for part in parts:
+            if part in ("", ".", "..") or "/" in part or os.sep in part:
+                raise RunDirError(
+                    f"{part!r} is not a file or folder name of the run (a path component); "
+                    "planetref writes only inside the run folder",
+                    path=self.path,
+                )
         p = self.path.joinpath(*parts)
         self._claim(p)
         p.parent.mkdir(parents=True, exist_ok=True)
+        self._check_within(p)  # the folders just made may not be links either
+        try:
+            check_regular(p, folder_ok=True)  # opened in place: never through a link
+        except OutputError as exc:
+            raise RunDirError(str(exc)) from None
         return p
 
     def write_json(self, name: str, doc: Any) -> Path:
         """Write ``doc`` as JSON to ``name`` inside the run folder, atomically."""
         return write_json_atomic(self.file(name), doc, indent=2, nan_as_null=True)
 
-    def finish(self) -> None:
-        """Record every file that appeared during the run, and release the lock."""
+    def finish(self, *, complete: bool = True) -> None:
+        """Record every file that appeared during the run, and release the lock.
+
+        Args:
+            complete: Whether the run ended normally (recorded as ``complete`` in the
+                manifest); an interrupted command that cannot resume starts again on
+                its next run instead of asking for ``--overwrite``.
+        """
         if self._lock is None:
             return
+        self._complete = complete
         try:
             if self.path.is_dir():
                 self._files |= self._present() - self._foreign
@@ -465,7 +614,7 @@ class RunDir:
         self.close()
 
     @contextlib.contextmanager
-    def logging_to_file(self, name: str = "planetref.log") -> Iterator[Path]:
+    def logging_to_file(self, name: str = LOG_NAME) -> Iterator[Path]:
         """The active run: logs copied to a file, outputs recorded; finished on exit.
 
         planetref's log records (INFO and above) go to ``name``; every atomic write inside
@@ -473,7 +622,12 @@ class RunDir:
         completed and the lock released.
         """
         path = self.file(name)
-        handler = logging.FileHandler(path, mode="a", encoding="utf-8")
+        try:  # appended in place: never through a link or into a hard-linked file
+            fd = open_regular(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        except OutputError as exc:
+            raise RunDirError(str(exc)) from None
+        stream = os.fdopen(fd, "a", encoding="utf-8")
+        handler = logging.StreamHandler(stream)
         handler.setLevel(logging.INFO)
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         logger = logging.getLogger("planetref")
@@ -495,9 +649,13 @@ class RunDir:
             )
             record.args = (type(exc).__name__, " ".join(str(exc).split()))
             handler.handle(record)
+            failed = True
             raise
+        else:
+            failed = False
         finally:
             logger.removeHandler(handler)
             handler.close()
+            stream.close()
             logger.setLevel(previous_level)
-            self.finish()
+            self.finish(complete=not failed)

@@ -46,6 +46,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
 from collections.abc import Mapping
@@ -78,6 +79,7 @@ F32 = NDArray[np.float32]
 #: Round pixel sizes (times a power of ten) that :func:`round_gsd` chooses from.
 ROUND_STEPS = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 TILE = 256
+log = logging.getLogger(__name__)
 #: Key of the mosaic among the outputs (CCD names are the others).
 _MOSAIC = "\0mosaic"
 #: GDAL's block cache while writing (MB), and during a whole georef run. GDAL's default,
@@ -248,8 +250,47 @@ def _strip_digest(
 
 
 def _digest_ok(path: Path, digest: str) -> bool:
+    """Whether ``path`` may be kept: same inputs (its digest file), same size, decodes.
+
+    The digest file says what the output was made from, not that it is still whole: an
+    orthoimage truncated or overwritten afterwards would be kept by a digest alone, so
+    its size (recorded beside the digest) is compared and the file is opened and its
+    first and last rows of blocks of every band decoded (GDAL writes blocks in row
+    order, so a cut file fails there).
+    """
     d = path.with_name(path.name + DIGEST_SUFFIX)
-    return path.is_file() and d.is_file() and d.read_text(encoding="utf-8").strip() == digest
+    if not (path.is_file() and not path.is_symlink() and d.is_file()):
+        return False
+    try:
+        words = d.read_text(encoding="utf-8").split()
+    except (OSError, UnicodeDecodeError):
+        return False
+    if not words or words[0] != digest:
+        return False
+    if len(words) >= 3 and words[1] == "size" and words[2] != str(path.stat().st_size):
+        log.warning("%s: its size changed since it was written; writing it again", path)
+        return False
+    problem = _undecodable(path)
+    if problem is not None:
+        log.warning("%s: cannot be read back (%s); writing it again", path, problem)
+        return False
+    return True
+
+
+def _undecodable(path: Path) -> str | None:
+    """Why a GeoTIFF cannot be decoded (first and last rows of blocks), or None."""
+    import rasterio
+    from rasterio.windows import Window
+
+    try:
+        with rasterio.open(path) as ds:
+            for band in range(1, ds.count + 1):
+                rows = min(ds.height, max(1, ds.block_shapes[band - 1][0]))
+                for row0 in sorted({0, ds.height - rows}):
+                    ds.read(band, window=Window(0, row0, ds.width, rows))
+    except Exception as exc:  # any GDAL/rasterio failure: the file is not whole
+        return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}".strip()
+    return None
 
 
 def _kernel() -> Any:
@@ -589,8 +630,9 @@ def _write_block(
 
 
 def _write_digest(path: Path, digest: str) -> None:
+    """Write the inputs' digest and the file's size beside it (see :func:`_digest_ok`)."""
     with atomic_path(path.with_name(path.name + DIGEST_SUFFIX)) as tmp:
-        tmp.write_text(digest + "\n", encoding="utf-8")
+        tmp.write_text(f"{digest}\nsize {path.stat().st_size}\n", encoding="utf-8")
 
 
 def orthorectify_ccd(

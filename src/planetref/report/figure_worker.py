@@ -30,7 +30,16 @@ def warm() -> None:
 
 
 def main() -> int:
-    """Run the tasks named on stdin until it closes."""
+    """Run the tasks named on stdin until it closes.
+
+    Ctrl-C reaches the whole terminal process group: the worker ignores SIGINT (the
+    parent stops, closes stdin, and the worker ends after its task), so an interrupted
+    run prints no KeyboardInterrupt traceback from here. A parent that dies outright also
+    closes stdin.
+    """
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     replies = os.fdopen(os.dup(1), "w", encoding="utf-8")
     os.dup2(2, 1)  # stray prints go to stderr, not into the replies
     try:

@@ -71,7 +71,8 @@ def numeric_column(rows: Sequence[Sequence[Any]], i: int) -> bool:
 def format_markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """A GitHub-flavoured Markdown table (numbers right-aligned, text left-aligned)."""
     cells = [[fmt(v) for v in r] for r in rows]
-    widths = [max(len(str(h)), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
+    # A list, so that a table without rows (every matcher failed) has its header widths.
+    widths = [max([len(str(h)), *(len(r[i]) for r in cells)]) for i, h in enumerate(header)]
     numeric = [numeric_column(rows, i) for i in range(len(header))]
     out = [
         "| " + " | ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True)) + " |",

@@ -23,9 +23,16 @@ from typing import Any, Protocol
 from planetref.errors import OutputError, PlanetrefError
 
 __all__ = [
+    "PENDING_PREFIX",
+    "TEMP_PREFIX",
     "OutputWatcher",
+    "adopt_pending",
     "atomic_path",
+    "check_regular",
+    "is_planetref_temporary",
     "json_safe",
+    "open_regular",
+    "pending_path",
     "read_only_mode",
     "record_output",
     "watch_outputs",
@@ -37,6 +44,108 @@ __all__ = [
 #: Modules whose exceptions, raised while an output is written, are write failures
 #: (GDAL, OGR, Arrow, SQLite): they are re-raised naming the file.
 _WRITER_MODULES = frozenset({"rasterio", "pyogrio", "fiona", "osgeo", "pyarrow", "sqlite3"})
+
+
+#: Every temporary name planetref writes starts with this (atomic writes, worker
+#: outputs waiting to be adopted): a run folder knows them as its own debris.
+TEMP_PREFIX = ".planetref-tmp."
+#: A worker process's finished output, waiting for the parent to adopt it (rename it to
+#: its final name and record it); an interrupted run's are adopted or removed next time.
+PENDING_PREFIX = ".planetref-pending."
+
+
+def is_planetref_temporary(name: str) -> bool:
+    """Whether a file name is one of planetref's temporaries or pending worker outputs."""
+    return name.startswith((TEMP_PREFIX, PENDING_PREFIX))
+
+
+def _not_regular(path: Path, st: os.stat_result) -> OutputError:
+    import stat
+
+    what = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a regular file"
+    return OutputError(
+        f"planetref's file is {what}; planetref never follows or writes through a link "
+        "it did not create: remove it or choose another folder",
+        path=path,
+    )
+
+
+def check_regular(path: str | os.PathLike[str], *, folder_ok: bool = False) -> Path:
+    """Refuse a path that exists and is not a regular file (a link, a folder, a FIFO).
+
+    ``lstat``, so a symbolic link is seen as itself, never as what it names.
+
+    Args:
+        path: The path.
+        folder_ok: Also accept a real folder (not a link to one).
+
+    Raises:
+        OutputError: The path exists and is not a regular file.
+    """
+    import stat
+
+    p = Path(path)
+    try:
+        st = os.lstat(p)
+    except (FileNotFoundError, NotADirectoryError):
+        return p
+    except OSError as exc:
+        raise OutputError(f"cannot inspect the file ({exc.strerror or exc})", path=p) from None
+    if not (stat.S_ISREG(st.st_mode) or (folder_ok and stat.S_ISDIR(st.st_mode))):
+        raise _not_regular(p, st)
+    return p
+
+
+def open_regular(
+    path: str | os.PathLike[str], flags: int, mode: int = 0o666, *, single_link: bool = True
+) -> int:
+    """``os.open`` that never follows a symbolic link and opens only a regular file.
+
+    ``O_NOFOLLOW`` refuses a link in the last component; ``O_NONBLOCK`` keeps a FIFO
+    from blocking the open before ``fstat`` refuses it. A file opened for writing must
+    have no other hard link (``single_link``): writing into it would change the other
+    name's content (a user's file linked into the run folder).
+
+    Args:
+        path: The file.
+        flags: ``os.O_*`` flags (``O_NOFOLLOW`` is added).
+        mode: Permission bits of a created file.
+        single_link: Refuse a file with more than one hard link.
+
+    Returns:
+        The open descriptor (blocking mode restored).
+
+    Raises:
+        OutputError: The path is a link, not a regular file, has other hard links, or
+            cannot be opened.
+    """
+    import stat
+
+    p = Path(path)
+    try:
+        fd = os.open(p, flags | os.O_NOFOLLOW | os.O_NONBLOCK, mode)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            st = os.lstat(p)
+            if not stat.S_ISREG(st.st_mode):
+                raise _not_regular(p, st) from None
+        raise OutputError(f"cannot open the file ({exc.strerror or exc})", path=p) from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _not_regular(p, st)
+        if single_link and st.st_nlink > 1:
+            raise OutputError(
+                f"planetref's file has {st.st_nlink} hard links (another name shares its "
+                "content); planetref does not write into it: remove it or choose another "
+                "folder",
+                path=p,
+            )
+        os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
 
 
 class OutputWatcher(Protocol):
@@ -77,6 +186,58 @@ def record_output(path: str | os.PathLike[str]) -> None:
         w.output_written(absolute)
 
 
+def pending_path(path: str | os.PathLike[str]) -> Path:
+    """The name a worker process writes ``path`` under, until its parent adopts it.
+
+    A worker never writes an output's final name: a run killed before it recorded the
+    output would find an unrecorded file there, which is not the run's to replace. The
+    pending name (:data:`PENDING_PREFIX`) is planetref's own; :func:`adopt_pending` gives
+    it its final name.
+    """
+    p = Path(path)
+    return p.with_name(PENDING_PREFIX + p.name)
+
+
+def adopt_pending(path: str | os.PathLike[str]) -> Path | None:
+    """Rename the pending output of ``path`` (:func:`pending_path`) onto ``path``.
+
+    The rename is checked and recorded like an atomic write (the watchers, the read-only
+    rule); the pending file is opened by nobody and never followed if it is a link.
+
+    Returns:
+        ``path``, or None when there is no pending regular file.
+
+    Raises:
+        OutputError: ``path`` is read-only, or the rename failed.
+    """
+    import stat
+
+    target = Path(path)
+    pending = pending_path(target)
+    try:
+        if not stat.S_ISREG(os.lstat(pending).st_mode):
+            return None
+    except OSError:
+        return None
+    mode = read_only_mode(target)
+    if mode is not None:
+        raise OutputError(
+            f"the file is read-only (mode {mode:o}); planetref does not replace it",
+            path=target,
+        )
+    absolute = Path(os.path.abspath(target))
+    watchers = _WATCHERS.get()
+    for w in watchers:
+        w.check_output(absolute)
+    try:
+        os.replace(pending, target)
+    except OSError as exc:
+        raise OutputError(f"cannot write the file ({exc.strerror or exc})", path=target) from exc
+    for w in watchers:
+        w.output_written(absolute)
+    return target
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -112,7 +273,8 @@ def atomic_path(
 ) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` when the block ends.
 
-    The temporary name keeps the target's suffix (``.tmp.tif``, ``.tmp.gpkg``...), so
+    The temporary name (``.planetref-tmp.<stem>.<random><suffix>``, see
+    :data:`TEMP_PREFIX`) keeps the target's suffix (``.tif``, ``.gpkg``...), so
     libraries that pick a format from the name still do.
 
     Args:
@@ -145,7 +307,7 @@ def atomic_path(
         if parents:
             target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(
-            prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent
+            prefix=f"{TEMP_PREFIX}{target.stem}.", suffix=f"{target.suffix}", dir=target.parent
         )
     except OSError as exc:
         raise OutputError(f"cannot create the file ({exc.strerror or exc})", path=target) from exc

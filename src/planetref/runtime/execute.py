@@ -19,7 +19,9 @@ are in :mod:`planetref.frontend.tasks`.
 
 from __future__ import annotations
 
+import os
 import re
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,6 +30,7 @@ from planetref.errors import InputError
 
 __all__ = [
     "CONNECT_TIMEOUT_S",
+    "HEARTBEAT_S",
     "MAX_WORKERS",
     "SCHEDULER_HELP",
     "DaskExecutor",
@@ -116,6 +119,50 @@ class InProcessExecutor(Executor):
                 yield TaskOutcome(i, error=exc)
 
 
+#: How often a pool worker checks that the process that started it is alive (seconds).
+HEARTBEAT_S = 0.5
+
+
+def parent_alive(parent_pid: int) -> bool:
+    """Whether this process's parent is still ``parent_pid`` (not re-parented to init)."""
+    return os.getppid() == parent_pid
+
+
+def bind_to_parent(parent_pid: int) -> None:
+    """Make a pool worker belong to the run that started it (the pool's initializer).
+
+    * Linux: ``PR_SET_PDEATHSIG`` asks the kernel to SIGKILL the worker when its parent
+      dies (SIGKILL, SIGTERM or a crash of the run), so no worker outlives it.
+    * Everywhere: a daemon thread checks every :data:`HEARTBEAT_S` seconds that the
+      parent is alive and ends the worker at once otherwise (the death signal is tied
+      to the thread that started the worker; the heartbeat is not).
+    * Ctrl-C reaches the whole terminal process group: the worker ignores SIGINT, the
+      parent stops the pool (no KeyboardInterrupt traceback from every worker).
+    """
+    import signal
+    import sys
+    import threading
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):
+            pass  # the heartbeat below still ends the worker
+    if not parent_alive(parent_pid):  # the parent died before the signal was armed
+        os._exit(1)
+
+    def heartbeat() -> None:
+        while parent_alive(parent_pid):
+            time.sleep(HEARTBEAT_S)
+        os._exit(1)
+
+    threading.Thread(target=heartbeat, name="planetref-parent-heartbeat", daemon=True).start()
+
+
 class LocalPoolExecutor(Executor):
     """A local pool of ``n_workers`` processes (spawned, so safe with torch and OpenCV).
 
@@ -136,7 +183,10 @@ class LocalPoolExecutor(Executor):
             from concurrent.futures import ProcessPoolExecutor
 
             self._pool = ProcessPoolExecutor(
-                max_workers=self.n_workers, mp_context=multiprocessing.get_context("spawn")
+                max_workers=self.n_workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=bind_to_parent,
+                initargs=(os.getpid(),),
             )
         return self._pool
 

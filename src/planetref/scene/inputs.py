@@ -85,8 +85,18 @@ def check_body(body: Any, raster: Any, what: str, path: Any = None) -> None:
     )
 
 
-def open_reference(manifest: SceneManifest, root: Path) -> tuple[ReferenceOrtho, GridTerrain]:
-    """The scene's reference orthoimage and DEM, opened."""
+def open_reference(
+    manifest: SceneManifest, root: Path, warnings: list[str] | None = None
+) -> tuple[ReferenceOrtho, GridTerrain]:
+    """The scene's reference orthoimage and DEM, opened and checked.
+
+    Args:
+        manifest: The scene.
+        root: Its folder.
+        warnings: Where the warnings the scene accepted go (implausible heights with
+            ``implausible_heights = "warn"``): the run logs them once its log is open
+            and writes them into its report. Without it they are logged at once.
+    """
     from planetref.raster.datum import open_reference_dem
     from planetref.raster.ortho import ReferenceOrtho
 
@@ -96,7 +106,14 @@ def open_reference(manifest: SceneManifest, root: Path) -> tuple[ReferenceOrtho,
     ref = ReferenceOrtho(ortho_path, band=spec.ortho_band)
     _check_readable(ortho_path, spec.ortho_band, "reference ortho")
     areoid = None if spec.areoid is None else manifest.resolve(root, spec.areoid)
-    dem = open_reference_dem(dem_path, band=spec.dem_band, datum=spec.dem_datum, areoid=areoid)
+    dem = open_reference_dem(
+        dem_path,
+        band=spec.dem_band,
+        datum=spec.dem_datum,
+        areoid=areoid,
+        implausible=spec.implausible_heights,
+        warnings=warnings,
+    )
     return ref, dem  # type: ignore[return-value]
 
 

@@ -69,7 +69,9 @@ MANIFEST_FORMAT = "planetref-scene"
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "scene.toml"
 
-_ID = r"^[A-Za-z0-9_.-]{1,64}$"
+#: Strip and CCD ids name folders of the run: no path component (``.``, ``..``) nor a
+#: hidden name (planetref's temporaries start with a dot), no separator.
+_ID = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
 
 
 _Model = Settings
@@ -106,6 +108,10 @@ class ReferenceSpec(_Model):
             products; needs ``areoid``). See :mod:`planetref.raster.datum`.
         areoid: Raster of the areoid's height above ``body`` (metres, any map CRS of the
             body); the DEM is converted to body heights with it when it is read.
+        implausible_heights: DEM heights implausible for ``dem_datum`` or an areoid far
+            from Mars' are an error (``"error"``, the default) or accepted with a warning
+            in the run's log and report (``"warn"``). Values beyond +-1 % of the body's
+            radius are always an error. See :mod:`planetref.raster.datum`.
     """
 
     ortho: str
@@ -114,6 +120,7 @@ class ReferenceSpec(_Model):
     dem_band: int = Field(default=1, ge=1)
     dem_datum: Literal["body", "areoid"] = "body"
     areoid: str | None = None
+    implausible_heights: Literal["error", "warn"] = "error"
 
     @model_validator(mode="after")
     def _datum(self) -> ReferenceSpec:
@@ -289,8 +296,15 @@ def load_manifest(
 
 
 def manifest_to_dict(manifest: SceneManifest) -> dict[str, Any]:
-    """The manifest as a TOML-ready table (None values left out)."""
-    return manifest.model_dump(mode="json", exclude_none=True)
+    """The manifest as a TOML-ready table (None values left out).
+
+    ``implausible_heights`` is written only when it is not the default: scenes written
+    before the key existed read back byte-identical.
+    """
+    doc = manifest.model_dump(mode="json", exclude_none=True)
+    if doc.get("reference", {}).get("implausible_heights") == "error":
+        del doc["reference"]["implausible_heights"]
+    return doc
 
 
 def write_manifest(manifest: SceneManifest, path: str | os.PathLike[str]) -> Path:

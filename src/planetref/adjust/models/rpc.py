@@ -180,6 +180,46 @@ class RpcParameterization:
                 issues.append(CoverageIssue(label, tuple(int(i) for i in free), count, need))
         return issues
 
+    def check_geometry(self, ccd: NDArray[np.intp], line: F64, sample: F64) -> None:
+        """Refuse bias coefficients the observations' geometry cannot determine.
+
+        Counting observations (:meth:`coverage`) is not enough: MCPs on one image line
+        cannot fix a drift, MCPs along any straight line cannot fix an affine correction
+        (``[1, u, v]`` is then of rank 2), and the solver "converges" to one of the
+        infinitely many solutions and writes a degenerate RPC. The rank of each image's
+        design for its free (unweighted) coefficients is judged from its singular values
+        (relative tolerance 1e-8, columns scaled to unit norm).
+
+        Raises:
+            AdjustmentError: Naming the image, the rank, and a smaller bias model.
+        """
+        ccd = np.asarray(ccd)
+        for k, rows in enumerate(self.pattern_columns):
+            free = [j for j, col in enumerate(rows) if self.mode[col] == 0]
+            sel = ccd == k
+            if not free or not np.any(sel):
+                continue
+            u, v = self._biases[k].normalized(np.asarray(line)[sel], np.asarray(sample)[sel])
+            basis = {0: np.ones_like(u), 1: u, 2: v}  # a0 b0 | a1 b1 | a2 b2
+            design = np.zeros((2 * u.size, len(free)))
+            for c, j in enumerate(free):
+                term = int(self._index[j])
+                design[term % 2 :: 2, c] = basis[term // 2]
+            norms = np.linalg.norm(design, axis=0)
+            sv = np.linalg.svd(design / np.where(norms > 0, norms, 1.0), compute_uv=False)
+            rank = int(np.count_nonzero(sv > 1e-8 * max(float(sv[0]), 1e-300)))
+            if rank < len(free):
+                label = f"image {self.camera_id!r}" + (
+                    f" CCD {self._ccds[k]}" if self._strip else ""
+                )
+                raise AdjustmentError(
+                    f"RPC {label}: the {int(np.count_nonzero(sel))} observation(s) cannot "
+                    f"determine its {len(free)} free bias coefficient(s) ({self.config.bias}): "
+                    f"their positions in the image are degenerate (collinear or on one "
+                    f"line; rank {rank} of {len(free)}); add observations elsewhere in the "
+                    "image or choose a smaller bias model (rpc.bias = 'shift')"
+                )
+
     def weaken(self, issues: list[CoverageIssue]) -> tuple[RpcParameterization, list[str]]:
         """Too few observations for an image's bias: always an error.
 
