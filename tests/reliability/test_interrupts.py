@@ -97,7 +97,7 @@ def test_adjust_after_a_full_disk_can_be_rerun(tmp_path: Path, monkeypatch) -> N
     identity = {"network": "n.toml", "config": "c"}
     run = RunDir(out, "adjust", identity, resumable=False)
 
-    def disk_full(path, doc):  # the manifest's write, once the disk is full
+    def disk_full(path, doc, **kwargs):  # the manifest's write, once the disk is full
         raise OutputError("cannot write the file (OSError: No space left on device)", path=path)
 
     with pytest.raises(OutputError, match="No space left"), run.logging_to_file():
