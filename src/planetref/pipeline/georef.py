@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planetref import __version__
-from planetref.errors import MatchingError
+from planetref.errors import AdjustmentError, MatcherFailedError
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.georef_outputs import (
     camera_isds,
@@ -55,6 +55,7 @@ from planetref.pipeline.georef_report import (
     adjustment_block,
     check_block,
     combined_report,
+    failed_report,
     matching_block,
     result_block,
     rmse_px,
@@ -292,27 +293,54 @@ def run_georef(
             )
             job.figures.start()  # matplotlib is imported there while the tiles are matched
             campaign = None
-            if cfg.campaign.adjust_together and len(manifest.strips) > 1:
-                preps = [_strip_mcps(job.for_strip(s)) for s in manifest.strips]
-                with single_threaded_blas():  # RPC refits, reports, orthoimages
-                    strips, campaign = _adjust_together(job, preps)
-            else:
-                strips = {}
-                for s in manifest.strips:
-                    sj = job.for_strip(s)
-                    prep = _strip_mcps(sj)
-                    with single_threaded_blas():  # RPC refits, reports, orthoimages
-                        strips[s.id] = _adjust_strip(sj, prep)
-            with timed(job.timing, "figures"):  # the figures not drawn yet
-                job.figures.wait()
-            job.timing["total"] = time.perf_counter() - t_start
             fe = cfg.frontend
             settings = {
                 "refine": fe.refine.method,
                 "fine_upsample": fe.fine_upsample,
                 "dense_spacing_ref_px": fe.dense_spacing_ref_px,
                 "max_mcps_per_tile": fe.max_mcps_per_tile,
+                "protocol": fe.protocol,
             }
+            matched: dict[str, dict[str, Any]] = {}  # matching blocks, for a failed run
+            try:
+                if cfg.campaign.adjust_together and len(manifest.strips) > 1:
+                    preps = []
+                    for s in manifest.strips:
+                        preps.append(_strip_mcps(job.for_strip(s)))
+                        matched[s.id] = preps[-1].out["matching"]
+                    with single_threaded_blas():  # RPC refits, reports, orthoimages
+                        strips, campaign = _adjust_together(job, preps)
+                else:
+                    strips = {}
+                    for s in manifest.strips:
+                        sj = job.for_strip(s)
+                        prep = _strip_mcps(sj)
+                        matched[s.id] = prep.out["matching"]
+                        with single_threaded_blas():  # RPC refits, reports, orthoimages
+                            strips[s.id] = _adjust_strip(sj, prep)
+            except MatcherFailedError as exc:
+                # The matcher ran: its run is a result (NCP 0, failed tiles, funnel, why),
+                # written as report.json, then the error goes on to the caller.
+                with timed(job.timing, "figures"):
+                    job.figures.wait()
+                job.timing["total"] = time.perf_counter() - t_start
+                exc.report = failed_report(
+                    matcher,
+                    manifest.name,
+                    {**matched, **exc.matching},
+                    str(exc),
+                    job.timing,
+                    settings,
+                    strips_not_run=[
+                        s.id for s in manifest.strips if s.id not in matched | exc.matching
+                    ],
+                )
+                run.write_json("report.json", exc.report)
+                write_georef_markdown(exc.report, run.file("report.md"))
+                raise
+            with timed(job.timing, "figures"):  # the figures not drawn yet
+                job.figures.wait()
+            job.timing["total"] = time.perf_counter() - t_start
             report = combined_report(matcher, manifest.name, strips, job.timing, settings)
             if campaign is not None:
                 report["adjustment"] = campaign.pop("adjustment")
@@ -405,6 +433,14 @@ def _strip_mcps(job: StripJob) -> StripMcps:
         str(p) for p in (written if isinstance(written, list | tuple) else [written])
     ]
     out["matching"] = matching_block(matches, table, sizes)
+    if strip.id in job.truth_cameras:
+        from planetref.frontend.truth import true_outliers
+
+        with part_timed(job.timing, "true_outliers"):
+            terrain = truth_terrain(job.truth_dem, job.dem)
+            found = true_outliers(matches.tiles, job.truth_cameras[strip.id], job.ref, terrain)
+            out["matching"]["true_outliers"] = found.to_dict()
+            del terrain  # read again for the true geolocation error (not held meanwhile)
     for item in out["matching"]["tiles_lost"]:
         log.warning(
             "strip %s tile %s: %s %s", strip.id, item["tile"], item["status"], item["message"]
@@ -414,11 +450,14 @@ def _strip_mcps(job: StripJob) -> StripMcps:
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
-        raise MatchingError(
+        failed = out["matching"]["tiles_failed"]
+        raise MatcherFailedError(
             f"strip {strip.id}: only {n} matched control points with matcher "
-            f"{matches.matcher} ({out['matching']['tile_status']}); "
-            f"at least {cfg.mcp.min_mcps} are needed. "
-            "See planetref.log for why tiles failed"
+            f"{matches.matcher} ({failed}/{out['matching']['tiles_total']} tiles failed: "
+            + ", ".join(f"{k} {v}" for k, v in out["matching"]["tile_status"].items() if v)
+            + f"); at least {cfg.mcp.min_mcps} are needed. "
+            "See planetref.log for why tiles failed",
+            matching={strip.id: out["matching"]},
         )
     rng = np.random.default_rng(cfg.mcp.seed)
     check = np.zeros(n, bool)
@@ -447,7 +486,12 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         **mcp_ground_sigmas(table),
     )
     t0 = time.perf_counter()
-    result = adjust(network, cfg.adjust)
+    try:
+        result = adjust(network, cfg.adjust)
+    except AdjustmentError as exc:
+        raise MatcherFailedError(
+            f"strip {prep.id}: adjustment failed: {exc}", matching={prep.id: out["matching"]}
+        ) from exc
     job.timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
@@ -530,7 +574,12 @@ def _adjust_together(
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg)
     t0 = time.perf_counter()
-    result = adjust(network, cfg.adjust)
+    try:
+        result = adjust(network, cfg.adjust)
+    except AdjustmentError as exc:
+        raise MatcherFailedError(
+            f"joint adjustment failed: {exc}", matching={p.id: p.out["matching"] for p in preps}
+        ) from exc
     timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     cams = {p.id: p.camera for p in preps}
