@@ -33,7 +33,13 @@ from planetref.errors import InputError, MatcherFailedError, PlanetrefError
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
 
-__all__ = ["CompareOutcome", "resolve_matchers", "run_compare"]
+__all__ = [
+    "CompareOutcome",
+    "SeedsOutcome",
+    "resolve_matchers",
+    "run_compare",
+    "summarize_compares",
+]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +59,56 @@ class CompareOutcome:
     run_dir: Path
     tables_markdown: str
     files: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class SeedsOutcome:
+    """What :func:`summarize_compares` returns.
+
+    Attributes:
+        summary: The rankings over the scenes.
+        folder: Where the summary was written.
+        markdown: The summary as Markdown (what ``demo --seeds`` prints).
+        files: Paths of the outputs.
+    """
+
+    summary: Any
+    folder: Path
+    markdown: str
+    files: dict[str, str] = field(default_factory=dict)
+
+
+def summarize_compares(
+    compares: dict[str, str | os.PathLike[str]], out: str | os.PathLike[str], *, title: str = ""
+) -> SeedsOutcome:
+    """Rankings over several comparisons (scenes, e.g. seeds of one preset).
+
+    Reads each comparison's report.json and writes ``seeds.json``, ``seeds.csv``,
+    ``pairs.csv``, ``report.md``, ``report.html`` and ``figures/headline_seeds.png``
+    into ``out`` (:func:`planetref.report.seeds.write_seeds_report`).
+
+    Args:
+        compares: Scene label (e.g. ``"seed0"``) -> its comparison folder.
+        out: Output folder.
+        title: The report's title.
+
+    Raises:
+        MissingFileError: A comparison folder without report.json.
+    """
+    from planetref.jsonfile import read_json
+    from planetref.report.seeds import summarize_seeds, write_seeds_report
+
+    reports = {
+        k: read_json(Path(v) / "report.json", "comparison report") for k, v in compares.items()
+    }
+    summary = summarize_seeds(reports)
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = write_seeds_report(
+        summary, folder, title=title, links={k: str(v) for k, v in compares.items()}
+    )
+    md = paths.pop("markdown")
+    return SeedsOutcome(summary=summary, folder=folder, markdown=md, files=paths)
 
 
 def resolve_matchers(
