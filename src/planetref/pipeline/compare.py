@@ -367,8 +367,9 @@ def _context(
             [
                 (
                     "per-tile cap",
-                    f"`max_mcps_per_tile = {fe['max_mcps_per_tile']}`: NCP and SDU count the "
-                    "MCPs kept after this cap; the funnel table shows how many were verified",
+                    f"`max_mcps_per_tile = {fe['max_mcps_per_tile']}`: NCP counts the "
+                    "verified MCPs before this cap (less the MCP stage's duplicates), SDU the "
+                    "MCPs kept after it; the funnel table shows both",
                 )
             ]
             if fe.get("max_mcps_per_tile")
