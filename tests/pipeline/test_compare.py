@@ -82,7 +82,8 @@ def test_compare_tables_and_figures(demo):
         # funnel ends with them; what the MCP stage dropped is in its drops.
         (strip,) = run["strips"].values()
         assert m["ncp"] == strip["matching"]["n_mcps"] == m["funnel"]["mcp_unique"]
-        assert m["ncp"] == run["adjustment"]["n_total"]
+        n_check = (run["adjustment"].get("check_mcps") or {}).get("n_total", 0)
+        assert m["ncp"] == run["adjustment"]["n_total"] + n_check
         dropped = sum(v for k, v in m["drops"].items() if k.startswith("mcp_unique:"))
         assert m["funnel"]["mcp"] - m["funnel"]["mcp_unique"] == dropped
         # The true outlier ratio of the matches after RANSAC (a simulated scene).
@@ -193,7 +194,8 @@ def test_demo_command_prints_both_tables(demo):
 
 
 def test_seeds_summary_of_real_comparisons(demo, tmp_path):
-    """The rankings read real comparison reports: the same scene twice has no gap."""
+    """The rankings read real comparison reports (the same scene twice: no spread, and
+    every paired gap the same on both, its standard error 0)."""
     from planetref.pipeline.compare import summarize_compares
 
     assert demo.first.exit_code == 0, demo.first.output
@@ -206,7 +208,10 @@ def test_seeds_summary_of_real_comparisons(demo, tmp_path):
         assert true.mean == pytest.approx(run["check"]["geoloc_rmse_m"]) and true.std == 0.0
         assert s.metrics["ncp"][name].mean == run["matching"]["ncp"]
         assert s.metrics["true_or_3px_pct"][name].n == 2
-    assert s.pairs and not any(p.beyond_noise for p in s.pairs)
+    ncp = {n: r["matching"]["ncp"] for n, r in rep["runs"].items()}
+    pair = s.pair("ncp", "sift", "ncc")
+    assert pair.mean == ncp["sift"] - ncp["ncc"] and pair.se == 0.0 and pair.n == 2
+    assert pair.beyond_noise == (ncp["sift"] != ncp["ncc"])
     assert any("over 2 seeds" in r for r in s.ranking)
     assert (tmp_path / "s" / "report.html").is_file() and (tmp_path / "s" / "seeds.json").is_file()
 
