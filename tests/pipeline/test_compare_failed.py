@@ -121,3 +121,51 @@ def test_sift_fails_on_tiny_hard_and_stays_a_row(tmp_path):
     assert m["funnel"]["raw"] > 0
     assert m["true_outliers"]["n"] >= 0
     assert "| sift" in outcome.tables_markdown and "6/6" in outcome.tables_markdown
+
+
+def test_ncp_counts_the_unique_mcps_and_the_funnel_shows_the_mcp_stage():
+    """NCP per CCD = verified less what the MCP stage dropped; funnel ends at mcp_unique."""
+    import numpy as np
+
+    from planetref.control import McpCounts, McpTable
+    from planetref.frontend.config import FrontendConfig
+    from planetref.frontend.result import StripMatches, TileResult
+    from planetref.frontend.tiles import Tile
+    from planetref.pipeline.georef_report import matching_block
+
+    def tile(tid, ccd, status, n, raw):
+        t = TileResult(Tile(tid, ccd, 0, 0, 100, 100), "ncc", status)
+        t.line = t.sample = np.arange(n, dtype=float) + 0.5
+        for name in ("ref_col", "ref_row", "ref_x", "ref_y", "confidence"):
+            setattr(t, name, np.zeros(n))
+        for stage, count in (("raw", raw), ("ransac", n + 1), ("backprojection", n), ("mcp", n)):
+            t.record(stage, count)
+        return t
+
+    tiles = [
+        tile("ccd1:r0c0", "ccd1", "ok", 5, 10),
+        tile("ccd1:r1c0", "ccd1", "too_few_inliers", 3, 8),  # failed after its mcp stage
+        tile("ccd2:r0c0", "ccd2", "ok", 4, 9),
+    ]
+    matches = StripMatches("ncc", FrontendConfig(), {}, tiles)
+    # The MCP stage kept 3 of ccd1's 5 (2 duplicates) and ccd2's 4.
+    ccd = ["ccd1"] * 3 + ["ccd2"] * 4
+    cols = {
+        "mcp_id": np.arange(7),
+        "ccd": ccd,
+        "tile_id": ["t"] * 7,
+        "line": np.arange(7) * 10.0 + 5,
+        "sample": np.arange(7) * 10.0 + 5,
+    }
+    from planetref.control import MCP_COLUMNS
+
+    cols |= {c: np.zeros(7) for c in MCP_COLUMNS if c not in cols}
+    cols["matcher"] = ["ncc"] * 7
+    table = McpTable(cols, None, McpCounts(candidates=9, duplicates=2, kept=7))
+    m = matching_block(matches, table, {"ccd1": (100, 100), "ccd2": (100, 100)})
+    assert m["ccds"]["ccd1"]["ncp"] == 3 and m["ccds"]["ccd2"]["ncp"] == 4
+    assert m["ncp"] == m["n_mcps"] == 7
+    assert m["funnel"]["mcp"] == 12 and m["funnel"]["mcp_unique"] == 7
+    assert m["drops"]["mcp_unique:duplicates"] == 2
+    assert m["drops"]["mcp_unique:tile_failed"] == 3
+    assert "mcp_unique:nan_dem" not in m["drops"]
