@@ -82,7 +82,7 @@ def test_compare_tables_and_figures(demo):
         # funnel ends with them; what the MCP stage dropped is in its drops.
         (strip,) = run["strips"].values()
         assert m["ncp"] == strip["matching"]["n_mcps"] == m["funnel"]["mcp_unique"]
-        n_check = (run["adjustment"].get("check_mcps") or {}).get("n_total", 0)
+        n_check = run["adjustment"]["check_mcps"]["after"]["n"]  # held out as check points
         assert m["ncp"] == run["adjustment"]["n_total"] + n_check
         dropped = sum(v for k, v in m["drops"].items() if k.startswith("mcp_unique:"))
         assert m["funnel"]["mcp"] - m["funnel"]["mcp_unique"] == dropped
