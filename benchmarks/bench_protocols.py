@@ -13,7 +13,8 @@ beside the seed's OR range.
 Usage::
 
     python benchmarks/bench_protocols.py OUT [--preset tiny] [--seed 0]
-        [--difficulty moderate] [--matchers sift,ncc] [--scene DIR] [--json]
+        [--difficulty moderate] [--matchers sift,ncc] [--scene DIR]
+        [--protocols default,paper] [--json]
 
 Each protocol's comparison stays in ``OUT/<protocol>`` (report.html); a rerun resumes.
 """
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         simulate_scene(load_config(args.preset, seed=args.seed, difficulty=level), scene)
     rows = []
     cpu = {}
-    for protocol in ("default", "paper"):
+    for protocol in args.protocols.split(","):
         cfg = config_from_mapping({"frontend": {"protocol": protocol}})
         t0 = time.process_time()
         outcome = run_compare(scene, args.matchers, out / protocol, config=cfg, progress=False)
@@ -82,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--difficulty", default="moderate")
     ap.add_argument("--matchers", default="sift,ncc")
     ap.add_argument("--scene", default=None, help="an existing scene instead of simulating")
+    ap.add_argument("--protocols", default="default,paper", help="protocols to run")
     ap.add_argument("--json", action="store_true", help="print JSON (machine, date, command)")
     args = ap.parse_args(argv)
     res = run(args)
