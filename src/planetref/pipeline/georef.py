@@ -55,10 +55,12 @@ from planetref.pipeline.georef_report import (
     adjustment_block,
     check_block,
     combined_report,
-    failed_report,
+    frontend_settings,
     matching_block,
     result_block,
     rmse_px,
+    too_few_mcps,
+    write_failed_run,
 )
 from planetref.pipeline.inputs import (
     TruthDem,
@@ -292,52 +294,27 @@ def run_georef(
                 figures=stack.enter_context(FigureJobs()),
             )
             job.figures.start()  # matplotlib is imported there while the tiles are matched
-            campaign = None
-            fe = cfg.frontend
-            settings = {
-                "refine": fe.refine.method,
-                "fine_upsample": fe.fine_upsample,
-                "dense_spacing_ref_px": fe.dense_spacing_ref_px,
-                "max_mcps_per_tile": fe.max_mcps_per_tile,
-                "protocol": fe.protocol,
-            }
+            settings = frontend_settings(cfg.frontend)
             matched: dict[str, dict[str, Any]] = {}  # matching blocks, for a failed run
             try:
                 if cfg.campaign.adjust_together and len(manifest.strips) > 1:
-                    preps = []
-                    for s in manifest.strips:
-                        preps.append(_strip_mcps(job.for_strip(s)))
-                        matched[s.id] = preps[-1].out["matching"]
+                    preps = [_strip_mcps(job.for_strip(s), matched) for s in manifest.strips]
                     with single_threaded_blas():  # RPC refits, reports, orthoimages
                         strips, campaign = _adjust_together(job, preps)
                 else:
-                    strips = {}
+                    strips, campaign = {}, None
                     for s in manifest.strips:
-                        sj = job.for_strip(s)
-                        prep = _strip_mcps(sj)
-                        matched[s.id] = prep.out["matching"]
+                        prep = _strip_mcps(job.for_strip(s), matched)
                         with single_threaded_blas():  # RPC refits, reports, orthoimages
-                            strips[s.id] = _adjust_strip(sj, prep)
-            except MatcherFailedError as exc:
-                # The matcher ran: its run is a result (NCP 0, failed tiles, funnel, why),
-                # written as report.json, then the error goes on to the caller.
+                            strips[s.id] = _adjust_strip(job.for_strip(s), prep)
+            except (MatcherFailedError, AdjustmentError) as exc:  # the matcher ran: a result
                 with timed(job.timing, "figures"):
                     job.figures.wait()
                 job.timing["total"] = time.perf_counter() - t_start
-                exc.report = failed_report(
-                    matcher,
-                    manifest.name,
-                    {**matched, **exc.matching},
-                    str(exc),
-                    job.timing,
-                    settings,
-                    strips_not_run=[
-                        s.id for s in manifest.strips if s.id not in matched | exc.matching
-                    ],
+                failure = write_failed_run(
+                    run, exc, matcher, manifest, matched, job.timing, settings
                 )
-                run.write_json("report.json", exc.report)
-                write_georef_markdown(exc.report, run.file("report.md"))
-                raise
+                raise failure from failure.__cause__
             with timed(job.timing, "figures"):  # the figures not drawn yet
                 job.figures.wait()
             job.timing["total"] = time.perf_counter() - t_start
@@ -402,8 +379,8 @@ def _match(
     )
 
 
-def _strip_mcps(job: StripJob) -> StripMcps:
-    """Match a strip's tiles, write its MCPs and draw its check points."""
+def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
+    """Match a strip's tiles, write its MCPs, draw its check points; ``matched`` += block."""
     from planetref.control import mcps_from_tiles, write_mcps
     from planetref.report.figures_matching import select_tiles
     from planetref.report.tile_panels import PanelStore
@@ -432,15 +409,10 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     out["files"]["mcps"] = [
         str(p) for p in (written if isinstance(written, list | tuple) else [written])
     ]
-    out["matching"] = matching_block(matches, table, sizes)
-    if strip.id in job.truth_cameras:
-        from planetref.frontend.truth import true_outliers
-
-        with part_timed(job.timing, "true_outliers"):
-            terrain = truth_terrain(job.truth_dem, job.dem)
-            found = true_outliers(matches.tiles, job.truth_cameras[strip.id], job.ref, terrain)
-            out["matching"]["true_outliers"] = found.to_dict()
-            del terrain  # read again for the true geolocation error (not held meanwhile)
+    cam = job.truth_cameras.get(strip.id)  # the true DEM read for it, then let go
+    truth = None if cam is None else (cam, job.ref, truth_terrain(job.truth_dem, job.dem))
+    out["matching"] = matched[strip.id] = matching_block(matches, table, sizes, truth)
+    del truth  # the true DEM is not held through the figures
     for item in out["matching"]["tiles_lost"]:
         log.warning(
             "strip %s tile %s: %s %s", strip.id, item["tile"], item["status"], item["message"]
@@ -450,15 +422,7 @@ def _strip_mcps(job: StripJob) -> StripMcps:
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
-        failed = out["matching"]["tiles_failed"]
-        raise MatcherFailedError(
-            f"strip {strip.id}: only {n} matched control points with matcher "
-            f"{matches.matcher} ({failed}/{out['matching']['tiles_total']} tiles failed: "
-            + ", ".join(f"{k} {v}" for k, v in out["matching"]["tile_status"].items() if v)
-            + f"); at least {cfg.mcp.min_mcps} are needed. "
-            "See planetref.log for why tiles failed",
-            matching={strip.id: out["matching"]},
-        )
+        raise too_few_mcps(strip.id, matches.matcher, out["matching"], cfg.mcp.min_mcps)
     rng = np.random.default_rng(cfg.mcp.seed)
     check = np.zeros(n, bool)
     n_check = round(cfg.mcp.check_fraction * n)
@@ -486,12 +450,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         **mcp_ground_sigmas(table),
     )
     t0 = time.perf_counter()
-    try:
-        result = adjust(network, cfg.adjust)
-    except AdjustmentError as exc:
-        raise MatcherFailedError(
-            f"strip {prep.id}: adjustment failed: {exc}", matching={prep.id: out["matching"]}
-        ) from exc
+    result = adjust(network, cfg.adjust)
     job.timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
@@ -574,12 +533,7 @@ def _adjust_together(
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg)
     t0 = time.perf_counter()
-    try:
-        result = adjust(network, cfg.adjust)
-    except AdjustmentError as exc:
-        raise MatcherFailedError(
-            f"joint adjustment failed: {exc}", matching={p.id: p.out["matching"] for p in preps}
-        ) from exc
+    result = adjust(network, cfg.adjust)
     timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     cams = {p.id: p.camera for p in preps}

@@ -14,14 +14,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planetref import __version__
+from planetref.errors import AdjustmentError, MatcherFailedError
 from planetref.frontend.truth import sum_true_outliers
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
     from planetref.control import McpTable
+    from planetref.frontend.config import FrontendConfig
     from planetref.frontend.result import StripMatches
+    from planetref.pipeline.rundir import RunDir
+    from planetref.pipeline.scene import SceneManifest
     from planetref.raster.dem import GridTerrain
+    from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = [
     "adjustment_block",
@@ -29,13 +34,19 @@ __all__ = [
     "check_block",
     "combined_report",
     "failed_report",
+    "frontend_settings",
     "matching_block",
     "rmse_px",
+    "too_few_mcps",
+    "write_failed_run",
 ]
 
 
 def matching_block(
-    matches: StripMatches, table: McpTable, sizes: Mapping[str, tuple[int, int]]
+    matches: StripMatches,
+    table: McpTable,
+    sizes: Mapping[str, tuple[int, int]],
+    truth: tuple[Camera, ReferenceOrtho, GridTerrain] | None = None,
 ) -> dict[str, Any]:
     """The ``matching`` block of one strip: NCP and SDU per CCD, tiles, funnel, drops.
 
@@ -54,8 +65,12 @@ def matching_block(
         matches: The strip's tile results.
         table: The MCPs written.
         sizes: ``(lines, samples)`` of each CCD image.
+        truth: ``(true camera, reference ortho, true DEM)`` of a simulated scene: the
+            block then has ``true_outliers``, the true outlier ratio of the matches after
+            RANSAC (:func:`planetref.frontend.truth.true_outliers`).
     """
     from planetref.frontend.stats import sdu_per_ccd
+    from planetref.frontend.truth import true_outliers
 
     statuses = matches.status_counts()
     verified = matches.ncp_per_ccd()
@@ -85,7 +100,7 @@ def matching_block(
             "outside_reference": counts.get("outside_reference", 0),
         }
         drops.update({f"mcp_unique:{k}": int(v) for k, v in stage_drops.items() if v > 0})
-    return {
+    block = {
         "ccds": {c: {"ncp": int(ncp.get(c, 0)), "sdu_pct": float(sdu[c])} for c in sizes},
         "ncp": int(sum(ncp.get(c, 0) for c in sizes)),
         "n_mcps": len(table),
@@ -98,6 +113,9 @@ def matching_block(
         "drops": drops,
         "mcp_counts": counts,
     }
+    if truth is not None:
+        block["true_outliers"] = true_outliers(matches.tiles, *truth).to_dict()
+    return block
 
 
 def camera_view(result: Any, index: int) -> Any:
@@ -320,6 +338,30 @@ def combined_report(
     }
 
 
+def frontend_settings(fe: FrontendConfig) -> dict[str, Any]:
+    """The front-end settings that decide what the matching figures mean (report.json)."""
+    return {
+        "refine": fe.refine.method,
+        "fine_upsample": fe.fine_upsample,
+        "dense_spacing_ref_px": fe.dense_spacing_ref_px,
+        "max_mcps_per_tile": fe.max_mcps_per_tile,
+        "protocol": fe.protocol,
+    }
+
+
+def too_few_mcps(
+    strip_id: str, matcher: str, matching: Mapping[str, Any], min_mcps: int
+) -> MatcherFailedError:
+    """The error of a strip with fewer MCPs than the adjustment needs (its matching kept)."""
+    status = ", ".join(f"{k} {v}" for k, v in matching["tile_status"].items() if v)
+    return MatcherFailedError(
+        f"strip {strip_id}: only {matching['n_mcps']} matched control points with matcher "
+        f"{matcher} ({matching['tiles_failed']}/{matching['tiles_total']} tiles failed: "
+        f"{status}); at least {min_mcps} are needed. See planetref.log for why tiles failed",
+        matching={strip_id: dict(matching)},
+    )
+
+
 def failed_report(
     matcher: str,
     scene: str,
@@ -377,6 +419,53 @@ def failed_report(
         "timing_s": dict(timing),
         "strips": {sid: {"matching": dict(m), "failed": reason} for sid, m in matching.items()},
     }
+
+
+def write_failed_run(
+    run: RunDir,
+    exc: MatcherFailedError | AdjustmentError,
+    matcher: str,
+    manifest: SceneManifest,
+    matched: Mapping[str, Mapping[str, Any]],
+    timing: Mapping[str, float],
+    settings: Mapping[str, Any],
+) -> MatcherFailedError:
+    """report.json and report.md of a run whose matcher ran but failed.
+
+    Returns:
+        The error to raise: ``exc`` itself, or for a degenerate adjustment a
+        :class:`MatcherFailedError` saying so; its ``report`` is the report written.
+
+    Args:
+        run: The run directory.
+        exc: The failure (a MatcherFailedError's ``matching`` holds the failing strip's
+            block; an adjustment's failure concerns the strips matched).
+        matcher: Matcher name.
+        manifest: The scene.
+        matched: Strip id -> matching block of the strips matched before.
+        timing: Seconds per step.
+        settings: The front-end settings (:func:`frontend_settings`).
+    """
+    from planetref.report.georef import write_georef_markdown
+
+    if isinstance(exc, AdjustmentError):
+        failure = MatcherFailedError(f"adjustment failed: {exc}")
+        failure.__cause__ = exc
+    else:
+        failure = exc
+    got = {**matched, **failure.matching}
+    failure.report = failed_report(
+        matcher,
+        manifest.name,
+        got,
+        str(failure),
+        timing,
+        settings,
+        strips_not_run=[s.id for s in manifest.strips if s.id not in got],
+    )
+    run.write_json("report.json", failure.report)
+    write_georef_markdown(failure.report, run.file("report.md"))
+    return failure
 
 
 def _sum_counts(blocks: Iterable[Mapping[str, int]]) -> dict[str, int]:
