@@ -29,6 +29,10 @@ def _run(true_m, ncp=100, rmse=0.5, failed=False, tor3=5.0):
         }
     return {
         "matching": {
+            "ccds": {
+                "ccd1": {"ncp": ncp - 40, "sdu_pct": 8.0},
+                "ccd2": {"ncp": 40, "sdu_pct": 12.0},
+            },
             "ncp": ncp,
             "sdu_pct": 10.0,
             "tiles_failed": 0,
@@ -118,6 +122,10 @@ def test_summary_of_three_seeds_counts_failed_runs_and_ranks_with_the_seed_count
     assert s.metrics["ncp"]["c"].n == 3 and s.metrics["ncp"]["c"].min == 0
     assert s.failed == {"c": ["seed1"]} and "loftr" in s.skipped
     assert s.metrics["true_or_3px_pct"]["a"].mean == pytest.approx(5.0)
+    # Table 1 per CCD, after the totals.
+    assert s.metrics["ncp_ccd1"]["a"].values == [60.0, 61.0, 62.0]
+    assert s.metrics["sdu_ccd2"]["b"].mean == 12.0 and s.metrics["ncp_ccd1"]["c"].n == 2
+    assert [sp.key for sp in s.specs][:4] == ["ncp", "sdu_pct", "ncp_ccd1", "ncp_ccd2"]
     ab = s.pair("geoloc_rmse_m", "b", "a")
     assert ab is not None and ab.beyond_noise and ab.better == "a"
     ac = s.pair("geoloc_rmse_m", "a", "c")

@@ -65,6 +65,10 @@ def _tor(key: str) -> Callable[[Mapping[str, Any]], Any]:
     return lambda r: ((r.get("matching") or {}).get("true_outliers") or {}).get(key)
 
 
+def _ccd(ccd: str, key: str) -> Callable[[Mapping[str, Any]], Any]:
+    return lambda r: (((r.get("matching") or {}).get("ccds") or {}).get(ccd) or {}).get(key)
+
+
 @dataclass(frozen=True)
 class MetricSpec:
     """A metric summarised over seeds.
@@ -245,6 +249,8 @@ class SeedsSummary:
         skipped: Matcher -> why it could not run (from any scene).
         protocol: Front-end protocol of the runs (``"default"``, ``"paper"``, mixed).
         ranking: The ranking sentences, one per headline metric with values.
+        specs: The metrics summarised, in table order: :data:`SEED_METRICS` with Table 1's
+            NCP and SDU of each CCD after the totals.
     """
 
     seeds: list[str]
@@ -255,6 +261,7 @@ class SeedsSummary:
     skipped: dict[str, str] = field(default_factory=dict)
     protocol: str = "default"
     ranking: list[str] = field(default_factory=list)
+    specs: list[MetricSpec] = field(default_factory=lambda: list(SEED_METRICS))
 
     def to_dict(self) -> dict[str, Any]:
         """The seeds.json content."""
@@ -294,9 +301,18 @@ def summarize_seeds(reports: Mapping[str, Mapping[str, Any]]) -> SeedsSummary:
         for m in rep.get("runs") or {}:
             if m not in matchers:
                 matchers.append(m)
+    ccds: list[str] = []
+    for rep in reports.values():
+        for run in (rep.get("runs") or {}).values():
+            for c in (run.get("matching") or {}).get("ccds") or {}:
+                if c not in ccds:
+                    ccds.append(c)
+    per_ccd = [MetricSpec(f"ncp_{c}", f"{c} NCP", _ccd(c, "ncp"), "higher") for c in ccds]
+    per_ccd += [MetricSpec(f"sdu_{c}", f"{c} SDU (%)", _ccd(c, "sdu_pct"), "higher") for c in ccds]
+    specs = [*SEED_METRICS[:2], *per_ccd, *SEED_METRICS[2:]]
     metrics: dict[str, dict[str, Spread]] = {}
     values: dict[str, dict[str, list[float | None]]] = {}
-    for spec in SEED_METRICS:
+    for spec in specs:
         per: dict[str, list[float | None]] = {}
         for m in matchers:
             vals: list[float | None] = []
@@ -310,7 +326,7 @@ def summarize_seeds(reports: Mapping[str, Mapping[str, Any]]) -> SeedsSummary:
             metrics[spec.key] = {m: Spread.of(vs) for m, vs in per.items()}
     pairs = [
         paired_difference(a, b, spec, values[spec.key][a], values[spec.key][b])
-        for spec in SEED_METRICS
+        for spec in specs
         if spec.headline and spec.key in values
         for i, a in enumerate(matchers)
         for b in matchers[i + 1 :]
@@ -334,6 +350,7 @@ def summarize_seeds(reports: Mapping[str, Mapping[str, Any]]) -> SeedsSummary:
         failed=failed,
         skipped=skipped,
         protocol=", ".join(sorted(protocols)) or "default",
+        specs=[sp for sp in specs if sp.key in metrics],
     )
     out.ranking = [
         r for spec in SEED_METRICS if spec.headline and (r := _ranking(out, spec)) is not None
@@ -386,7 +403,7 @@ def seeds_table(summary: SeedsSummary) -> tuple[list[str], list[list[Any]]]:
     """
     header = ["Metric", "Matcher", "mean", "std", "min", "max", "n", "beyond noise vs"]
     rows = []
-    for spec in SEED_METRICS:
+    for spec in summary.specs:
         per = summary.metrics.get(spec.key)
         if not per:
             continue
@@ -405,7 +422,7 @@ def seeds_table(summary: SeedsSummary) -> tuple[list[str], list[list[Any]]]:
 def pairs_table(summary: SeedsSummary) -> tuple[list[str], list[list[Any]]]:
     """Paired differences ``a - b`` of the headline metrics, with the noise verdict."""
     header = ["Metric", "a", "b", "mean a-b", "SE", "n", "beyond noise", "p (t)", "p (Wilcoxon)"]
-    labels = {s.key: s.label for s in SEED_METRICS}
+    labels = {s.key: s.label for s in summary.specs}
     rows = [
         [
             labels[p.metric],
