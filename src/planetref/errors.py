@@ -89,6 +89,29 @@ class MatchingError(PlanetrefError, RuntimeError):
     """Matching failed in a way the caller must know about (e.g. zero matches)."""
 
 
+class MatcherFailedError(MatchingError):
+    """A matcher ran but its run could not finish: too few MCPs, a degenerate adjustment.
+
+    Unlike missing weights (the matcher could not run at all), such a run is a result: a
+    comparison keeps it as a row (NCP 0, its tiles failed, its funnel and the reason).
+
+    Attributes:
+        matching: Strip id -> the ``matching`` block of each strip matched so far.
+        report: The failed run's report.json content, once the run has written it.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        matching: dict[str, dict[str, object]] | None = None,
+        report: dict[str, object] | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.matching = dict(matching or {})
+        self.report = report
+
+
 class AdjustmentError(PlanetrefError, RuntimeError):
     """The bundle adjustment is degenerate, diverged or cannot start."""
 
@@ -111,6 +134,7 @@ __all__ = [
     "CrsError",
     "GeometryError",
     "InputError",
+    "MatcherFailedError",
     "MatchingError",
     "MissingFileError",
     "OutputError",

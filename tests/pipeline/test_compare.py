@@ -77,6 +77,20 @@ def test_compare_tables_and_figures(demo):
     )
     for name, run in rep["runs"].items():
         assert run["check"]["geoloc_rmse_m"] < 5.0
+        m = run["matching"]
+        # NCP = the unique MCPs delivered to the adjustment (no thinning here), and the
+        # funnel ends with them; what the MCP stage dropped is in its drops.
+        (strip,) = run["strips"].values()
+        assert m["ncp"] == strip["matching"]["n_mcps"] == m["funnel"]["mcp_unique"]
+        n_check = run["adjustment"]["check_mcps"]["after"]["n"]  # held out as check points
+        assert m["ncp"] == run["adjustment"]["n_total"] + n_check
+        dropped = sum(v for k, v in m["drops"].items() if k.startswith("mcp_unique:"))
+        assert m["funnel"]["mcp"] - m["funnel"]["mcp_unique"] == dropped
+        # The true outlier ratio of the matches after RANSAC (a simulated scene).
+        t = m["true_outliers"]
+        assert t["n"] + t["n_unmeasured"] == m["funnel"]["ransac"] and t["n"] > 0
+        assert 0.0 <= t["pct_over_3px"] <= t["pct_over_1px"] <= 100.0
+        assert m["settings"]["protocol"] == "default"
         # Only actionable warnings: the tiny strip's unobserved nodes all lie in the
         # margin beyond the imaged lines, and its refitted RPCs (~0.2 px) are well below
         # half the adjustment's RMSE.
@@ -142,7 +156,14 @@ def _check_report_html(run_dir, expected):
     for html_row, csv_row in zip(adj[1:], csv_rows[1:], strict=True):
         assert float(html_row[2]) == pytest.approx(float(csv_row[2]), abs=5e-4)
     text = (run_dir / "report.html").read_text()
-    for word in ("Metric definitions", "sqrt((1/n)", "lower is better", "simulated"):
+    for word in (
+        "Metric definitions",
+        "sqrt((1/n)",
+        "lower is better",
+        "simulated",
+        "front-end protocol",
+        "true OR &gt;3 px",
+    ):
         assert word.lower() in text.lower(), word
     md = (run_dir / "report.md").read_text()
     assert "](figures/headline.png)" in md and "## Warnings" in md
@@ -170,3 +191,76 @@ def test_demo_command_prints_both_tables(demo):
     assert stamp > 0
     assert demo.second.exit_code == 0, demo.second.output
     assert again == stamp
+
+
+def test_seeds_summary_of_real_comparisons(demo, tmp_path):
+    """The rankings read real comparison reports (the same scene twice: no spread, and
+    every paired gap the same on both, its standard error 0)."""
+    from planetref.pipeline.compare import summarize_compares
+
+    assert demo.first.exit_code == 0, demo.first.output
+    out = summarize_compares({"a": demo.compare_dir, "b": demo.compare_dir}, tmp_path / "s")
+    rep = json.loads((demo.compare_dir / "report.json").read_text())
+    s = out.summary
+    assert s.matchers == ["sift", "ncc"] and "disk-lightglue" in s.skipped
+    for name, run in rep["runs"].items():
+        true = s.metrics["geoloc_rmse_m"][name]
+        assert true.mean == pytest.approx(run["check"]["geoloc_rmse_m"]) and true.std == 0.0
+        assert s.metrics["ncp"][name].mean == run["matching"]["ncp"]
+        assert s.metrics["true_or_3px_pct"][name].n == 2
+    ncp = {n: r["matching"]["ncp"] for n, r in rep["runs"].items()}
+    pair = s.pair("ncp", "sift", "ncc")
+    assert pair.mean == ncp["sift"] - ncp["ncc"] and pair.se == 0.0 and pair.n == 2
+    assert pair.beyond_noise == (ncp["sift"] != ncp["ncc"])
+    assert any("over 2 seeds" in r for r in s.ranking)
+    assert (tmp_path / "s" / "report.html").is_file() and (tmp_path / "s" / "seeds.json").is_file()
+
+
+def test_demo_seeds_runs_one_comparison_per_seed_and_ranks(tmp_path, monkeypatch):
+    """``demo --seeds 2``: seeds 3 and 4 simulated and compared, then the rankings (the
+    simulation and the comparisons are stand-ins; the real ones are tested above)."""
+    import planetref.cli.simulate as sim
+    import planetref.pipeline.compare as compare
+
+    calls = []
+
+    def fake_simulate(config, out, **kw):
+        calls.append(("simulate", config.seed, Path(out).name))
+        Path(out).mkdir(parents=True)
+        (Path(out) / "scene.toml").write_text("")
+
+    def fake_compare(scene, matchers, out, **kw):
+        seed = int(str(scene).rsplit("seed", 1)[1])
+        calls.append(("compare", seed, matchers))
+        out = Path(out)
+        out.mkdir(parents=True)
+        runs = {
+            m: {
+                "matching": {"ncp": 100 * (i + 1) + seed, "sdu_pct": 5.0},
+                "adjustment": {"rmse_px": 0.5},
+                "check": {"geoloc_rmse_m": 1.0 + i + 0.1 * seed},
+            }
+            for i, m in enumerate(matchers.split(","))
+        }
+        (out / "report.json").write_text(json.dumps({"runs": runs, "skipped": {}}))
+        return compare.CompareOutcome(report={}, run_dir=out, tables_markdown="")
+
+    monkeypatch.setattr(sim, "simulate_run", fake_simulate)
+    monkeypatch.setattr(compare, "run_compare", fake_compare)
+    args = ["-q", "demo", "--preset", "tiny", "--seed", "3", "--seeds", "2"]
+    args += ["--matchers", "sift,ncc", "--out", str(tmp_path)]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert [c for c in calls if c[0] == "simulate"] == [
+        ("simulate", 3, "scene-tiny-seed3"),
+        ("simulate", 4, "scene-tiny-seed4"),
+    ]
+    assert [c[1] for c in calls if c[0] == "compare"] == [3, 4]
+    folder = tmp_path / "seeds-tiny-seed3-4"
+    doc = json.loads((folder / "seeds.json").read_text())
+    assert doc["n_seeds"] == 2 and doc["seeds"] == ["seed3", "seed4"]
+    assert doc["metrics"]["geoloc_rmse_m"]["ncc"]["mean"] == pytest.approx(2.35)
+    # sift is 1 m better on both seeds: a constant gap, beyond noise.
+    (pair,) = [p for p in doc["pairs"] if p["metric"] == "geoloc_rmse_m"]
+    assert pair["beyond_noise"] and pair["better"] == "sift"
+    assert "over 2 seeds" in r.stdout and "sift 1.35 +- 0.0707 >> ncc" in r.stdout, r.stdout

@@ -182,7 +182,7 @@ def georef_command(
 
 
 @click.command("compare")
-@click.argument("scene", type=click.Path())
+@click.argument("scenes", nargs=-1, required=True, type=click.Path())
 @click.option(
     "--matchers", default="all", show_default=True, help="Comma-separated matcher names, or 'all'."
 )
@@ -191,17 +191,35 @@ def georef_command(
 @click.pass_context
 def compare_command(
     ctx: click.Context,
-    scene: str,
+    scenes: tuple[str, ...],
     matchers: str,
     out: str,
     run: _RunOptions,
 ) -> None:
-    """Run georef on SCENE once per matcher and tabulate the results side by side."""
-    from planetref.pipeline.compare import run_compare
+    """Run georef on SCENES once per matcher and tabulate the results side by side.
 
-    outcome = run_compare(scene, matchers, out, **run.run_kwargs(progress=not _quiet(ctx)))
-    click.echo(outcome.tables_markdown)
-    click.echo(f"report: {outcome.run_dir / 'report.html'} (and report.md, report.json)")
+    With several scenes each comparison goes to OUT/<scene folder name>, and OUT gets
+    the rankings over the scenes: mean and spread per matcher, paired differences, which
+    gaps are beyond noise (seeds.json, report.md, report.html).
+    """
+    from planetref.pipeline.compare import run_compare, summarize_compares
+
+    kwargs = run.run_kwargs(progress=not _quiet(ctx))
+    if len(scenes) == 1:
+        outcome = run_compare(scenes[0], matchers, out, **kwargs)
+        click.echo(outcome.tables_markdown)
+        click.echo(f"report: {outcome.run_dir / 'report.html'} (and report.md, report.json)")
+        return
+    dirs: dict[str, Path] = {}
+    for scene in scenes:
+        p = Path(scene)
+        label = (p.parent if p.suffix == ".toml" else p).resolve().name or "scene"
+        label = label if label not in dirs else f"{label}-{len(dirs)}"
+        dirs[label] = run_compare(scene, matchers, Path(out) / label, **kwargs).run_dir
+        click.echo(f"{label}: {dirs[label] / 'report.html'}")
+    summary = summarize_compares(dirs, out, title=f"Matchers over {len(dirs)} scenes")
+    click.echo(summary.markdown)
+    click.echo(f"report: {summary.folder / 'report.html'} (and report.md, seeds.json)")
 
 
 def _default_demo_dir() -> Path:
@@ -220,6 +238,15 @@ def _default_demo_dir() -> Path:
     "--preset", default="hiric-strip", show_default=True, help="Simulator preset of the scene."
 )
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option(
+    "--seeds",
+    "n_seeds",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Number of scenes (seeds SEED .. SEED+N-1): rankings over them with mean, "
+    "spread and the gaps beyond noise.",
+)
 @click.option(
     "--difficulty",
     type=click.Choice(["easy", "moderate", "hard", "extreme"]),
@@ -240,35 +267,57 @@ def demo_command(
     out: str | None,
     preset: str,
     seed: int,
+    n_seeds: int,
     difficulty: str,
     matchers: str,
     run: _RunOptions,
 ) -> None:
-    """Simulate a realistic Mars scene (cached) and compare the matchers on it."""
+    """Simulate a realistic Mars scene (cached) and compare the matchers on it.
+
+    With ``--seeds N``: N scenes (seeds SEED .. SEED+N-1), one comparison each, and the
+    rankings over them (mean and spread per matcher, paired differences, which gaps are
+    beyond noise) in ``seeds-<preset>-seed<first>-<last>/``.
+    """
     from planetref.cli.simulate import simulate_run
-    from planetref.pipeline.compare import run_compare
+    from planetref.pipeline.compare import run_compare, summarize_compares
     from planetref.simulate.config import load_config as load_sim_config
 
     quiet = _quiet(ctx)
     base = Path(out) if out else _default_demo_dir()
     tag = preset if difficulty == "moderate" else f"{preset}-{difficulty}"
-    scene_dir = base / f"scene-{tag}-seed{seed}"
-    if not (scene_dir / "scene.toml").is_file():
-        if not quiet:
-            click.echo(f"simulating the {tag} scene (seed {seed}) into {scene_dir} ...", err=True)
-        level = None if difficulty == "moderate" else difficulty
-        simulate_run(
-            load_sim_config(preset, seed=seed, difficulty=level),
-            scene_dir,
-            overwrite=run.overwrite,
-            preview=True,
-            progress=not quiet,
+    kwargs = run.run_kwargs(progress=not quiet)
+    dirs: dict[str, Path] = {}
+    for s in range(seed, seed + n_seeds):
+        scene_dir = base / f"scene-{tag}-seed{s}"
+        if not (scene_dir / "scene.toml").is_file():
+            if not quiet:
+                click.echo(f"simulating the {tag} scene (seed {s}) into {scene_dir} ...", err=True)
+            level = None if difficulty == "moderate" else difficulty
+            simulate_run(
+                load_sim_config(preset, seed=s, difficulty=level),
+                scene_dir,
+                overwrite=run.overwrite,
+                preview=True,
+                progress=not quiet,
+            )
+        elif not quiet:
+            click.echo(f"using the cached scene {scene_dir}", err=True)
+        compare_dir = base / f"compare-{tag}-seed{s}"
+        outcome = run_compare(scene_dir, matchers, compare_dir, **kwargs)
+        dirs[f"seed{s}"] = outcome.run_dir
+        if n_seeds == 1:
+            click.echo(outcome.tables_markdown)
+            click.echo(f"report:  {outcome.run_dir / 'report.html'} (and report.md, report.json)")
+            click.echo(f"figures: {outcome.run_dir / 'figures'}")
+            click.echo(f"scene:   {scene_dir} (preview.png)")
+        else:
+            click.echo(f"seed {s}: {outcome.run_dir / 'report.html'}")
+    if n_seeds > 1:
+        last = seed + n_seeds - 1
+        summary = summarize_compares(
+            dirs,
+            base / f"seeds-{tag}-seed{seed}-{last}",
+            title=f"Matchers on {tag} over {n_seeds} seeds ({seed}-{last})",
         )
-    elif not quiet:
-        click.echo(f"using the cached scene {scene_dir}", err=True)
-    compare_dir = base / f"compare-{tag}-seed{seed}"
-    outcome = run_compare(scene_dir, matchers, compare_dir, **run.run_kwargs(progress=not quiet))
-    click.echo(outcome.tables_markdown)
-    click.echo(f"report:  {outcome.run_dir / 'report.html'} (and report.md, report.json)")
-    click.echo(f"figures: {outcome.run_dir / 'figures'}")
-    click.echo(f"scene:   {scene_dir} (preview.png)")
+        click.echo(summary.markdown)
+        click.echo(f"report:  {summary.folder / 'report.html'} (and report.md, seeds.json)")

@@ -113,6 +113,10 @@ class TileResult:
         sigma_px: A-posteriori precision of the refined reference position (pixels of
             the fine-stage grid, i.e. reference pixels divided by ``fine_upsample``);
             NaN where no refinement ran.
+        ransac_points: ``(N, 4)`` ``(line, sample, ref_col, ref_row)`` of every fine match
+            that passed RANSAC, before the consensus and the back-projection (raw
+            position NaN where it has none), for the true outlier ratio on simulated
+            scenes (:mod:`planetref.frontend.truth`); empty when RANSAC did not run.
         timings: Seconds per step (``footprint``, ``coarse_prepare``, ``coarse_match``,
             ``fine_prepare``, ``fine_match``, ``verify``, ``backmap``, ``refine``,
             ``forward``, ``total``).
@@ -143,6 +147,7 @@ class TileResult:
     ref_y: F64 = field(default_factory=_empty)
     confidence: F64 = field(default_factory=_empty)
     sigma_px: F64 = field(default_factory=_empty)
+    ransac_points: F64 = field(default_factory=lambda: np.empty((0, 4), np.float64))
     timings: dict[str, float] = field(default_factory=dict)
     debug: list[StageDebug] = field(default_factory=list, repr=False)
 
@@ -201,6 +206,12 @@ class TileResult:
         }
         for name in _ARRAYS:
             doc[name] = [float(v) if np.isfinite(v) else None for v in self._array(name)]
+        if len(self.ransac_points):
+            # Rounded to 1e-3 px (far below any true error it serves), columns as lists.
+            doc["ransac_points"] = [
+                [round(float(v), 3) if np.isfinite(v) else None for v in col]
+                for col in np.asarray(self.ransac_points, np.float64).T
+            ]
         return doc
 
     def _array(self, name: str) -> F64:
@@ -240,6 +251,11 @@ class TileResult:
                 thinned=bool(doc.get("thinned", False)),
                 timings={str(k): float(v) for k, v in doc.get("timings", {}).items()},
             )
+            rp = doc.get("ransac_points")
+            if rp:
+                out.ransac_points = np.array(
+                    [[np.nan if v is None else v for v in col] for col in rp], np.float64
+                ).T.reshape(-1, 4)
             for name in _ARRAYS:
                 values = doc.get(name)
                 if values is None and name == "sigma_px":

@@ -416,6 +416,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
                 cfg.ransac_max_iters,
             )
             res.record("ransac", int(inl.sum()), {"outlier": int(ok.sum() - inl.sum())})
+            ransac_inl = inl.copy()
             n_ransac = int(inl.sum())
             if inl.any():
                 # True matches of one tile share (nearly) one displacement; a homography
@@ -431,6 +432,16 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
             res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
             continue
         break
+    with _timed(timings, "backmap"):
+        # Every match RANSAC kept, before the consensus and the back-projection, with its
+        # raw and reference position: on a simulated scene their true errors measure the
+        # matcher's outliers (planetref.frontend.truth), whatever the later stages keep.
+        ridx = np.flatnonzero(ransac_inl)
+        rl, rs, rgood = side.to_raw(st.kp0[ridx, 0], st.kp0[ridx, 1])
+        rc, rr = fine_ref.to_ref_pixel(st.kp1[ridx, 0], st.kp1[ridx, 1])
+        res.ransac_points = np.column_stack(
+            [np.where(rgood, rl, np.nan), np.where(rgood, rs, np.nan), rc, rr]
+        ).astype(np.float64)
     res.n_inliers = int(inl.sum())
     if debug:
         res.debug.append(

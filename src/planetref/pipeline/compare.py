@@ -7,6 +7,8 @@ Output directory::
 
     run.json, config.json, planetref.log
     report.json            {"scene", "runs": {matcher: georef report}, "skipped": {...}}
+                           (a run whose matcher ran but failed, e.g. too few MCPs, is
+                           in "runs" with "failed": why; "skipped": could not run)
     report.md, report.html the report (scene, settings, definitions, tables, figures,
                            warnings); the HTML is one self-contained file
     matching.csv, adjustment.csv, truth.csv, funnel.csv, timing.csv
@@ -27,14 +29,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from planetref.errors import InputError, MatchingError, PlanetrefError, WeightsError
+from planetref.errors import (
+    InputError,
+    MatcherFailedError,
+    MatchingError,
+    PlanetrefError,
+)
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
 from planetref.scene.inputs import scene_input_files
 from planetref.scene.inputs import scene_path as scene_path_of
 from planetref.scene.manifest import load_manifest
 
-__all__ = ["CompareOutcome", "resolve_matchers", "run_compare"]
+__all__ = [
+    "CompareOutcome",
+    "SeedsOutcome",
+    "resolve_matchers",
+    "run_compare",
+    "summarize_compares",
+]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +67,56 @@ class CompareOutcome:
     run_dir: Path
     tables_markdown: str
     files: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class SeedsOutcome:
+    """What :func:`summarize_compares` returns.
+
+    Attributes:
+        summary: The rankings over the scenes.
+        folder: Where the summary was written.
+        markdown: The summary as Markdown (what ``demo --seeds`` prints).
+        files: Paths of the outputs.
+    """
+
+    summary: Any
+    folder: Path
+    markdown: str
+    files: dict[str, str] = field(default_factory=dict)
+
+
+def summarize_compares(
+    compares: dict[str, str | os.PathLike[str]], out: str | os.PathLike[str], *, title: str = ""
+) -> SeedsOutcome:
+    """Rankings over several comparisons (scenes, e.g. seeds of one preset).
+
+    Reads each comparison's report.json and writes ``seeds.json``, ``seeds.csv``,
+    ``pairs.csv``, ``report.md``, ``report.html`` and ``figures/headline_seeds.png``
+    into ``out`` (:func:`planetref.report.seeds.write_seeds_report`).
+
+    Args:
+        compares: Scene label (e.g. ``"seed0"``) -> its comparison folder.
+        out: Output folder.
+        title: The report's title.
+
+    Raises:
+        MissingFileError: A comparison folder without report.json.
+    """
+    from planetref.report.seeds import summarize_seeds, write_seeds_report
+    from planetref.runtime.jsonfile import read_json
+
+    reports = {
+        k: read_json(Path(v) / "report.json", "comparison report") for k, v in compares.items()
+    }
+    summary = summarize_seeds(reports)
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = write_seeds_report(
+        summary, folder, title=title, links={k: str(v) for k, v in compares.items()}
+    )
+    md = paths.pop("markdown")
+    return SeedsOutcome(summary=summary, folder=folder, markdown=md, files=paths)
 
 
 def resolve_matchers(
@@ -108,8 +171,11 @@ def run_compare(
 ) -> CompareOutcome:
     """Run georef once per matcher with identical settings and tabulate the results.
 
-    A matcher whose run fails (missing weights, too few matches, a degenerate
-    adjustment) is listed under ``skipped`` with the reason; the others go on.
+    A matcher that could not run (missing weights, a matcher that cannot be built) is
+    listed under ``skipped`` with the reason. A matcher that ran but whose run failed
+    (too few MCPs, a degenerate adjustment) stays in ``runs``: its report has ``failed``
+    (why), NCP and SDU as matched, its failed tiles and its funnel, and no adjustment;
+    the tables keep its rows. The others go on.
 
     Args:
         scene: ``scene.toml`` or its folder.
@@ -185,7 +251,18 @@ def _run_compare(
                     progress=progress,
                     executor=executor,
                 )
-            except (WeightsError, PlanetrefError) as exc:
+            except MatcherFailedError as exc:
+                log.warning("compare: %s failed: %s", name, exc)
+                runs[name] = exc.report or {
+                    "matcher": name,
+                    "failed": str(exc),
+                    "matching": {"ccds": {}, "ncp": 0, "sdu_pct": 0.0},
+                    "adjustment": None,
+                    "check": None,
+                }
+                _collect_figures(run.path / "runs" / name, run, name)
+                continue
+            except PlanetrefError as exc:  # missing weights and the like: it did not run
                 log.warning("compare: %s skipped: %s", name, exc)
                 skipped[name] = str(exc)
                 continue
@@ -199,7 +276,9 @@ def _run_compare(
                 adj.get("rmse_px", float("nan")),
             )
             _collect_figures(outcome.run_dir, run, name)
-        scene_name = next((r["scene"] for r in runs.values()), scene_path.parent.name)
+        scene_name = next(
+            (r["scene"] for r in runs.values() if "scene" in r), scene_path.parent.name
+        )
         report = {"scene": scene_name, "runs": runs, "skipped": skipped}
         run.write_json("report.json", report)
         headline = None
@@ -284,6 +363,7 @@ def _context(
     conf = cfg.to_json()
     fe, mcp = conf.get("frontend", {}), conf.get("mcp", {})
     ctx.common_settings += [
+        ("front-end protocol", _protocol_line(fe)),
         ("front end", ", ".join(f"{k} = {v}" for k, v in fe.items() if not isinstance(v, dict))),
         ("MCPs", ", ".join(f"{k} = {v}" for k, v in mcp.items() if not isinstance(v, dict))),
         ("adjustment", "see `runs/<matcher>/<strip>/adjustment/config.json`"),
@@ -291,8 +371,9 @@ def _context(
             [
                 (
                     "per-tile cap",
-                    f"`max_mcps_per_tile = {fe['max_mcps_per_tile']}`: NCP and SDU count the "
-                    "MCPs kept after this cap; the funnel table shows how many were verified",
+                    f"`max_mcps_per_tile = {fe['max_mcps_per_tile']}`: NCP counts the "
+                    "verified MCPs before this cap (less the MCP stage's duplicates), SDU the "
+                    "MCPs kept after it; the funnel table shows both",
                 )
             ]
             if fe.get("max_mcps_per_tile")
@@ -319,6 +400,23 @@ def _context(
         ctx.figures[name] = figs
     ctx.funnels = {k: v for k, v in ctx.funnels.items() if v}
     return ctx
+
+
+def _protocol_line(fe: dict[str, Any]) -> str:
+    """Which front-end protocol ran, and what that means for OR."""
+    if fe.get("protocol") == "paper":
+        return (
+            "`paper` (the seed's Sec. 3.2: tiles downsampled to the reference GSD, "
+            f"RANSAC at {fe.get('ransac_threshold_ref_px')} reference px, so the "
+            "adjustment's 3 x RMSE rule does the rejecting): OR compares with the seed's "
+            "4.1-7.3 %"
+        )
+    return (
+        "`default` (planetref's: RANSAC at "
+        f"{fe.get('ransac_threshold_ref_px')} reference px keeps only matches far inside the "
+        "adjustment's 3 x RMSE, so OR sees few blunders; the true OR column measures them; "
+        '`frontend.protocol = "paper"` for an OR comparable with the seed\'s)'
+    )
 
 
 def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, Any]:

@@ -38,7 +38,7 @@ import numpy as np
 
 from planetref import __version__
 from planetref.control.networks import StripMcps, joint_network, mcp_ground_sigmas
-from planetref.errors import MatchingError
+from planetref.errors import AdjustmentError, MatcherFailedError
 from planetref.frontend.matchers import (
     MatcherPair,
     build_matchers,
@@ -58,6 +58,7 @@ from planetref.pipeline.georef_outputs import (
     orthoimages,
     part_timed,
     timed,
+    write_failed_run,
 )
 from planetref.pipeline.job import StripJob
 from planetref.pipeline.rundir import RunDir, config_digest
@@ -66,9 +67,11 @@ from planetref.report.blocks import (
     adjustment_block,
     check_block,
     combined_report,
+    frontend_settings,
     matching_block,
     result_block,
     rmse_px,
+    too_few_mcps,
 )
 from planetref.runtime.threads import single_threaded_blas
 from planetref.scene.inputs import (
@@ -246,28 +249,30 @@ def run_georef(
                 figures=stack.enter_context(FigureJobs()),
             )
             job.figures.start()  # matplotlib is imported there while the tiles are matched
-            campaign = None
-            if cfg.campaign.adjust_together and len(manifest.strips) > 1:
-                preps = [_strip_mcps(job.for_strip(s)) for s in manifest.strips]
-                with single_threaded_blas():  # RPC refits, reports, orthoimages
-                    strips, campaign = _adjust_together(job, preps)
-            else:
-                strips = {}
-                for s in manifest.strips:
-                    sj = job.for_strip(s)
-                    prep = _strip_mcps(sj)
+            settings = frontend_settings(cfg.frontend)
+            matched: dict[str, dict[str, Any]] = {}  # matching blocks, for a failed run
+            try:
+                if cfg.campaign.adjust_together and len(manifest.strips) > 1:
+                    preps = [_strip_mcps(job.for_strip(s), matched) for s in manifest.strips]
                     with single_threaded_blas():  # RPC refits, reports, orthoimages
-                        strips[s.id] = _adjust_strip(sj, prep)
+                        strips, campaign = _adjust_together(job, preps)
+                else:
+                    strips, campaign = {}, None
+                    for s in manifest.strips:
+                        prep = _strip_mcps(job.for_strip(s), matched)
+                        with single_threaded_blas():  # RPC refits, reports, orthoimages
+                            strips[s.id] = _adjust_strip(job.for_strip(s), prep)
+            except (MatcherFailedError, AdjustmentError) as exc:  # the matcher ran: a result
+                with timed(job.timing, "figures"):
+                    job.figures.wait()
+                job.timing["total"] = time.perf_counter() - t_start
+                failure = write_failed_run(
+                    run, exc, matcher, manifest, matched, job.timing, settings
+                )
+                raise failure from failure.__cause__
             with timed(job.timing, "figures"):  # the figures not drawn yet
                 job.figures.wait()
             job.timing["total"] = time.perf_counter() - t_start
-            fe = cfg.frontend
-            settings = {
-                "refine": fe.refine.method,
-                "fine_upsample": fe.fine_upsample,
-                "dense_spacing_ref_px": fe.dense_spacing_ref_px,
-                "max_mcps_per_tile": fe.max_mcps_per_tile,
-            }
             report = combined_report(matcher, manifest.name, strips, job.timing, settings)
             if campaign is not None:
                 report["adjustment"] = campaign.pop("adjustment")
@@ -331,8 +336,8 @@ def _match(
     )
 
 
-def _strip_mcps(job: StripJob) -> StripMcps:
-    """Match a strip's tiles, write its MCPs and draw its check points."""
+def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
+    """Match a strip's tiles, write its MCPs, draw its check points; ``matched`` += block."""
     from planetref.control.mcp import mcps_from_tiles, write_mcps
     from planetref.frontend.tile_panels import PanelStore
     from planetref.report.figures_matching import select_tiles
@@ -361,7 +366,10 @@ def _strip_mcps(job: StripJob) -> StripMcps:
     out["files"]["mcps"] = [
         str(p) for p in (written if isinstance(written, list | tuple) else [written])
     ]
-    out["matching"] = matching_block(matches, table, sizes)
+    cam = job.truth_cameras.get(strip.id)  # the true DEM read for it, then let go
+    truth = None if cam is None else (cam, job.ref, truth_terrain(job.truth_dem, job.dem))
+    out["matching"] = matched[strip.id] = matching_block(matches, table, sizes, truth)
+    del truth  # the true DEM is not held through the figures
     for item in out["matching"]["tiles_lost"]:
         log.warning(
             "strip %s tile %s: %s %s", strip.id, item["tile"], item["status"], item["message"]
@@ -371,12 +379,7 @@ def _strip_mcps(job: StripJob) -> StripMcps:
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
-        raise MatchingError(
-            f"strip {strip.id}: only {n} matched control points with matcher "
-            f"{matches.matcher} ({out['matching']['tile_status']}); "
-            f"at least {cfg.mcp.min_mcps} are needed. "
-            "See planetref.log for why tiles failed"
-        )
+        raise too_few_mcps(strip.id, matches.matcher, out["matching"], cfg.mcp.min_mcps)
     rng = np.random.default_rng(cfg.mcp.seed)
     check = np.zeros(n, bool)
     n_check = round(cfg.mcp.check_fraction * n)

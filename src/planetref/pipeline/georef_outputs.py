@@ -5,13 +5,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from planetref.errors import PlanetrefError
+from planetref.errors import AdjustmentError, MatcherFailedError, PlanetrefError
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
@@ -19,7 +19,9 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.frontend.result import StripMatches, TileResult
     from planetref.frontend.tile_panels import PanelStore
     from planetref.pipeline.job import StripJob
+    from planetref.pipeline.rundir import RunDir
     from planetref.raster.image import CcdImage
+    from planetref.scene.manifest import SceneManifest
 
 __all__ = [
     "camera_isds",
@@ -34,6 +36,7 @@ __all__ = [
     "part_timed",
     "timed",
     "write_camera_isds",
+    "write_failed_run",
 ]
 
 log = logging.getLogger("planetref.pipeline.georef")
@@ -343,3 +346,51 @@ def figure_residuals(
         job.run.file("figures", f"{strip}_residuals.png"),
         title=f"{strip}: residuals after adjustment (inliers)",
     )
+
+
+def write_failed_run(
+    run: RunDir,
+    exc: MatcherFailedError | AdjustmentError,
+    matcher: str,
+    manifest: SceneManifest,
+    matched: Mapping[str, Mapping[str, Any]],
+    timing: Mapping[str, float],
+    settings: Mapping[str, Any],
+) -> MatcherFailedError:
+    """report.json and report.md of a run whose matcher ran but failed.
+
+    Returns:
+        The error to raise: ``exc`` itself, or for a degenerate adjustment a
+        :class:`MatcherFailedError` saying so; its ``report`` is the report written.
+
+    Args:
+        run: The run directory.
+        exc: The failure (a MatcherFailedError's ``matching`` holds the failing strip's
+            block; an adjustment's failure concerns the strips matched).
+        matcher: Matcher name.
+        manifest: The scene.
+        matched: Strip id -> matching block of the strips matched before.
+        timing: Seconds per step.
+        settings: The front-end settings (:func:`frontend_settings`).
+    """
+    from planetref.report.blocks import failed_report
+    from planetref.report.georef import write_georef_markdown
+
+    if isinstance(exc, AdjustmentError):
+        failure = MatcherFailedError(f"adjustment failed: {exc}")
+        failure.__cause__ = exc
+    else:
+        failure = exc
+    got = {**matched, **failure.matching}
+    failure.report = failed_report(
+        matcher,
+        manifest.name,
+        got,
+        str(failure),
+        timing,
+        settings,
+        strips_not_run=[s.id for s in manifest.strips if s.id not in got],
+    )
+    run.write_json("report.json", failure.report)
+    write_georef_markdown(failure.report, run.file("report.md"))
+    return failure

@@ -14,61 +14,105 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planetref import __version__
+from planetref.errors import MatcherFailedError
+from planetref.frontend.truth import sum_true_outliers
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
     from planetref.control.mcp import McpTable
+    from planetref.frontend.config import FrontendConfig
     from planetref.frontend.result import StripMatches
     from planetref.raster.dem import GridTerrain
+    from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = [
     "adjustment_block",
     "camera_view",
     "check_block",
     "combined_report",
+    "failed_report",
+    "frontend_settings",
     "matching_block",
     "rmse_px",
+    "too_few_mcps",
 ]
 
 
 def matching_block(
-    matches: StripMatches, table: McpTable, sizes: Mapping[str, tuple[int, int]]
+    matches: StripMatches,
+    table: McpTable,
+    sizes: Mapping[str, tuple[int, int]],
+    truth: tuple[Camera, ReferenceOrtho, GridTerrain] | None = None,
 ) -> dict[str, Any]:
     """The ``matching`` block of one strip: NCP and SDU per CCD, tiles, funnel, drops.
 
-    NCP counts every correspondence that passed a tile's verification, before any thinning
-    (equal to the MCPs written unless ``max_mcps_per_tile`` thinned some tiles); SDU is
-    over the MCPs written (:func:`planetref.frontend.stats.sdu_per_ccd`).
+    NCP counts the unique MCPs delivered to the adjustment: the correspondences that
+    passed a tile's verification, less those the MCP stage drops (duplicates of one CCD
+    position, no DEM height, outside the reference; :func:`planetref.control.
+    mcps_from_matches`). It is counted before any thinning for speed
+    (``max_mcps_per_tile``), so it equals the MCPs written (``n_mcps``) unless thinning
+    is on. SDU is over the MCPs written (:func:`planetref.frontend.stats.sdu_per_ccd`).
+
+    The funnel (tile stages summed over the strip) ends with ``mcp_unique``, the MCPs
+    written; its drops ``mcp_unique:<reason>`` say what the MCP stage removed, and
+    ``mcp_unique:tile_failed`` the points of tiles that failed after their ``mcp`` stage.
 
     Args:
         matches: The strip's tile results.
         table: The MCPs written.
         sizes: ``(lines, samples)`` of each CCD image.
+        truth: ``(true camera, reference ortho, true DEM)`` of a simulated scene: the
+            block then has ``true_outliers``, the true outlier ratio of the matches after
+            RANSAC (:func:`planetref.frontend.truth.true_outliers`).
     """
     from planetref.frontend.stats import sdu_per_ccd
+    from planetref.frontend.truth import true_outliers
 
     statuses = matches.status_counts()
-    ncp = matches.ncp_per_ccd()
+    verified = matches.ncp_per_ccd()
+    offered = dict.fromkeys(sizes, 0)  # points of ok tiles handed to the MCP stage
+    for t in matches.tiles:
+        if t.status == "ok":
+            offered[t.tile.ccd] = offered.get(t.tile.ccd, 0) + t.n_points
+    ccd_col = np.asarray(table["ccd"]).astype(str) if len(table) else np.empty(0, str)
+    kept = {c: int(np.count_nonzero(ccd_col == c)) for c in set(sizes) | set(offered)}
+    # Without thinning verified == offered, so NCP == the MCPs written, CCD by CCD.
+    ncp = {c: max(verified.get(c, 0) - (offered.get(c, 0) - kept.get(c, 0)), 0) for c in kept}
     sdu = sdu_per_ccd(table, sizes)
     lost = [
         {"tile": t.tile_id, "status": t.status, "message": t.message}
         for t in matches.tiles
         if t.status != "ok"
     ]
-    return {
+    funnel = matches.funnel()
+    drops = matches.drops()
+    counts = table.counts.to_dict() if table.counts is not None else {}
+    if "mcp" in funnel:
+        funnel["mcp_unique"] = len(table)
+        stage_drops = {
+            "tile_failed": funnel["mcp"] - sum(offered.values()),
+            "duplicates": counts.get("duplicates", 0),
+            "nan_dem": counts.get("nan_dem", 0),
+            "outside_reference": counts.get("outside_reference", 0),
+        }
+        drops.update({f"mcp_unique:{k}": int(v) for k, v in stage_drops.items() if v > 0})
+    block = {
         "ccds": {c: {"ncp": int(ncp.get(c, 0)), "sdu_pct": float(sdu[c])} for c in sizes},
-        "ncp": int(sum(ncp.values())),
+        "ncp": int(sum(ncp.get(c, 0) for c in sizes)),
         "n_mcps": len(table),
         "tiles_total": len(matches.tiles),
         "tiles_failed": len(matches.tiles) - statuses.get("ok", 0),
         "tiles_thinned": sum(t.thinned for t in matches.tiles),
         "tile_status": statuses,
         "tiles_lost": lost,
-        "funnel": matches.funnel(),
-        "drops": matches.drops(),
-        "mcp_counts": table.counts.to_dict() if table.counts is not None else {},
+        "funnel": funnel,
+        "drops": drops,
+        "mcp_counts": counts,
     }
+    if truth is not None:
+        block["true_outliers"] = true_outliers(matches.tiles, *truth).to_dict()
+    return block
 
 
 def camera_view(result: Any, index: int) -> Any:
@@ -245,6 +289,9 @@ def combined_report(
         "funnel": _sum_counts(s["matching"].get("funnel", {}) for s in strips.values()),
         "drops": _sum_counts(s["matching"].get("drops", {}) for s in strips.values()),
     }
+    outliers = sum_true_outliers(s["matching"].get("true_outliers") for s in strips.values())
+    if outliers is not None:
+        matching["true_outliers"] = outliers
     if frontend is not None:
         matching["settings"] = dict(frontend)
     if len(strips) == 1:
@@ -285,6 +332,89 @@ def combined_report(
         "check": check,
         "timing_s": timing,
         "strips": strips_out,
+    }
+
+
+def frontend_settings(fe: FrontendConfig) -> dict[str, Any]:
+    """The front-end settings that decide what the matching figures mean (report.json)."""
+    return {
+        "refine": fe.refine.method,
+        "fine_upsample": fe.fine_upsample,
+        "dense_spacing_ref_px": fe.dense_spacing_ref_px,
+        "max_mcps_per_tile": fe.max_mcps_per_tile,
+        "protocol": fe.protocol,
+    }
+
+
+def too_few_mcps(
+    strip_id: str, matcher: str, matching: Mapping[str, Any], min_mcps: int
+) -> MatcherFailedError:
+    """The error of a strip with fewer MCPs than the adjustment needs (its matching kept)."""
+    status = ", ".join(f"{k} {v}" for k, v in matching["tile_status"].items() if v)
+    return MatcherFailedError(
+        f"strip {strip_id}: only {matching['n_mcps']} matched control points with matcher "
+        f"{matcher} ({matching['tiles_failed']}/{matching['tiles_total']} tiles failed: "
+        f"{status}); at least {min_mcps} are needed. See planetref.log for why tiles failed",
+        matching={strip_id: dict(matching)},
+    )
+
+
+def failed_report(
+    matcher: str,
+    scene: str,
+    matching: Mapping[str, Mapping[str, Any]],
+    reason: str,
+    timing: Mapping[str, float],
+    frontend: Mapping[str, Any] | None = None,
+    *,
+    strips_not_run: Iterable[str] = (),
+) -> dict[str, Any]:
+    """report.json of a run whose matcher ran but which could not finish.
+
+    The ``matching`` block as in :func:`combined_report` (NCP, SDU per CCD, tiles failed,
+    funnel, drops) over the strips matched; no adjustment and no true error; ``failed``
+    says why. Such a run stays a row of the comparison's tables.
+
+    Args:
+        matcher: Matcher name.
+        scene: Scene name.
+        matching: Strip id -> its ``matching`` block (:func:`matching_block`).
+        reason: Why the run stopped (the error's message).
+        timing: Seconds per step.
+        frontend: The front-end settings (see :func:`combined_report`).
+        strips_not_run: Strips not matched because the run stopped before them.
+    """
+    ccds: dict[str, Any] = {}
+    for sid, m in matching.items():
+        for c, v in m["ccds"].items():
+            ccds[c if len(matching) == 1 else f"{sid}/{c}"] = v
+    block: dict[str, Any] = {
+        "ccds": ccds,
+        "ncp": int(sum(m["ncp"] for m in matching.values())),
+        "sdu_pct": float(np.mean([v["sdu_pct"] for v in ccds.values()])) if ccds else 0.0,
+        "tiles_total": sum(m["tiles_total"] for m in matching.values()),
+        "tiles_failed": sum(m["tiles_failed"] for m in matching.values()),
+        "tiles_thinned": sum(m.get("tiles_thinned", 0) for m in matching.values()),
+        "tiles_lost": [dict(t, strip=sid) for sid, m in matching.items() for t in m["tiles_lost"]],
+        "funnel": _sum_counts(m.get("funnel", {}) for m in matching.values()),
+        "drops": _sum_counts(m.get("drops", {}) for m in matching.values()),
+    }
+    outliers = sum_true_outliers(m.get("true_outliers") for m in matching.values())
+    if outliers is not None:
+        block["true_outliers"] = outliers
+    if frontend is not None:
+        block["settings"] = dict(frontend)
+    return {
+        "matcher": matcher,
+        "scene": scene,
+        "planetref_version": __version__,
+        "failed": reason,
+        "strips_not_run": list(strips_not_run),
+        "matching": block,
+        "adjustment": None,
+        "check": None,
+        "timing_s": dict(timing),
+        "strips": {sid: {"matching": dict(m), "failed": reason} for sid, m in matching.items()},
     }
 
 

@@ -24,9 +24,12 @@ __all__ = ["DEFINITIONS", "Document", "Figure", "HtmlContents", "Table", "read_r
 DEFINITIONS: list[tuple[str, str]] = [
     (
         "NCP",
-        "number of correct points: the matched control points (MCPs) of a CCD image, i.e. "
-        "the correspondences that passed the tile's verification (coarse gate, MAGSAC++, "
-        "translation consensus, back-projection, refinement when on). Higher is better.",
+        "number of correct points: the unique matched control points (MCPs) of a CCD image "
+        "delivered to the adjustment, i.e. the correspondences that passed the tile's "
+        "verification (coarse gate, MAGSAC++, translation consensus, back-projection, "
+        "refinement when on), less those the MCP stage drops (duplicates of one image "
+        "position, no DEM height; funnel stage mcp_unique). Counted before any thinning "
+        "for speed. A matcher whose run failed keeps its row. Higher is better.",
     ),
     (
         "SDU",
@@ -56,6 +59,15 @@ DEFINITIONS: list[tuple[str, str]] = [
         "(simulated scenes) RMS over a grid of image pixels of the ground distance (metres) "
         "between the terrain intersections of the same pixel through the adjusted and the "
         "true camera; 'before' uses the initial camera. Lower is better.",
+    ),
+    (
+        "true OR",
+        "(simulated scenes) true outlier ratio: 100 * (matches after RANSAC, before the "
+        "consensus and the back-projection, whose true error exceeds 1, resp. 3, reference "
+        "px) / (matches after RANSAC); the true error is the distance between a match's "
+        "reference position and where the true camera and the true DEM put its image "
+        "point on the reference grid (it includes the reference's own error). Lower is "
+        "better.",
     ),
     (
         "sigma0",

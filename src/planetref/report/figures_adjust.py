@@ -408,7 +408,8 @@ def figure_headline(
                 fontsize=7,
                 fontweight="bold",
             )
-        if p.get("log") and np.nanmin(np.r_[after, p.get("before", after)]) > 0:
+        both = np.r_[after, p.get("before", after)]
+        if p.get("log") and np.isfinite(both).any() and np.nanmin(both) > 0:
             ax.set_yscale("log")
         if np.all(np.nan_to_num(after) == 0) and not has_before:
             ax.set_ylim(0, 1)

@@ -155,10 +155,20 @@ def write_compare_tables(
         tex = format_latex_table(h, r, caption=_TABLES[name], label=f"tab:{name}")
         paths[f"{name}_tex"] = str(write_text_atomic(out / "tables" / f"{name}.tex", tex))
         md += [titles[name], "", format_markdown_table(h, r), ""]
+    failed = _failed(runs)
+    if failed:
+        md += ["## Failed (ran, could not finish; rows kept above)", ""]
+        md += [f"- `{k}`: {v}" for k, v in failed.items()] + [""]
     if skipped:
-        md += ["## Skipped", ""] + [f"- `{k}`: {v}" for k, v in skipped.items()] + [""]
+        md += ["## Skipped (could not run)", ""] + [f"- `{k}`: {v}" for k, v in skipped.items()]
+        md += [""]
     paths["markdown"] = "\n".join(md)
     return paths
+
+
+def _failed(runs: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+    """Matcher -> why its run failed, for the runs that ran but could not finish."""
+    return {name: str(rep["failed"]) for name, rep in runs.items() if rep.get("failed")}
 
 
 def _warnings(
@@ -275,8 +285,17 @@ def write_compare_report(
     doc.items(warns)
     if not warns:
         doc.para("None.")
+    failed = _failed(runs)
+    if failed:
+        doc.heading("Failed matchers")
+        doc.para(
+            "These matchers ran (their rows stay in the tables: NCP, SDU, failed tiles, "
+            "funnel) but their runs could not finish:"
+        )
+        doc.items([f"`{k}`: {v}" for k, v in failed.items()])
     if skipped:
         doc.heading("Skipped matchers")
+        doc.para("These matchers could not run:")
         doc.items([f"`{k}`: {v}" for k, v in skipped.items()])
     written = doc.write(folder)
     paths.update(written)
@@ -303,6 +322,11 @@ def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str
     journals = [folder / sid / "tiles.jsonl" for sid in report.get("strips") or {}]
     funnel = funnel_from_report(report) or funnel_from_journal(journals)
     doc = Document(f"georef: {report['scene']} with {report['matcher']}")
+    if report.get("failed"):
+        doc.para(f"**The run failed**: {report['failed']}")
+    protocol = ((report.get("matching") or {}).get("settings") or {}).get("protocol")
+    if protocol:
+        doc.para(f"Front-end protocol: `{protocol}`.")
     for name, (h, r) in _tables(runs, {report["matcher"]: funnel} if funnel else {}).items():
         doc.heading(_SECTIONS[name])
         doc.table(_TABLES[name], h, r)

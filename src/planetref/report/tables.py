@@ -48,8 +48,18 @@ ADJ_COLUMNS = [
 """Table 2 of the seed: header and report.json key (pixels, OR in percent)."""
 EXTRA_ADJ = [("RMSE x", "rmse_x_px"), ("RMSE y", "rmse_y_px")]
 """Per-axis RMSE, shown when the report holds it."""
-FUNNEL_STAGES = ("raw", "coarse_gate", "ransac", "consensus", "backprojection", "refine", "mcp")
-"""Front-end stages in order (see ``TileResult.funnel``)."""
+FUNNEL_STAGES = (
+    "raw",
+    "coarse_gate",
+    "ransac",
+    "consensus",
+    "backprojection",
+    "refine",
+    "mcp",
+    "mcp_unique",
+)
+"""Front-end stages in order (see ``TileResult.funnel``); ``mcp_unique``: the MCPs the MCP
+stage delivers to the adjustment (duplicates and points without a DEM height dropped)."""
 
 
 def fmt(v: Any, digits: int = 3) -> str:
@@ -133,7 +143,11 @@ def format_latex_table(
 
 
 def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Table 1: NCP and SDU per CCD image, one row per matcher."""
+    """Table 1: NCP and SDU per CCD image, one row per matcher.
+
+    NCP is the unique MCPs delivered to the adjustment; a matcher whose run failed keeps
+    its row (NCP and SDU as matched, usually 0, and its failed tiles).
+    """
     ccds: list[str] = []
     for rep in runs.values():
         for c in rep["matching"]["ccds"]:
@@ -153,48 +167,80 @@ def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], lis
             [name]
             + [per.get(c, {}).get("ncp") for c in ccds]
             + [per.get(c, {}).get("sdu_pct") for c in ccds]
-            + [m["ncp"], m["sdu_pct"], f"{m['tiles_failed']}/{m['tiles_total']}"]
+            + [m["ncp"], m["sdu_pct"], f"{m.get('tiles_failed', '-')}/{m.get('tiles_total', '-')}"]
         )
     return header, rows
 
 
 def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Table 2: per strip, per matcher; per-axis RMSE where the reports hold it."""
-    blocks = [
-        (name, sid, s["adjustment"])
-        for name, rep in runs.items()
-        for sid, s in (rep.get("strips") or {"strip": {"adjustment": rep["adjustment"]}}).items()
-    ]
-    extra = [(h, k) for h, k in EXTRA_ADJ if any(k in a for _, _, a in blocks)]
+    """Table 2: per strip, per matcher; per-axis RMSE where the reports hold it.
+
+    A run that failed (its report has ``failed``) keeps one row per strip it reached,
+    every value missing, and a ``status`` column (shown when any run failed) says so.
+    """
+    blocks = []
+    for name, rep in runs.items():
+        strips = rep.get("strips") or {"strip": {"adjustment": rep.get("adjustment")}}
+        for sid, s in strips.items():
+            blocks.append(
+                (name, sid, s.get("adjustment") or {}, s.get("failed") or rep.get("failed"))
+            )
+        if not strips and rep.get("failed"):
+            blocks.append((name, "-", {}, rep["failed"]))
+    extra = [(h, k) for h, k in EXTRA_ADJ if any(k in a for _, _, a, _ in blocks)]
+    failed = any(f for *_, f in blocks)
     header = (
         ["Matcher", "Strip"]
         + [h for h, _ in ADJ_COLUMNS]
         + [h for h, _ in extra]
         + ["RMSE before", "sigma0", "n"]
+        + (["status"] if failed else [])
     )
     rows = [
         [name, sid]
         + [a.get(k) for _, k in ADJ_COLUMNS + extra]
         + [a.get("rmse_px_before"), a.get("sigma0"), a.get("n_total")]
-        for name, sid, a in blocks
+        + (["failed" if f else "ok"] if failed else [])
+        for name, sid, a, f in blocks
     ]
     return header, rows
 
 
 def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """True geolocation error before and after (only runs with truth)."""
-    header = ["Matcher", "before (m)", "after (m)", "after (px)", "max after (m)"]
-    rows = [
-        [
-            name,
-            c.get("geoloc_rmse_m_before"),
-            c.get("geoloc_rmse_m"),
-            c.get("geoloc_rmse_px"),
-            c.get("geoloc_max_m"),
-        ]
-        for name, rep in runs.items()
-        if (c := rep.get("check"))
+    """True geolocation error before and after, and the true outlier ratio (simulated scenes).
+
+    The true outlier ratio (``true OR``) is the share of the matches after RANSAC whose
+    true error exceeds 1 and 3 reference px (:mod:`planetref.frontend.truth`); a run that
+    failed keeps its row for it.
+    """
+    header = [
+        "Matcher",
+        "before (m)",
+        "after (m)",
+        "after (px)",
+        "max after (m)",
+        "RANSAC matches",
+        "true OR >1 px (%)",
+        "true OR >3 px (%)",
     ]
+    rows = []
+    for name, rep in runs.items():
+        c = rep.get("check") or {}
+        t = (rep.get("matching") or {}).get("true_outliers") or {}
+        if not c and not t:
+            continue
+        rows.append(
+            [
+                name,
+                c.get("geoloc_rmse_m_before"),
+                c.get("geoloc_rmse_m"),
+                c.get("geoloc_rmse_px"),
+                c.get("geoloc_max_m"),
+                t.get("n"),
+                t.get("pct_over_1px"),
+                t.get("pct_over_3px"),
+            ]
+        )
     return header, rows
 
 
@@ -261,7 +307,7 @@ def funnel_rows(
         vals = {**f}
         vals.setdefault("mcp", ncp.get(name))
         raw = vals.get("raw")
-        end = vals.get("mcp")
+        end = vals.get("mcp_unique", vals.get("mcp"))
         rows.append(
             [name]
             + [vals.get(s) for s in present]
