@@ -69,10 +69,10 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     counts = np.diff(bounds).reshape(len(kinds), n_keys)
     labels: dict[int, str] = {}
     for key in map(int, np.flatnonzero(counts.sum(axis=0))):
-        cam = net.cameras[int(key) // base]
-        cid = net.camera_ids[int(key) // base]
+        cam = net.cameras[key // base]
+        cid = net.camera_ids[key // base]
         names = cam.ccd_names
-        labels[int(key)] = cid if len(names) == 1 else f"{cid}/{names[int(key) % base]}"
+        labels[key] = cid if len(names) == 1 else f"{cid}/{names[key % base]}"
     out: list[_Group] = []
     for ki in np.flatnonzero(counts.sum(axis=1)):  # kinds are sorted by name
         for key in sorted(labels, key=lambda key: labels[key]):
