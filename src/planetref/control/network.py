@@ -263,6 +263,9 @@ class Network:
         """A copy with other a priori point coordinates."""
         return replace(self, point_xyz=point_xyz)
 
+    def _fields(self) -> dict[str, object]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
     # ------------------------------------------------------------------ builders
     @classmethod
     def from_records(
