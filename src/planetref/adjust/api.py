@@ -159,8 +159,8 @@ def _adjust(
 
     # Every parameter group must be observed (or be weighted, if so configured).
     for i, model in enumerate(models):
-        sel = usable if len(models) == 1 else usable & (net.obs_camera == i)
-        models[i], messages = model.weaken(model.coverage(net.obs_ccd[sel], net.obs_line[sel]))
+        seen = usable if len(models) == 1 else usable & (net.obs_camera == i)
+        models[i], messages = model.weaken(model.coverage(net.obs_ccd[seen], net.obs_line[seen]))
         for msg in messages:
             warn(msg)
         check_geometry = getattr(models[i], "check_geometry", None)  # rank, not only counts
@@ -237,7 +237,7 @@ def _adjust(
     c, xyz, stats, vce = variance_components(
         solver, c, xyz, np.flatnonzero(inlier), xyz_start, stats, cfg.variance, progress, lin
     )
-    variance = {
+    variance: dict[str, Any] = {
         "enabled": cfg.variance.enabled,
         "iterations": vce.iterations,
         "converged": vce.converged,

@@ -276,7 +276,7 @@ def correlation_warnings(
     info: dict[str, Any] = {"n_pairs_above": len(above), "threshold": cfg.max_correlation}
     if not len(above):
         return info, []
-    i, j = np.unravel_index(int(np.argmax(c)), c.shape)
+    i, j = map(int, np.unravel_index(int(np.argmax(c)), c.shape))
     info["largest"] = [names[i], names[j], float(corr[i, j])]
     expected = np.array([_adjacent_node_angles(names[a], names[b]) for a, b in above], bool)
     info["n_adjacent_node_pairs"] = int(np.count_nonzero(expected))

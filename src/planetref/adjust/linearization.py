@@ -27,7 +27,9 @@ from planetref.runtime.optional import optional_module
 from planetref.runtime.threads import compute_threads
 
 if TYPE_CHECKING:
-    from planetref.adjust.models import Evaluation
+    from planetref.adjust.config import SolverConfig
+    from planetref.adjust.models import AdjustableCamera, Evaluation
+    from planetref.control.network import Network, PointMatrices
 
 __all__ = ["LinearizationMixin", "chunk_shares", "group_kernels", "run_shares"]
 
@@ -98,6 +100,29 @@ class LinearizationMixin:
     ``_prior_cost`` and ``_active_cache``.
     """
 
+    # The host's state and methods used here, set by BundleSolver (a typed contract;
+    # annotations only, nothing is defined at run time).
+    net: Network
+    models: list[AdjustableCamera]
+    cfg: SolverConfig
+    offsets: NDArray[np.intp]
+    pat_offsets: NDArray[np.intp]
+    cols: NDArray[np.intp]
+    n_params: int
+    q: int
+    mode: NDArray[np.int8]
+    compiled_normal: bool
+    point_fixed: NDArray[np.bool_]
+    obs_w0: F64
+    point_prior_w: PointMatrices
+    line_guess: F64
+    rate_guess: F64
+    loss: str
+    threshold: F64 | float
+    _active_cache: dict[tuple[int, int], tuple[NDArray[np.intp] | None, NDArray[np.intp]]]
+    _groups: Callable[[NDArray[np.intp]], list[tuple[int, int, NDArray[np.intp]]]]
+    _prior_cost: Callable[[F64], float]
+
     def _layout(self, obs: NDArray[np.intp]) -> Layout:
         groups = self._groups(obs)
         order = np.concatenate([g[2] for g in groups]) if groups else np.zeros(0, np.intp)
@@ -114,8 +139,9 @@ class LinearizationMixin:
         fixed_rows = self.point_fixed.take(point)
         fixed = np.all(fixed_rows)
         # Independent gathers (random reads that release the GIL): in two threads when
-        # there are two.
-        jobs = {
+        # there are two. Their results differ in type (arrays, the slots tuple, None):
+        # each meets its declared type in Layout's fields.
+        jobs: dict[str, Callable[[], Any]] = {
             "slots": lambda: self._slots(obs, point, fixed_rows, ranges),
             "xyz": lambda: net.point_xyz.take(point, axis=0) if fixed else None,
             "w0": lambda: self.obs_w0.take(obs, axis=0),
@@ -268,7 +294,9 @@ class LinearizationMixin:
             ok = ev.valid
             we = weights_out(k, a, b)
             if robust:
-                _, rw = robust_rho(s, self.loss, thr_l if np.ndim(thr_l) == 0 else thr_l[a:b])
+                _, rw = robust_rho(
+                    s, self.loss, thr_l if np.ndim(thr_l) == 0 else np.asarray(thr_l)[a:b]
+                )
                 np.multiply(w0, rw[:, None], out=we)
             else:
                 we[:] = w0

@@ -32,7 +32,7 @@ footprint conversion evaluates both cameras only at pixels inside the image, so
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -208,7 +208,9 @@ def geolocation_error(
         the terrain in both cameras).
     """
     if len(grid) == 2 and np.ndim(grid[0]) == 0:
-        line, sample = image_grid(camera_true, ccd, (int(grid[0]), int(grid[1])))
+        # Scalars (ndim 0): the ``(n_lines, n_samples)`` form, whatever their number type.
+        counts = cast(tuple[int, int], grid)
+        line, sample = image_grid(camera_true, ccd, (int(counts[0]), int(counts[1])))
     else:
         line = np.asarray(grid[0], np.float64).ravel()
         sample = np.asarray(grid[1], np.float64).ravel()

@@ -190,7 +190,7 @@ def redundancy(
     lay = st.lay
     w = lay.w0  # solver.obs_w0[lay.obs] (a new weight makes a new layout)
     h: F64 | None
-    if _reusable(solver, lin, lay):
+    if lin is not None and _reusable(solver, lin, lay):  # (``_reusable`` checks too)
         all_valid = bool(np.all(lin.valid))
         v_all = lin.r if all_valid else np.where(lin.valid[:, None], lin.r, 0.0)
         h = None  # only the observations of unknown points have their own numbers

@@ -9,7 +9,7 @@ mixed into :class:`~planetref.adjust.solver.BundleSolver`.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -18,6 +18,10 @@ from numpy.typing import NDArray
 from planetref.adjust.linearization import Layout, Linearization
 from planetref.errors import AdjustmentError
 from planetref.runtime.optional import optional_module
+
+if TYPE_CHECKING:
+    from planetref.adjust.config import SolverConfig
+    from planetref.control.network import Network, PointMatrices
 
 __all__ = ["SchurMixin"]
 
@@ -67,6 +71,19 @@ class SchurMixin:
     Uses the solver's ``net``, ``n_params``, ``cols``, ``cfg``, ``active``, ``prior_w``,
     ``x0``, ``con_n``, ``point_prior_w`` and ``_unknown_ids``.
     """
+
+    # The host's state used here, set by BundleSolver (a typed contract; annotations
+    # only, nothing is defined at run time).
+    net: Network
+    cfg: SolverConfig
+    n_params: int
+    cols: NDArray[np.intp]
+    active: NDArray[np.intp]
+    prior_w: F64
+    x0: F64
+    con_n: F64 | None
+    point_prior_w: PointMatrices
+    _unknown_ids: NDArray[np.intp]
 
     def _tie_structure(
         self, obs: NDArray[np.intp], unknown_of_obs: NDArray[np.intp], n_unknown: int

@@ -341,14 +341,15 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             return st
         lay = self._layout(obs)
         pts = lay.point
-        if lay.fixed_xyz is not None:  # every point fixed: nothing to eliminate
-            unknown = np.zeros(0, np.intp)
-            tie_pos, chunks, n_tie = np.full(len(lay.obs), -1, np.intp), [], 0
-        else:
+        # The general case first: it gives ``chunks`` its type.
+        if lay.fixed_xyz is None:
             unknown = np.unique(pts[~self.point_fixed[pts]])
             umap = np.full(self.net.n_points, -1, np.intp)
             umap[unknown] = np.arange(len(unknown))
             tie_pos, chunks, n_tie = self._tie_structure(lay.obs, umap[pts], len(unknown))
+        else:  # every point fixed: nothing to eliminate
+            unknown = np.zeros(0, np.intp)
+            tie_pos, chunks, n_tie = np.full(len(lay.obs), -1, np.intp), [], 0
         st = Structure(lay, unknown, tie_pos, chunks, n_tie)
         self._structure_cache = (obs.copy(), st)
         return st

@@ -10,6 +10,8 @@ observations do not determine.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -18,6 +20,10 @@ from numpy.typing import NDArray
 from planetref.adjust.linearization import quadratic
 from planetref.adjust.schur import Iterate
 from planetref.errors import AdjustmentError
+
+if TYPE_CHECKING:
+    from planetref.adjust.config import SolverConfig
+    from planetref.control.network import PointMatrices
 
 __all__ = ["StatisticsMixin"]
 
@@ -31,6 +37,21 @@ class StatisticsMixin:
     ``names``, ``cfg``, ``point_prior_w``, ``point_prior_axis_w``, ``_reduced`` and
     ``_prior_cost``.
     """
+
+    # The host's state and methods used here, set by BundleSolver and SchurMixin (a
+    # typed contract; annotations only, nothing is defined at run time).
+    cfg: SolverConfig
+    n_params: int
+    names: list[str]
+    active: NDArray[np.intp]
+    prior_w: F64
+    con_a: F64
+    con_w: F64
+    con_n: F64 | None
+    point_prior_w: PointMatrices
+    point_prior_axis_w: PointMatrices
+    _reduced: Callable[[Iterate, float], tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]]
+    _prior_cost: Callable[[F64], float]
 
     def _check_rank(self, at: Iterate, when: str) -> None:
         lin = at.lin

@@ -18,7 +18,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,19 +67,19 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
     args = (obs, net.obs_camera, net.obs_ccd, net.obs_point, kind_of_pt, base, n_keys, len(kinds))
     order, bounds = _group_order_numpy(*args) if fn is None else fn.group_order(*args)
     counts = np.diff(bounds).reshape(len(kinds), n_keys)
-    labels = {}
-    for key in np.flatnonzero(counts.sum(axis=0)):
-        cam = net.cameras[int(key) // base]
-        cid = net.camera_ids[int(key) // base]
+    labels: dict[int, str] = {}
+    for key in map(int, np.flatnonzero(counts.sum(axis=0))):
+        cam = net.cameras[key // base]
+        cid = net.camera_ids[key // base]
         names = cam.ccd_names
-        labels[int(key)] = cid if len(names) == 1 else f"{cid}/{names[int(key) % base]}"
+        labels[key] = cid if len(names) == 1 else f"{cid}/{names[key % base]}"
     out: list[_Group] = []
-    for k in np.flatnonzero(counts.sum(axis=1)):  # kinds are sorted by name
+    for ki in np.flatnonzero(counts.sum(axis=1)):  # kinds are sorted by name
         for key in sorted(labels, key=lambda key: labels[key]):
-            cc = int(k) * n_keys + key
+            cc = int(ki) * n_keys + key
             sel = obs[order[bounds[cc] : bounds[cc + 1]]]
             if sel.size:
-                out.append(_Group(f"image {kinds[k]} {labels[key]}", "image", obs=sel))
+                out.append(_Group(f"image {kinds[ki]} {labels[key]}", "image", obs=sel))
     if not np.any(~solver.point_fixed):  # no unknown point: no ground group
         return out
     pts = np.flatnonzero(np.bincount(net.obs_point[obs], minlength=net.n_points))
@@ -315,9 +315,9 @@ def variance_components(
     group_of = _image_group_of(solver, groups)
     capped = False  # the last re-weighted adjustment stopped at _VCE_MAX_LM unconverged
     while True:
-        red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"], lin)
+        red = redundancy(solver, c, xyz, obs, xyz0, _cofactor(stats), lin)
         image = _image_sums(groups, red, group_of)
-        table = []
+        table: list[dict[str, Any]] = []
         factors: dict[str, float] = {}
         img_floor = _image_at_floor(solver, group_of, len(groups), cfg.min_sigma_px)
         for i, g in enumerate(groups):
@@ -343,7 +343,7 @@ def variance_components(
             if g.kind == "image":
                 floor = bool(img_floor[i])
             else:
-                sig_g = solver.point_sigma[np.ix_(g.points, list(g.axes))]
+                sig_g = solver.point_sigma[np.ix_(g.points, np.asarray(g.axes, np.intp))]
                 floor = bool(np.all(sig_g <= cfg.min_sigma_m * (1 + 1e-9)))
             table[-1]["at_floor"] = floor and f < 1.0
             if not why and math.isfinite(f) and f > 0 and not (floor and f < 1.0):
@@ -360,16 +360,16 @@ def variance_components(
         obs_sig, pt_sig = obs_sig0.copy(), pt_sig0.copy()
         moved = False
         for g in groups:
-            f = factors.get(g.name)
-            if f is None:
+            f_g = factors.get(g.name)
+            if f_g is None:
                 continue
-            f = min(max(f, 1.0 / cfg.max_step), cfg.max_step)
+            f = min(max(f_g, 1.0 / cfg.max_step), cfg.max_step)
             if g.kind == "image":
                 new = np.maximum(obs_sig[g.obs] * f, cfg.min_sigma_px)
                 step = new / obs_sig[g.obs]
                 obs_sig[g.obs] = new
             else:
-                idx = np.ix_(g.points, list(g.axes))
+                idx = np.ix_(g.points, np.asarray(g.axes, np.intp))
                 new = np.maximum(pt_sig[idx] * f, cfg.min_sigma_m)
                 step = new / pt_sig[idx]
                 pt_sig[idx] = new
@@ -417,7 +417,7 @@ def variance_components(
         # final weights: finish it with the solver's own limits, then take its
         # redundancy numbers (the factors above stay those that ended the iteration).
         c, xyz, _rep, lin, stats = solver.run(c, xyz, obs, xyz0, check_rank=False)
-        red = redundancy(solver, c, xyz, obs, xyz0, stats["cofactor"], lin)
+        red = redundancy(solver, c, xyz, obs, xyz0, _cofactor(stats), lin)
     for row in table:
         row["sigma_scale"] = scale[row["group"]]
         row["note"] = confounded.get(row["group"], "")
@@ -426,6 +426,15 @@ def variance_components(
             sig = solver.obs_sigma[g.obs]
             row["sigma_px"] = float(np.sqrt(np.mean(sig**2)))
         else:
-            sig = solver.point_sigma[np.ix_(g.points, list(g.axes))]
+            sig = solver.point_sigma[np.ix_(g.points, np.asarray(g.axes, np.intp))]
             row["sigma_m"] = float(np.sqrt(np.mean(sig**2)))
     return c, xyz, stats, VceResult(table, iterations, converged, red, stopped)
+
+
+def _cofactor(stats: dict[str, object]) -> F64:
+    """The camera cofactor ``S^-1`` of the solver's statistics, ``(n_params, n_params)``.
+
+    The statistics are a plain mapping of mixed values (see the solver's ``run``); this
+    names the type of the one entry read here.
+    """
+    return cast(F64, stats["cofactor"])

@@ -83,8 +83,16 @@ class Camera(Protocol):
         ccd_names: Names of the camera's detector arrays (one entry for a single CCD).
     """
 
-    ellipsoid: Ellipsoid
-    latitude_kind: LatitudeKind
+    # Read-only members: the cameras are immutable (frozen dataclasses, properties).
+    @property
+    def ellipsoid(self) -> Ellipsoid:
+        """The body the camera's heights and latitudes refer to."""
+        ...
+
+    @property
+    def latitude_kind(self) -> LatitudeKind:
+        """Which latitude the camera's lon/lat interfaces use."""
+        ...
 
     @property
     def ccd_names(self) -> tuple[str, ...]:

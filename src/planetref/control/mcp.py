@@ -161,7 +161,7 @@ class McpTable:
     @classmethod
     def empty(cls, crs_wkt: str | None = None) -> McpTable:
         """A table without rows."""
-        return cls({c: [] for c in MCP_COLUMNS}, crs_wkt)
+        return cls({c: np.empty(0) for c in MCP_COLUMNS}, crs_wkt)
 
     def __len__(self) -> int:
         return len(self.columns["mcp_id"])

@@ -20,7 +20,7 @@ adjustment starts.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from os import PathLike
 from typing import Any
@@ -252,14 +252,16 @@ class Network:
         idx = np.arange(self.n_points) if points is None else np.asarray(points, np.intp)
         out = np.broadcast_to(np.eye(3), (len(idx), 3, 3)).copy()
         xyz = self.point_xyz[idx]
-        loc = np.flatnonzero(self.point_sigma_local[idx] & np.all(np.isfinite(xyz), axis=1))
+        # An array once constructed (__post_init__); asarray narrows the field's type.
+        local = np.asarray(self.point_sigma_local)
+        loc = np.flatnonzero(local[idx] & np.all(np.isfinite(xyz), axis=1))
         if loc.size:
             out[loc] = enu_rotation(xyz[loc])
         return out
 
     def replace_points(self, point_xyz: F64) -> Network:
         """A copy with other a priori point coordinates."""
-        return Network(**{**self._fields(), "point_xyz": point_xyz})
+        return replace(self, point_xyz=point_xyz)
 
     def _fields(self) -> dict[str, object]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -491,7 +493,7 @@ def small_unique(values: ArrayLike, limit: int = 16) -> tuple[NDArray[Any], NDAr
     """
     v = np.asarray(values).ravel()
     code = np.empty(len(v), np.intp)
-    found = []
+    found: list[Any] = []  # scalars of v's dtype
     rest = np.arange(len(v))
     while rest.size:
         if len(found) == limit:

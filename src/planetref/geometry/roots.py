@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,7 +83,8 @@ def bracket_first_sign_change(residual: Residual, grid: F64, m: int) -> Bracket:
     f = np.stack([residual(np.full(m, float(x)), rows) for x in grid], axis=1)
     sgn = np.sign(f)
     change = (sgn[:, :-1] * sgn[:, 1:] <= 0) & np.isfinite(f[:, :-1]) & np.isfinite(f[:, 1:])
-    found = change.any(axis=1)
+    # Along an axis of a 2-D array ``any`` gives an array (the stubs allow a scalar).
+    found = cast(NDArray[np.bool_], change.any(axis=1))
     j = np.argmax(change, axis=1)
     j1 = np.minimum(j + 1, len(grid) - 1)
     return Bracket(

@@ -94,9 +94,21 @@ class Terrain(Protocol):
         max_height_m: An upper bound (metres).
     """
 
-    ellipsoid: Ellipsoid
-    min_height_m: float
-    max_height_m: float
+    # Read-only members: terrains are immutable (frozen dataclasses, properties).
+    @property
+    def ellipsoid(self) -> Ellipsoid:
+        """The body the heights refer to."""
+        ...
+
+    @property
+    def min_height_m(self) -> float:
+        """A lower bound of every height the surface takes (metres)."""
+        ...
+
+    @property
+    def max_height_m(self) -> float:
+        """An upper bound (metres)."""
+        ...
 
     def height(
         self, lon_deg: NDArray[np.float64], lat_deg: NDArray[np.float64]

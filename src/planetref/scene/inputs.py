@@ -71,7 +71,13 @@ def check_body(body: Any, raster: Any, what: str, path: Any = None) -> None:
     ellipsoid = getattr(crs, "ellipsoid", None)
     a_ref = getattr(ellipsoid, "semi_major_metre", None)
     a_cam = float(body.semi_major_m)
-    if a_ref is None or abs(float(a_ref) - a_cam) <= 0.01 * a_cam:
+    # (A radius implies its CRS and ellipsoid: the two None tests only narrow types.)
+    if (
+        a_ref is None
+        or crs is None
+        or ellipsoid is None
+        or abs(float(a_ref) - a_cam) <= 0.01 * a_cam
+    ):
         return
     name = (
         "Mars"

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 from pydantic import Field, model_validator
 
@@ -65,8 +65,8 @@ __all__ = [
     "write_manifest",
 ]
 
-MANIFEST_FORMAT = "planetref-scene"
-MANIFEST_VERSION = 1
+MANIFEST_FORMAT: Final = "planetref-scene"
+MANIFEST_VERSION: Final = 1
 MANIFEST_NAME = "scene.toml"
 
 #: Strip and CCD ids name folders of the run: no path component (``.``, ``..``) nor a

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import logging
 from dataclasses import replace
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -141,12 +142,12 @@ class LineScanParameterization:
         q = 6 * self._k + 3 + (3 if self._placement else 0)
         cols = np.full((n_win * npg, q), -1, np.intp)
         for s in range(n_win):
-            for c in range(npg):
-                row = cols[s * npg + c]
+            for pg in range(npg):
+                row = cols[s * npg + pg]
                 row[: 6 * self._k] = np.arange(6 * s, 6 * (s + self._k))
-                row[6 * self._k : 6 * self._k + 3] = 6 * n + 3 * self._group(c) + np.arange(3)
+                row[6 * self._k : 6 * self._k + 3] = 6 * n + 3 * self._group(pg) + np.arange(3)
                 if self._placement:
-                    row[6 * self._k + 3 :] = self._place_base + 3 * c + np.arange(3)
+                    row[6 * self._k + 3 :] = self._place_base + 3 * pg + np.arange(3)
         self.pattern_columns = cols
 
     # ----------------------------------------------------------------- pieces
@@ -428,7 +429,12 @@ class LineScanParameterization:
                 row = np.zeros(n)
                 row[6 * i + c], row[6 * j + c], row[6 * k + c] = 1.0, -2.0, 1.0
                 rows.append(row)
-                sig = cfg.weak_node_smooth_sigma_m if c < 3 else cfg.weak_node_smooth_sigma_rad
+                # Typed ``float | None`` like every unit field, but with float defaults;
+                # a None (Python API only, TOML has no null) fails on ``**`` as before.
+                sig = cast(
+                    float,
+                    cfg.weak_node_smooth_sigma_m if c < 3 else cfg.weak_node_smooth_sigma_rad,
+                )
                 weights.append(1.0 / sig**2)
         if not rows:
             return self.constraints

@@ -84,22 +84,22 @@ class Evaluation:
         self.line_rate = line_rate
         self.factors = factors
 
-    def _expand(self) -> None:
-        self._d_params, self._d_ground = self.factors.expand()
+    def _expand(self) -> tuple[F64, F64]:
+        pair: tuple[F64, F64] = self.factors.expand()
+        self._d_params, self._d_ground = pair
+        return pair
 
     @property
     def d_params(self) -> F64:
         """``d(line, sample)/d(params of the pattern)``, ``(m, 2, q)``."""
-        if self._d_params is None:
-            self._expand()
-        return self._d_params
+        d = self._d_params
+        return self._expand()[0] if d is None else d
 
     @property
     def d_ground(self) -> F64:
         """``d(line, sample)/d(X, Y, Z)`` per metre, ``(m, 2, 3)``."""
-        if self._d_ground is None:
-            self._expand()
-        return self._d_ground
+        d = self._d_ground
+        return self._expand()[1] if d is None else d
 
 
 @dataclass(frozen=True)

@@ -35,14 +35,14 @@ F64 = NDArray[np.float64]
 _Forward = Callable[[F64, F64], tuple[F64, F64, F64, F64, F64, F64]]
 
 
-def _transverse_poly(coeffs: F64, x: F64, y: F64) -> tuple[F64, ...]:
+def _transverse_poly(coeffs: F64, x: F64, y: F64) -> tuple[F64, F64]:
     terms = np.stack(
         [np.ones_like(x), x, y, x * x, x * y, y * y, x**3, x * x * y, x * y * y, y**3], axis=-1
     )
     return terms @ coeffs[:10], terms @ coeffs[10:]
 
 
-def _transverse_jacobian(coeffs: F64, x: F64, y: F64) -> tuple[F64, ...]:
+def _transverse_jacobian(coeffs: F64, x: F64, y: F64) -> tuple[F64, F64, F64, F64]:
     zero, one = np.zeros_like(x), np.ones_like(x)
     d_dx = np.stack([zero, one, zero, 2 * x, y, zero, 3 * x * x, 2 * x * y, y * y, zero], -1)
     d_dy = np.stack([zero, zero, one, zero, x, 2 * y, zero, x * x, 2 * x * y, 3 * y * y], -1)

@@ -98,7 +98,7 @@ def project_points(
     full: bool,
     chord_tol: float,
     step_valid: float,
-) -> tuple[F64, ...]:
+) -> tuple[NDArray[Any], ...]:
     """Project points with the compiled kernel (see the module doc).
 
     Args:
@@ -117,6 +117,7 @@ def project_points(
         step_valid: A projection is valid when the final Newton step is below this.
 
     Returns:
+        Arrays of several dtypes (``valid`` bool, ``start`` intp, the rest float64):
         ``(line, sample, valid, rate)`` and, with ``full``, ``start``, ``weights``,
         ``partials``, ``tau``; the meanings are those of
         :meth:`~planetref.camera.linescan.kernel.LineScanKernel.project` and

@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -203,7 +203,7 @@ class LineScanKernel:
 
     def _run_compiled(
         self, poly: F64, io: F64, ccd: CcdGeometry, p: F64, line: F64, rate: F64 | None, full: bool
-    ) -> tuple[F64, ...]:
+    ) -> tuple[NDArray[Any], ...]:  # mixed dtypes, see compiled.project_points
         return compiled.project_points(
             self._tables,
             self.k,

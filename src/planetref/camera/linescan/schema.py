@@ -120,7 +120,7 @@ def parse_document(doc: Any, *, path: str | os.PathLike[str] | None, factory: An
         return factory(
             ellipsoid=ell,
             frame_rotation=np.asarray(m.frame_rotation, dtype=np.float64),
-            line_rates=LineRateTable(tuple(tuple(r) for r in m.line_rates)),
+            line_rates=LineRateTable(tuple((s, t, d) for s, t, d in m.line_rates)),
             node_lines=np.asarray(m.orientation.node_lines, dtype=np.float64),
             nodes=np.asarray(m.orientation.nodes, dtype=np.float64),
             interior=InteriorOrientation(

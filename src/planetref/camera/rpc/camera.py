@@ -254,7 +254,7 @@ class RpcCamera:
             xyz = self._intersect_terrain(ln, sm, terrain)
         else:
             try:
-                h = float(terrain)  # type: ignore[arg-type]
+                h = float(terrain)
             except (TypeError, ValueError):
                 raise InputError(
                     f"terrain must be a Terrain or a height in metres, got {terrain!r}",

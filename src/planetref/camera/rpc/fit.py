@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.camera.base import Camera
 from planetref.camera.rpc.model import N_TERMS, Rpc
 from planetref.camera.rpc.terms import terms
 from planetref.errors import (
@@ -109,14 +110,14 @@ class _Samples:
 
 
 def _sample_camera(
-    camera: object,
+    camera: Camera,
     ccd: str | None,
     lines: NDArray[np.float64],
     samples: NDArray[np.float64],
     heights: NDArray[np.float64],
 ) -> _Samples:
-    ll, ss = np.meshgrid(lines, samples, indexing="ij")
-    ll, ss = ll.ravel(), ss.ravel()
+    grid_l, grid_s = np.meshgrid(lines, samples, indexing="ij")
+    ll, ss = grid_l.ravel(), grid_s.ravel()
     out_l, out_s, out_xyz, out_h = [], [], [], []
     for h in heights:
         xyz = np.asarray(
@@ -124,7 +125,7 @@ def _sample_camera(
                 ll,
                 ss,
                 terrain=float(h),
-                ccd=ccd,  # type: ignore[attr-defined]
+                ccd=ccd,
                 on_miss="nan",
             ),
             dtype=np.float64,
@@ -135,11 +136,7 @@ def _sample_camera(
         out_h.append(np.full(ll.size, h))
     xyz = np.concatenate(out_xyz)
     ok = np.all(np.isfinite(xyz), axis=1)
-    lon, lat, hh = xyz_to_lonlat(
-        xyz[ok],
-        camera.ellipsoid,  # type: ignore[attr-defined]
-        camera.latitude_kind,
-    )  # type: ignore[attr-defined]
+    lon, lat, hh = xyz_to_lonlat(xyz[ok], camera.ellipsoid, camera.latitude_kind)
     return _Samples(
         np.concatenate(out_l)[ok],
         np.concatenate(out_s)[ok],
@@ -188,7 +185,7 @@ def _solve_rational(
 
 
 def fit_rpc(
-    camera: object,
+    camera: Camera,
     *,
     height_range_m: tuple[float, float],
     ccd: str | None = None,
@@ -249,7 +246,7 @@ def fit_rpc(
     if not (math.isfinite(regularization) and regularization >= 0):
         raise InputError(f"must be finite and >= 0, got {regularization}", field="regularization")
 
-    n_lines, n_samples = camera.image_size(ccd)  # type: ignore[attr-defined]
+    n_lines, n_samples = camera.image_size(ccd)
     lines = np.linspace(0.0, n_lines, n_l)
     samples = np.linspace(0.0, n_samples, n_s)
     heights = np.linspace(h_min, h_max, n_h)
@@ -323,9 +320,9 @@ def fit_rpc(
         back_lon,
         back_lat,
         chk.h,
-        camera.ellipsoid,  # type: ignore[attr-defined]
+        camera.ellipsoid,
         camera.latitude_kind,
-    )  # type: ignore[attr-defined]
+    )
     ground_err = np.linalg.norm(back - chk.xyz, axis=1)
     dens = np.concatenate([normalised(fit), normalised(chk)]) @ np.stack(
         [rpc._coeff_array[:, 1], rpc._coeff_array[:, 3]], axis=1

@@ -180,8 +180,7 @@ def _read_rpb(p: Path) -> tuple[Rpc, RpcBody | None]:
     if "(" in text and text.count("(") != text.count(")"):
         # An unterminated coefficient list: name the first list that is not closed.
         for _, _, rpb_name in COEFFS:
-            m = re.search(rf"\b{rpb_name}\s*=\s*\(([^()]*)(\(|$)", text, re.I)
-            if m:
+            if re.search(rf"\b{rpb_name}\s*=\s*\(([^()]*)(\(|$)", text, re.I):
                 raise InputError(
                     "unterminated coefficient list (truncated file?)", path=p, field=rpb_name
                 )

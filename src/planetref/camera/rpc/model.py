@@ -229,7 +229,7 @@ class Rpc:
             InputError: If the RPC is invalid (see the class docstring).
         """
         values = {f.name: getattr(rpc, f.name) for f in fields(cls)}
-        return cls(**values)  # type: ignore[arg-type]
+        return cls(**values)
 
     # -- evaluation -----------------------------------------------------------------
 

@@ -132,12 +132,17 @@ def write_refined_rpcs(
     elif isinstance(camera, RpcStripCamera) and all(
         isinstance(c, BiasedRpcCamera) for c in camera.cameras.values()
     ):
-        images = {k: (c, f"{name}_{k}") for k, c in camera.cameras.items()}
+        # (The filter only narrows the type: every camera passed the test above.)
+        images = {
+            k: (c, f"{name}_{k}")
+            for k, c in camera.cameras.items()
+            if isinstance(c, BiasedRpcCamera)
+        }
     else:
         return None
     paths: list[Path] = []
     reports: dict[str, Any] = {}
     for ccd, (cam, stem) in images.items():
-        written, reports[ccd] = write_refined_rpc(cam, folder, stem)  # type: ignore[arg-type]
+        written, reports[ccd] = write_refined_rpc(cam, folder, stem)
         paths += written
     return paths, reports
