@@ -38,6 +38,7 @@ import argparse
 import datetime
 import functools
 import json
+import shlex
 import sys
 import tempfile
 import time
@@ -232,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     report = {
         "machine": machine,
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": " ".join([Path(sys.argv[0]).name, *(argv or sys.argv[1:])]),
+        "command": "python " + shlex.join(["benchmarks/bench_ncc.py", *(argv or sys.argv[1:])]),
         "scene": str(args.scene) if args.scene else f"simulated {args.preset}",
         "tiles": rows,
         "tile_cpu_s": tot,
