@@ -157,7 +157,7 @@ def resolve_dem_datum(
                 path=dem_path,
             )
         return declared, "declared"
-    fits = {d: datum_warning(dem, d, dem_path) is None for d in ("body", "areoid")}  # type: ignore[arg-type]
+    fits = {d: datum_warning(dem, d, dem_path) is None for d in ("body", "areoid")}
     if fits["body"] and fits["areoid"]:
         raise InputError(
             "cannot tell the DEM's datum from its heights (they fit heights above the "
