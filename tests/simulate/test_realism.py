@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from planetref.simulate.config import DIFFICULTIES, load_config
+from planetref.simulate.config import DIFFICULTIES, STRESS_LADDER, load_config, load_difficulty_dict
 from planetref.simulate.mismatch import best_fit_residuals
 from planetref.simulate.mosaic import MosaicSource
 from planetref.simulate.orbit import build_strip_cameras
@@ -323,7 +323,7 @@ def test_difficulty_ladder_is_ordered_and_validated() -> None:
         t, r = cfg.photometry.target_sun, cfg.photometry.reference_sun
         return abs((r.azimuth_deg - t.azimuth_deg + 180.0) % 360.0 - 180.0)
 
-    cfgs = [load_config("tiny", difficulty=d) for d in DIFFICULTIES]
+    cfgs = [load_config("tiny", difficulty=d) for d in STRESS_LADDER]
     gaps = [sun_gap(c) for c in cfgs]
     assert gaps == sorted(gaps) and gaps[0] < gaps[-1]
     offs = [c.truth_mismatch.ccd_offset_px for c in cfgs]
@@ -336,8 +336,44 @@ def test_difficulty_ladder_is_ordered_and_validated() -> None:
     moderate = cfgs[1].model_dump()
     assert moderate.pop("name") == "tiny-moderate" and plain.pop("name") == "tiny"
     assert moderate == plain
-    with pytest.raises(InputError, match="valid difficulties: easy, moderate, hard, extreme"):
+    with pytest.raises(
+        InputError, match="valid difficulties: easy, moderate, realistic, hard, extreme"
+    ):
         load_config("tiny", difficulty="brutal")
+
+
+def _leaves(table: dict, prefix: str = "") -> list[str]:  # type: ignore[type-arg]
+    out = []
+    for k, v in table.items():
+        if isinstance(v, dict):
+            out += _leaves(v, f"{prefix}{k}.")
+        else:
+            out.append(f"{prefix}{k}")
+    return out
+
+
+def test_realistic_level_cites_a_source_for_every_value() -> None:
+    """Every value the ``realistic`` level sets names the real statistic it reproduces."""
+    table = load_difficulty_dict("realistic")
+    sources = table["sources"]
+    values = [k for k in _leaves(table) if not k.startswith(("sources.", "realism."))]
+    assert len(values) >= 20
+    # A value is cited by its own key or by the table it belongs to.
+    uncited = [v for v in values if v not in sources and v.rpartition(".")[0] not in sources]
+    assert uncited == []
+    assert all(len(s) > 20 for s in sources.values())
+    cfg = load_config("tiny", difficulty="realistic")
+    assert cfg.sources == sources and len(cfg.realism.easier_than_real) >= 3
+    # The stress levels and presets carry no sources (they are not measured).
+    assert all(not load_config("tiny", difficulty=d).sources for d in STRESS_LADDER)
+    assert "realistic" in DIFFICULTIES and "realistic" not in STRESS_LADDER
+
+
+def test_realistic_sources_must_name_settings() -> None:
+    from planetref.errors import InputError
+
+    with pytest.raises(InputError, match=r"sources name no setting: photometry\.nope"):
+        load_config("tiny", {"sources": {"photometry.nope": "a measurement"}})
 
 
 def test_hiric_preset_is_hirics_focal_plane() -> None:

@@ -219,7 +219,7 @@ def _default_demo_dir() -> Path:
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option(
     "--difficulty",
-    type=click.Choice(["easy", "moderate", "hard", "extreme"]),
+    type=click.Choice(["easy", "moderate", "realistic", "hard", "extreme"]),
     default="moderate",
     show_default=True,
     help="Difficulty of the simulated scene (see docs/scene-manifest.md).",
