@@ -384,3 +384,24 @@ def test_hiric_preset_is_hirics_focal_plane() -> None:
     assert cfg.orbit.altitude_m == 265000.0 and cfg.render.processes == 2
     swath = (cam.n_ccds * cam.n_samples - (cam.n_ccds - 1) * cam.overlap_samples) * cam.gsd_m
     assert 8900.0 < swath < 9300.0
+
+
+def test_realism_table_reads_back_from_the_written_config(tmp_path: Path) -> None:
+    """What a report prints: every sourced setting with its value, read from the TOML."""
+    import tomli_w
+
+    from planetref.simulate.provenance import read_realism, realism_of
+
+    cfg = load_config("tiny", difficulty="realistic")
+    path = tmp_path / "config.toml"
+    path.write_text(tomli_w.dumps(cfg.model_dump(mode="json", exclude_none=True)))
+    back = read_realism(path)
+    assert back == realism_of(cfg) and back.level == "realistic"
+    by_key = {v.key: v for v in back.values}
+    assert by_key["photometry.target_haze"].value == "0.9"
+    assert by_key["reference.mosaic.offset_px"].value == "1.5"
+    assert "Robbins" in by_key["reference.mosaic.offset_px"].source
+    assert by_key["initial_errors.position_bias_m"].value == "(70, -50, 20)"
+    assert len(back.easier_than_real) == len(cfg.realism.easier_than_real)
+    # A stress level cites nothing.
+    assert realism_of(load_config("tiny", difficulty="hard")).values == ()

@@ -79,6 +79,9 @@ class CompareContext:
         headline: The headline PNG.
         simulated: The scene has truth (state why its numbers are easier than reality).
         output_warnings: Matcher -> warnings written with the outputs (e.g. RPC fits).
+        realism_level: The simulated scene's difficulty level when it cites sources.
+        realism_sources: ``(setting, value, source)`` of every sourced realism setting.
+        easier_than_real: What still makes the simulated scene easier than real data.
     """
 
     scene: str
@@ -91,6 +94,9 @@ class CompareContext:
     headline: Path | None = None
     simulated: bool = False
     output_warnings: dict[str, list[str]] = field(default_factory=dict)
+    realism_level: str = ""
+    realism_sources: list[tuple[str, str, str]] = field(default_factory=list)
+    easier_than_real: list[str] = field(default_factory=list)
 
 
 _TABLES = {
@@ -233,6 +239,16 @@ def write_compare_report(
             "reference (illumination, season, surface) are only those the simulation "
             "config (`truth/config.toml`) puts in."
         )
+        if context.realism_sources:
+            doc.table(
+                f"Realism settings of the `{context.realism_level}` level and the real "
+                "statistic each reproduces",
+                ["Setting", "Value", "Source"],
+                [list(r) for r in context.realism_sources],
+            )
+        if context.easier_than_real:
+            doc.para("What still makes this scene easier than real data:")
+            doc.items(context.easier_than_real)
     doc.heading("Settings")
     doc.items([f"**{k}**: {v}" for k, v in context.common_settings])
     if context.matcher_settings:
