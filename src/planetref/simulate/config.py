@@ -307,6 +307,9 @@ class SensorConfig(_Model):
         mean_signal_e: Electrons for a flat surface of mean albedo.
         read_noise_e: Read noise (electrons RMS).
         supersample: Sub-samples per pixel and axis integrated over the footprint.
+        column_gain_rms: Relative RMS of a fixed gain per detector column (what
+            flat-fielding leaves of a TDI CCD's column response: vertical striping of
+            the line-scan images; the reference ortho ignores it).
     """
 
     bit_depth: Literal[8, 16] = 16
@@ -315,6 +318,7 @@ class SensorConfig(_Model):
     mean_signal_e: float = Field(default=25_000.0, gt=0.0)
     read_noise_e: float = Field(default=40.0, ge=0.0)
     supersample: int = Field(default=2, ge=1, le=8)
+    column_gain_rms: float = Field(default=0.0, ge=0.0, le=0.2)
 
 
 class ReferenceConfig(_Model):
