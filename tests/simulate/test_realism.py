@@ -405,3 +405,28 @@ def test_realism_table_reads_back_from_the_written_config(tmp_path: Path) -> Non
     assert len(back.easier_than_real) == len(cfg.realism.easier_than_real)
     # A stress level cites nothing.
     assert realism_of(load_config("tiny", difficulty="hard")).values == ()
+
+
+def test_compare_report_prints_the_realistic_levels_sources(tmp_path: Path) -> None:
+    """The report section of a simulated scene at ``realistic``: table and caveats."""
+    from planetref.report.document import Document
+    from planetref.report.georef import CompareContext, add_realism
+    from planetref.simulate.provenance import realism_of
+
+    realism = realism_of(load_config("tiny", difficulty="realistic"))
+    ctx = CompareContext(
+        scene="tiny-realistic",
+        realism_level=realism.level,
+        realism_sources=[tuple(v) for v in realism.values],
+        easier_than_real=list(realism.easier_than_real),
+    )
+    doc = Document("t")
+    add_realism(doc, ctx)
+    md = doc.markdown(tmp_path)
+    assert "Realism settings of the `realistic` level" in md
+    assert "photometry.target_haze" in md and "Robbins et al. 2023" in md
+    assert "relief displacement" in md
+    # A scene without sources adds nothing.
+    empty = Document("t")
+    add_realism(empty, CompareContext(scene="x"))
+    assert "Realism" not in empty.markdown(tmp_path)

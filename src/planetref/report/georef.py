@@ -37,6 +37,7 @@ from planetref.report.tables import (
 __all__ = [
     "ADJ_COLUMNS",
     "CompareContext",
+    "add_realism",
     "adjustment_rows",
     "figure_headline_bars",
     "figure_residual_vectors",
@@ -206,6 +207,20 @@ def _extra_adjustment(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str],
     ]
 
 
+def add_realism(doc: Document, context: CompareContext) -> None:
+    """The simulated scene's sourced realism settings and what keeps it easier than Mars."""
+    if context.realism_sources:
+        doc.table(
+            f"Realism settings of the `{context.realism_level}` level and the real "
+            "statistic each reproduces",
+            ["Setting", "Value", "Source"],
+            [list(r) for r in context.realism_sources],
+        )
+    if context.easier_than_real:
+        doc.para("What still makes this scene easier than real data:")
+        doc.items(context.easier_than_real)
+
+
 def write_compare_report(
     runs: Mapping[str, Mapping[str, Any]],
     skipped: Mapping[str, str],
@@ -239,16 +254,7 @@ def write_compare_report(
             "reference (illumination, season, surface) are only those the simulation "
             "config (`truth/config.toml`) puts in."
         )
-        if context.realism_sources:
-            doc.table(
-                f"Realism settings of the `{context.realism_level}` level and the real "
-                "statistic each reproduces",
-                ["Setting", "Value", "Source"],
-                [list(r) for r in context.realism_sources],
-            )
-        if context.easier_than_real:
-            doc.para("What still makes this scene easier than real data:")
-            doc.items(context.easier_than_real)
+        add_realism(doc, context)
     doc.heading("Settings")
     doc.items([f"**{k}**: {v}" for k, v in context.common_settings])
     if context.matcher_settings:
