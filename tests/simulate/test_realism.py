@@ -430,3 +430,62 @@ def test_compare_report_prints_the_realistic_levels_sources(tmp_path: Path) -> N
     empty = Document("t")
     add_realism(empty, CompareContext(scene="x"))
     assert "Realism" not in empty.markdown(tmp_path)
+
+
+def test_off_nadir_source_displaces_relief_like_an_offset(mini_config) -> None:  # type: ignore[no-untyped-def]
+    """A source 20 deg off nadir looking east, on relief 10 m above its DEM, shows what a
+    nadir source offset by -10 tan(20 deg) m in x shows (the relief-displacement law)."""
+    import dataclasses
+    import math
+
+    from planetref.simulate.mosaic import draw_mosaic
+    from planetref.simulate.reference import ortho_radiance
+
+    cfg = mini_config()
+    sm = build_scene_model(cfg)
+    (src,), _ = draw_mosaic(
+        cfg.reference.mosaic, cfg.photometry, sm.ortho_grid, np.random.default_rng(0)
+    )
+    model = sm.radiance_model("reference")
+    shift = 10.0 * math.tan(math.radians(20.0))
+    off_nadir = dataclasses.replace(src, emission_deg=20.0, look_azimuth_deg=90.0)
+    shifted = dataclasses.replace(src, offset_m=(-shift, 0.0))
+    out = []
+    for s, relief in ((off_nadir, lambda x, y: np.full(np.shape(x), 10.0)), (shifted, None)):
+        img = np.zeros(sm.ortho_grid.shape, dtype=np.float32)
+        ortho_radiance(
+            sm.ortho_grid, sm.ref, sm.local, model, cfg.reference, img, source=s, relief=relief
+        )
+        out.append(img)
+    np.testing.assert_allclose(out[0], out[1], rtol=1e-6)
+    # ... and the displacement is the analytic one (a feature moves away from the camera).
+    dx, dy = off_nadir.displacement(np.zeros(2), np.zeros(2), np.array([10.0, -5.0]))
+    np.testing.assert_allclose(dx, [-shift, 0.5 * shift])
+    np.testing.assert_allclose(dy, 0.0, atol=1e-12)
+
+
+def test_off_nadir_mosaic_is_seeded_and_leaves_nadir_mosaics_alone(
+    mini_config, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    from planetref.simulate.mosaic import draw_mosaic
+
+    mosaic = {"n_sources": 2, "offset_px": 1.0, "warp_px": 0.5}
+    nadir = mini_config(reference={"mosaic": mosaic})
+    tilted = mini_config(reference={"mosaic": {**mosaic, "emission_max_deg": 15.0}})
+    sm = build_scene_model(nadir)
+    a, _ = draw_mosaic(nadir.reference.mosaic, nadir.photometry, sm.ortho_grid, stream(0, "mosaic"))
+    b, _ = draw_mosaic(
+        tilted.reference.mosaic, tilted.photometry, sm.ortho_grid, stream(0, "mosaic")
+    )
+    # The emission angles are drawn after everything else: the rest is unchanged.
+    for s, t in zip(a, b, strict=True):
+        assert s.offset_m == t.offset_m and s.sun == t.sun and s.emission_deg == 0.0
+        assert 0.0 < t.emission_deg <= 15.0 and t.look_azimuth_deg in (90.0, 270.0)
+    simulate_scene(tilted, tmp_path / "x")
+    simulate_scene(tilted, tmp_path / "y")
+    one = (tmp_path / "x" / "reference" / "ortho.tif").read_bytes()
+    assert one == (tmp_path / "y" / "reference" / "ortho.tif").read_bytes()
+    simulate_scene(nadir, tmp_path / "z")
+    assert one != (tmp_path / "z" / "reference" / "ortho.tif").read_bytes()
+    ref = json.loads((tmp_path / "x" / "truth" / "reference.json").read_text())
+    assert all(s["emission_deg"] > 0 for s in ref["mosaic"]["sources"])
