@@ -17,7 +17,10 @@ jitter and orthorectification leave between two real dates (HiRISE jitter of abo
 wavelengths of tens to hundreds of metres). The default 0.9 px at 60 m is calibrated
 on one matcher, SIFT, whose median distance to the affine field is 0.90-1.05 px on the
 real pairs; the other matchers are then the check. Its texture is the ``realistic``
-level's (calibrated by ``bench_texture.py``). The change between dates is measured the
+level's (calibrated by ``bench_texture.py``), and the patch is the one, of a 3 x 3
+grid over a simulated area three times the real pairs' side, whose local contrast is
+closest to the real pairs' mean (the real crops show smooth ground; the simulated scene
+also has crater rims and ridges). The change between dates is measured the
 same way on real and simulated pairs (averaged to 1 m, fitted linearly date to date:
 correlation and residual relative RMS), so the pair's calibration is visible.
 
@@ -100,6 +103,7 @@ def simulated_pair(
     warp_px: float = 0.0,
     warp_wavelength_m: float = 60.0,
     difficulty: str,
+    contrast: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Two dates of one simulated ground as float32 orthoimages of ``shape`` at ``px_m``."""
     import rasterio
@@ -107,7 +111,7 @@ def simulated_pair(
     from planetref.simulate.config import load_config
     from planetref.simulate.scene import simulate_scene
 
-    side = max(shape) * px_m
+    side = 3 * max(shape) * px_m  # a 3 x 3 choice of patches
     base = load_config("hiric-strip", difficulty=difficulty, seed=seed)
     sun = base.photometry.target_sun
     # A small nadir strip (its images are not used), no initial error (the scene's area
@@ -183,9 +187,30 @@ def simulated_pair(
             img = ds.read(1).astype(np.float32)
         if img.shape[0] < shape[0] or img.shape[1] < shape[1]:
             raise RuntimeError(f"simulated ortho {img.shape} smaller than {shape}")
-        r0, c0 = (img.shape[0] - shape[0]) // 2, (img.shape[1] - shape[1]) // 2
-        out.append(img[r0 : r0 + shape[0], c0 : c0 + shape[1]])
-    return out[0], out[1]
+        out.append(img)
+    r0, c0 = _patch_like(out[0], shape, px_m, contrast)
+    return tuple(o[r0 : r0 + shape[0], c0 : c0 + shape[1]] for o in out)  # type: ignore[return-value]
+
+
+def _patch_like(
+    img: np.ndarray, shape: tuple[int, int], px_m: float, contrast: float
+) -> tuple[int, int]:
+    """Corner of the patch of ``shape``, among a 3 x 3 grid over ``img``, whose local
+    contrast (p50 in 4 m windows, ``bench_texture.local_contrast``) is closest to
+    ``contrast``: the real pairs' ground, not just any ground of the simulated scene."""
+    from bench_texture import local_contrast
+
+    best = None
+    rows = np.linspace(0, img.shape[0] - shape[0], 3).astype(int)
+    cols = np.linspace(0, img.shape[1] - shape[1], 3).astype(int)
+    for r0 in rows:
+        for c0 in cols:
+            patch = img[r0 : r0 + shape[0], c0 : c0 + shape[1]].astype(np.float64)
+            gap = abs(float(local_contrast(patch, px_m)[1]) - contrast)
+            if best is None or gap < best[0]:
+                best = (gap, int(r0), int(c0))
+    assert best is not None
+    return best[1], best[2]
 
 
 def measure(matcher: Any, img0: np.ndarray, img1: np.ndarray, v0: np.ndarray, v1: np.ndarray):  # type: ignore[no-untyped-def]
@@ -257,6 +282,16 @@ def main(argv: list[str] | None = None) -> int:
         round(float(np.mean([p[0].shape[0] for p in pairs.values()]))),
         round(float(np.mean([p[0].shape[1] for p in pairs.values()]))),
     )
+    from bench_texture import local_contrast
+
+    real_contrast = float(
+        np.mean(
+            [
+                local_contrast(np.where(p[2], p[0], p[0][p[2]].mean()).astype(np.float64), px_m)[1]
+                for p in pairs.values()
+            ]
+        )
+    )
     with tempfile.TemporaryDirectory() as tmp:
         s0, s1 = simulated_pair(
             Path(tmp),
@@ -269,6 +304,7 @@ def main(argv: list[str] | None = None) -> int:
             warp_px=args.warp_px,
             warp_wavelength_m=args.warp_wavelength_m,
             difficulty=args.difficulty,
+            contrast=real_contrast,
         )
     ones = np.ones(shape, dtype=bool)
     pairs["simulated"] = (s0, s1, ones, ones)
@@ -320,6 +356,7 @@ def main(argv: list[str] | None = None) -> int:
                         "offset_px": args.offset_px,
                         "warp_px": args.warp_px,
                         "warp_wavelength_m": args.warp_wavelength_m,
+                        "patch_contrast_target": real_contrast,
                     },
                     "change_between_dates": change,
                     "matchers": summary,

@@ -398,7 +398,7 @@ def test_realism_table_reads_back_from_the_written_config(tmp_path: Path) -> Non
     back = read_realism(path)
     assert back == realism_of(cfg) and back.level == "realistic"
     by_key = {v.key: v for v in back.values}
-    assert by_key["photometry.target_haze"].value == "0.9"
+    assert by_key["photometry.target_haze"].value == "0.45"
     assert by_key["reference.mosaic.offset_px"].value == "1.5"
     assert "Robbins" in by_key["reference.mosaic.offset_px"].source
     assert by_key["initial_errors.position_bias_m"].value == "(70, -50, 20)"
