@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from planetref.simulate.config import DIFFICULTIES, load_config
+from planetref.simulate.config import DIFFICULTIES, STRESS_LADDER, load_config, load_difficulty_dict
 from planetref.simulate.mismatch import best_fit_residuals
 from planetref.simulate.mosaic import MosaicSource
 from planetref.simulate.orbit import build_strip_cameras
@@ -323,7 +323,7 @@ def test_difficulty_ladder_is_ordered_and_validated() -> None:
         t, r = cfg.photometry.target_sun, cfg.photometry.reference_sun
         return abs((r.azimuth_deg - t.azimuth_deg + 180.0) % 360.0 - 180.0)
 
-    cfgs = [load_config("tiny", difficulty=d) for d in DIFFICULTIES]
+    cfgs = [load_config("tiny", difficulty=d) for d in STRESS_LADDER]
     gaps = [sun_gap(c) for c in cfgs]
     assert gaps == sorted(gaps) and gaps[0] < gaps[-1]
     offs = [c.truth_mismatch.ccd_offset_px for c in cfgs]
@@ -336,8 +336,44 @@ def test_difficulty_ladder_is_ordered_and_validated() -> None:
     moderate = cfgs[1].model_dump()
     assert moderate.pop("name") == "tiny-moderate" and plain.pop("name") == "tiny"
     assert moderate == plain
-    with pytest.raises(InputError, match="valid difficulties: easy, moderate, hard, extreme"):
+    with pytest.raises(
+        InputError, match="valid difficulties: easy, moderate, realistic, hard, extreme"
+    ):
         load_config("tiny", difficulty="brutal")
+
+
+def _leaves(table: dict, prefix: str = "") -> list[str]:  # type: ignore[type-arg]
+    out = []
+    for k, v in table.items():
+        if isinstance(v, dict):
+            out += _leaves(v, f"{prefix}{k}.")
+        else:
+            out.append(f"{prefix}{k}")
+    return out
+
+
+def test_realistic_level_cites_a_source_for_every_value() -> None:
+    """Every value the ``realistic`` level sets names the real statistic it reproduces."""
+    table = load_difficulty_dict("realistic")
+    sources = table["sources"]
+    values = [k for k in _leaves(table) if not k.startswith(("sources.", "realism."))]
+    assert len(values) >= 20
+    # A value is cited by its own key or by the table it belongs to.
+    uncited = [v for v in values if v not in sources and v.rpartition(".")[0] not in sources]
+    assert uncited == []
+    assert all(len(s) > 20 for s in sources.values())
+    cfg = load_config("tiny", difficulty="realistic")
+    assert cfg.sources == sources and len(cfg.realism.easier_than_real) >= 3
+    # The stress levels and presets carry no sources (they are not measured).
+    assert all(not load_config("tiny", difficulty=d).sources for d in STRESS_LADDER)
+    assert "realistic" in DIFFICULTIES and "realistic" not in STRESS_LADDER
+
+
+def test_realistic_sources_must_name_settings() -> None:
+    from planetref.errors import InputError
+
+    with pytest.raises(InputError, match=r"sources name no setting: photometry\.nope"):
+        load_config("tiny", {"sources": {"photometry.nope": "a measurement"}})
 
 
 def test_hiric_preset_is_hirics_focal_plane() -> None:
@@ -348,3 +384,108 @@ def test_hiric_preset_is_hirics_focal_plane() -> None:
     assert cfg.orbit.altitude_m == 265000.0 and cfg.render.processes == 2
     swath = (cam.n_ccds * cam.n_samples - (cam.n_ccds - 1) * cam.overlap_samples) * cam.gsd_m
     assert 8900.0 < swath < 9300.0
+
+
+def test_realism_table_reads_back_from_the_written_config(tmp_path: Path) -> None:
+    """What a report prints: every sourced setting with its value, read from the TOML."""
+    import tomli_w
+
+    from planetref.simulate.provenance import read_realism, realism_of
+
+    cfg = load_config("tiny", difficulty="realistic")
+    path = tmp_path / "config.toml"
+    path.write_text(tomli_w.dumps(cfg.model_dump(mode="json", exclude_none=True)))
+    back = read_realism(path)
+    assert back == realism_of(cfg) and back.level == "realistic"
+    by_key = {v.key: v for v in back.values}
+    assert by_key["photometry.target_haze"].value == "0.45"
+    assert by_key["reference.mosaic.offset_px"].value == "1.5"
+    assert "Robbins" in by_key["reference.mosaic.offset_px"].source
+    assert by_key["initial_errors.position_bias_m"].value == "(70, -50, 20)"
+    assert len(back.easier_than_real) == len(cfg.realism.easier_than_real)
+    # A stress level cites nothing.
+    assert realism_of(load_config("tiny", difficulty="hard")).values == ()
+
+
+def test_compare_report_prints_the_realistic_levels_sources(tmp_path: Path) -> None:
+    """The report section of a simulated scene at ``realistic``: table and caveats."""
+    from planetref.report.document import Document
+    from planetref.report.georef import CompareContext, add_realism
+    from planetref.simulate.provenance import realism_of
+
+    realism = realism_of(load_config("tiny", difficulty="realistic"))
+    ctx = CompareContext(
+        scene="tiny-realistic",
+        realism_level=realism.level,
+        realism_sources=[tuple(v) for v in realism.values],
+        easier_than_real=list(realism.easier_than_real),
+    )
+    doc = Document("t")
+    add_realism(doc, ctx)
+    md = doc.markdown(tmp_path)
+    assert "Realism settings of the `realistic` level" in md
+    assert "photometry.target_haze" in md and "Robbins et al. 2023" in md
+    assert "relief displacement" in md
+    # A scene without sources adds nothing.
+    empty = Document("t")
+    add_realism(empty, CompareContext(scene="x"))
+    assert "Realism" not in empty.markdown(tmp_path)
+
+
+def test_off_nadir_source_displaces_relief_like_an_offset(mini_config) -> None:  # type: ignore[no-untyped-def]
+    """A source 20 deg off nadir looking east, on relief 10 m above its DEM, shows what a
+    nadir source offset by -10 tan(20 deg) m in x shows (the relief-displacement law)."""
+    import dataclasses
+    import math
+
+    from planetref.simulate.mosaic import draw_mosaic
+    from planetref.simulate.reference import ortho_radiance
+
+    cfg = mini_config()
+    sm = build_scene_model(cfg)
+    (src,), _ = draw_mosaic(
+        cfg.reference.mosaic, cfg.photometry, sm.ortho_grid, np.random.default_rng(0)
+    )
+    model = sm.radiance_model("reference")
+    shift = 10.0 * math.tan(math.radians(20.0))
+    off_nadir = dataclasses.replace(src, emission_deg=20.0, look_azimuth_deg=90.0)
+    shifted = dataclasses.replace(src, offset_m=(-shift, 0.0))
+    out = []
+    for s, relief in ((off_nadir, lambda x, y: np.full(np.shape(x), 10.0)), (shifted, None)):
+        img = np.zeros(sm.ortho_grid.shape, dtype=np.float32)
+        ortho_radiance(
+            sm.ortho_grid, sm.ref, sm.local, model, cfg.reference, img, source=s, relief=relief
+        )
+        out.append(img)
+    np.testing.assert_allclose(out[0], out[1], rtol=1e-6)
+    # ... and the displacement is the analytic one (a feature moves away from the camera).
+    dx, dy = off_nadir.displacement(np.zeros(2), np.zeros(2), np.array([10.0, -5.0]))
+    np.testing.assert_allclose(dx, [-shift, 0.5 * shift])
+    np.testing.assert_allclose(dy, 0.0, atol=1e-12)
+
+
+def test_off_nadir_mosaic_is_seeded_and_leaves_nadir_mosaics_alone(
+    mini_config, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    from planetref.simulate.mosaic import draw_mosaic
+
+    mosaic = {"n_sources": 2, "offset_px": 1.0, "warp_px": 0.5}
+    nadir = mini_config(reference={"mosaic": mosaic})
+    tilted = mini_config(reference={"mosaic": {**mosaic, "emission_max_deg": 15.0}})
+    sm = build_scene_model(nadir)
+    a, _ = draw_mosaic(nadir.reference.mosaic, nadir.photometry, sm.ortho_grid, stream(0, "mosaic"))
+    b, _ = draw_mosaic(
+        tilted.reference.mosaic, tilted.photometry, sm.ortho_grid, stream(0, "mosaic")
+    )
+    # The emission angles are drawn after everything else: the rest is unchanged.
+    for s, t in zip(a, b, strict=True):
+        assert s.offset_m == t.offset_m and s.sun == t.sun and s.emission_deg == 0.0
+        assert 0.0 < t.emission_deg <= 15.0 and t.look_azimuth_deg in (90.0, 270.0)
+    simulate_scene(tilted, tmp_path / "x")
+    simulate_scene(tilted, tmp_path / "y")
+    one = (tmp_path / "x" / "reference" / "ortho.tif").read_bytes()
+    assert one == (tmp_path / "y" / "reference" / "ortho.tif").read_bytes()
+    simulate_scene(nadir, tmp_path / "z")
+    assert one != (tmp_path / "z" / "reference" / "ortho.tif").read_bytes()
+    ref = json.loads((tmp_path / "x" / "truth" / "reference.json").read_text())
+    assert all(s["emission_deg"] > 0 for s in ref["mosaic"]["sources"])

@@ -249,7 +249,7 @@ def _default_demo_dir() -> Path:
 )
 @click.option(
     "--difficulty",
-    type=click.Choice(["easy", "moderate", "hard", "extreme"]),
+    type=click.Choice(["easy", "moderate", "realistic", "hard", "extreme"]),
     default="moderate",
     show_default=True,
     help="Difficulty of the simulated scene (see docs/scene-manifest.md).",

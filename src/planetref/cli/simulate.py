@@ -72,7 +72,7 @@ def simulate_run(
 )
 @click.option(
     "--difficulty",
-    type=click.Choice(["easy", "moderate", "hard", "extreme"]),
+    type=click.Choice(["easy", "moderate", "realistic", "hard", "extreme"]),
     default=None,
     help="Difficulty level merged over the preset (default: the preset as is, moderate).",
 )

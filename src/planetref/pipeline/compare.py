@@ -360,6 +360,17 @@ def _context(
                 (f"strip {strip.id}", ", ".join(c.name for c in strip.ccds) + " (left to right)")
             )
         ctx.simulated = manifest.truth is not None
+        if manifest.truth is not None and manifest.truth.config:
+            from planetref.simulate.provenance import read_realism
+
+            try:
+                realism = read_realism(manifest.resolve(root, manifest.truth.config))
+            except PlanetrefError as exc:
+                ctx.scene_facts.append(("simulation config", f"not readable: {exc}"))
+            else:
+                ctx.realism_level = realism.level
+                ctx.realism_sources = [tuple(v) for v in realism.values]
+                ctx.easier_than_real = list(realism.easier_than_real)
     conf = cfg.to_json()
     fe, mcp = conf.get("frontend", {}), conf.get("mcp", {})
     ctx.common_settings += [

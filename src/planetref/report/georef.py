@@ -37,6 +37,7 @@ from planetref.runtime.atomic import write_text_atomic
 __all__ = [
     "ADJ_COLUMNS",
     "CompareContext",
+    "add_realism",
     "adjustment_rows",
     "figure_headline_bars",
     "figure_residual_vectors",
@@ -79,6 +80,9 @@ class CompareContext:
         headline: The headline PNG.
         simulated: The scene has truth (state why its numbers are easier than reality).
         output_warnings: Matcher -> warnings written with the outputs (e.g. RPC fits).
+        realism_level: The simulated scene's difficulty level when it cites sources.
+        realism_sources: ``(setting, value, source)`` of every sourced realism setting.
+        easier_than_real: What still makes the simulated scene easier than real data.
     """
 
     scene: str
@@ -91,6 +95,9 @@ class CompareContext:
     headline: Path | None = None
     simulated: bool = False
     output_warnings: dict[str, list[str]] = field(default_factory=dict)
+    realism_level: str = ""
+    realism_sources: list[tuple[str, str, str]] = field(default_factory=list)
+    easier_than_real: list[str] = field(default_factory=list)
 
 
 _TABLES = {
@@ -210,6 +217,20 @@ def _extra_adjustment(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str],
     ]
 
 
+def add_realism(doc: Document, context: CompareContext) -> None:
+    """The simulated scene's sourced realism settings and what keeps it easier than Mars."""
+    if context.realism_sources:
+        doc.table(
+            f"Realism settings of the `{context.realism_level}` level and the real "
+            "statistic each reproduces",
+            ["Setting", "Value", "Source"],
+            [list(r) for r in context.realism_sources],
+        )
+    if context.easier_than_real:
+        doc.para("What still makes this scene easier than real data:")
+        doc.items(context.easier_than_real)
+
+
 def write_compare_report(
     runs: Mapping[str, Mapping[str, Any]],
     skipped: Mapping[str, str],
@@ -243,6 +264,7 @@ def write_compare_report(
             "reference (illumination, season, surface) are only those the simulation "
             "config (`truth/config.toml`) puts in."
         )
+        add_realism(doc, context)
     doc.heading("Settings")
     doc.items([f"**{k}**: {v}" for k, v in context.common_settings])
     if context.matcher_settings:

@@ -42,6 +42,7 @@ from planetref.simulate.realism import (
 
 __all__ = [
     "DIFFICULTIES",
+    "STRESS_LADDER",
     "AlbedoConfig",
     "CameraConfig",
     "CraterConfig",
@@ -52,6 +53,7 @@ __all__ = [
     "OrbitConfig",
     "PhotometryConfig",
     "PlainsConfig",
+    "RealismNotes",
     "ReferenceConfig",
     "RegionalConfig",
     "RenderConfig",
@@ -305,6 +307,9 @@ class SensorConfig(_Model):
         mean_signal_e: Electrons for a flat surface of mean albedo.
         read_noise_e: Read noise (electrons RMS).
         supersample: Sub-samples per pixel and axis integrated over the footprint.
+        column_gain_rms: Relative RMS of a fixed gain per detector column (what
+            flat-fielding leaves of a TDI CCD's column response: vertical striping of
+            the line-scan images; the reference ortho ignores it).
     """
 
     bit_depth: Literal[8, 16] = 16
@@ -313,6 +318,7 @@ class SensorConfig(_Model):
     mean_signal_e: float = Field(default=25_000.0, gt=0.0)
     read_noise_e: float = Field(default=40.0, ge=0.0)
     supersample: int = Field(default=2, ge=1, le=8)
+    column_gain_rms: float = Field(default=0.0, ge=0.0, le=0.2)
 
 
 class ReferenceConfig(_Model):
@@ -372,6 +378,29 @@ class RenderConfig(_Model):
     processes: int = Field(default=1, ge=0, le=256)
 
 
+class RealismNotes(_Model):
+    """What a difficulty level says about itself (written to ``truth/config.toml``).
+
+    Attributes:
+        easier_than_real: What still makes a scene at this level easier than real data
+            (one sentence each); a report of the run prints them.
+    """
+
+    easier_than_real: tuple[str, ...] = ()
+
+
+def _field_exists(model: type[Settings], dotted: str) -> bool:
+    """Whether ``dotted`` (``"photometry.reference_sun"``) names a field of ``model``."""
+    head, _, rest = dotted.partition(".")
+    field = model.model_fields.get(head)
+    if field is None:
+        return False
+    if not rest:
+        return True
+    sub = field.annotation
+    return isinstance(sub, type) and issubclass(sub, Settings) and _field_exists(sub, rest)
+
+
 class SimulationConfig(_Model):
     """Everything that defines a simulated scene (together with ``seed``).
 
@@ -392,6 +421,11 @@ class SimulationConfig(_Model):
         render: Rendering controls.
         truth_mismatch: Departures of the true camera from the estimated model.
         surface_change: Changes of the ground between the reference and the images.
+        sources: For realism settings, the real statistic each reproduces and where it
+            comes from (a measurement on real data or a published figure), keyed by the
+            setting's dotted name (``"photometry.target_haze"``); set by the
+            ``realistic`` difficulty, empty for the presets and stress levels.
+        realism: What still makes the scene easier than real data.
     """
 
     name: str = "scene"
@@ -410,6 +444,15 @@ class SimulationConfig(_Model):
     render: RenderConfig = RenderConfig()
     truth_mismatch: TruthMismatchConfig = TruthMismatchConfig()
     surface_change: SurfaceChangeConfig = SurfaceChangeConfig()
+    sources: dict[str, str] = Field(default_factory=dict)
+    realism: RealismNotes = RealismNotes()
+
+    @model_validator(mode="after")
+    def _check_sources(self) -> SimulationConfig:
+        bad = sorted(k for k in self.sources if not _field_exists(SimulationConfig, k))
+        if bad:
+            raise ValueError(f"sources name no setting: {', '.join(bad)}")
+        return self
 
     @model_validator(mode="after")
     def _check_strips(self) -> SimulationConfig:
@@ -430,8 +473,16 @@ def available_presets() -> tuple[str, ...]:
     return tuple(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml")))
 
 
-DIFFICULTIES = ("easy", "moderate", "hard", "extreme")
-"""The difficulty ladder, easiest first (``presets/difficulty/<name>.toml``)."""
+DIFFICULTIES = ("easy", "moderate", "realistic", "hard", "extreme")
+"""The difficulty levels, easiest first (``presets/difficulty/<name>.toml``).
+
+``realistic`` is measured, not placed on the ladder: every one of its realism values
+names the real statistic it reproduces (its ``[sources]`` table). ``hard`` and
+``extreme`` are stress levels, beyond real data in chosen directions, to find where
+each matcher breaks; ``easy`` and ``moderate`` are debugging levels easier than Mars."""
+
+STRESS_LADDER = ("easy", "moderate", "hard", "extreme")
+"""The levels ordered by stress (each harder than the previous in every knob it sets)."""
 
 
 def available_difficulties() -> tuple[str, ...]:

@@ -13,7 +13,7 @@ the surface at ``p - d_s(p)``, so a feature at ``q`` appears at about ``q + d_s(
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -40,6 +40,9 @@ class MosaicSource:
         offset_m: ``(dx, dy)`` map offset (m).
         waves: Rows ``(kx, ky, amp_x, amp_y, phase)``: wave vectors (rad/m), amplitudes
             of the x and y displacement (m) and phase (rad) of the warp's plane waves.
+        emission_deg: Off-nadir emission angle (0: nadir, no relief displacement).
+        look_azimuth_deg: Azimuth from the ground towards the spacecraft (degrees
+            clockwise from north).
     """
 
     index: int
@@ -48,9 +51,19 @@ class MosaicSource:
     gain: float
     offset_m: tuple[float, float]
     waves: F64
+    emission_deg: float = 0.0
+    look_azimuth_deg: float = 0.0
 
-    def displacement(self, x: F64, y: F64) -> tuple[F64, F64]:
-        """``d_s`` at map points (m): offset plus warp."""
+    def displacement(self, x: F64, y: F64, relief_m: F64 | None = None) -> tuple[F64, F64]:
+        """``d_s`` at map points (m): offset plus warp, plus relief displacement.
+
+        Args:
+            x: Map x (m).
+            y: Map y (m).
+            relief_m: Height of the truth above the DEM the source was orthorectified
+                on, at the points (m); with an off-nadir source it moves the pixel by
+                ``-relief tan(e) v`` (``v`` towards the spacecraft).
+        """
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         dx = np.full(x.shape, self.offset_m[0])
@@ -59,6 +72,11 @@ class MosaicSource:
             s = np.sin(kx * x + ky * y + ph)
             dx += ax * s
             dy += ay * s
+        if relief_m is not None and self.emission_deg > 0:
+            t = math.tan(math.radians(self.emission_deg))
+            az = math.radians(self.look_azimuth_deg)
+            dx -= relief_m * (t * math.sin(az))
+            dy -= relief_m * (t * math.cos(az))
         return dx, dy
 
 
@@ -132,6 +150,16 @@ def draw_mosaic(
         wavelength=rng.uniform(800.0, 2500.0, n - 1),
         phase=rng.uniform(0.0, 2.0 * np.pi, n - 1),
     )
+    if cfg.emission_max_deg > 0:
+        # Drawn last, so mosaics of nadir sources are as they were.
+        sources = [
+            replace(
+                src,
+                emission_deg=float(rng.uniform(0.0, cfg.emission_max_deg)),
+                look_azimuth_deg=float(rng.choice([90.0, 270.0])),
+            )
+            for src in sources
+        ]
     return sources, seams
 
 
@@ -140,7 +168,9 @@ def sources_to_dict(sources: list[MosaicSource], seams: Seams) -> dict[str, Any]
     return {
         "convention": (
             "the ortho pixel at true map point p (reference CRS) shows the surface at "
-            "p - d(p), d = offset_m + sum(amp * sin(kx x + ky y + phase)); source index = "
+            "p - d(p), d = offset_m + sum(amp * sin(kx x + ky y + phase)) - dh(p) tan(emission) "
+            "(sin, cos)(look_azimuth), dh = truth (reference epoch) minus reference DEM "
+            "height; source index = "
             "number of seams x = base + amplitude sin(2 pi y / wavelength + phase) west of p"
         ),
         "sources": [
@@ -151,6 +181,8 @@ def sources_to_dict(sources: list[MosaicSource], seams: Seams) -> dict[str, Any]
                 "haze": s.haze,
                 "gain": s.gain,
                 "offset_m": list(s.offset_m),
+                "emission_deg": s.emission_deg,
+                "look_azimuth_deg": s.look_azimuth_deg,
                 "waves": [
                     dict(
                         zip(("kx", "ky", "amp_x_m", "amp_y_m", "phase"), map(float, w), strict=True)

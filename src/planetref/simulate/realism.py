@@ -108,6 +108,12 @@ class MosaicConfig(_Model):
         sun_spread_deg: RMS spread of the sources' sun angles (degrees).
         gain_spread: RMS relative gain difference between sources.
         seam_wander_m: Amplitude of the seams' meandering (m).
+        emission_max_deg: Off-nadir emission angle of the sources, each drawn
+            ``U(0, emission_max_deg)`` and looking east or west (CTX rolls across its
+            N-S tracks). Each source is orthorectified on the reference DEM, so relief
+            the coarse DEM lacks is displaced: the pixel at ``p`` shows the surface at
+            ``p + dh(p) tan(e) v`` (``dh`` = truth minus reference DEM height, ``v`` the
+            horizontal unit vector towards the spacecraft). 0 (default): nadir sources.
     """
 
     n_sources: int = Field(default=1, ge=1, le=12)
@@ -117,6 +123,7 @@ class MosaicConfig(_Model):
     sun_spread_deg: float = Field(default=0.0, ge=0.0)
     gain_spread: float = Field(default=0.0, ge=0.0)
     seam_wander_m: float = Field(default=150.0, ge=0.0)
+    emission_max_deg: float = Field(default=0.0, ge=0.0, le=30.0)
 
 
 class MolaConfig(_Model):

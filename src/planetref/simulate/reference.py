@@ -78,6 +78,7 @@ def ortho_radiance(
     source: MosaicSource | None = None,
     seams: Seams | None = None,
     progress: Callable[[int], None] | None = None,
+    relief: Callable[[F64, F64], F64] | None = None,
 ) -> None:
     """Footprint-mean radiance of the ortho pixels of one source, relative to its flat radiance.
 
@@ -95,6 +96,8 @@ def ortho_radiance(
         source: The mosaic source (None: the plain reference image).
         seams: The mosaic's seams (with ``source``).
         progress: Called with the number of rows done after each block.
+        relief: Height (m) of the truth above the DEM the sources were orthorectified
+            on, at reference-CRS map points (relief displacement of off-nadir sources).
     """
     ss = cfg.ortho_sensor.supersample
     offs = (np.arange(ss) + 0.5) / ss
@@ -125,7 +128,8 @@ def ortho_radiance(
                 x = xc[cc] + fx * grid.res
                 y = yc[rr] - fy * grid.res
                 if source is not None:
-                    dx, dy = source.displacement(x, y)
+                    dh = relief(x, y) if relief is not None and source.emission_deg > 0 else None
+                    dx, dy = source.displacement(x, y, dh)
                     x, y = x - dx, y - dy
                 lon, lat = projection.map_to_lonlat(x, y)
                 tx, ty = truth_projection.lonlat_to_map(lon, lat)

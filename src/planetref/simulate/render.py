@@ -157,6 +157,7 @@ class _BlockState:
     radiance: RadianceModel
     enu: F64
     sensor: SensorConfig
+    column_gain: NDArray[np.float32] | None = None
 
 
 _WORKER_STATE: _BlockState | None = None
@@ -182,9 +183,10 @@ def _render_block(
     )
     blurred = apply_psf(rad, state.sensor)[a - ra : a - ra + (b - a)]
     flat = state.radiance.flat_radiance() * (1.0 + state.radiance.haze)
-    e = with_noise(
-        to_electrons(blurred, flat, state.sensor), state.sensor, np.random.default_rng(child)
-    )
+    signal = to_electrons(blurred, flat, state.sensor)
+    if state.column_gain is not None:
+        signal *= state.column_gain[None, :]
+    e = with_noise(signal, state.sensor, np.random.default_rng(child))
     return quantize(e, state.sensor)
 
 
@@ -296,7 +298,12 @@ def render_ccd(
     starts = list(range(0, n_lines, chunk))
     children = noise_seed.spawn(len(starts))
     jobs = [(a, min(n_lines, a + chunk), child) for a, child in zip(starts, children, strict=True)]
-    state = _BlockState(camera, ccd, terrain, radiance, enu, sensor)
+    gain = None
+    if sensor.column_gain_rms > 0:
+        # Spawned after the blocks' children, so the noise is the same with or without.
+        rng = np.random.default_rng(noise_seed.spawn(1)[0])
+        gain = (1.0 + sensor.column_gain_rms * rng.standard_normal(n_samples)).astype(np.float32)
+    state = _BlockState(camera, ccd, terrain, radiance, enu, sensor, gain)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with write_image_geotiff(out_path, n_lines, n_samples, dtype) as ds:  # type: ignore[attr-defined]

@@ -37,13 +37,17 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planetref.errors import InputError
 from planetref.simulate.config import SimulationConfig
 from planetref.simulate.streams import seed_sequence, stream
+
+if TYPE_CHECKING:
+    from planetref.simulate.grid import MapGrid
 
 __all__ = ["SceneModel", "SceneResult", "build_scene_model", "simulate_scene", "stream"]
 
@@ -87,6 +91,41 @@ def _commit(tmp: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(tmp, out)
+
+
+def _relief_above_reference_dem(
+    sm: SceneModel, ref_dem: NDArray[np.floating], dem_grid: MapGrid, ref: Any, local: Any
+) -> Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]:
+    """Truth height (reference epoch) minus reference DEM height at reference-CRS points.
+
+    What an off-nadir source orthorectified on the reference DEM displaces (metres; 0
+    where the DEM has no value). With a declared areoid, the DEM's heights are brought
+    back above the sphere first, as a user of the mosaic would have.
+    """
+    from scipy.ndimage import map_coordinates
+
+    from planetref.simulate.reference import areoid_height
+
+    t = sm.terrain
+    height = t.height if t.height_reference is None else t.height_reference
+    base = np.asarray(ref_dem, dtype=np.float64)
+    mola = sm.cfg.reference.mola
+    if mola.areoid:
+        xx, yy = np.meshgrid(dem_grid.x_centres(), dem_grid.y_centres())
+        base = base + areoid_height(xx, yy, mola)
+    base = np.where(np.isfinite(base), base, np.nan)
+
+    def relief(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+        lon, lat = ref.map_to_lonlat(x, y)
+        tx, ty = local.lonlat_to_map(lon, lat)
+        r, c = sm.grid.to_index(tx, ty)
+        h = map_coordinates(height, [r, c], order=1, mode="nearest")
+        rr, cc = dem_grid.to_index(x, y)
+        hc = map_coordinates(base, [rr, cc], order=1, mode="nearest")
+        dh = h - hc
+        return np.where(np.isfinite(dh), dh, 0.0)
+
+    return relief
 
 
 def simulate_scene(
@@ -432,9 +471,24 @@ def _build(
     lap("render")
 
     # Reference ortho and DEM ---------------------------------------------------------
+    # The DEM first: off-nadir mosaic sources are orthorectified on it.
+    ref_record: dict[str, Any] = {}
+    ref_dem = reference_dem(
+        dem_grid,
+        ref,
+        local,
+        sm.coarse_grid,
+        terrain.regional_composite,
+        cfg.reference,
+        stream(seed, "mola" if cfg.reference.mola.tracks else "dem_noise"),
+        ref_record,
+    )
     sources, seams = draw_mosaic(
         cfg.reference.mosaic, cfg.photometry, ortho_grid, stream(seed, "mosaic")
     )
+    relief = None
+    if any(src.emission_deg > 0 for src in sources):
+        relief = _relief_above_reference_dem(sm, ref_dem, dem_grid, ref, local)
     relative = np.zeros(ortho_grid.shape, dtype=np.float32)
     with tqdm(
         total=ortho_grid.rows * len(sources),
@@ -455,6 +509,7 @@ def _build(
                 source=src,
                 seams=seams,
                 progress=bar.update,
+                relief=relief,
             )
             del model
     ortho = finish_ortho(relative, cfg.reference, stream(seed, "ortho_noise"))
@@ -467,18 +522,8 @@ def _build(
         ref_wkt,
         offset=cfg.reference.ortho_offset_m,
     )
-    ref_record: dict[str, Any] = {"mosaic": sources_to_dict(sources, seams)}
+    ref_record["mosaic"] = sources_to_dict(sources, seams)
     ref_record["ortho_offset_m"] = list(cfg.reference.ortho_offset_m)
-    ref_dem = reference_dem(
-        dem_grid,
-        ref,
-        local,
-        sm.coarse_grid,
-        terrain.regional_composite,
-        cfg.reference,
-        stream(seed, "mola" if cfg.reference.mola.tracks else "dem_noise"),
-        ref_record,
-    )
     (root / "truth" / "reference.json").write_text(
         json.dumps(ref_record, indent=1, sort_keys=True) + "\n", encoding="utf-8"
     )
