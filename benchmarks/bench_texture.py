@@ -177,7 +177,7 @@ def simulated_reference(scene: Path, size_m: float = 1200.0) -> list[tuple[str, 
     """
     import rasterio
 
-    from planetref.tomlfile import read_toml
+    from planetref.runtime.tomlfile import read_toml
 
     man = read_toml(scene / "scene.toml", "scene manifest")
     with rasterio.open(scene / man["reference"]["ortho"]) as ds:
@@ -347,8 +347,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         scene = args.scene
         if scene is None:
+            from planetref.runtime.tomlfile import read_toml
             from planetref.simulate.config import load_config, merge_overrides
-            from planetref.tomlfile import read_toml
 
             table: dict[str, object] = {
                 "camera": {"n_lines": args.lines},

@@ -12,8 +12,8 @@ from __future__ import annotations
 import os
 from typing import NamedTuple
 
+from planetref.runtime.tomlfile import read_toml
 from planetref.simulate.config import SimulationConfig, validate_config
-from planetref.tomlfile import read_toml
 
 __all__ = ["Realism", "SourcedValue", "read_realism", "realism_of"]
 
