@@ -390,7 +390,8 @@ def test_realism_table_reads_back_from_the_written_config(tmp_path: Path) -> Non
     """What a report prints: every sourced setting with its value, read from the TOML."""
     import tomli_w
 
-    from planetref.simulate.provenance import read_realism, realism_of
+    from planetref.scene.realism import read_realism
+    from planetref.simulate.provenance import realism_of
 
     cfg = load_config("tiny", difficulty="realistic")
     path = tmp_path / "config.toml"

@@ -361,7 +361,7 @@ def _context(
             )
         ctx.simulated = manifest.truth is not None
         if manifest.truth is not None and manifest.truth.config:
-            from planetref.simulate.provenance import read_realism
+            from planetref.scene.realism import read_realism
 
             try:
                 realism = read_realism(manifest.resolve(root, manifest.truth.config))
