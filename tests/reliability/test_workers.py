@@ -153,15 +153,35 @@ def test_pool_workers_die_with_their_parent(sig: int) -> None:
     assert alive == []
 
 
+def _reached(out: Path, moment: str) -> bool:
+    """Whether a georef into ``out`` has reached ``moment`` (where it is killed)."""
+    if moment == "claimed":
+        return (out / MARKER).is_file()
+    if moment == "tiles":
+        journal = out / "strip1" / "tiles.jsonl"
+        return journal.is_file() and journal.read_bytes().count(b"\n") >= 1
+    return (out / "strip1" / "ortho").is_dir()  # "outputs": the orthoimages are written
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize(
+    ("sig", "moment"),
+    [
+        (signal.SIGKILL, "claimed"),
+        (signal.SIGKILL, "tiles"),
+        (signal.SIGTERM, "tiles"),
+        (signal.SIGINT, "tiles"),
+        (signal.SIGKILL, "outputs"),
+    ],
+)
 def test_kill_a_pool_georef_then_resume(
-    tiny_scene: Path, tmp_path: Path, ref_grid_toml, sig: int
+    tiny_scene: Path, tmp_path: Path, ref_grid_toml, tiny_sift_run, sig: int, moment: str
 ) -> None:
     # planetref georef tiny --matcher sift --scheduler pool:2 --out run; kill -9 (kill,
-    # Ctrl-C) once the first tiles are journalled; the same command again resumes to a
-    # finished run, no worker of the killed run alive 10 s later, no file of the scene
-    # changed
+    # Ctrl-C) once the folder is claimed, the first tiles are journalled, or the outputs
+    # are being written; the same command again resumes to a finished run, no worker of
+    # the killed run alive 10 s later, no file of the scene changed, and the same tables
+    # as the uninterrupted run (in-process: the results do not depend on the executor)
     out = tmp_path / "run"
     scene_before = _digests(tiny_scene)
     env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "OMP_NUM_THREADS": "1"}
@@ -184,15 +204,14 @@ def test_kill_a_pool_georef_then_resume(
         str(out),
     ]
     parent = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    journal = out / "strip1" / "tiles.jsonl"
     workers: set[int] = set()
     try:
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline and parent.poll() is None:
             workers |= set(_children(parent.pid))
-            if journal.is_file() and journal.read_bytes().count(b"\n") >= 1:
+            if _reached(out, moment):
                 break
-            time.sleep(0.05)
+            time.sleep(0.02)
         assert parent.poll() is None, "the run ended before it could be killed"
         workers |= set(_children(parent.pid))
     finally:
@@ -212,6 +231,10 @@ def test_kill_a_pool_georef_then_resume(
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
-    assert report["strips"]["strip1"]["matching"]["ncp"] >= 12 if "strips" in report else True
+    expected = tiny_sift_run.report
+    assert report["matching"]["ncp"] == expected["matching"]["ncp"] >= 12
+    assert report["adjustment"]["rmse_px"] == pytest.approx(
+        expected["adjustment"]["rmse_px"], rel=1e-6
+    )
     assert not [p for p in out.rglob(".planetref-*") if p.name != ".planetref.lock"]
     assert _digests(tiny_scene) == scene_before

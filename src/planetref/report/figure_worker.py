@@ -13,6 +13,7 @@ Before it reads its first task it imports matplotlib and the figure modules
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import sys
@@ -32,14 +33,17 @@ def warm() -> None:
 def main() -> int:
     """Run the tasks named on stdin until it closes.
 
-    Ctrl-C reaches the whole terminal process group: the worker ignores SIGINT (the
-    parent stops, closes stdin, and the worker ends after its task), so an interrupted
-    run prints no KeyboardInterrupt traceback from here. A parent that dies outright also
-    closes stdin.
+    The worker belongs to the run that started it
+    (:func:`planetref.execute.bind_to_parent`): Ctrl-C reaches the whole terminal
+    process group, and the worker ignores SIGINT (the parent stops, closes stdin, and the
+    worker ends after its task), so an interrupted run prints no KeyboardInterrupt
+    traceback from here; a parent that dies outright ends the worker within half a
+    second, and no task queued before is started after it is gone.
     """
-    import signal
+    from planetref.execute import bind_to_parent
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+    bind_to_parent(parent, death_signal=False)
     replies = os.fdopen(os.dup(1), "w", encoding="utf-8")
     os.dup2(2, 1)  # stray prints go to stderr, not into the replies
     try:
@@ -50,6 +54,8 @@ def main() -> int:
         path = Path(line.strip())
         if not line.strip():
             continue
+        if os.getppid() != parent:
+            return 0  # the run is gone: its figures are not drawn
         try:
             with path.open("rb") as fh:
                 fn, args, kwargs = pickle.load(fh)
@@ -59,8 +65,14 @@ def main() -> int:
             reply = "error " + f"{type(exc).__name__}: {exc}".replace("\n", " ")
         finally:
             path.unlink(missing_ok=True)
-        replies.write(reply + "\n")
-        replies.flush()
+        try:
+            replies.write(reply + "\n")
+            replies.flush()
+        except BrokenPipeError:  # the parent stopped listening (interrupted, killed)
+            # The buffered reply is flushed again at exit: into /dev/null, quietly.
+            with contextlib.suppress(OSError):
+                os.dup2(os.open(os.devnull, os.O_WRONLY), replies.fileno())
+            return 0
     return 0
 
 

@@ -128,8 +128,14 @@ def parent_alive(parent_pid: int) -> bool:
     return os.getppid() == parent_pid
 
 
-def bind_to_parent(parent_pid: int) -> None:
+def bind_to_parent(parent_pid: int, *, death_signal: bool = True) -> None:
     """Make a pool worker belong to the run that started it (the pool's initializer).
+
+    Args:
+        parent_pid: The run's process.
+        death_signal: Also ask the kernel for the death signal (a process started from
+            a thread that may end before the run should pass False: the signal follows
+            the thread that started the worker, not the process).
 
     * Linux: ``PR_SET_PDEATHSIG`` asks the kernel to SIGKILL the worker when its parent
       dies (SIGKILL, SIGTERM or a crash of the run), so no worker outlives it.
@@ -144,7 +150,7 @@ def bind_to_parent(parent_pid: int) -> None:
     import threading
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if sys.platform.startswith("linux"):
+    if death_signal and sys.platform.startswith("linux"):
         try:
             import ctypes
 
