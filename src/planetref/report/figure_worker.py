@@ -34,13 +34,13 @@ def main() -> int:
     """Run the tasks named on stdin until it closes.
 
     The worker belongs to the run that started it
-    (:func:`planetref.execute.bind_to_parent`): Ctrl-C reaches the whole terminal
+    (:func:`planetref.runtime.execute.bind_to_parent`): Ctrl-C reaches the whole terminal
     process group, and the worker ignores SIGINT (the parent stops, closes stdin, and the
     worker ends after its task), so an interrupted run prints no KeyboardInterrupt
     traceback from here; a parent that dies outright ends the worker within half a
     second, and no task queued before is started after it is gone.
     """
-    from planetref.execute import bind_to_parent
+    from planetref.runtime.execute import bind_to_parent
 
     parent = os.getppid()
     bind_to_parent(parent, death_signal=False)
