@@ -1,26 +1,58 @@
-"""Optional compiled modules: imported once, or ``None`` so the caller runs its numpy twin."""
+"""Optional compiled modules: the one loader and the one switch of the compiled twins.
+
+Every compiled (numba) kernel is a private module ``_numba_<name>.py`` beside the module
+that holds its numpy reference, and only that module loads it, through
+:func:`optional_module`. A twin that cannot be loaded (numba missing, a broken llvmlite,
+a failed compile or smoke test) is ``None``: the caller runs its numpy reference, which
+gives the same results more slowly (the tests bind each pair).
+
+The switch: ``PLANETREF_COMPILED=0`` in the environment turns every twin off for the
+process (for checking the numpy path, or where numba misbehaves).
+"""
 
 from __future__ import annotations
 
 import importlib
 import logging
+import os
+from collections.abc import Callable
 from functools import cache
 from typing import Any
 
-__all__ = ["optional_module"]
+__all__ = ["SWITCH", "compiled_enabled", "optional_module"]
 
 log = logging.getLogger("planetref")
 
+#: The environment variable that turns the compiled twins off (``0``, ``false``, ``no``).
+SWITCH = "PLANETREF_COMPILED"
+
+
+def compiled_enabled() -> bool:
+    """Whether compiled twins may be used (the :data:`SWITCH` is not off)."""
+    return os.environ.get(SWITCH, "1").strip().lower() not in ("0", "false", "no", "off")
+
 
 @cache
-def optional_module(name: str, what: str) -> Any:
+def optional_module(name: str, what: str, check: Callable[[Any], None] | None = None) -> Any:
     """Import ``name``, or log one warning naming ``what`` and return ``None``.
+
+    Args:
+        name: The twin's module (``planetref.<package>._numba_<name>``).
+        what: What it is, for the one warning line.
+        check: A smoke test run on the module once (it compiles or loads numba's cache);
+            any failure there also falls back to numpy.
 
     Any failure counts (numba missing, a broken llvmlite, a compile error at import): the
     caller then uses its numpy reference, which gives the same results more slowly.
     """
+    if not compiled_enabled():
+        log.info("%s off (%s=0): numpy is used", what, SWITCH)
+        return None
     try:
-        return importlib.import_module(name)
+        mod = importlib.import_module(name)
+        if check is not None:
+            check(mod)
     except Exception as exc:  # any failure: the numpy twin is used
         log.warning("%s unavailable (%s): numpy is used", what, exc)
         return None
+    return mod

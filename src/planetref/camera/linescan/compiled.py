@@ -16,14 +16,14 @@ cache directory (``NUMBA_CACHE_DIR`` overrides both).
 
 from __future__ import annotations
 
-import importlib
 import logging
 import math
-from functools import cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from planetref.runtime.optional import optional_module
 
 __all__ = ["available", "fill_partials", "project_points", "warm_up"]
 
@@ -32,16 +32,13 @@ log = logging.getLogger("planetref.camera")
 F64 = NDArray[np.float64]
 
 
-@cache
 def _compiled() -> Any:
     """The compiled functions (a namespace), or ``None`` when numba cannot be imported."""
-    try:
-        mod = importlib.import_module("planetref.camera.linescan._numba_kernel")
-        _smoke_test(mod)
-    except Exception as exc:  # any failure (no numba, a broken llvmlite, no compiler): numpy
-        log.warning("compiled kernel unavailable (%s): the line-scan kernel runs on numpy", exc)
-        return None
-    return mod
+    return optional_module(
+        "planetref.camera.linescan._numba_kernel",
+        "compiled line-scan kernel",
+        check=_smoke_test,
+    )
 
 
 def _smoke_test(mod: Any) -> None:
