@@ -255,3 +255,54 @@ def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
     assert (col0 - win.col0, row0 - win.row0) != (0, 0)
     dc, dr = np.asarray(r.coarse_offset_px)
     assert abs(col0 - win.col0 - dc) <= 1 and abs(row0 - win.row0 - dr) <= 1
+
+
+def test_dense_ncc_compiled_path_gives_the_reference_s_tile(scene, ref, monkeypatch):
+    """End to end on a tile, with the run's NCC settings on the default fine grid: the
+    compiled shared-sum correlation gives the reference's MCPs (OpenCV's FFT, float32) to
+    its rounding noise, and the same tile offset and error against the truth."""
+    import functools
+
+    from test_frontend_match_tile import truth_offset
+
+    import planetref.matching.ncc as ncc
+    from planetref.frontend.matchers import matcher_options
+    from planetref.matching import get_matcher
+    from planetref.pipeline.config import GeorefConfig
+    from planetref.runtime.optional import optional_module
+
+    if optional_module("planetref.matching._numba_ncc", "compiled NCC") is None:
+        pytest.skip("numba is not available: only the reference runs")
+    cfg = CFG.model_copy(update={"fine_upsample": 2})
+    gsd = float(np.mean(ref.ground_sampling_m()))
+    fine_opts, coarse_opts = matcher_options("ncc", GeorefConfig(frontend=cfg), gsd)
+    tile = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, cfg).tiles[0]
+    kw = dict(
+        image=CcdImage(scene.images["ccd1"]),
+        camera=scene.init_cam,
+        ref=ref,
+        terrain=scene.dem,
+        config=cfg,
+        matcher=get_matcher("ncc", **fine_opts),
+        coarse_matcher=get_matcher("ncc", **coarse_opts),
+    )
+    new = match_tile(tile, **kw)
+    shared = ncc.correlate_shared
+    monkeypatch.setattr(ncc, "correlate_shared", functools.partial(shared, compiled=False))
+    old = match_tile(tile, **kw)
+    assert old.status == new.status == "ok"
+    a = np.column_stack([old.line, old.sample, old.ref_col, old.ref_row])
+    b = np.column_stack([new.line, new.sample, new.ref_col, new.ref_row])
+    print("ncp", old.ncp, new.ncp)
+    assert old.ncp > 300 and abs(old.ncp - new.ncp) <= max(2, old.ncp // 1000)
+    # pair the MCPs at the same raw pixel
+    dist = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    near = dist.argmin(axis=0)
+    paired = dist[near, np.arange(len(b))] < 0.05
+    assert paired.sum() >= len(b) - 2
+    assert np.abs(a[near[paired]] - b[paired]).max() < 0.02
+    np.testing.assert_allclose(new.offset_px, old.offset_px, atol=1e-3)
+    truth = truth_offset(scene, ref, tile)
+    err_old = np.abs(np.asarray(old.offset_px) - truth).max()
+    err_new = np.abs(np.asarray(new.offset_px) - truth).max()
+    assert abs(err_old - err_new) < 1e-3 and err_new < 0.5

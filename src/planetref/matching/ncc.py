@@ -20,8 +20,9 @@ Speed: in dense mode (the fine stage) the templates overlap by about 90 % and sh
 predicted displacement, so their correlations are computed together by compiled running
 sums (:func:`correlate_shared`, numba), exact in float64, instead of one OpenCV FFT per
 template (:func:`correlate_batch`, the numpy reference, float32, within ~2e-4 of the
-exact ZNCC): 2.5-2.9x fewer CPU seconds per front-end tile on the simulated tiny scene
-(``benchmarks/bench_ncc.py``), the same matches to OpenCV's rounding.
+exact ZNCC): 3.1x fewer CPU seconds per front-end tile on 4 simulated hiric-strip tiles,
+2.7x on the tiny scene's (``benchmarks/bench_ncc.py``, ``benchmarks/results/``), the same
+matches to OpenCV's rounding.
 
 Coordinates: template centre pixel ``(row r, column c)`` is reported at ``(c + 0.5, r + 0.5)``
 (planetref's corner convention) and its match at the same place plus the fitted offset.
