@@ -67,6 +67,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -392,7 +393,8 @@ def main(argv: list[str] | None = None) -> int:
     if exe is None:
         log(f"Ceres skipped: {why}")
     result: dict[str, object] = {
-        "benchmark": "bench_adjust --vs ceres",
+        "benchmark": "bench_adjust --vs ceres"
+        + (" (free tie points)" if args.tie_fraction else ""),
         "command": " ".join(["python", f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "machine": describe(),
@@ -404,6 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     for n in sizes:
         block = bench_size(exe, n, args, log)
         result["sizes"].append(block)
+        result["figures"] = headline(result)
         if args.out is not None:  # after each size: a long run keeps what it measured
             args.out.parent.mkdir(parents=True, exist_ok=True)
             tmp = args.out.with_name(args.out.name + ".tmp")
@@ -414,6 +417,41 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print_table(result)
     return 0
+
+
+def headline(result: dict[str, Any]) -> dict[str, dict[str, object]]:
+    """The figures the benchmarks page shows, derived from the measured blocks.
+
+    Per size and thread count: planetref's CPU-s, the best Ceres configuration's CPU-s,
+    their ratio (below 1: planetref uses less CPU) and the largest parameter difference
+    at the optimum in planetref's sigmas.
+    """
+    out: dict[str, dict[str, object]] = {}
+    for b in result.get("sizes", []):
+        n = b["n_obs"]
+        ties = f", {b['n_tie_points']} tie points" if b.get("n_tie_points") else ""
+        for t, r in (b.get("ratio") or {}).items():
+            key = f"n={n}{ties}, {t} thread(s)"
+            cpu = b["planetref"][t]["cpu_s"]
+            best = r["ceres_best"]
+            out[f"{key}: planetref CPU"] = {"value": cpu, "unit": "s"}
+            out[f"{key}: Ceres best CPU"] = {
+                "value": b["ceres"][best][t]["cpu_s"],
+                "unit": "s",
+                "note": best,
+            }
+            out[f"{key}: planetref / Ceres best, CPU"] = {
+                "value": r["planetref_over_ceres_cpu"],
+                "note": "below 1: planetref uses less CPU",
+            }
+        diffs = b.get("max_diff_sigma") or {}
+        if diffs:
+            out[f"n={n}{ties}: largest parameter difference"] = {
+                "value": max(diffs.values()),
+                "unit": "sigma",
+                "note": "same optimum" if b.get("same_optimum") else "NOT the same optimum",
+            }
+    return out
 
 
 def print_table(result: dict[str, object]) -> None:

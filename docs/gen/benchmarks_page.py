@@ -24,6 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
 META_KEYS = {"benchmark", "title", "description", "date", "command", "machine", "figures"}
+#: Keys of a result that hold raw measurements behind its figures: in the JSON file only.
+DETAIL_KEYS = {"sizes", "tiles", "details"}
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,7 @@ def load(path: Path) -> Result:
     benchmark = str(doc.get("benchmark") or path.stem)
     raw = doc.get("figures")
     if raw is None:
-        raw = {k: v for k, v in doc.items() if k not in META_KEYS}
+        raw = {k: v for k, v in doc.items() if k not in META_KEYS | DETAIL_KEYS}
     figures: list[Figure] = []
     if isinstance(raw, list):
         for item in raw:
@@ -122,6 +124,10 @@ def latest(results_dir: Path = RESULTS) -> list[Result]:
 def _cell(value: object) -> str:
     if isinstance(value, float):
         text = f"{value:.4g}"
+    elif isinstance(value, (list, tuple)) and (
+        len(value) > 8 or any(isinstance(v, dict | list | tuple) for v in value)
+    ):
+        text = f"{len(value)} entries (see the JSON file)"
     elif isinstance(value, (list, tuple)):
         text = ", ".join(_cell(v) for v in value)
     elif value is None:
