@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig, validate_config
+from planetref.adjust.consider import ConsiderTerms, consider_layout
 from planetref.adjust.evaluation import (
     check_metrics,
     diagnostics,
@@ -229,6 +230,9 @@ def _adjust(
             f"result is that of the last round"
         )
     inlier = last_used
+    # sigma0 of the a-priori weights, before VCE rescales them to ~1 (what it says about
+    # the stochastic model is lost once the components absorb it).
+    sigma0_before = float(stats["sigma0"])
     # Variance components on the final inliers (plain least squares), then the residuals
     # of the final solution.
     c, xyz, stats, vce = variance_components(
@@ -236,11 +240,13 @@ def _adjust(
     )
     variance = {
         "enabled": cfg.variance.enabled,
+        "sigma0_before": sigma0_before,
         "iterations": vce.iterations,
         "converged": vce.converged,
         "groups": vce.groups,
         "dof": vce.dof_split() | {"dof": int(stats["dof"]), "n_unknowns": stats["n_unknowns"]},
     }
+    consider, cov_measurement = _consider(solver, cfg, net, c, xyz, inlier, xyz_start, stats)
     # What the diagnostics need of the redundancy numbers. The per-observation arrays
     # (redundancy, residuals, weights), the final linearisation and the solver's layout
     # are let go: the diagnostics and metrics below are the memory peak of the call.
@@ -320,6 +326,8 @@ def _adjust(
         x=c,
         sigma=np.asarray(stats["sigma"]),
         covariance=np.asarray(stats["covariance"]),
+        covariance_measurement=cov_measurement,
+        consider=consider,
         correlation=np.asarray(stats["correlation"]),
         point_xyz_initial=xyz0,
         point_xyz=xyz_final,
@@ -338,6 +346,64 @@ def _adjust(
         seconds=time.perf_counter() - t0,
     )
     return result
+
+
+def _consider(
+    solver: BundleSolver,
+    cfg: AdjustConfig,
+    net: Network,
+    c: F64,
+    xyz: F64,
+    inlier: NDArray[np.bool_],
+    xyz0: F64,
+    stats: dict[str, Any],
+) -> tuple[ConsiderTerms | None, F64]:
+    """Take the declared correlated errors into ``stats``' covariance (consider parameters).
+
+    Returns:
+        ``(terms, covariance of the measurements alone)``; ``terms`` is ``None`` when no
+        correlated error is declared (the covariance is then unchanged).
+    """
+    cov_meas = np.asarray(stats["covariance"])
+    weighted_mcp = (
+        _is_kind(net, "mcp") & ~solver.point_fixed & ~_rows_all(np.isinf(net.point_sigma_m))
+    )
+    estimated = []
+    for m in solver.models:
+        mode = np.asarray(m.mode)
+        estimated.append(any("ccd[" in n and mode[i] != 2 for i, n in enumerate(m.names)))
+    patch, n_patch, key, n_key, names, units, sigma, ccd = consider_layout(
+        net, cfg.systematic, weighted_mcp, estimated
+    )
+    if not names:
+        return None, cov_meas
+    g = solver.consider_sensitivity(
+        c,
+        xyz,
+        np.flatnonzero(inlier),
+        xyz0,
+        np.asarray(stats["cofactor"]),
+        patch,
+        n_patch,
+        key,
+        n_key,
+    )
+    terms = ConsiderTerms(
+        names=names,
+        units=units,
+        sigma=sigma,
+        sensitivity=g,
+        ccd=ccd,
+        patch_m=float(cfg.systematic.reference_patch_m),
+        n_patches=n_patch,
+    )
+    cov = cov_meas + terms.covariance
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cov / sig[:, None] / sig[None, :]
+    corr[~np.isfinite(corr)] = 0.0
+    stats["covariance"], stats["sigma"], stats["correlation"] = cov, sig, corr
+    return terms, cov_meas
 
 
 def _put_rows(dst: F64, rows: NDArray[np.intp], src: F64, valid: NDArray[np.bool_]) -> None:

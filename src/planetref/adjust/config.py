@@ -46,6 +46,7 @@ __all__ = [
     "ObservationConfig",
     "OutlierConfig",
     "SolverConfig",
+    "SystematicConfig",
     "VarianceConfig",
     "VelocityBlock",
     "parse_quantity",
@@ -476,6 +477,40 @@ class OutlierConfig(Settings):
     max_rounds: int = Field(20, ge=1)
 
 
+class SystematicConfig(Settings):
+    """Correlated (systematic) errors the adjustment cannot estimate, and their accuracy.
+
+    Each MCP's a-priori sigmas describe its own random error; errors that many MCPs share
+    are not averaged away by their number, so the covariance takes them in as *consider*
+    parameters (Schmidt-Kalman): parameters held at their nominal value, whose declared
+    a-priori sigma is propagated through the sensitivity of the adjusted cameras to them
+    (see docs/adjust.md, "Correlated errors"). They change the covariance, never the
+    solution.
+
+    * the reference's planimetric error: one 2-D offset (east, north) per square patch
+      of ``reference_patch_m`` of the ground, shared by the MCPs in it, sigma
+      ``reference_sigma_m`` per axis (the reference ortho's absolute accuracy, as its
+      producer states it);
+    * the CCDs' placement: one 2-D image offset (line, sample) per CCD, shared by every
+      observation in it, sigma ``ccd_offset_sigma_px`` per axis (the calibration's
+      accuracy), when the placement is not estimated.
+
+    Attributes:
+        reference_sigma_m: Per-axis sigma (m) of the reference's planimetric error common
+            to a patch; ``None`` or 0: none.
+        reference_patch_m: Size of the patches (m): the distance over which the
+            reference's error is one (a source image of a mosaic, the wavelength of its
+            warps).
+        ccd_offset_sigma_px: Per-axis sigma (image pixels) of each CCD's placement error
+            left by the calibration; ``None`` or 0: none. Not used for cameras whose CCD
+            placement is estimated (weighted or free).
+    """
+
+    reference_sigma_m: Metres = None
+    reference_patch_m: Metres = Field(1000.0, gt=0.0)
+    ccd_offset_sigma_px: float | None = Field(None, ge=0.0)
+
+
 class AdjustConfig(Settings):
     """Everything the adjustment can be told.
 
@@ -489,6 +524,7 @@ class AdjustConfig(Settings):
         outliers: The outlier rule.
         variance: Variance component estimation.
         diagnostics: Thresholds of the datum and estimability warnings.
+        systematic: Correlated errors taken into the covariance (consider parameters).
     """
 
     linescan: LineScanParameters = LineScanParameters()
@@ -500,6 +536,7 @@ class AdjustConfig(Settings):
     outliers: OutlierConfig = OutlierConfig()
     variance: VarianceConfig = VarianceConfig()
     diagnostics: DiagnosticsConfig = DiagnosticsConfig()
+    systematic: SystematicConfig = SystematicConfig()
 
 
 def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:
