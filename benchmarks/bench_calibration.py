@@ -79,11 +79,12 @@ def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
         truth_inputs,
         truth_terrain,
     )
-    from planetref.pipeline.networks import mcp_ground_sigmas
+    from planetref.ground_sigma import reference_gsd_m
+    from planetref.pipeline.networks import mcp_ground_sigmas, systematic_settings
     from planetref.pipeline.scene import load_manifest
 
     manifest, root = load_manifest(scene_path(scene))
-    _ref, dem = open_reference(manifest, root)
+    ref, dem = open_reference(manifest, root)
     truth_cams, truth_dem = truth_inputs(manifest, root)
     terrain = truth_terrain(truth_dem, dem)
     rows = []
@@ -107,8 +108,9 @@ def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
             check=check,
             **mcp_ground_sigmas(table),
         )
+        adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], reference_gsd_m(ref))
         cpu = time.process_time()
-        result = adjust(network, cfg.adjust)
+        result = adjust(network, adjust_cfg)
         cpu = time.process_time() - cpu
         true = check_block(result, {strip.id: truth_cams[strip.id]}, terrain)
         formal = formal_ground_precision(result, strip.id, terrain=terrain)
@@ -136,6 +138,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
                     if g.get("estimated")
                 },
                 "rmse_px": result.metrics["all"]["after"]["rmse_px"],
+                "systematic": None if result.consider is None else result.consider.summary(),
                 "adjust_cpu_s": cpu,
             }
         )

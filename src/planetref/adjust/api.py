@@ -394,7 +394,7 @@ def _consider(
         sigma=sigma,
         sensitivity=g,
         ccd=ccd,
-        patch_m=float(cfg.systematic.reference_patch_m),
+        patch_m=cfg.systematic.patch_m,
         n_patches=n_patch,
     )
     cov = cov_meas + terms.covariance

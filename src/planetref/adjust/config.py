@@ -30,6 +30,7 @@ from planetref.adjust.rpc_config import RpcParameters
 from planetref.settings import Settings, validate_settings
 
 __all__ = [
+    "DEFAULT_REFERENCE_PATCH_M",
     "DEFAULT_TIE_SIGMA_M",
     "AdjustConfig",
     "AngleBlock",
@@ -477,6 +478,10 @@ class OutlierConfig(Settings):
     max_rounds: int = Field(20, ge=1)
 
 
+#: Patch size (m) of the reference's correlated error when none is declared.
+DEFAULT_REFERENCE_PATCH_M = 1000.0
+
+
 class SystematicConfig(Settings):
     """Correlated (systematic) errors the adjustment cannot estimate, and their accuracy.
 
@@ -500,15 +505,30 @@ class SystematicConfig(Settings):
             to a patch; ``None`` or 0: none.
         reference_patch_m: Size of the patches (m): the distance over which the
             reference's error is one (a source image of a mosaic, the wavelength of its
-            warps).
+            warps); ``None``: :data:`DEFAULT_REFERENCE_PATCH_M`.
         ccd_offset_sigma_px: Per-axis sigma (image pixels) of each CCD's placement error
             left by the calibration; ``None`` or 0: none. Not used for cameras whose CCD
             placement is estimated (weighted or free).
     """
 
     reference_sigma_m: Metres = None
-    reference_patch_m: Metres = Field(1000.0, gt=0.0)
+    reference_patch_m: Metres = None
     ccd_offset_sigma_px: float | None = Field(None, ge=0.0)
+
+    @model_validator(mode="after")
+    def _positive(self) -> SystematicConfig:
+        if self.reference_sigma_m is not None and self.reference_sigma_m < 0:
+            raise ValueError("reference_sigma_m must be >= 0")
+        if self.reference_patch_m is not None and not self.reference_patch_m > 0:
+            raise ValueError("reference_patch_m must be > 0")
+        return self
+
+    @property
+    def patch_m(self) -> float:
+        """The patch size in use (m)."""
+        return (
+            DEFAULT_REFERENCE_PATCH_M if self.reference_patch_m is None else self.reference_patch_m
+        )
 
 
 class AdjustConfig(Settings):

@@ -112,7 +112,7 @@ def consider_layout(
         centre = np.mean(xyz, axis=0)
         rot = enu_rotation(centre[None])[0]
         en = (xyz - centre) @ rot[:2].T  # east, north (m) in the centre's tangent plane
-        size = float(cfg.reference_patch_m)
+        size = cfg.patch_m
         cell = np.floor(en / size).astype(np.int64)
         _, inv = np.unique(cell, axis=0, return_inverse=True)
         point_patch[idx] = inv.ravel()

@@ -38,6 +38,7 @@ import numpy as np
 
 from planetref import __version__
 from planetref.errors import MatchingError
+from planetref.ground_sigma import reference_gsd_m
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.georef_outputs import (
     camera_isds,
@@ -78,7 +79,12 @@ from planetref.pipeline.matchers import (
     matcher_recipes,
     matcher_weight_files,
 )
-from planetref.pipeline.networks import StripMcps, joint_network, mcp_ground_sigmas
+from planetref.pipeline.networks import (
+    StripMcps,
+    joint_network,
+    mcp_ground_sigmas,
+    systematic_settings,
+)
 from planetref.pipeline.ortho_strip import GDAL_CACHE_MB
 from planetref.pipeline.rundir import RunDir, config_digest
 from planetref.threads import single_threaded_blas
@@ -446,8 +452,11 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         check=prep.check,
         **mcp_ground_sigmas(table),
     )
+    adjust_cfg, declared = systematic_settings(
+        cfg.adjust, job.manifest, [prep.id], reference_gsd_m(job.ref)
+    )
     t0 = time.perf_counter()
-    result = adjust(network, cfg.adjust)
+    result = adjust(network, adjust_cfg)
     job.timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
@@ -463,7 +472,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
             terrain=dem,
             plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
         )
-        out["adjustment"] = result_block(result)
+        out["adjustment"] = result_block(result, systematic_source=declared)
         out["check"] = check_block(result, truth, dem) if truth else None
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     out["warnings"] = list(result.warnings)
@@ -529,8 +538,11 @@ def _adjust_together(
     timing["tie_points"] = time.perf_counter() - t0
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg)
+    adjust_cfg, declared = systematic_settings(
+        cfg.adjust, job.manifest, [p.id for p in preps], reference_gsd_m(job.ref)
+    )
     t0 = time.perf_counter()
-    result = adjust(network, cfg.adjust)
+    result = adjust(network, adjust_cfg)
     timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     cams = {p.id: p.camera for p in preps}
@@ -584,6 +596,7 @@ def _adjust_together(
         "tie_sigma_m": opts.tie_sigma_m,
         "adjustment": result_block(
             result,
+            systematic_source=declared,
             n_tie_points=len(ties),
             tie_rmse_px=None if not len(ties) else rmse_px(result.residual[is_tie & result.inlier]),
             tie_rmse_px_before=None if not len(ties) else rmse_px(result.residual_initial[is_tie]),

@@ -15,14 +15,29 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # pragma: no cover
+    from planetref.adjust.config import AdjustConfig
     from planetref.adjust.problem import Network
     from planetref.camera.base import Camera
     from planetref.control import McpTable
     from planetref.pipeline.campaign import TiePoints
     from planetref.pipeline.config import GeorefConfig
+    from planetref.pipeline.scene import SceneManifest
     from planetref.raster.image import CcdImage
 
-__all__ = ["StripMcps", "joint_network", "mcp_ground_sigmas"]
+__all__ = [
+    "DEFAULT_CCD_ACCURACY_PX",
+    "DEFAULT_REFERENCE_ACCURACY_REF_PX",
+    "StripMcps",
+    "joint_network",
+    "mcp_ground_sigmas",
+    "systematic_settings",
+]
+
+#: The reference's planimetric accuracy (reference pixels, per axis) when neither the run
+#: config nor the scene manifest states it: a mosaic registered to its own pixel.
+DEFAULT_REFERENCE_ACCURACY_REF_PX = 1.0
+#: A CCD's placement accuracy (image pixels, per axis) when neither states it.
+DEFAULT_CCD_ACCURACY_PX = 0.5
 
 
 @dataclass
@@ -46,6 +61,52 @@ def mcp_ground_sigmas(table: Any) -> dict[str, Any]:
     xy = np.asarray(cols["sigma_ground_xy_m"], float)
     h = np.asarray(cols["sigma_ground_h_m"], float)
     return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
+
+
+def systematic_settings(
+    adjust: AdjustConfig, manifest: SceneManifest, strip_ids: list[str], ref_gsd_m: float
+) -> tuple[AdjustConfig, dict[str, Any]]:
+    """The adjustment settings with the declared accuracies of the correlated errors.
+
+    Each of ``[adjust.systematic]``'s values that the run config leaves unset comes from
+    the scene manifest (``[reference] accuracy_m``, ``accuracy_length_m``; the strips'
+    ``ccd_accuracy_px``, the largest of ``strip_ids``), else from the defaults
+    (:data:`DEFAULT_REFERENCE_ACCURACY_REF_PX` reference pixels,
+    :data:`DEFAULT_CCD_ACCURACY_PX`).
+
+    Returns:
+        ``(settings, source)``: the adjustment settings and, per value, where it came
+        from (``"config"``, ``"scene"`` or ``"default"``), for the report.
+    """
+    sysc = adjust.systematic
+    ref = manifest.reference
+    src: dict[str, Any] = {}
+    upd: dict[str, Any] = {}
+    if sysc.reference_sigma_m is None:
+        declared = ref.accuracy_m
+        upd["reference_sigma_m"] = (
+            declared if declared is not None else DEFAULT_REFERENCE_ACCURACY_REF_PX * ref_gsd_m
+        )
+        src["reference_sigma_m"] = "scene" if declared is not None else "default"
+    else:
+        src["reference_sigma_m"] = "config"
+    if sysc.reference_patch_m is None and ref.accuracy_length_m is not None:
+        upd["reference_patch_m"] = ref.accuracy_length_m
+        src["reference_patch_m"] = "scene"
+    else:
+        src["reference_patch_m"] = "config" if sysc.reference_patch_m is not None else "default"
+    if sysc.ccd_offset_sigma_px is None:
+        values = [
+            s.ccd_accuracy_px
+            for s in manifest.strips
+            if s.id in strip_ids and s.ccd_accuracy_px is not None
+        ]
+        upd["ccd_offset_sigma_px"] = max(values) if values else DEFAULT_CCD_ACCURACY_PX
+        src["ccd_offset_sigma_px"] = "scene" if values else "default"
+    else:
+        src["ccd_offset_sigma_px"] = "config"
+    new = sysc.model_copy(update=upd)
+    return adjust.model_copy(update={"systematic": new}), src
 
 
 def joint_network(preps: list[StripMcps], ties: TiePoints, cfg: GeorefConfig) -> Network:
