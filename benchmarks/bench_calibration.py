@@ -65,12 +65,13 @@ def _override(cfg: Any, sets: list[str]) -> Any:
     return config_from_mapping(data)
 
 
-def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
+def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str, Any]]:
     """Re-adjust a run's MCPs and compare formal and true ground errors per strip."""
     from planetref.adjust.api import adjust
     from planetref.adjust.precision import formal_ground_precision
     from planetref.adjust.problem import Network
     from planetref.control import read_mcps
+    from planetref.ground_sigma import reference_gsd_m
     from planetref.pipeline.georef_report import check_block
     from planetref.pipeline.inputs import (
         open_reference,
@@ -79,8 +80,13 @@ def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
         truth_inputs,
         truth_terrain,
     )
-    from planetref.ground_sigma import reference_gsd_m
-    from planetref.pipeline.networks import mcp_ground_sigmas, systematic_settings
+    from planetref.pipeline.matchers import matcher_options
+    from planetref.pipeline.networks import (
+        mcp_ground_sigmas,
+        systematic_settings,
+        template_overlap,
+        template_support_m,
+    )
     from planetref.pipeline.scene import load_manifest
 
     manifest, root = load_manifest(scene_path(scene))
@@ -108,7 +114,12 @@ def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
             check=check,
             **mcp_ground_sigmas(table),
         )
-        adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], reference_gsd_m(ref))
+        gsd = reference_gsd_m(ref)
+        support = template_support_m(
+            matcher, matcher_options(matcher, cfg, gsd)[0], cfg.frontend.fine_upsample, gsd
+        )
+        overlap = template_overlap(table["ref_x"], table["ref_y"], support)
+        adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], gsd, overlap)
         cpu = time.process_time()
         result = adjust(network, adjust_cfg)
         cpu = time.process_time() - cpu
@@ -132,6 +143,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any) -> list[dict[str, Any]]:
                 "ratio_meas": true["geoloc_rmse_m"] / meas["rms_m"],
                 "sigma0": result.sigma0,
                 "sigma0_before_vce": result.variance.get("sigma0_before"),
+                "measurement_overlap": result.variance.get("measurement_overlap"),
                 "vce_factors": {
                     g["group"]: round(float(g["sigma_scale"]), 4)
                     for g in groups
@@ -178,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
                         progress=False,
                         overwrite=True,
                     )
-                strips = measure(scene, run_dir, cfg)
+                strips = measure(scene, run_dir, cfg, matcher)
             except PlanetrefError as exc:
                 out.append(row | {"failed": str(exc)})
                 continue

@@ -241,6 +241,7 @@ def _adjust(
     variance = {
         "enabled": cfg.variance.enabled,
         "sigma0_before": sigma0_before,
+        "measurement_overlap": cfg.systematic.measurement_overlap,
         "iterations": vce.iterations,
         "converged": vce.converged,
         "groups": vce.groups,
@@ -364,7 +365,8 @@ def _consider(
         ``(terms, covariance of the measurements alone)``; ``terms`` is ``None`` when no
         correlated error is declared (the covariance is then unchanged).
     """
-    cov_meas = np.asarray(stats["covariance"])
+    # Observations sharing their pixels (dense templates) are fewer independent ones.
+    cov_meas = np.asarray(stats["covariance"]) * cfg.systematic.measurement_overlap
     weighted_mcp = (
         _is_kind(net, "mcp") & ~solver.point_fixed & ~_rows_all(np.isinf(net.point_sigma_m))
     )
@@ -376,6 +378,8 @@ def _consider(
         net, cfg.systematic, weighted_mcp, estimated
     )
     if not names:
+        if cfg.systematic.measurement_overlap != 1.0:
+            _set_covariance(stats, cov_meas)
         return None, cov_meas
     g = solver.consider_sensitivity(
         c,
@@ -397,13 +401,17 @@ def _consider(
         patch_m=cfg.systematic.patch_m,
         n_patches=n_patch,
     )
-    cov = cov_meas + terms.covariance
+    _set_covariance(stats, cov_meas + terms.covariance)
+    return terms, cov_meas
+
+
+def _set_covariance(stats: dict[str, Any], cov: F64) -> None:
+    """Replace ``stats``' covariance and the sigmas and correlations read from it."""
     sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = cov / sig[:, None] / sig[None, :]
     corr[~np.isfinite(corr)] = 0.0
     stats["covariance"], stats["sigma"], stats["correlation"] = cov, sig, corr
-    return terms, cov_meas
 
 
 def _put_rows(dst: F64, rows: NDArray[np.intp], src: F64, valid: NDArray[np.bool_]) -> None:

@@ -509,11 +509,16 @@ class SystematicConfig(Settings):
         ccd_offset_sigma_px: Per-axis sigma (image pixels) of each CCD's placement error
             left by the calibration; ``None`` or 0: none. Not used for cameras whose CCD
             placement is estimated (weighted or free).
+        measurement_overlap: Mean number of observations per independent measurement
+            (dense area-based matches sharing template pixels, see
+            :func:`planetref.pipeline.networks.template_overlap`); the measurements'
+            share of the covariance is multiplied by it. 1: independent.
     """
 
     reference_sigma_m: Metres = None
     reference_patch_m: Metres = None
     ccd_offset_sigma_px: float | None = Field(None, ge=0.0)
+    measurement_overlap: float = Field(1.0, ge=1.0)
 
     @model_validator(mode="after")
     def _positive(self) -> SystematicConfig:

@@ -84,6 +84,8 @@ from planetref.pipeline.networks import (
     joint_network,
     mcp_ground_sigmas,
     systematic_settings,
+    template_overlap,
+    template_support_m,
 )
 from planetref.pipeline.ortho_strip import GDAL_CACHE_MB
 from planetref.pipeline.rundir import RunDir, config_digest
@@ -453,7 +455,11 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         **mcp_ground_sigmas(table),
     )
     adjust_cfg, declared = systematic_settings(
-        cfg.adjust, job.manifest, [prep.id], reference_gsd_m(job.ref)
+        cfg.adjust,
+        job.manifest,
+        [prep.id],
+        reference_gsd_m(job.ref),
+        mcp_overlap(job, [table]),
     )
     t0 = time.perf_counter()
     result = adjust(network, adjust_cfg)
@@ -502,6 +508,19 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     return out
 
 
+def mcp_overlap(job: StripJob, tables: list[Any]) -> float:
+    """Mean number of MCPs per independent measurement (:func:`template_overlap`)."""
+    fine = job.matchers.fine
+    support = template_support_m(
+        fine.name, fine.options, job.cfg.frontend.fine_upsample, reference_gsd_m(job.ref)
+    )
+    if support is None:
+        return 1.0
+    x = np.concatenate([np.asarray(t["ref_x"], float) for t in tables])
+    y = np.concatenate([np.asarray(t["ref_y"], float) for t in tables])
+    return template_overlap(x, y, support)
+
+
 def _adjust_together(
     job: StripJob, preps: list[StripMcps]
 ) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
@@ -539,7 +558,11 @@ def _adjust_together(
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg)
     adjust_cfg, declared = systematic_settings(
-        cfg.adjust, job.manifest, [p.id for p in preps], reference_gsd_m(job.ref)
+        cfg.adjust,
+        job.manifest,
+        [p.id for p in preps],
+        reference_gsd_m(job.ref),
+        mcp_overlap(job, [p.table for p in preps]),
     )
     t0 = time.perf_counter()
     result = adjust(network, adjust_cfg)

@@ -175,6 +175,7 @@ def variance_block(result: AdjustmentResult) -> dict[str, Any]:
     consider = getattr(result, "consider", None)
     return {
         "sigma0_before_vce": variance.get("sigma0_before"),
+        "measurement_overlap": variance.get("measurement_overlap"),
         "sigma0_real": result.summary().get("sigma0_real"),
         "dof": variance.get("dof"),
         "variance_components": variance.get("groups"),

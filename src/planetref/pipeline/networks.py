@@ -31,6 +31,8 @@ __all__ = [
     "joint_network",
     "mcp_ground_sigmas",
     "systematic_settings",
+    "template_overlap",
+    "template_support_m",
 ]
 
 #: The reference's planimetric accuracy (reference pixels, per axis) when neither the run
@@ -63,8 +65,55 @@ def mcp_ground_sigmas(table: Any) -> dict[str, Any]:
     return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
 
 
+def template_support_m(
+    name: str, options: Any, fine_upsample: int, ref_gsd_m: float
+) -> float | None:
+    """Ground size (m) of the pixels one match is computed from, for area-based matchers.
+
+    NCC correlates a square template of ``2 t + 1`` fine-grid pixels (``ref_gsd_m /
+    fine_upsample`` each); dense templates a few pixels apart share most of them, so
+    their errors are not independent. Feature matchers: ``None`` (their keypoints are
+    sparse; the descriptors' supports seldom overlap).
+    """
+    if name != "ncc" or "template_radius" not in options:
+        return None
+    return (2 * int(options["template_radius"]) + 1) * ref_gsd_m / max(int(fine_upsample), 1)
+
+
+def template_overlap(ref_x: Any, ref_y: Any, support_m: float | None) -> float:
+    """Mean number of MCPs per independent measurement (1: independent), from their overlap.
+
+    Two matches whose square supports of side ``support_m`` overlap by a fraction
+    ``rho = (1 - |dx|/T)(1 - |dy|/T)`` of their pixels share that fraction of their
+    error (a correlation model of area-based matching). The mean over the MCPs of
+    ``sum_j rho_ij`` (itself included) is the factor ``N / N_eff`` by which the
+    measurements' covariance of a least-squares estimate from them is too small when
+    they are taken as independent. Computed on a grid of ``T / 8`` cells with the
+    triangle kernel (exact to the cell size).
+    """
+    x = np.asarray(ref_x, float)
+    y = np.asarray(ref_y, float)
+    if support_m is None or not support_m > 0 or x.size < 2:
+        return 1.0
+    from scipy.signal import fftconvolve
+
+    cell = support_m / 8.0
+    ix = np.floor((x - x.min()) / cell).astype(np.intp)
+    iy = np.floor((y - y.min()) / cell).astype(np.intp)
+    hist = np.zeros((int(iy.max()) + 1, int(ix.max()) + 1))
+    np.add.at(hist, (iy, ix), 1.0)
+    k = np.arange(-8, 9)
+    tri = np.clip(1.0 - np.abs(k) / 8.0, 0.0, None)
+    dens = fftconvolve(hist, np.outer(tri, tri), mode="same")
+    return float(max(np.mean(dens[iy, ix]), 1.0))
+
+
 def systematic_settings(
-    adjust: AdjustConfig, manifest: SceneManifest, strip_ids: list[str], ref_gsd_m: float
+    adjust: AdjustConfig,
+    manifest: SceneManifest,
+    strip_ids: list[str],
+    ref_gsd_m: float,
+    overlap: float = 1.0,
 ) -> tuple[AdjustConfig, dict[str, Any]]:
     """The adjustment settings with the declared accuracies of the correlated errors.
 
@@ -73,6 +122,9 @@ def systematic_settings(
     ``ccd_accuracy_px``, the largest of ``strip_ids``), else from the defaults
     (:data:`DEFAULT_REFERENCE_ACCURACY_REF_PX` reference pixels,
     :data:`DEFAULT_CCD_ACCURACY_PX`).
+
+    ``overlap`` (:func:`template_overlap` of the MCPs) becomes ``measurement_overlap``
+    unless the config sets one above 1.
 
     Returns:
         ``(settings, source)``: the adjustment settings and, per value, where it came
@@ -105,6 +157,11 @@ def systematic_settings(
         src["ccd_offset_sigma_px"] = "scene" if values else "default"
     else:
         src["ccd_offset_sigma_px"] = "config"
+    if sysc.measurement_overlap == 1.0:
+        upd["measurement_overlap"] = max(float(overlap), 1.0)
+        src["measurement_overlap"] = "matches"
+    else:
+        src["measurement_overlap"] = "config"
     new = sysc.model_copy(update=upd)
     return adjust.model_copy(update={"systematic": new}), src
 

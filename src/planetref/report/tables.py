@@ -181,8 +181,20 @@ def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], l
 
 
 def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """True geolocation error before and after (only runs with truth)."""
-    header = ["Matcher", "before (m)", "after (m)", "after (px)", "max after (m)"]
+    """True geolocation error before and after, the formal precision and their ratio.
+
+    Only runs with truth; ``formal (m)`` and ``true/formal`` are empty for reports
+    written before they existed.
+    """
+    header = [
+        "Matcher",
+        "before (m)",
+        "after (m)",
+        "after (px)",
+        "max after (m)",
+        "formal (m)",
+        "true/formal",
+    ]
     rows = [
         [
             name,
@@ -190,6 +202,8 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
             c.get("geoloc_rmse_m"),
             c.get("geoloc_rmse_px"),
             c.get("geoloc_max_m"),
+            c.get("formal_rmse_m"),
+            c.get("true_over_formal"),
         ]
         for name, rep in runs.items()
         if (c := rep.get("check"))
