@@ -82,6 +82,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
     )
     from planetref.pipeline.matchers import matcher_options
     from planetref.pipeline.networks import (
+        check_points,
         mcp_ground_sigmas,
         systematic_settings,
         template_overlap,
@@ -98,11 +99,14 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         camera, _ = strip_cameras(manifest, root, strip)
         table = read_mcps(run_dir / strip.id / "mcps.parquet")
         n = len(table)
-        rng = np.random.default_rng(cfg.mcp.seed)
-        check = np.zeros(n, bool)
-        n_check = round(cfg.mcp.check_fraction * n)
-        if n_check and n - n_check >= cfg.mcp.min_mcps:
-            check[rng.choice(n, n_check, replace=False)] = True
+        check = check_points(
+            table["tile_id"],
+            table["ccd"],
+            cfg.mcp.check_fraction,
+            cfg.mcp.min_mcps,
+            cfg.mcp.seed,
+            cfg.mcp.check_blocks,
+        )
         network = Network.mcps(
             camera,
             line=table["line"],
@@ -150,6 +154,10 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
                     if g.get("estimated")
                 },
                 "rmse_px": result.metrics["all"]["after"]["rmse_px"],
+                "check_px": (result.metrics.get("check") or {}).get("after", {}).get("rms_px"),
+                "check_m": (result.metrics.get("check") or {}).get("after", {}).get("rms_m"),
+                "warnings": list(result.warnings),
+                "self_calibration_check": result.diagnostics.get("self_calibration_check"),
                 "systematic": None if result.consider is None else result.consider.summary(),
                 "adjust_cpu_s": cpu,
             }

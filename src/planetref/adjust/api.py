@@ -73,16 +73,80 @@ def adjust(
         InputError: Invalid configuration or cameras that cannot be adjusted.
     """
     with single_threaded_blas():
-        return _adjust(network, config, progress)
+        cfg = validate_config(config if config is not None else {})
+        result = _adjust(network, cfg, progress)
+        if cfg.diagnostics.check_self_calibration and _self_calibrating(cfg):
+            _check_self_calibration(result, network, cfg)
+        return result
+
+
+def _self_calibrating(cfg: AdjustConfig) -> bool:
+    """An optional camera-calibration block (interior, CCD placement) is adjusted."""
+    ls = cfg.linescan
+    return ls.interior.mode != "fixed" or ls.ccd_placement.mode != "fixed"
+
+
+def _check_self_calibration(result: AdjustmentResult, network: Network, cfg: AdjustConfig) -> None:
+    """Flag a self-calibration block that raises the check error.
+
+    The adjustment is repeated with the interior and the CCD placement fixed; when the
+    block lowers the inliers' RMSE but the independent check observations (held-out
+    tiles) fit worse, the block fits the MCPs' own errors (a reference's offsets, a
+    matcher's bias) rather than the camera: a warning says so and
+    ``diagnostics["self_calibration_check"]`` holds both runs' figures.
+    """
+    check = result.metrics.get("check")
+    if not check or not check["after"]["n"]:
+        return
+    ls = cfg.linescan
+    fixed = cfg.model_copy(
+        update={
+            "linescan": ls.model_copy(
+                update={
+                    "interior": ls.interior.model_copy(update={"mode": "fixed"}),
+                    "ccd_placement": ls.ccd_placement.model_copy(update={"mode": "fixed"}),
+                }
+            )
+        }
+    )
+    try:
+        base = _adjust(network, fixed, None)
+    except AdjustmentError as exc:
+        log.info("self-calibration check: the adjustment without it failed (%s)", exc)
+        return
+    rmse_on = result.metrics["all"]["after"]["rmse_px"]
+    rmse_off = base.metrics["all"]["after"]["rmse_px"]
+    chk_on = check["after"]["rms_px"]
+    chk_off = base.metrics["check"]["after"]["rms_px"]
+    # Any rise of the check error flags the block: the check points are whole tiles the
+    # adjustment never saw, the only independent measure of the camera it has.
+    flagged = bool(chk_on > chk_off)
+    result.diagnostics["self_calibration_check"] = {
+        "rmse_px": rmse_on,
+        "rmse_px_without": rmse_off,
+        "check_rms_px": chk_on,
+        "check_rms_px_without": chk_off,
+        "check_rms_m": check["after"]["rms_m"],
+        "check_rms_m_without": base.metrics["check"]["after"]["rms_m"],
+        "raises_check_error": flagged,
+    }
+    if flagged:
+        msg = (
+            f"self-calibration (interior {ls.interior.mode}, CCD placement "
+            f"{ls.ccd_placement.mode}) raises the check error ({chk_off:.3g} -> {chk_on:.3g} px"
+            f" on the held-out tiles; RMSE {rmse_off:.3g} -> {rmse_on:.3g} px): it fits the "
+            f"control's own errors, not the camera; keep the interior fixed"
+        )
+        result.warnings.append(msg)
+        log.warning(msg)
 
 
 def _adjust(
     network: Network,
-    config: AdjustConfig | dict[str, Any] | None,
+    cfg: AdjustConfig,
     progress: Callable[[str], None] | None,
 ) -> AdjustmentResult:
     t0 = time.perf_counter()
-    cfg = validate_config(config if config is not None else {})
     net = network
     warnings: list[str] = []
 

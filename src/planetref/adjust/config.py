@@ -410,13 +410,19 @@ class DiagnosticsConfig(Settings):
         separable_sigma_ratio: A self-calibration parameter is reported *not separable*
             when its a-posteriori sigma is more than this fraction of its a-priori
             sigma (the observations hardly improved on the prior) or when it correlates
-            above ``max_correlation`` with another parameter.
+            above ``max_correlation`` with another parameter. The sigmas are those of
+            the full covariance (with the declared correlated errors,
+            :class:`SystematicConfig`).
+        check_self_calibration: When an optional calibration block (interior, CCD
+            placement) is adjusted and there are check observations, repeat the
+            adjustment without it and warn when the block raises the check error.
     """
 
     point_shift_sigmas: float = Field(3.0, gt=0.0)
     camera_shift_m: float = Field(100.0, gt=0.0)
     max_correlation: float = Field(0.99, gt=0.0, le=1.0)
     separable_sigma_ratio: float = Field(0.5, gt=0.0, le=1.0)
+    check_self_calibration: bool = True
 
 
 class SolverConfig(Settings):

@@ -81,6 +81,7 @@ from planetref.pipeline.matchers import (
 )
 from planetref.pipeline.networks import (
     StripMcps,
+    check_points,
     joint_network,
     mcp_ground_sigmas,
     systematic_settings,
@@ -428,11 +429,14 @@ def _strip_mcps(job: StripJob) -> StripMcps:
             f"at least {cfg.mcp.min_mcps} are needed. "
             "See planetref.log for why tiles failed"
         )
-    rng = np.random.default_rng(cfg.mcp.seed)
-    check = np.zeros(n, bool)
-    n_check = round(cfg.mcp.check_fraction * n)
-    if n_check and n - n_check >= cfg.mcp.min_mcps:
-        check[rng.choice(n, n_check, replace=False)] = True
+    check = check_points(
+        table["tile_id"],
+        table["ccd"],
+        cfg.mcp.check_fraction,
+        cfg.mcp.min_mcps,
+        cfg.mcp.seed,
+        cfg.mcp.check_blocks,
+    )
     return StripMcps(strip.id, camera, images, sizes, table, check, out)
 
 

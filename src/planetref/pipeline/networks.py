@@ -28,6 +28,7 @@ __all__ = [
     "DEFAULT_CCD_ACCURACY_PX",
     "DEFAULT_REFERENCE_ACCURACY_REF_PX",
     "StripMcps",
+    "check_points",
     "joint_network",
     "mcp_ground_sigmas",
     "systematic_settings",
@@ -63,6 +64,49 @@ def mcp_ground_sigmas(table: Any) -> dict[str, Any]:
     xy = np.asarray(cols["sigma_ground_xy_m"], float)
     h = np.asarray(cols["sigma_ground_h_m"], float)
     return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
+
+
+def check_points(
+    tile_id: Any, ccd: Any, fraction: float, min_mcps: int, seed: int, blocks: str = "tiles"
+) -> NDArray[np.bool_]:
+    """The MCPs held out as check points.
+
+    ``tiles``: whole tiles in a seeded random order until at least ``fraction`` of the
+    MCPs are held out; a tile is skipped when holding it would leave fewer than
+    ``min_mcps`` adjusted MCPs or a CCD without any. ``random``: ``round(fraction * n)``
+    single MCPs (when ``min_mcps`` remain).
+
+    Args:
+        tile_id: Tile of each MCP.
+        ccd: CCD of each MCP.
+        fraction: Share to hold out.
+        min_mcps: Fewest MCPs the adjustment needs.
+        seed: Seed of the draw.
+        blocks: ``"tiles"`` or ``"random"``.
+    """
+    tiles = np.asarray(tile_id).astype(str)
+    ccds = np.asarray(ccd).astype(str)
+    n = len(tiles)
+    check = np.zeros(n, bool)
+    target = round(fraction * n)
+    rng = np.random.default_rng(seed)
+    if not target or n - target < min_mcps:
+        return check
+    if blocks == "random":
+        check[rng.choice(n, target, replace=False)] = True
+        return check
+    names, code = np.unique(tiles, return_inverse=True)
+    for t in rng.permutation(len(names)):
+        if np.count_nonzero(check) >= target:
+            break
+        on = code == t
+        rest = ~check & ~on
+        if np.count_nonzero(rest) < min_mcps:
+            continue
+        if any(not np.any(rest & (ccds == c)) for c in np.unique(ccds[on])):
+            continue
+        check |= on
+    return check
 
 
 def template_support_m(
