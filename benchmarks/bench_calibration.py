@@ -128,7 +128,9 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         result = adjust(network, adjust_cfg)
         cpu = time.process_time() - cpu
         true = check_block(result, {strip.id: truth_cams[strip.id]}, terrain)
+        cpu_formal = time.process_time()
         formal = formal_ground_precision(result, strip.id, terrain=terrain)
+        cpu_formal = time.process_time() - cpu_formal
         cov_meas = getattr(result, "covariance_measurement", None)
         meas = (
             formal_ground_precision(result, strip.id, terrain=terrain, covariance=cov_meas)
@@ -160,6 +162,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
                 "self_calibration_check": result.diagnostics.get("self_calibration_check"),
                 "systematic": None if result.consider is None else result.consider.summary(),
                 "adjust_cpu_s": cpu,
+                "formal_cpu_s": cpu_formal,
             }
         )
     return rows

@@ -67,6 +67,49 @@ def ground_jacobian(
     return out
 
 
+def analytic_ground_jacobian(
+    model: Any,
+    x: F64,
+    active: NDArray[np.intp],
+    line: F64,
+    sample: F64,
+    ccd: str,
+    height: float,
+) -> F64:
+    """:func:`ground_jacobian` from the model's analytic partials (one projection).
+
+    The grid pixels' ground points at ``height`` are projected with the partials of
+    ``(line, sample)`` by the parameters ``P`` and by the ground ``G``; holding the pixel
+    and the height, the ground moves in the local east-north plane by
+    ``-(G E^T)^-1 P`` per parameter (``E`` the east and north unit vectors).
+    """
+    from planetref.adjust.problem import enu_rotation
+
+    cam = model.build(x)
+    xyz = cam.image_to_ground(line, sample, height, ccd=ccd, on_miss="nan")
+    out = np.full((len(line), 3, len(active)), np.nan)
+    ok = np.all(np.isfinite(xyz), axis=1)
+    if not np.any(ok):
+        return out
+    idx = list(cam.ccd_names).index(ccd)
+    ev = model.evaluate(x, xyz[ok], idx, np.asarray(line, np.float64)[ok], partials=True)
+    en = enu_rotation(xyz[ok])[:, :2, :]  # (m, 2, 3)
+    a = np.einsum("mij,mkj->mik", ev.d_ground, en)  # d(line, sample)/d(east, north)
+    move = -np.linalg.solve(a, ev.d_params)  # (m, 2, q): east, north per parameter
+    xyz_move = np.einsum("mki,mkq->miq", en, move)  # (m, 3, q)
+    cols = np.asarray(model.pattern_columns)[ev.pattern]  # (m, q) local, -1 padding
+    full = np.zeros((int(np.count_nonzero(ok)), 3, len(x)))
+    rows = np.broadcast_to(np.arange(len(cols))[:, None], cols.shape)
+    keep = cols >= 0
+    for axis in range(3):
+        np.add.at(full[:, axis, :], (rows[keep], cols[keep]), xyz_move[:, axis, :][keep])
+    good = np.asarray(ev.valid, bool)
+    sub = full[:, :, active]
+    sub[~good] = np.nan
+    out[ok] = sub
+    return out
+
+
 def _mean_height(cam: Any, line: F64, sample: F64, ccd: str, terrain: Any) -> float:
     """Mean ellipsoid height (m) of the grid's terrain intersections.
 
@@ -146,7 +189,11 @@ def formal_ground_precision(
         height = _mean_height(cam, line, sample, ccd, terrain)
         tr = np.zeros(len(line))
         if active.size:
-            jac = ground_jacobian(model, x, sig, active, line, sample, ccd, height)
+            try:
+                jac = analytic_ground_jacobian(model, x, active, line, sample, ccd, height)
+            except (AttributeError, TypeError, ValueError, np.linalg.LinAlgError):
+                # Models without analytic partials in this form: central differences.
+                jac = ground_jacobian(model, x, sig, active, line, sample, ccd, height)
             tr = np.einsum("nik,kl,nil->n", jac, c_loc[np.ix_(active, active)], jac)
         if consider is not None:
             g = consider.sensitivity[loc][active]  # (k, K)
