@@ -429,8 +429,19 @@ def _consider(
         ``(terms, covariance of the measurements alone)``; ``terms`` is ``None`` when no
         correlated error is declared (the covariance is then unchanged).
     """
-    # Observations sharing their pixels (dense templates) are fewer independent ones.
-    cov_meas = np.asarray(stats["covariance"]) * cfg.systematic.measurement_overlap
+    cov_meas = np.asarray(stats["covariance"])
+    f = cfg.systematic.measurement_overlap
+    if f != 1.0:
+        # Observations sharing their pixels (dense templates) are fewer independent
+        # ones: their errors' covariance is f times the independent one's. The
+        # estimator's (sandwich) covariance is S^-1 (f S_obs + P) S^-1 with S = S_obs + P
+        # (P: the camera priors and constraints, independent pseudo-observations), i.e.
+        # f Q - (f - 1) Q P Q: parameters known from their priors alone keep their sigma.
+        q = np.asarray(stats["cofactor"])
+        prior = np.diag(solver.prior_w)
+        if solver.con_n is not None:
+            prior = prior + solver.con_n
+        cov_meas = float(stats["sigma0"]) ** 2 * (f * q - (f - 1.0) * (q @ prior @ q))
     weighted_mcp = (
         _is_kind(net, "mcp") & ~solver.point_fixed & ~_rows_all(np.isinf(net.point_sigma_m))
     )
