@@ -122,6 +122,7 @@ class AdjustmentResult:
             "n_unusable": int(np.count_nonzero(self.status == "unusable")),
             "n_check": int(np.count_nonzero(self.status == "check")),
             "sigma0": self.sigma0,
+            "sigma0_before_vce": self.variance.get("sigma0_before"),
             "sigma0_real": dof.get("sigma0_real"),
             "dof": self.dof,
             "redundancy_real": dof.get("redundancy_real"),
