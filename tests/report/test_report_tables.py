@@ -107,6 +107,15 @@ def test_csv_markdown_latex_agree():
     assert tex.splitlines()[4].startswith(r"\begin{tabular}{ll" + "r" * 7)
 
 
+def test_adjustment_rows_with_check_points():
+    run = _run()
+    run["adjustment"]["check_mcps"] = {"after": {"rms_px": 1.2, "rms_m": 3.0, "n": 40}}
+    h, rows = adjustment_rows({"sift": run, "ncc": _run()})
+    i = h.index("Check (px)")
+    assert h[i + 1] == "Check (m)" and rows[0][i : i + 2] == [1.2, 3.0]
+    assert rows[1][i : i + 2] == [None, None]
+
+
 def test_truth_and_timing_rows():
     runs = {"a": _run(), "b": _run(check=False)}
     h, rows = truth_rows(runs)

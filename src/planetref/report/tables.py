@@ -158,26 +158,41 @@ def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], lis
 
 
 def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Table 2: per strip, per matcher; per-axis RMSE where the reports hold it."""
+    """Table 2: per strip, per matcher; per-axis RMSE and check points where held.
+
+    The check columns are the RMS error of the held-out check points (image px and
+    metres), shown when some report holds them.
+    """
     blocks = [
         (name, sid, s["adjustment"])
         for name, rep in runs.items()
         for sid, s in (rep.get("strips") or {"strip": {"adjustment": rep["adjustment"]}}).items()
     ]
     extra = [(h, k) for h, k in EXTRA_ADJ if any(k in a for _, _, a in blocks)]
+    # The held-out check points (whole tiles): the independent counterpart of the RMSE.
+    checked = any(_check_after(a) for _, _, a in blocks)
     header = (
         ["Matcher", "Strip"]
         + [h for h, _ in ADJ_COLUMNS]
         + [h for h, _ in extra]
+        + (["Check (px)", "Check (m)"] if checked else [])
         + ["RMSE before", "sigma0", "n"]
     )
     rows = [
         [name, sid]
         + [a.get(k) for _, k in ADJ_COLUMNS + extra]
+        + ([_check_after(a).get("rms_px"), _check_after(a).get("rms_m")] if checked else [])
         + [a.get("rmse_px_before"), a.get("sigma0"), a.get("n_total")]
         for name, sid, a in blocks
     ]
     return header, rows
+
+
+def _check_after(block: Mapping[str, Any]) -> dict[str, Any]:
+    """The check points' metrics after the adjustment (empty when none were held out)."""
+    chk = block.get("check_mcps") or {}
+    after = chk.get("after") or {}
+    return dict(after) if after.get("n") else {}
 
 
 def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
