@@ -4,8 +4,10 @@ The adjustment's parameter covariance says how well the cameras are known; what 
 (and a simulated scene's truth check) reads is a ground position. This module propagates
 the covariance to the ground: for each pixel of the same regular grid that
 :func:`~planetref.metrics.geolocation_error` measures the true error on, the ground point
-at fixed terrain moves with the parameters as ``dX = J dc`` (``J`` by central differences of
-:meth:`image_to_ground`, metres per parameter unit), so its covariance is ``J C J^T`` and
+at fixed terrain moves with the parameters as ``dX = J dc`` (``J`` from the model's
+analytic partials, :func:`analytic_ground_jacobian`, or by central differences of
+:meth:`image_to_ground`, :func:`ground_jacobian`; metres per parameter unit), so its
+covariance is ``J C J^T`` and
 the expected squared ground error is its trace. The RMS over the grid is the formal
 counterpart of the true RMS ground error; their ratio ``true / formal`` is ~1 when the
 covariance means what it says.
@@ -20,7 +22,7 @@ from numpy.typing import NDArray
 
 from planetref.metrics import image_grid
 
-__all__ = ["formal_ground_precision", "ground_jacobian"]
+__all__ = ["analytic_ground_jacobian", "formal_ground_precision", "ground_jacobian"]
 
 F64 = NDArray[np.float64]
 
