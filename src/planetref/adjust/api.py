@@ -467,6 +467,11 @@ def _consider(
         key,
         n_key,
     )
+    if np.any(solver.point_fixed[net.obs_point[inlier]]):
+        log.warning(
+            "the declared CCD offsets act on the observations of weighted and free points "
+            "only: those of fixed points do not enter the covariance's correlated part"
+        )
     terms = ConsiderTerms(
         names=names,
         units=units,
