@@ -53,6 +53,8 @@ def _run(ncp=(10, 20, 30), rmse=0.5, extra=None, check=True):
             "geoloc_rmse_m": 1.5,
             "geoloc_rmse_px": 0.6,
             "geoloc_max_m": 3.0,
+            "formal_rmse_m": 1.2,
+            "true_over_formal": 1.25,
         }
         if check
         else None,
@@ -105,10 +107,20 @@ def test_csv_markdown_latex_agree():
     assert tex.splitlines()[4].startswith(r"\begin{tabular}{ll" + "r" * 7)
 
 
+def test_adjustment_rows_with_check_points():
+    run = _run()
+    run["adjustment"]["check_mcps"] = {"after": {"rms_px": 1.2, "rms_m": 3.0, "n": 40}}
+    h, rows = adjustment_rows({"sift": run, "ncc": _run()})
+    i = h.index("Check (px)")
+    assert h[i + 1] == "Check (m)" and rows[0][i : i + 2] == [1.2, 3.0]
+    assert rows[1][i : i + 2] == [None, None]
+
+
 def test_truth_and_timing_rows():
     runs = {"a": _run(), "b": _run(check=False)}
     h, rows = truth_rows(runs)
     assert [r[0] for r in rows] == ["a"] and rows[0][1:3] == [100.0, 1.5]
+    assert h[-2:] == ["formal (m)", "true/formal"] and rows[0][-2:] == [1.2, 1.25]
     h, rows = timing_rows(runs)
     assert h[-1] == "matching per tile (s)" and rows[0][-1] == pytest.approx(2.0)
 

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig, validate_config
+from planetref.adjust.consider import ConsiderTerms, consider_layout
 from planetref.adjust.evaluation import (
     check_metrics,
     diagnostics,
@@ -72,16 +73,80 @@ def adjust(
         InputError: Invalid configuration or cameras that cannot be adjusted.
     """
     with single_threaded_blas():
-        return _adjust(network, config, progress)
+        cfg = validate_config(config if config is not None else {})
+        result = _adjust(network, cfg, progress)
+        if cfg.diagnostics.check_self_calibration and _self_calibrating(cfg):
+            _check_self_calibration(result, network, cfg)
+        return result
+
+
+def _self_calibrating(cfg: AdjustConfig) -> bool:
+    """An optional camera-calibration block (interior, CCD placement) is adjusted."""
+    ls = cfg.linescan
+    return ls.interior.mode != "fixed" or ls.ccd_placement.mode != "fixed"
+
+
+def _check_self_calibration(result: AdjustmentResult, network: Network, cfg: AdjustConfig) -> None:
+    """Flag a self-calibration block that raises the check error.
+
+    The adjustment is repeated with the interior and the CCD placement fixed; when the
+    block lowers the inliers' RMSE but the independent check observations (held-out
+    tiles) fit worse, the block fits the MCPs' own errors (a reference's offsets, a
+    matcher's bias) rather than the camera: a warning says so and
+    ``diagnostics["self_calibration_check"]`` holds both runs' figures.
+    """
+    check = result.metrics.get("check")
+    if not check or not check["after"]["n"]:
+        return
+    ls = cfg.linescan
+    fixed = cfg.model_copy(
+        update={
+            "linescan": ls.model_copy(
+                update={
+                    "interior": ls.interior.model_copy(update={"mode": "fixed"}),
+                    "ccd_placement": ls.ccd_placement.model_copy(update={"mode": "fixed"}),
+                }
+            )
+        }
+    )
+    try:
+        base = _adjust(network, fixed, None)
+    except AdjustmentError as exc:
+        log.info("self-calibration check: the adjustment without it failed (%s)", exc)
+        return
+    rmse_on = result.metrics["all"]["after"]["rmse_px"]
+    rmse_off = base.metrics["all"]["after"]["rmse_px"]
+    chk_on = check["after"]["rms_px"]
+    chk_off = base.metrics["check"]["after"]["rms_px"]
+    # Any rise of the check error flags the block: the check points are whole tiles the
+    # adjustment never saw, the only independent measure of the camera it has.
+    flagged = bool(chk_on > chk_off)
+    result.diagnostics["self_calibration_check"] = {
+        "rmse_px": rmse_on,
+        "rmse_px_without": rmse_off,
+        "check_rms_px": chk_on,
+        "check_rms_px_without": chk_off,
+        "check_rms_m": check["after"]["rms_m"],
+        "check_rms_m_without": base.metrics["check"]["after"]["rms_m"],
+        "raises_check_error": flagged,
+    }
+    if flagged:
+        msg = (
+            f"self-calibration (interior {ls.interior.mode}, CCD placement "
+            f"{ls.ccd_placement.mode}) raises the check error ({chk_off:.3g} -> {chk_on:.3g} px"
+            f" on the held-out tiles; RMSE {rmse_off:.3g} -> {rmse_on:.3g} px): it fits the "
+            f"control's own errors, not the camera; keep the interior fixed"
+        )
+        result.warnings.append(msg)
+        log.warning(msg)
 
 
 def _adjust(
     network: Network,
-    config: AdjustConfig | dict[str, Any] | None,
+    cfg: AdjustConfig,
     progress: Callable[[str], None] | None,
 ) -> AdjustmentResult:
     t0 = time.perf_counter()
-    cfg = validate_config(config if config is not None else {})
     net = network
     warnings: list[str] = []
 
@@ -232,6 +297,9 @@ def _adjust(
             f"result is that of the last round"
         )
     inlier = last_used
+    # sigma0 of the a-priori weights, before VCE rescales them to ~1 (what it says about
+    # the stochastic model is lost once the components absorb it).
+    sigma0_before = float(stats["sigma0"])
     # Variance components on the final inliers (plain least squares), then the residuals
     # of the final solution.
     c, xyz, stats, vce = variance_components(
@@ -239,11 +307,14 @@ def _adjust(
     )
     variance: dict[str, Any] = {
         "enabled": cfg.variance.enabled,
+        "sigma0_before": sigma0_before,
+        "measurement_overlap": cfg.systematic.measurement_overlap,
         "iterations": vce.iterations,
         "converged": vce.converged,
         "groups": vce.groups,
         "dof": vce.dof_split() | {"dof": int(stats["dof"]), "n_unknowns": stats["n_unknowns"]},
     }
+    consider, cov_measurement = _consider(solver, cfg, net, c, xyz, inlier, xyz_start, stats)
     # What the diagnostics need of the redundancy numbers. The per-observation arrays
     # (redundancy, residuals, weights), the final linearisation and the solver's layout
     # are let go: the diagnostics and metrics below are the memory peak of the call.
@@ -323,6 +394,8 @@ def _adjust(
         x=c,
         sigma=np.asarray(stats["sigma"]),
         covariance=np.asarray(stats["covariance"]),
+        covariance_measurement=cov_measurement,
+        consider=consider,
         correlation=np.asarray(stats["correlation"]),
         point_xyz_initial=xyz0,
         point_xyz=xyz_final,
@@ -341,6 +414,87 @@ def _adjust(
         seconds=time.perf_counter() - t0,
     )
     return result
+
+
+def _consider(
+    solver: BundleSolver,
+    cfg: AdjustConfig,
+    net: Network,
+    c: F64,
+    xyz: F64,
+    inlier: NDArray[np.bool_],
+    xyz0: F64,
+    stats: dict[str, Any],
+) -> tuple[ConsiderTerms | None, F64]:
+    """Take the declared correlated errors into ``stats``' covariance (consider parameters).
+
+    Returns:
+        ``(terms, covariance of the measurements alone)``; ``terms`` is ``None`` when no
+        correlated error is declared (the covariance is then unchanged).
+    """
+    cov_meas = np.asarray(stats["covariance"])
+    f = cfg.systematic.measurement_overlap
+    if f != 1.0:
+        # Observations sharing their pixels (dense templates) are fewer independent
+        # ones: their errors' covariance is f times the independent one's. The
+        # estimator's (sandwich) covariance is S^-1 (f S_obs + P) S^-1 with S = S_obs + P
+        # (P: the camera priors and constraints, independent pseudo-observations), i.e.
+        # f Q - (f - 1) Q P Q: parameters known from their priors alone keep their sigma.
+        q = np.asarray(stats["cofactor"])
+        prior = np.diag(solver.prior_w)
+        if solver.con_n is not None:
+            prior = prior + solver.con_n
+        cov_meas = float(stats["sigma0"]) ** 2 * (f * q - (f - 1.0) * (q @ prior @ q))
+    weighted_mcp = (
+        _is_kind(net, "mcp") & ~solver.point_fixed & ~_rows_all(np.isinf(net.point_sigma_m))
+    )
+    estimated = []
+    for m in solver.models:
+        mode = np.asarray(m.mode)
+        estimated.append(any("ccd[" in n and mode[i] != 2 for i, n in enumerate(m.names)))
+    patch, n_patch, key, n_key, names, units, sigma, ccd = consider_layout(
+        net, cfg.systematic, weighted_mcp, estimated
+    )
+    if not names:
+        if cfg.systematic.measurement_overlap != 1.0:
+            _set_covariance(stats, cov_meas)
+        return None, cov_meas
+    g = solver.consider_sensitivity(
+        c,
+        xyz,
+        np.flatnonzero(inlier),
+        xyz0,
+        np.asarray(stats["cofactor"]),
+        patch,
+        n_patch,
+        key,
+        n_key,
+    )
+    if np.any(solver.point_fixed[net.obs_point[inlier]]):
+        log.warning(
+            "the declared CCD offsets act on the observations of weighted and free points "
+            "only: those of fixed points do not enter the covariance's correlated part"
+        )
+    terms = ConsiderTerms(
+        names=names,
+        units=units,
+        sigma=sigma,
+        sensitivity=g,
+        ccd=ccd,
+        patch_m=cfg.systematic.patch_m,
+        n_patches=n_patch,
+    )
+    _set_covariance(stats, cov_meas + terms.covariance)
+    return terms, cov_meas
+
+
+def _set_covariance(stats: dict[str, Any], cov: F64) -> None:
+    """Replace ``stats``' covariance and the sigmas and correlations read from it."""
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = cov / sig[:, None] / sig[None, :]
+    corr[~np.isfinite(corr)] = 0.0
+    stats["covariance"], stats["sigma"], stats["correlation"] = cov, sig, corr
 
 
 def _put_rows(dst: F64, rows: NDArray[np.intp], src: F64, valid: NDArray[np.bool_]) -> None:

@@ -30,6 +30,7 @@ from planetref.adjust.rpc_config import RpcParameters
 from planetref.runtime.settings import Settings, validate_settings
 
 __all__ = [
+    "DEFAULT_REFERENCE_PATCH_M",
     "DEFAULT_TIE_SIGMA_M",
     "AdjustConfig",
     "AngleBlock",
@@ -46,6 +47,7 @@ __all__ = [
     "ObservationConfig",
     "OutlierConfig",
     "SolverConfig",
+    "SystematicConfig",
     "VarianceConfig",
     "VelocityBlock",
     "parse_quantity",
@@ -408,13 +410,19 @@ class DiagnosticsConfig(Settings):
         separable_sigma_ratio: A self-calibration parameter is reported *not separable*
             when its a-posteriori sigma is more than this fraction of its a-priori
             sigma (the observations hardly improved on the prior) or when it correlates
-            above ``max_correlation`` with another parameter.
+            above ``max_correlation`` with another parameter. The sigmas are those of
+            the full covariance (with the declared correlated errors,
+            :class:`SystematicConfig`).
+        check_self_calibration: When an optional calibration block (interior, CCD
+            placement) is adjusted and there are check observations, repeat the
+            adjustment without it and warn when the block raises the check error.
     """
 
     point_shift_sigmas: float = Field(3.0, gt=0.0)
     camera_shift_m: float = Field(100.0, gt=0.0)
     max_correlation: float = Field(0.99, gt=0.0, le=1.0)
     separable_sigma_ratio: float = Field(0.5, gt=0.0, le=1.0)
+    check_self_calibration: bool = True
 
 
 class SolverConfig(Settings):
@@ -476,6 +484,64 @@ class OutlierConfig(Settings):
     max_rounds: int = Field(20, ge=1)
 
 
+#: Patch size (m) of the reference's correlated error when none is declared.
+DEFAULT_REFERENCE_PATCH_M = 1000.0
+
+
+class SystematicConfig(Settings):
+    """Correlated (systematic) errors the adjustment cannot estimate, and their accuracy.
+
+    Each MCP's a-priori sigmas describe its own random error; errors that many MCPs share
+    are not averaged away by their number, so the covariance takes them in as *consider*
+    parameters (Schmidt-Kalman): parameters held at their nominal value, whose declared
+    a-priori sigma is propagated through the sensitivity of the adjusted cameras to them
+    (see docs/adjust.md, "Correlated errors"). They change the covariance, never the
+    solution.
+
+    * the reference's planimetric error: one 2-D offset (east, north) per square patch
+      of ``reference_patch_m`` of the ground, shared by the MCPs in it, sigma
+      ``reference_sigma_m`` per axis (the reference ortho's absolute accuracy, as its
+      producer states it);
+    * the CCDs' placement: one 2-D image offset (line, sample) per CCD, shared by every
+      observation in it, sigma ``ccd_offset_sigma_px`` per axis (the calibration's
+      accuracy), when the placement is not estimated.
+
+    Attributes:
+        reference_sigma_m: Per-axis sigma (m) of the reference's planimetric error common
+            to a patch; ``None`` or 0: none.
+        reference_patch_m: Size of the patches (m): the distance over which the
+            reference's error is one (a source image of a mosaic, the wavelength of its
+            warps); ``None``: :data:`DEFAULT_REFERENCE_PATCH_M`.
+        ccd_offset_sigma_px: Per-axis sigma (image pixels) of each CCD's placement error
+            left by the calibration; ``None`` or 0: none. Not used for cameras whose CCD
+            placement is estimated (weighted or free).
+        measurement_overlap: Mean number of observations per independent measurement
+            (dense area-based matches sharing template pixels, see
+            :func:`planetref.control.networks.template_overlap`); the measurements'
+            share of the covariance is multiplied by it. 1: independent.
+    """
+
+    reference_sigma_m: Metres = None
+    reference_patch_m: Metres = None
+    ccd_offset_sigma_px: float | None = Field(None, ge=0.0)
+    measurement_overlap: float = Field(1.0, ge=1.0)
+
+    @model_validator(mode="after")
+    def _positive(self) -> SystematicConfig:
+        if self.reference_sigma_m is not None and self.reference_sigma_m < 0:
+            raise ValueError("reference_sigma_m must be >= 0")
+        if self.reference_patch_m is not None and not self.reference_patch_m > 0:
+            raise ValueError("reference_patch_m must be > 0")
+        return self
+
+    @property
+    def patch_m(self) -> float:
+        """The patch size in use (m)."""
+        return (
+            DEFAULT_REFERENCE_PATCH_M if self.reference_patch_m is None else self.reference_patch_m
+        )
+
+
 class AdjustConfig(Settings):
     """Everything the adjustment can be told.
 
@@ -489,6 +555,7 @@ class AdjustConfig(Settings):
         outliers: The outlier rule.
         variance: Variance component estimation.
         diagnostics: Thresholds of the datum and estimability warnings.
+        systematic: Correlated errors taken into the covariance (consider parameters).
     """
 
     linescan: LineScanParameters = LineScanParameters()
@@ -500,6 +567,7 @@ class AdjustConfig(Settings):
     outliers: OutlierConfig = OutlierConfig()
     variance: VarianceConfig = VarianceConfig()
     diagnostics: DiagnosticsConfig = DiagnosticsConfig()
+    systematic: SystematicConfig = SystematicConfig()
 
 
 def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:

@@ -405,7 +405,8 @@ def self_calibration(
         separable = not reasons
         corr_txt = ", ".join(f"{names[k]} {corr[i, k]:+.3f}" for k in top)
         verdict = (
-            f"{names[i]}: separable (sigma {sig[i]:.3g}, correction {x[i] - x0[i]:+.4g})"
+            f"{names[i]}: separable (sigma {sig[i]:.3g}, correction {x[i] - x0[i]:+.4g}, "
+            f"{abs(x[i] - x0[i]) / sig[i] if sig[i] > 0 else math.inf:.2g} sigma)"
             if separable
             else f"{names[i]}: NOT separable: {'; '.join(reasons)}; its correction "
             f"{x[i] - x0[i]:+.4g} is not a measurement of the parameter"

@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig
+from planetref.adjust.consider import ConsiderTerms
 from planetref.adjust.models import AdjustableCamera
 from planetref.control.network import Network
 
@@ -36,7 +37,11 @@ class AdjustmentResult:
         x0: Initial parameter values.
         x: Adjusted parameter values.
         sigma: A-posteriori standard deviations (0 for fixed parameters).
-        covariance: A-posteriori covariance of the parameters, ``(n, n)``.
+        covariance: A-posteriori covariance of the parameters, ``(n, n)``: the
+            measurements' (``sigma0^2 S^-1``) plus the declared correlated errors'
+            (:attr:`consider`).
+        covariance_measurement: The measurements' share alone, ``(n, n)``.
+        consider: The correlated errors taken in as consider parameters, or ``None``.
         correlation: Correlation matrix, ``(n, n)``.
         point_xyz_initial: Initial point coordinates (after triangulation), ``(P, 3)``.
         point_xyz: Adjusted point coordinates, ``(P, 3)``.
@@ -83,6 +88,8 @@ class AdjustmentResult:
     sigma0: float
     dof: int
     metrics: dict[str, Any]
+    covariance_measurement: F64 | None = None
+    consider: ConsiderTerms | None = None
     variance: dict[str, Any] = field(default_factory=dict)
     points: dict[str, Any] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
@@ -115,6 +122,7 @@ class AdjustmentResult:
             "n_unusable": int(np.count_nonzero(self.status == "unusable")),
             "n_check": int(np.count_nonzero(self.status == "check")),
             "sigma0": self.sigma0,
+            "sigma0_before_vce": self.variance.get("sigma0_before"),
             "sigma0_real": dof.get("sigma0_real"),
             "dof": self.dof,
             "redundancy_real": dof.get("redundancy_real"),

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.linearization import quadratic
 from planetref.adjust.schur import Iterate
+from planetref.control.network import enu_rotation
 from planetref.errors import AdjustmentError
 
 if TYPE_CHECKING:
@@ -174,3 +175,95 @@ class StatisticsMixin:
             "n_unknowns": n_unk,
             "n_equations": n_obs + n_prior,
         }
+
+    def consider_sensitivity(
+        self,
+        c: F64,
+        xyz: F64,
+        obs: NDArray[np.intp],
+        xyz0: F64,
+        cofactor: F64,
+        point_patch: NDArray[np.intp],
+        n_patches: int,
+        obs_key: NDArray[np.intp],
+        n_keys: int,
+    ) -> F64:
+        """Sensitivity of the adjusted parameters to consider parameters, ``(p, K)``.
+
+        The consider parameters ``z`` (``K = 2 n_patches + 2 n_keys``): per patch an
+        offset (east, north; metres) of the a-priori coordinates of its weighted points
+        (columns ``2k, 2k + 1``), then per key (a camera's CCD) an offset (line, sample;
+        pixels) of its observations (columns ``2 n_patches + 2g, + 1``). A linear
+        estimator moves by ``dc = S^-1 d(rhs)/dz z``; the columns are that derivative, from
+        one linearisation and point elimination at the solution (the point blocks ``V^-1``
+        of the elimination turn each point's share into its camera terms).
+
+        Only observations of unknown (weighted or free) points take part: an offset of a
+        fixed point's coordinates or of its observation is not propagated.
+
+        Args:
+            c: Adjusted parameter vector.
+            xyz: Adjusted point coordinates, ``(P, 3)``.
+            obs: The observations of the solution (its inliers).
+            xyz0: A-priori point coordinates, ``(P, 3)``.
+            cofactor: ``S^-1`` over the active parameters (zero elsewhere), ``(p, p)``.
+            point_patch: Patch index of each network point, ``-1`` for none, ``(P,)``.
+            n_patches: Number of patches.
+            obs_key: Key (CCD) index of each network observation, ``-1`` for none.
+            n_keys: Number of keys.
+        """
+        p = self.n_params
+        k_tot = 2 * n_patches + 2 * n_keys
+        st = self._structure(obs)
+        self._unknown_ids = st.unknown
+        lin = self._linearize(c, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz0)
+        _, _, _, blocks = self._reduced(Iterate(lin, st.chunks, c, xyz, xyz0, st.unknown), 0.0)
+        rows = np.flatnonzero(st.tie_pos >= 0)
+        tie_obs = np.empty(st.n_tie, np.intp)
+        tie_obs[st.tie_pos[rows]] = lin.obs[rows]
+        h = np.zeros((p + 1) * k_tot)
+        for ch, (vinv, _, _) in zip(st.chunks, blocks, strict=True):
+            a = lin.a_t[ch.obs]
+            we = lin.weight_t[ch.obs]
+            wb = lin.b_t[ch.obs] * we[:, :, None]
+            # y = A^T W B per observation, (m, q, 3).
+            y = a[:, 0, :, None] * wb[:, 0, None, :] + a[:, 1, :, None] * wb[:, 1, None, :]
+            gcols = self.cols[lin.gpat_t[ch.obs]]
+            gpts = st.unknown[ch.pts]
+
+            patch = point_patch[gpts]
+            if n_patches and np.any(patch >= 0):
+                en = enu_rotation(xyz0[gpts])[:, :2, :]  # (n, 2, 3): east, north rows
+                t = vinv @ self.point_prior_w[gpts] @ np.transpose(en, (0, 2, 1))
+                contrib = -np.matmul(y, t[ch.pt])  # (m, q, 2)
+                pp = patch[ch.pt]
+                for k in range(2):
+                    _scatter(h, gcols, k_tot, 2 * pp + k, contrib[:, :, k], pp >= 0)
+            if n_keys:
+                key = obs_key[tie_obs[ch.obs]]
+                for g in np.unique(key[key >= 0]):
+                    on = key == g
+                    for k in range(2):
+                        bz = np.where(on[:, None], wb[:, k, :], 0.0)
+                        vb = np.matmul(vinv, np.add.reduceat(bz, ch.starts, axis=0)[:, :, None])
+                        cam = np.where(on[:, None], a[:, k, :] * we[:, k, None], 0.0)
+                        contrib = cam - np.matmul(y, vb[ch.pt])[:, :, 0]
+                        col = np.full(len(key), 2 * n_patches + 2 * int(g) + k, np.intp)
+                        # Every observation of a point seen in this CCD carries the point's
+                        # share (a tie point seen elsewhere too), hence no mask by key.
+                        seen = np.add.reduceat(on.astype(np.intp), ch.starts) > 0
+                        _scatter(h, gcols, k_tot, col, contrib, seen[ch.pt])
+        return cofactor @ h.reshape(p + 1, k_tot)[:p]
+
+
+def _scatter(
+    h: F64,
+    gcols: NDArray[np.intp],
+    k_tot: int,
+    col: NDArray[np.intp],
+    contrib: F64,
+    on: NDArray[np.bool_],
+) -> None:
+    """``h[gcols[i, j], col[i]] += contrib[i, j]`` for the rows ``on`` (``h`` flat)."""
+    idx = gcols[on] * k_tot + col[on, None]
+    h += np.bincount(idx.ravel(), contrib[on].ravel(), minlength=h.size)

@@ -23,7 +23,14 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.frontend.tiepoints import TiePoints
     from planetref.raster.image import CcdImage
 
-__all__ = ["StripMcps", "joint_network", "mcp_ground_sigmas"]
+__all__ = [
+    "StripMcps",
+    "check_points",
+    "joint_network",
+    "mcp_ground_sigmas",
+    "template_overlap",
+    "template_support_m",
+]
 
 
 @dataclass
@@ -47,6 +54,105 @@ def mcp_ground_sigmas(table: Any) -> dict[str, Any]:
     xy = np.asarray(cols["sigma_ground_xy_m"], float)
     h = np.asarray(cols["sigma_ground_h_m"], float)
     return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
+
+
+def check_points(
+    tile_id: Any, ccd: Any, fraction: float, min_mcps: int, seed: int, blocks: str = "tiles"
+) -> NDArray[np.bool_]:
+    """The MCPs held out as check points.
+
+    ``tiles``: whole tiles in a seeded random order until at least ``fraction`` of the
+    MCPs are held out; a tile is skipped when holding it would leave fewer than
+    ``min_mcps`` adjusted MCPs or a CCD without any. ``random``: ``round(fraction * n)``
+    single MCPs (when ``min_mcps`` remain).
+
+    Args:
+        tile_id: Tile of each MCP.
+        ccd: CCD of each MCP.
+        fraction: Share to hold out.
+        min_mcps: Fewest MCPs the adjustment needs.
+        seed: Seed of the draw.
+        blocks: ``"tiles"`` or ``"random"``.
+    """
+    tiles = np.asarray(tile_id).astype(str)
+    ccds = np.asarray(ccd).astype(str)
+    n = len(tiles)
+    check = np.zeros(n, bool)
+    target = round(fraction * n)
+    rng = np.random.default_rng(seed)
+    if not target or n - target < min_mcps:
+        return check
+    if blocks == "random":
+        check[rng.choice(n, target, replace=False)] = True
+        return check
+    names, code = np.unique(tiles, return_inverse=True)
+    for t in rng.permutation(len(names)):
+        if np.count_nonzero(check) >= target:
+            break
+        on = code == t
+        rest = ~check & ~on
+        if np.count_nonzero(rest) < min_mcps:
+            continue
+        if any(not np.any(rest & (ccds == c)) for c in np.unique(ccds[on])):
+            continue
+        check |= on
+    return check
+
+
+def template_support_m(
+    name: str, options: Any, fine_upsample: int, ref_gsd_m: float
+) -> float | None:
+    """Ground size (m) of the pixels one match is computed from, for area-based matchers.
+
+    A matcher that declares a :attr:`~planetref.matching.base.BaseMatcher.support_option`
+    (NCC: a square template of ``2 t + 1`` fine-grid pixels, ``ref_gsd_m /
+    fine_upsample`` each) computes neighbouring dense matches from shared pixels, so
+    their errors are not independent. Feature matchers declare none: ``None`` (their
+    keypoints are sparse; the descriptors' supports seldom overlap).
+
+    Args:
+        name: Registry name of the matcher.
+        options: Its fine-stage options (fine-grid pixels).
+        fine_upsample: The fine grid's factor over the reference grid.
+        ref_gsd_m: The reference's ground sampling distance (m).
+    """
+    from planetref.matching.registry import MATCHERS
+
+    spec = MATCHERS.get(name)
+    option = (
+        None if spec is None or spec.load_class is None else spec.matcher_class().support_option
+    )
+    if option is None or option not in options:
+        return None
+    return (2 * int(options[option]) + 1) * ref_gsd_m / max(int(fine_upsample), 1)
+
+
+def template_overlap(ref_x: Any, ref_y: Any, support_m: float | None) -> float:
+    """Mean number of MCPs per independent measurement (1: independent), from their overlap.
+
+    Two matches whose square supports of side ``support_m`` overlap by a fraction
+    ``rho = (1 - |dx|/T)(1 - |dy|/T)`` of their pixels share that fraction of their
+    error (a correlation model of area-based matching). The mean over the MCPs of
+    ``sum_j rho_ij`` (itself included) is the factor ``N / N_eff`` by which the
+    measurements' covariance of a least-squares estimate from them is too small when
+    they are taken as independent. Computed on a grid of ``T / 8`` cells with the
+    triangle kernel (exact to the cell size).
+    """
+    x = np.asarray(ref_x, float)
+    y = np.asarray(ref_y, float)
+    if support_m is None or not support_m > 0 or x.size < 2:
+        return 1.0
+    from scipy.signal import fftconvolve
+
+    cell = support_m / 8.0
+    ix = np.floor((x - x.min()) / cell).astype(np.intp)
+    iy = np.floor((y - y.min()) / cell).astype(np.intp)
+    hist = np.zeros((int(iy.max()) + 1, int(ix.max()) + 1))
+    np.add.at(hist, (iy, ix), 1.0)
+    k = np.arange(-8, 9)
+    tri = np.clip(1.0 - np.abs(k) / 8.0, 0.0, None)
+    dens = fftconvolve(hist, np.outer(tri, tri), mode="same")
+    return float(max(np.mean(dens[iy, ix]), 1.0))
 
 
 def joint_network(

@@ -412,6 +412,11 @@ class BaseMatcher(ABC):
     #: Options of the coarse-stage instance (under the user's own), for a matcher with a
     #: :attr:`search_option`.
     coarse_defaults: ClassVar[Mapping[str, Any]] = MappingProxyType({})
+    #: The option giving the radius (pixels of the grid it matches on) of the square
+    #: window one match is computed from, for a matcher whose neighbouring matches share
+    #: those pixels (area-based); ``None`` for sparse feature matchers. The adjustment's
+    #: stochastic model weights such matches by their effective independence.
+    support_option: ClassVar[str | None] = None
     #: The option that turns on dense mode (one match per grid cell of this many pixels),
     #: which the front end uses on the fine stage when the matcher takes it.
     dense_option: ClassVar[str] = "dense_spacing_px"

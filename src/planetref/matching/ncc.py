@@ -192,6 +192,7 @@ class NccMatcher(BaseMatcher):
     name: ClassVar[str] = "ncc"
     pixel_options: ClassVar[tuple[str, ...]] = ("template_radius",)
     search_option: ClassVar[str | None] = "search_radius"
+    support_option: ClassVar[str | None] = "template_radius"
     coarse_defaults: ClassVar[Mapping[str, Any]] = MappingProxyType({"spacing": 8})
 
     def __init__(

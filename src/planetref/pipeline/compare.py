@@ -338,7 +338,7 @@ def _context(
     headline: Path | None,
 ) -> Any:
     """What the comparison report says about the scene, the settings and the figures."""
-    from planetref.report.georef import CompareContext
+    from planetref.report.georef import CompareContext, paper_departures
     from planetref.report.tables import funnel_from_journal, funnel_from_report
 
     ctx = CompareContext(scene=scene_name, scene_path=str(scene_path), headline=headline)
@@ -378,6 +378,7 @@ def _context(
         ("front end", ", ".join(f"{k} = {v}" for k, v in fe.items() if not isinstance(v, dict))),
         ("MCPs", ", ".join(f"{k} = {v}" for k, v in mcp.items() if not isinstance(v, dict))),
         ("adjustment", "see `runs/<matcher>/<strip>/adjustment/config.json`"),
+        *(("departs from the seed paper", d) for d in paper_departures(conf)),
         *(
             [
                 (

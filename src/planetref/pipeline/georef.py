@@ -37,8 +37,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planetref import __version__
-from planetref.control.networks import StripMcps, joint_network, mcp_ground_sigmas
-from planetref.errors import AdjustmentError, MatcherFailedError
+from planetref.control.ground_sigma import reference_gsd_m
+from planetref.control.networks import (
+    StripMcps,
+    check_points,
+    joint_network,
+    mcp_ground_sigmas,
+    template_overlap,
+    template_support_m,
+)
+from planetref.errors import AdjustmentError, MatcherFailedError, MatchingError
 from planetref.frontend.matchers import (
     MatcherPair,
     build_matchers,
@@ -62,6 +70,7 @@ from planetref.pipeline.georef_outputs import (
 )
 from planetref.pipeline.job import StripJob
 from planetref.pipeline.rundir import RunDir, config_digest
+from planetref.pipeline.systematic import systematic_settings
 from planetref.products.ortho_strip import GDAL_CACHE_MB
 from planetref.report.blocks import (
     adjustment_block,
@@ -71,7 +80,6 @@ from planetref.report.blocks import (
     matching_block,
     result_block,
     rmse_px,
-    too_few_mcps,
 )
 from planetref.runtime.threads import single_threaded_blas
 from planetref.scene.inputs import (
@@ -379,12 +387,20 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
-        raise too_few_mcps(strip.id, matches.matcher, out["matching"], cfg.mcp.min_mcps)
-    rng = np.random.default_rng(cfg.mcp.seed)
-    check = np.zeros(n, bool)
-    n_check = round(cfg.mcp.check_fraction * n)
-    if n_check and n - n_check >= cfg.mcp.min_mcps:
-        check[rng.choice(n, n_check, replace=False)] = True
+        raise MatchingError(
+            f"strip {strip.id}: only {n} matched control points with matcher "
+            f"{matches.matcher} ({out['matching']['tile_status']}); "
+            f"at least {cfg.mcp.min_mcps} are needed. "
+            "See planetref.log for why tiles failed"
+        )
+    check = check_points(
+        table["tile_id"],
+        table["ccd"],
+        cfg.mcp.check_fraction,
+        cfg.mcp.min_mcps,
+        cfg.mcp.seed,
+        cfg.mcp.check_blocks,
+    )
     return StripMcps(strip.id, camera, images, sizes, table, check, out)
 
 
@@ -406,8 +422,15 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         check=prep.check,
         **mcp_ground_sigmas(table),
     )
+    adjust_cfg, declared = systematic_settings(
+        cfg.adjust,
+        job.manifest,
+        [prep.id],
+        reference_gsd_m(job.ref),
+        mcp_overlap(job, [table]),
+    )
     t0 = time.perf_counter()
-    result = adjust(network, cfg.adjust)
+    result = adjust(network, adjust_cfg)
     job.timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
@@ -423,7 +446,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
             terrain=dem,
             plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
         )
-        out["adjustment"] = result_block(result)
+        out["adjustment"] = result_block(result, systematic_source=declared)
         out["check"] = check_block(result, truth, dem) if truth else None
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     out["warnings"] = list(result.warnings)
@@ -451,6 +474,19 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     job.timing["outputs"] += time.perf_counter() - t0
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+def mcp_overlap(job: StripJob, tables: list[Any]) -> float:
+    """Mean number of MCPs per independent measurement (:func:`template_overlap`)."""
+    fine = job.matchers.fine
+    support = template_support_m(
+        fine.name, fine.options, job.cfg.frontend.fine_upsample, reference_gsd_m(job.ref)
+    )
+    if support is None:
+        return 1.0
+    x = np.concatenate([np.asarray(t["ref_x"], float) for t in tables])
+    y = np.concatenate([np.asarray(t["ref_y"], float) for t in tables])
+    return template_overlap(x, y, support)
 
 
 def _adjust_together(
@@ -489,8 +525,15 @@ def _adjust_together(
     timing["tie_points"] = time.perf_counter() - t0
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg.mcp, cfg.campaign)
+    adjust_cfg, declared = systematic_settings(
+        cfg.adjust,
+        job.manifest,
+        [p.id for p in preps],
+        reference_gsd_m(job.ref),
+        mcp_overlap(job, [p.table for p in preps]),
+    )
     t0 = time.perf_counter()
-    result = adjust(network, cfg.adjust)
+    result = adjust(network, adjust_cfg)
     timing["adjustment"] += time.perf_counter() - t0
     t0 = time.perf_counter()
     cams = {p.id: p.camera for p in preps}
@@ -544,6 +587,7 @@ def _adjust_together(
         "tie_sigma_m": opts.tie_sigma_m,
         "adjustment": result_block(
             result,
+            systematic_source=declared,
             n_tie_points=len(ties),
             tie_rmse_px=None if not len(ties) else rmse_px(result.residual[is_tie & result.inlier]),
             tie_rmse_px_before=None if not len(ties) else rmse_px(result.residual_initial[is_tie]),

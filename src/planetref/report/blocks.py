@@ -210,12 +210,20 @@ def result_block(result: AdjustmentResult, **extra: Any) -> dict[str, Any]:
 
 
 def variance_block(result: AdjustmentResult) -> dict[str, Any]:
-    """sigma0 of the real observations, degrees of freedom and variance components."""
+    """sigma0 before VCE and of the real observations, dof, VCE and correlated errors.
+
+    ``systematic``: the correlated errors taken into the covariance (consider
+    parameters, :class:`~planetref.adjust.consider.ConsiderTerms`).
+    """
     variance = getattr(result, "variance", None) or {}
+    consider = getattr(result, "consider", None)
     return {
+        "sigma0_before_vce": variance.get("sigma0_before"),
+        "measurement_overlap": variance.get("measurement_overlap"),
         "sigma0_real": result.summary().get("sigma0_real"),
         "dof": variance.get("dof"),
         "variance_components": variance.get("groups"),
+        "systematic": None if consider is None else consider.summary(),
     }
 
 
@@ -224,6 +232,7 @@ def check_block(
 ) -> dict[str, Any]:
     """True geolocation error before and after adjustment of one strip (simulated scenes)."""
     from planetref.adjust.metrics import geolocation_error
+    from planetref.adjust.precision import formal_ground_precision
 
     ((sid, true_cam),) = truth.items()
     before, after = [], []
@@ -237,9 +246,15 @@ def check_block(
         vals = np.array([i[key] for i in items], float)
         return float(np.sqrt(np.mean(vals**2)))
 
+    # The formal counterpart of the true error: the adjustment's covariance (with its
+    # declared correlated errors) propagated to the same grid (calibrated: ratio 0.5-2).
+    formal = formal_ground_precision(result, sid, terrain=0.0 if truth_dem is None else truth_dem)
+    true_m = rms(after, "rms_m")
     return {
         "geoloc_rmse_m_before": rms(before, "rms_m"),
-        "geoloc_rmse_m": rms(after, "rms_m"),
+        "geoloc_rmse_m": true_m,
+        "formal_rmse_m": formal["rms_m"],
+        "true_over_formal": true_m / formal["rms_m"] if formal["rms_m"] > 0 else None,
         "geoloc_rmse_px_before": rms(before, "rms_px"),
         "geoloc_rmse_px": rms(after, "rms_px"),
         "geoloc_max_m": float(max(i["max_m"] for i in after)),
@@ -315,10 +330,18 @@ def combined_report(
             if not checks
             else {
                 k: float(np.sqrt(np.mean([c[k] ** 2 for c in checks])))
-                for k in ("geoloc_rmse_m_before", "geoloc_rmse_m", "geoloc_rmse_px")
+                for k in (
+                    "geoloc_rmse_m_before",
+                    "geoloc_rmse_m",
+                    "geoloc_rmse_px",
+                    "formal_rmse_m",
+                )
+                if all(k in c for c in checks)
             }
             | {"geoloc_max_m": max(c["geoloc_max_m"] for c in checks)}
         )
+        if check and check.get("formal_rmse_m"):
+            check["true_over_formal"] = check["geoloc_rmse_m"] / check["formal_rmse_m"]
     strips_out = {
         sid: {k: v for k, v in s.items() if not k.startswith("_") and k != "files"}
         for sid, s in strips.items()

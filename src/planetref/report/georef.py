@@ -43,6 +43,7 @@ __all__ = [
     "figure_residual_vectors",
     "format_markdown_table",
     "matching_rows",
+    "paper_departures",
     "truth_rows",
     "write_compare_report",
     "write_compare_tables",
@@ -331,6 +332,29 @@ def _short(v: Any) -> Any:
     return s if len(s) <= 60 else s[:57] + "..."
 
 
+def paper_departures(config: Mapping[str, Any]) -> list[str]:
+    """Where a run's settings (``config.json``'s content) depart from the seed paper's."""
+    adj = config.get("adjust") or {}
+    interior = ((adj.get("linescan") or {}).get("interior") or {}).get("mode", "fixed")
+    mcp = config.get("mcp") or {}
+    out = []
+    if interior == "fixed":
+        out.append(
+            "interior orientation (x_p, y_p, f) fixed, where the seed paper estimates it per "
+            "strip: estimated from MCPs it absorbs the reference's own errors (docs/adjust.md)"
+        )
+    if mcp.get("check_blocks", "tiles") == "tiles" and mcp.get("check_fraction", 0.1):
+        out.append(
+            f"check points: whole tiles holding >= {100 * mcp.get('check_fraction', 0.1):.0f} % "
+            "of the MCPs are held out of the adjustment (independent of the adjusted MCPs)"
+        )
+    out.append(
+        "the covariance includes the declared correlated errors of the reference and of the "
+        "CCD placement (consider parameters; formal vs true error in the truth table)"
+    )
+    return out
+
+
 def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str]) -> Path:
     """report.md of one georef run, and beside it a self-contained report.html.
 
@@ -352,6 +376,13 @@ def write_georef_markdown(report: Mapping[str, Any], path: str | os.PathLike[str
     for name, (h, r) in _tables(runs, {report["matcher"]: funnel} if funnel else {}).items():
         doc.heading(_SECTIONS[name])
         doc.table(_TABLES[name], h, r)
+    try:
+        config = json.loads((folder / "config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        config = None
+    if config is not None:
+        doc.heading("Settings that depart from the seed paper")
+        doc.items(paper_departures(config))
     lost = report["matching"].get("tiles_lost") or []
     if lost:
         doc.heading("Tiles without MCPs")

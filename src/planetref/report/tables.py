@@ -173,10 +173,12 @@ def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], lis
 
 
 def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Table 2: per strip, per matcher; per-axis RMSE where the reports hold it.
+    """Table 2: per strip, per matcher; per-axis RMSE and check points where held.
 
-    A run that failed (its report has ``failed``) keeps one row per strip it reached,
-    every value missing, and a ``status`` column (shown when any run failed) says so.
+    The check columns are the RMS error of the held-out check points (image px and
+    metres), shown when some report holds them. A run that failed (its report has
+    ``failed``) keeps one row per strip it reached, every value missing, and a
+    ``status`` column (shown when any run failed) says so.
     """
     blocks = []
     for name, rep in runs.items():
@@ -189,16 +191,20 @@ def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], l
             blocks.append((name, "-", {}, rep["failed"]))
     extra = [(h, k) for h, k in EXTRA_ADJ if any(k in a for _, _, a, _ in blocks)]
     failed = any(f for *_, f in blocks)
+    # The held-out check points (whole tiles): the independent counterpart of the RMSE.
+    checked = any(_check_after(a) for _, _, a, _ in blocks)
     header = (
         ["Matcher", "Strip"]
         + [h for h, _ in ADJ_COLUMNS]
         + [h for h, _ in extra]
+        + (["Check (px)", "Check (m)"] if checked else [])
         + ["RMSE before", "sigma0", "n"]
         + (["status"] if failed else [])
     )
     rows = [
         [name, sid]
         + [a.get(k) for _, k in ADJ_COLUMNS + extra]
+        + ([_check_after(a).get("rms_px"), _check_after(a).get("rms_m")] if checked else [])
         + [a.get("rmse_px_before"), a.get("sigma0"), a.get("n_total")]
         + (["failed" if f else "ok"] if failed else [])
         for name, sid, a, f in blocks
@@ -206,11 +212,20 @@ def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], l
     return header, rows
 
 
-def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """True geolocation error before and after, and the true outlier ratio (simulated scenes).
+def _check_after(block: Mapping[str, Any]) -> dict[str, Any]:
+    """The check points' metrics after the adjustment (empty when none were held out)."""
+    chk = block.get("check_mcps") or {}
+    after = chk.get("after") or {}
+    return dict(after) if after.get("n") else {}
 
-    The true outlier ratio (``true OR``) is the share of the matches after RANSAC whose
-    true error exceeds 1 and 3 reference px (:mod:`planetref.frontend.truth`); a run that
+
+def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
+    """True geolocation error, its formal precision, and the true outlier ratio (simulated).
+
+    ``formal (m)`` is the adjustment's precision of the same ground positions and
+    ``true/formal`` their ratio (empty for reports written before they existed). The
+    true outlier ratio (``true OR``) is the share of the matches after RANSAC whose true
+    error exceeds 1 and 3 reference px (:mod:`planetref.frontend.truth`); a run that
     failed keeps its row for it.
     """
     header = [
@@ -219,6 +234,8 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
         "after (m)",
         "after (px)",
         "max after (m)",
+        "formal (m)",
+        "true/formal",
         "RANSAC matches",
         "true OR >1 px (%)",
         "true OR >3 px (%)",
@@ -236,6 +253,8 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
                 c.get("geoloc_rmse_m"),
                 c.get("geoloc_rmse_px"),
                 c.get("geoloc_max_m"),
+                c.get("formal_rmse_m"),
+                c.get("true_over_formal"),
                 t.get("n"),
                 t.get("pct_over_1px"),
                 t.get("pct_over_3px"),

@@ -112,6 +112,14 @@ class ReferenceSpec(_Model):
             from Mars' are an error (``"error"``, the default) or accepted with a warning
             in the run's log and report (``"warn"``). Values beyond +-1 % of the body's
             radius are always an error. See :mod:`planetref.raster.datum`.
+        accuracy_m: The ortho's absolute planimetric accuracy as its producer states it:
+            RMS per axis (metres) of the error that the ortho's pixels share over
+            ``accuracy_length_m`` (a mosaic source's registration, its smooth warps);
+            0 for a reference without geometric error. Sets the adjustment's
+            ``[adjust.systematic] reference_sigma_m`` unless the run config does.
+        accuracy_length_m: The distance (metres) over which that error is common (a
+            mosaic source's width, a warp's wavelength); the adjustment's
+            ``reference_patch_m``.
     """
 
     ortho: str
@@ -121,6 +129,8 @@ class ReferenceSpec(_Model):
     dem_datum: Literal["body", "areoid"] = "body"
     areoid: str | None = None
     implausible_heights: Literal["error", "warn"] = "error"
+    accuracy_m: float | None = Field(default=None, ge=0.0)
+    accuracy_length_m: float | None = Field(default=None, gt=0.0)
 
     @model_validator(mode="after")
     def _datum(self) -> ReferenceSpec:
@@ -158,10 +168,15 @@ class StripSpec(_Model):
     Attributes:
         id: Strip identifier, unique within the scene.
         ccds: Its CCDs (at least one).
+        ccd_accuracy_px: The camera calibration's accuracy as its makers state it: RMS
+            per image axis (pixels) of each CCD's placement error in the focal plane.
+            Sets the adjustment's ``[adjust.systematic] ccd_offset_sigma_px`` unless the
+            run config does.
     """
 
     id: str = Field(pattern=_ID)
     ccds: tuple[CcdSpec, ...] = Field(min_length=1)
+    ccd_accuracy_px: float | None = Field(default=None, ge=0.0)
 
     @model_validator(mode="after")
     def _unique_ccds(self) -> StripSpec:

@@ -23,7 +23,7 @@ from planetref.simulate.config import PhotometryConfig, SunConfig
 from planetref.simulate.grid import MapGrid
 from planetref.simulate.realism import MosaicConfig
 
-__all__ = ["MosaicSource", "Seams", "draw_mosaic", "sources_to_dict"]
+__all__ = ["MosaicSource", "Seams", "draw_mosaic", "reference_accuracy", "sources_to_dict"]
 
 F64 = NDArray[np.float64]
 
@@ -97,6 +97,28 @@ class Seams:
         ):
             out += x > b + a * np.sin(2.0 * np.pi * y / wl + ph)
         return out
+
+
+def reference_accuracy(cfg: MosaicConfig, gsd_m: float, grid: MapGrid) -> dict[str, float]:
+    """The mosaic's accuracy as its producer would state it, for the scene manifest.
+
+    ``accuracy_m``: RMS per axis of a source's geometric error, from the distributions
+    the sources are drawn from (offset and warp RMS, in pixels of ``gsd_m``), never from
+    the drawn values; ``accuracy_length_m``: the distance over which it is common, a
+    source's band width, at most the warps' shortest wavelength.
+
+    Args:
+        cfg: The mosaic settings.
+        gsd_m: Ortho pixel size (m).
+        grid: The ortho grid.
+    """
+    xmin, _, xmax, _ = grid.bounds
+    width = (xmax - xmin) / cfg.n_sources
+    length = min(width, cfg.warp_wavelength_m) if cfg.warp_px > 0 else width
+    return {
+        "accuracy_m": float(math.hypot(cfg.offset_px, cfg.warp_px) * gsd_m),
+        "accuracy_length_m": float(length),
+    }
 
 
 def draw_mosaic(

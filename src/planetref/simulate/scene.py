@@ -369,7 +369,7 @@ def _build(
         measure_consistency,
         measure_initial_errors,
     )
-    from planetref.simulate.mosaic import draw_mosaic, sources_to_dict
+    from planetref.simulate.mosaic import draw_mosaic, reference_accuracy, sources_to_dict
     from planetref.simulate.reference import (
         areoid_raster,
         finish_ortho,
@@ -465,7 +465,15 @@ def _build(
                         rpc=rpc_rel,
                     )
                 )
-            strip_specs.append(StripSpec(id=s.strip.id, ccds=tuple(specs)))
+            # The calibration's accuracy as an instrument team would state it: the RMS
+            # of the CCD placement errors the truth is drawn with (not the drawn ones).
+            strip_specs.append(
+                StripSpec(
+                    id=s.strip.id,
+                    ccds=tuple(specs),
+                    ccd_accuracy_px=cfg.truth_mismatch.ccd_offset_px,
+                )
+            )
             s.truth.to_json(root / "truth" / f"{s.strip.id}.camera.json")
     del model
     lap("render")
@@ -605,7 +613,12 @@ def _build(
 
     manifest = SceneManifest(
         name=cfg.name,
-        reference=ReferenceSpec(ortho="reference/ortho.tif", dem="reference/dem.tif", **datum),
+        reference=ReferenceSpec(
+            ortho="reference/ortho.tif",
+            dem="reference/dem.tif",
+            **datum,
+            **reference_accuracy(cfg.reference.mosaic, ortho_grid.res, ortho_grid),
+        ),
         strips=tuple(strip_specs),
         truth=TruthSpec(
             dem="truth/dem.tif",

@@ -1,0 +1,242 @@
+"""Is the adjustment's reported precision calibrated? True vs formal ground error per matcher.
+
+For each simulated scene and matcher, the script georeferences the scene once with the
+default settings (``planetref georef``; an existing run folder under ``--runs`` is
+reused), reads back the run's MCPs and check flags, and adjusts them again with the run's
+adjustment settings (optionally overridden with ``--set adjust.KEY=VALUE``). It then
+prints, per strip:
+
+* ``true_m``: the RMS ground error of the adjusted camera against the true camera over the
+  21 x 21 pixel grid of every CCD at the true terrain (the pipeline's true-error metric,
+  :func:`planetref.report.blocks.check_block`);
+* ``formal_m``: the RMS ground precision propagated from the adjustment's own parameter
+  covariance to the same grid points (:func:`planetref.adjust.precision.
+  formal_ground_precision`), with every covariance term the adjustment reports
+  (``formal_meas_m``: the measurement term alone, the covariance without the reference's
+  correlated error);
+* ``ratio``: ``true_m / formal_m`` (calibrated: within 0.5-2), with sigma0 before VCE.
+
+Usage::
+
+    python benchmarks/bench_calibration.py [--scenes tiny:moderate tiny:hard]
+        [--matchers sift ncc] [--runs DIR] [--set adjust.reference.sigma_m=0] [--json]
+
+A scene ``tiny:hard`` is simulated (seed 0) into ``--runs`` when it is not there yet.
+Weights: ``PLANETREF_WEIGHTS`` (or ``--weights-dir``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _scene(runs: Path, spec: str, seed: int) -> Path:
+    from planetref.simulate.config import load_config
+    from planetref.simulate.scene import simulate_scene
+
+    preset, _, difficulty = spec.partition(":")
+    out = runs / "scenes" / f"{preset}-{difficulty or 'moderate'}-s{seed}"
+    if not (out / "scene.toml").is_file():
+        simulate_scene(load_config(preset, seed=seed, difficulty=difficulty or None), out)
+    return out
+
+
+def _override(cfg: Any, sets: list[str]) -> Any:
+    from planetref.pipeline.config import config_from_mapping
+
+    data: dict[str, Any] = cfg.to_json()
+    for item in sets:
+        key, _, value = item.partition("=")
+        node = data
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = json.loads(value) if value not in ("", "None") else None
+    return config_from_mapping(data)
+
+
+def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str, Any]]:
+    """Re-adjust a run's MCPs and compare formal and true ground errors per strip."""
+    from planetref.adjust.api import adjust
+    from planetref.adjust.precision import formal_ground_precision
+    from planetref.control.ground_sigma import reference_gsd_m
+    from planetref.control.mcp import read_mcps
+    from planetref.control.network import Network
+    from planetref.control.networks import (
+        check_points,
+        mcp_ground_sigmas,
+        systematic_settings,
+        template_overlap,
+        template_support_m,
+    )
+    from planetref.frontend.matchers import matcher_options
+    from planetref.report.blocks import check_block
+    from planetref.scene.inputs import (
+        open_reference,
+        scene_path,
+        strip_cameras,
+        truth_inputs,
+        truth_terrain,
+    )
+    from planetref.scene.manifest import load_manifest
+
+    manifest, root = load_manifest(scene_path(scene))
+    ref, dem = open_reference(manifest, root)
+    truth_cams, truth_dem = truth_inputs(manifest, root)
+    terrain = truth_terrain(truth_dem, dem)
+    rows = []
+    for strip in manifest.strips:
+        camera, _ = strip_cameras(manifest, root, strip)
+        table = read_mcps(run_dir / strip.id / "mcps.parquet")
+        n = len(table)
+        check = check_points(
+            table["tile_id"],
+            table["ccd"],
+            cfg.mcp.check_fraction,
+            cfg.mcp.min_mcps,
+            cfg.mcp.seed,
+            cfg.mcp.check_blocks,
+        )
+        network = Network.mcps(
+            camera,
+            line=table["line"],
+            sample=table["sample"],
+            xyz=table.xyz(),
+            ccd=np.asarray(table["ccd"]).astype(str),
+            camera_id=strip.id,
+            sigma_px=cfg.mcp.sigma_px,
+            check=check,
+            **mcp_ground_sigmas(table),
+        )
+        gsd = reference_gsd_m(ref)
+        support = template_support_m(
+            matcher, matcher_options(matcher, cfg, gsd)[0], cfg.frontend.fine_upsample, gsd
+        )
+        overlap = template_overlap(table["ref_x"], table["ref_y"], support)
+        adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], gsd, overlap)
+        cpu = time.process_time()
+        result = adjust(network, adjust_cfg)
+        cpu = time.process_time() - cpu
+        true = check_block(result, {strip.id: truth_cams[strip.id]}, terrain)
+        cpu_formal = time.process_time()
+        formal = formal_ground_precision(result, strip.id, terrain=terrain)
+        cpu_formal = time.process_time() - cpu_formal
+        cov_meas = getattr(result, "covariance_measurement", None)
+        meas = (
+            formal_ground_precision(result, strip.id, terrain=terrain, covariance=cov_meas)
+            if cov_meas is not None
+            else formal
+        )
+        groups = result.variance.get("groups") or []
+        rows.append(
+            {
+                "strip": strip.id,
+                "n_mcps": int(n),
+                "true_m": true["geoloc_rmse_m"],
+                "formal_m": formal["rms_m"],
+                "formal_meas_m": meas["rms_m"],
+                "ratio": true["geoloc_rmse_m"] / formal["rms_m"],
+                "ratio_meas": true["geoloc_rmse_m"] / meas["rms_m"],
+                "sigma0": result.sigma0,
+                "sigma0_before_vce": result.variance.get("sigma0_before"),
+                "measurement_overlap": result.variance.get("measurement_overlap"),
+                "vce_factors": {
+                    g["group"]: round(float(g["sigma_scale"]), 4)
+                    for g in groups
+                    if g.get("estimated")
+                },
+                "rmse_px": result.metrics["all"]["after"]["rmse_px"],
+                "check_px": (result.metrics.get("check") or {}).get("after", {}).get("rms_px"),
+                "check_m": (result.metrics.get("check") or {}).get("after", {}).get("rms_m"),
+                "warnings": list(result.warnings),
+                "self_calibration_check": result.diagnostics.get("self_calibration_check"),
+                "systematic": None if result.consider is None else result.consider.summary(),
+                "adjust_cpu_s": cpu,
+                "formal_cpu_s": cpu_formal,
+            }
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="*", default=["tiny:moderate", "tiny:hard"])
+    parser.add_argument("--matchers", nargs="*", default=["sift", "ncc"])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--runs", default="bench_calibration_runs")
+    parser.add_argument("--set", dest="sets", action="append", default=[])
+    parser.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    from planetref.errors import PlanetrefError
+    from planetref.pipeline.config import GeorefConfig
+    from planetref.pipeline.georef import run_georef
+
+    runs = Path(args.runs).resolve()
+    runs.mkdir(parents=True, exist_ok=True)
+    cfg = _override(GeorefConfig(), args.sets)
+    out: list[dict[str, Any]] = []
+    for spec in args.scenes:
+        scene = _scene(runs, spec, args.seed)
+        for matcher in args.matchers:
+            run_dir = runs / f"{scene.name}-{matcher}"
+            row: dict[str, Any] = {"scene": spec, "seed": args.seed, "matcher": matcher}
+            try:
+                if not (run_dir / "report.json").is_file():
+                    run_georef(
+                        scene,
+                        matcher,
+                        run_dir,
+                        weights_dir=args.weights_dir,
+                        progress=False,
+                        overwrite=True,
+                    )
+                strips = measure(scene, run_dir, cfg, matcher)
+            except PlanetrefError as exc:
+                out.append(row | {"failed": str(exc)})
+                continue
+            out.extend(row | s for s in strips)
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "benchmark": "calibration",
+                    "date": datetime.now(UTC).isoformat(timespec="seconds"),
+                    "machine": platform.platform(),
+                    "command": " ".join(sys.argv),
+                    "rows": out,
+                },
+                indent=1,
+            )
+        )
+        return 0
+    print(
+        f"{'scene':16} {'matcher':8} {'strip':8} {'true_m':>7} {'formal_m':>8} {'ratio':>6} "
+        f"{'meas_m':>7} {'r_meas':>6} {'s0_pre':>6}  vce factors"
+    )
+    for r in out:
+        if "failed" in r:
+            print(f"{r['scene']:16} {r['matcher']:8} failed: {r['failed'][:80]}")
+            continue
+        s0 = r["sigma0_before_vce"]
+        print(
+            f"{r['scene']:16} {r['matcher']:8} {r['strip']:8} {r['true_m']:7.2f} "
+            f"{r['formal_m']:8.2f} {r['ratio']:6.2f} {r['formal_meas_m']:7.2f} "
+            f"{r['ratio_meas']:6.2f} {s0 if s0 is None else f'{s0:6.2f}'}  "
+            + ", ".join(f"{k} x{v:.3g}" for k, v in r["vce_factors"].items())
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
