@@ -24,6 +24,8 @@ from planetref.errors import AdjustmentError
 
 if TYPE_CHECKING:
     from planetref.adjust.config import SolverConfig
+    from planetref.adjust.linearization import Linearization
+    from planetref.adjust.schur import Structure
     from planetref.control.network import PointMatrices
 
 __all__ = ["StatisticsMixin"]
@@ -53,6 +55,9 @@ class StatisticsMixin:
     point_prior_axis_w: PointMatrices
     _reduced: Callable[[Iterate, float], tuple[F64, F64, F64, list[tuple[F64, F64, F64]]]]
     _prior_cost: Callable[[F64], float]
+    cols: NDArray[np.intp]
+    _structure: Callable[..., Structure]
+    _linearize: Callable[..., Linearization]
 
     def _check_rank(self, at: Iterate, when: str) -> None:
         lin = at.lin
