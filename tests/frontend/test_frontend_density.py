@@ -268,14 +268,13 @@ def test_dense_ncc_compiled_path_gives_the_reference_s_tile(scene, ref, monkeypa
     import planetref.matching.ncc as ncc
     from planetref.frontend.matchers import matcher_options
     from planetref.matching import get_matcher
-    from planetref.pipeline.config import GeorefConfig
     from planetref.runtime.optional import optional_module
 
     if optional_module("planetref.matching._numba_ncc", "compiled NCC") is None:
         pytest.skip("numba is not available: only the reference runs")
     cfg = CFG.model_copy(update={"fine_upsample": 2})
     gsd = float(np.mean(ref.ground_sampling_m()))
-    fine_opts, coarse_opts = matcher_options("ncc", GeorefConfig(frontend=cfg), gsd)
+    fine_opts, coarse_opts = matcher_options("ncc", {}, cfg, gsd)
     tile = plan_tiles(scene.init_cam, "ccd1", ref, scene.dem, cfg).tiles[0]
     kw = dict(
         image=CcdImage(scene.images["ccd1"]),

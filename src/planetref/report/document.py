@@ -68,6 +68,8 @@ DEFINITIONS: list[tuple[str, str]] = [
         "reference position and where the true camera and the true DEM put its image "
         "point on the reference grid (it includes the reference's own error). Lower is "
         "better.",
+    ),
+    (
         "formal",
         "(simulated scenes) the formal precision of the same ground positions: the "
         "adjustment's parameter covariance, with the declared correlated errors of the "

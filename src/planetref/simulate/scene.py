@@ -543,7 +543,14 @@ def _build(
     if cfg.reference.mola.areoid and cfg.reference.mola.areoid_declared:
         areoid, areoid_grid = areoid_raster(dem_grid, cfg.reference.mola)
         write_raster(root / "reference" / "areoid.tif", areoid, areoid_grid, ref_wkt)
-        datum = {"dem_datum": "areoid", "areoid": "reference/areoid.tif"}
+        # The simulated areoid is a plane near the sphere, not Mars' areoid (whose
+        # ellipsoidal shape puts it kilometres from the sphere away from the equator):
+        # the scene says so, so the reader's plausibility check warns instead of failing.
+        datum = {
+            "dem_datum": "areoid",
+            "areoid": "reference/areoid.tif",
+            "implausible_heights": "warn",
+        }
     lap("reference")
 
     # Truth ---------------------------------------------------------------------------
