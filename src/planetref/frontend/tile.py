@@ -439,9 +439,13 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         ridx = np.flatnonzero(ransac_inl)
         rl, rs, rgood = side.to_raw(st.kp0[ridx, 0], st.kp0[ridx, 1])
         rc, rr = fine_ref.to_ref_pixel(st.kp1[ridx, 0], st.kp1[ridx, 1])
-        res.ransac_points = np.column_stack(
-            [np.where(rgood, rl, np.nan), np.where(rgood, rs, np.nan), rc, rr]
-        ).astype(np.float64)
+        # Rounded to 1e-3 px as the journal keeps them, so a resumed run measures the same.
+        res.ransac_points = np.round(
+            np.column_stack(
+                [np.where(rgood, rl, np.nan), np.where(rgood, rs, np.nan), rc, rr]
+            ).astype(np.float64),
+            3,
+        )
     res.n_inliers = int(inl.sum())
     if debug:
         res.debug.append(
