@@ -259,10 +259,13 @@ def write_compare_report(
         doc.para(
             "This is a **simulated** scene: the truth is known, so the true error can be "
             "measured. It is easier than real data: the images and the reference are "
-            "rendered from one synthetic terrain by the same simulator, the camera model of "
-            "the adjustment is the one that made the images, and changes between image and "
-            "reference (illumination, season, surface) are only those the simulation "
-            "config (`truth/config.toml`) puts in."
+            "rendered from one synthetic terrain by the same simulator, and changes between "
+            "image and reference (illumination, season, surface) are only those the "
+            "simulation config (`truth/config.toml`) puts in. The camera that made the "
+            "images is not the adjustment's model: it adds what that model cannot "
+            "represent (its `truth_mismatch` and `jitter` settings: CCD placement, "
+            "lens distortion, line-rate error and attitude and position oscillations), "
+            "so the true error after the adjustment has a floor the matcher cannot remove."
         )
         add_realism(doc, context)
     doc.heading("Settings")
