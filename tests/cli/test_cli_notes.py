@@ -48,3 +48,27 @@ def test_one_summary_line_at_the_end_of_a_command(planetref_at_info, capsys, ver
     err = capsys.readouterr().err
     assert (err.count("\n") == 1 and "2 expected condition(s)" in err) == printed
     assert not printed or err.startswith("note: ")
+
+
+def test_library_deprecation_warnings_are_notes(planetref_at_info, caplog):
+    from planetref.cli import _warning_as_log_line
+
+    counter = NoteCounter()
+    planetref_at_info.addHandler(counter)
+    try:
+        with caplog.at_level(logging.INFO, logger="planetref"):
+            _warning_as_log_line(
+                PendingDeprecationWarning("Use `@` matmul instead of `*`"),
+                PendingDeprecationWarning,
+                "x.py",
+                1,
+            )
+            _warning_as_log_line(RuntimeWarning("overflow"), RuntimeWarning, "x.py", 1)
+    finally:
+        planetref_at_info.removeHandler(counter)
+    levels = {r.getMessage(): r.levelno for r in caplog.records}
+    assert levels == {
+        "PendingDeprecationWarning: Use `@` matmul instead of `*`": logging.INFO,
+        "RuntimeWarning: overflow": logging.WARNING,
+    }
+    assert dict(counter.counts) == {"library deprecation warnings": 1}

@@ -114,14 +114,22 @@ def _warning_as_log_line(
     """Show a Python warning as one log line (no source path or code line).
 
     rasterio's ``NotGeoreferencedWarning`` is dropped: raw CCD images and the images of
-    ``match`` have no georeference by nature.
+    ``match`` have no georeference by nature. Deprecation warnings (of the libraries
+    planetref calls) are notes (:mod:`planetref.runtime.notes`): INFO, and counted.
     """
     if category.__name__ == "NotGeoreferencedWarning":
         return
     text = _one_line(str(message))
     if not issubclass(category, UserWarning) or category.__module__ != "builtins":
         text = f"{category.__name__}: {text}"
-    logging.getLogger("planetref.warnings").warning("%s", text)
+    logger = logging.getLogger("planetref.warnings")
+    if issubclass(category, (DeprecationWarning, PendingDeprecationWarning)):
+        # A library's deprecation asks the developers, not the user, to act: a note.
+        from planetref.runtime.notes import log_note
+
+        log_note(logger, "library deprecation warnings", text)
+        return
+    logger.warning("%s", text)
 
 
 def _route_warnings(ctx: click.Context) -> None:
