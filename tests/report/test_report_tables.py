@@ -171,3 +171,15 @@ def test_simulated_scene_report_says_the_truth_camera_is_not_the_adjustments(tmp
     assert "is not the adjustment's model" in md and "lens distortion" in md
     # The settings the sentence names are the simulator's.
     assert {"truth_mismatch", "jitter"} <= set(SimulationConfig.model_fields)
+
+
+def test_report_timing_header_wraps_and_the_csv_keeps_the_names(tmp_path):
+    from planetref.report.georef import CompareContext, write_compare_report
+
+    run = _run()
+    run["timing_s"] = {"matching": 8.0, "outputs_adjustment_files": 1.5, "total": 10.0}
+    write_compare_report({"sift": run}, {}, tmp_path, CompareContext(scene="x"))
+    html = (tmp_path / "report.html").read_text()
+    assert "<th>outputs adjustment files</th>" in html and "outputs_adjustment_files" not in html
+    with open(tmp_path / "timing.csv") as fh:
+        assert "outputs_adjustment_files (s)" in next(csv.reader(fh))
