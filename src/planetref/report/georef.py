@@ -284,7 +284,9 @@ def write_compare_report(
         context.headline,
         "Headline metrics per matcher. Hatched: before the adjustment; coloured: after; "
         "dashes: per-CCD values; whisker: maximum true error. Each panel says which "
-        "direction is better.",
+        "direction is better. Linear axes from 0; a hatched bar cut at the top of its "
+        "panel carries its value after an upward arrow; the outlier ratio's axis runs "
+        "to at least 10 %.",
     )
     for name, (h, r) in tables.items():
         doc.heading(_SECTIONS[name])
