@@ -18,7 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from planetref.report.document import DEFINITIONS, Document
-from planetref.report.figures_adjust import figure_headline, figure_residual_vectors
+from planetref.report.figures_adjust import (
+    OR_AXIS_TOP_PCT,
+    figure_headline,
+    figure_residual_vectors,
+)
 from planetref.report.tables import (
     ADJ_COLUMNS,
     adjustment_rows,
@@ -286,7 +290,7 @@ def write_compare_report(
         "dashes: per-CCD values; whisker: maximum true error. Each panel says which "
         "direction is better. Linear axes from 0; a hatched bar cut at the top of its "
         "panel carries its value after an upward arrow; the outlier ratio's axis runs "
-        "to at least 10 %.",
+        f"to at least {OR_AXIS_TOP_PCT:g} %.",
     )
     for name, (h, r) in tables.items():
         doc.heading(_SECTIONS[name])
