@@ -67,3 +67,48 @@ def test_no_pairs_above_threshold():
     info, warnings = correlation_warnings(NAMES, np.eye(len(NAMES)), DiagnosticsConfig())
     assert info == {"n_pairs_above": 0, "threshold": 0.99}
     assert warnings == []
+
+
+def test_one_angle_at_several_nodes_is_a_note_anything_else_a_warning():
+    """What the log shows: the interpolation's coupling of one angle of one camera
+    across nodes is a note (INFO); a pair of two kinds of parameter stays a WARNING."""
+    from planetref.adjust.evaluation import _interpolation_only
+
+    cfg = DiagnosticsConfig()
+    coupled = [
+        ("strip1:node0.kappa", "strip1:node1.kappa", 0.99995),  # adjacent: not counted
+        ("strip1:node0.kappa", "strip1:node2.kappa", 0.9960),  # two nodes apart
+        ("strip1:node1.phi", "strip1:node3.phi", 0.9930),
+    ]
+    info, warnings = correlation_warnings(NAMES, _corr(NAMES, coupled), cfg)
+    assert info["n_other_pairs"] == 2 and info["n_same_angle_node_pairs"] == 2
+    assert len(warnings) == 1 and _interpolation_only(info)
+    mixed = [*coupled, ("strip1:node3.kappa", "strip2:node0.kappa", 0.9990)]
+    info, warnings = correlation_warnings(NAMES, _corr(NAMES, mixed), cfg)
+    assert info["n_other_pairs"] == 3 and info["n_same_angle_node_pairs"] == 2
+    assert len(warnings) == 1 and not _interpolation_only(info)
+
+
+def test_points_beyond_their_sigmas_warn_only_beyond_chance():
+    from planetref.adjust.diagnostics import point_summary
+
+    n = 1000
+    rng = np.random.default_rng(3)
+    shift_sigma = np.abs(rng.normal(0.0, 1.0, n))  # Gaussian a-priori errors, 1 axis each
+    table = {
+        "kind": np.array(["tie"] * n),
+        "point_id": np.array([f"t{i}" for i in range(n)]),
+        "shift_m": shift_sigma * 10.0,
+        "shift_up_m": np.zeros(n),
+        "shift_horizontal_m": shift_sigma * 10.0,
+        "shift_sigma": shift_sigma,
+        "sigma_apriori": np.full((n, 1), 10.0),
+    }
+    used = np.ones(n, bool)
+    cfg = DiagnosticsConfig()
+    # ~2.7 of 1000 Gaussian values exceed 3 sigma by chance: a note, not a warning.
+    _, warnings, notes = point_summary(table, used, cfg)
+    assert warnings == [] and len(notes) == 1 and "by chance" in notes[0]
+    table["shift_sigma"] = np.r_[shift_sigma[:-20], np.full(20, 8.0)]  # 20 blunders
+    _, warnings, notes = point_summary(table, used, cfg)
+    assert notes == [] and len(warnings) == 1 and warnings[0].startswith("2")

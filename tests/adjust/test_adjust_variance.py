@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 
 import numpy as np
 import pytest
@@ -190,7 +191,7 @@ def test_self_calibration_names():
         assert not SELF_CALIBRATION.search(name), name
 
 
-def test_points_csv_and_movement_warnings(tmp_path):
+def test_points_csv_and_movement_warnings(tmp_path, caplog):
     """points.csv lists every point; a tie point placed 1 km off is moved and flagged."""
     true = true_strip()
     init = perturb(true)
@@ -229,7 +230,8 @@ def test_points_csv_and_movement_warnings(tmp_path):
         },
         sigma_px=0.3,
     )
-    res = adjust(net, LINEAR)
+    with caplog.at_level(logging.INFO, logger="planetref"):
+        res = adjust(net, LINEAR)
     written = write_outputs(res, tmp_path, rpc=False, plots=False)
     with open(written["points"]) as fh:
         rows = {r["point_id"]: r for r in csv.DictReader(fh)}
@@ -251,6 +253,15 @@ def test_points_csv_and_movement_warnings(tmp_path):
     cams = res.diagnostics["camera_shifts"]["strip"]
     assert cams["max_m"] > 30.0  # the perturbation (30/-20/10 m bias) was taken out
     assert any("camera footprint" in w for w in res.warnings) == (cams["max_m"] > 100.0)
+
+    # One blunder among 180 weighted axes is more than chance gives (~0.5): a WARNING
+    # the user acts on; a footprint moving is what the adjustment did: a note (INFO).
+    def levels(text):
+        return [r.levelno for r in caplog.records if text in r.getMessage()]
+
+    assert levels("weighted point(s) moved more than") == [logging.WARNING]
+    moved = [logging.INFO] if cams["max_m"] > 100.0 else []
+    assert levels("camera footprint(s) moved") == moved
 
 
 def test_per_axis_metrics_hand_computed():

@@ -197,3 +197,45 @@ def test_save_draws_once_with_the_pixels_of_savefig(tmp_path, monkeypatch):
     a, b = mpimg.imread(tmp_path / "ref.png"), mpimg.imread(tmp_path / "one.png")
     assert a.shape == b.shape == (270, 540, 4)
     assert np.array_equal(a, b)
+
+
+def test_headline_axes_are_linear_and_the_outlier_ratio_is_on_a_fixed_scale(tmp_path, monkeypatch):
+    import planetref.report.figures_adjust as fa
+
+    figs = []
+    save = fa.save
+    monkeypatch.setattr(fa, "save", lambda fig, path, dpi: figs.append(fig) or save(fig, path, dpi))
+
+    def run(rmse_before, rmse, outliers, true_before, true_after):
+        return {
+            "matching": {"ncp": 100, "sdu_pct": 5.0, "ccds": {"c": {"ncp": 100, "sdu_pct": 5.0}}},
+            "adjustment": {
+                "rmse_px": rmse,
+                "rmse_px_before": rmse_before,
+                "outlier_ratio_pct": outliers,
+            },
+            "check": {
+                "geoloc_rmse_m_before": true_before,
+                "geoloc_rmse_m": true_after,
+                "geoloc_max_m": 2 * true_after,
+            },
+        }
+
+    # One matcher with 0.07 % outliers, the others none: on a fitted axis it would fill
+    # the panel. RMSE before (41 px) is far above after (<= 0.9 px): cut, with its value.
+    runs = {"a": run(41.2, 0.62, 0.07, 108.0, 1.4), "b": run(41.2, 0.9, 0.0, 108.0, 1.1)}
+    _png_ok(figure_headline(runs, tmp_path / "h.png"))
+    axes = {ax.get_title().split("\n")[0]: ax for ax in figs[-1].axes}
+    assert all(ax.get_yscale() == "linear" for ax in axes.values())
+    assert axes["OR (outlier ratio)"].get_ylim() == (0.0, fa.OR_AXIS_TOP_PCT)
+    rmse = axes["RMSE of image residuals"]
+    assert rmse.get_ylim()[0] == 0.0 and 0.9 < rmse.get_ylim()[1] < 2.0
+    texts = [t.get_text() for t in rmse.texts]
+    assert texts.count("\u219141.2") == 2 and "0.62" in texts and "0.9" in texts
+    # An OR above the fixed scale widens it; a before within 3x is drawn whole.
+    runs = {"a": run(2.0, 0.8, 14.0, 3.0, 1.5)}
+    figure_headline(runs, tmp_path / "h2.png")
+    axes = {ax.get_title().split("\n")[0]: ax for ax in figs[-1].axes}
+    assert axes["OR (outlier ratio)"].get_ylim()[1] > 14.0
+    rmse = axes["RMSE of image residuals"]
+    assert rmse.get_ylim()[1] > 2.0 and "2" in [t.get_text() for t in rmse.texts]

@@ -168,3 +168,32 @@ def test_funnel_from_report_sums_strips_or_takes_the_runs_own():
     assert funnel_from_report(rep) == {"raw": 15, "ransac": 12, "mcp": 11}
     rep["matching"]["funnel"] = {"raw": 1, "mcp": 1}
     assert funnel_from_report(rep) == {"raw": 1, "mcp": 1}
+
+
+def test_simulated_scene_report_says_the_truth_camera_is_not_the_adjustments(tmp_path):
+    """The camera that made a simulated scene's images departs from the adjustment's model
+    (lens distortion, CCD placement, jitter): the report must not say they are the same."""
+    from planetref.report.georef import CompareContext, write_compare_report
+    from planetref.simulate.config import SimulationConfig
+
+    ctx = CompareContext(scene="tiny", simulated=True)
+    paths = write_compare_report({"sift": _run()}, {}, tmp_path, ctx)
+    md = " ".join(paths["markdown"].split()) + " ".join(
+        (tmp_path / "report.md").read_text().split()
+    )
+    assert "the one that made the images" not in md
+    assert "is not the adjustment's model" in md and "lens distortion" in md
+    # The settings the sentence names are the simulator's.
+    assert {"truth_mismatch", "jitter"} <= set(SimulationConfig.model_fields)
+
+
+def test_report_timing_header_wraps_and_the_csv_keeps_the_names(tmp_path):
+    from planetref.report.georef import CompareContext, write_compare_report
+
+    run = _run()
+    run["timing_s"] = {"matching": 8.0, "outputs_adjustment_files": 1.5, "total": 10.0}
+    write_compare_report({"sift": run}, {}, tmp_path, CompareContext(scene="x"))
+    html = (tmp_path / "report.html").read_text()
+    assert "<th>outputs adjustment files</th>" in html and "outputs_adjustment_files" not in html
+    with open(tmp_path / "timing.csv") as fh:
+        assert "outputs_adjustment_files (s)" in next(csv.reader(fh))

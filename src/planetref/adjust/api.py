@@ -36,6 +36,7 @@ from planetref.adjust.variance import variance_components
 from planetref.control.network import Network
 from planetref.errors import AdjustmentError
 from planetref.runtime.blas import single_threaded_blas
+from planetref.runtime.notes import log_note
 from planetref.runtime.threads import compute_threads
 
 __all__ = ["STATUSES", "AdjustmentResult", "adjust", "rays", "triangulate"]
@@ -378,6 +379,9 @@ def _adjust(
             pool.shutdown(wait=True)
     for w in diag.pop("_warnings"):
         warn(w)
+    for kind, line in diag.pop("_notes"):  # in the report's warnings; INFO in the log
+        warnings.append(line)
+        log_note(log, kind, line)
     points = diag.pop("_points")
     if chk.size:
         metrics["check"] = check_metrics(net, initial_cams, cams_after, chk, res0, residual, xyz0)

@@ -158,14 +158,21 @@ def point_summary(
     used: NDArray[np.bool_],
     cfg: DiagnosticsConfig,
     kind_codes: tuple[NDArray[np.str_], NDArray[np.intp]] | None = None,
-) -> tuple[dict[str, Any], list[str]]:
-    """Movement statistics of the points per kind and the warning lines.
+) -> tuple[dict[str, Any], list[str], list[str]]:
+    """Movement statistics of the points per kind, the warning lines and the notes.
 
     ``kind_codes``: ``(kinds, code)`` of ``table["kind"]`` when already known
     (:attr:`~planetref.control.network.Network.point_kind_codes`).
+
+    Returns:
+        ``(statistics, warnings, notes)``: the line about weighted points beyond
+        ``point_shift_sigmas`` is a warning when chance does not explain it (more such
+        points, or a larger largest shift, than Gaussian a-priori errors give), else a
+        note (the expected tail of the a-priori errors).
     """
     out: dict[str, Any] = {}
     warnings: list[str] = []
+    notes: list[str] = []
     kinds, code = kind_codes if kind_codes is not None else small_unique(table["kind"])
     finite = used & np.isfinite(table["shift_m"])
     for c in np.flatnonzero(np.bincount(code[used], minlength=len(kinds))):
@@ -189,13 +196,18 @@ def point_summary(
         sa = table["sigma_apriori"][used]
         n_axes = int(np.count_nonzero(np.isfinite(sa) & (sa > 0)))
         chance = n_axes * math.erfc(cfg.point_shift_sigmas / math.sqrt(2.0))
-        warnings.append(
+        # A warning when chance does not explain it: more points than a Poisson count
+        # of mean `chance` reaches (mean + 3 sd + 1), or a largest shift that Gaussian
+        # errors give in fewer than one such network in twenty (a 5 % test: a blunder).
+        too_many = beyond.sum() > chance + 3.0 * math.sqrt(chance) + 1.0
+        too_far = n_axes * math.erfc(float(ns[j]) / math.sqrt(2.0)) < 0.05
+        (warnings if too_many or too_far else notes).append(
             f"{int(beyond.sum())} weighted point(s) moved more than "
             f"{cfg.point_shift_sigmas:g} sigma from their a-priori coordinates (largest: "
             f"{table['point_id'][j]} by {ns[j]:.3g} sigma, {table['shift_m'][j]:.4g} m; "
             f"Gaussian errors would give at most ~{chance:.3g} by chance)"
         )
-    return out, warnings
+    return out, warnings, notes
 
 
 def camera_shifts(
@@ -282,6 +294,10 @@ def correlation_warnings(
     info["n_adjacent_node_pairs"] = int(np.count_nonzero(expected))
     other = above[~expected]
     info["n_other_pairs"] = len(other)
+    # The same angle of one camera two or more nodes apart: still the interpolation's
+    # coupling (through the nodes between), not two kinds of parameter the observations
+    # should separate; counted so that the caller can tell them apart.
+    info["n_same_angle_node_pairs"] = sum(_same_angle_nodes(names[a], names[b]) for a, b in other)
     if not len(other):
         return info, []
     k = int(np.argmax(c[other[:, 0], other[:, 1]]))
@@ -301,6 +317,19 @@ def correlation_warnings(
 
 
 _NODE_PARAM = re.compile(r"^(?P<cam>.*):node(?P<node>\d+)\.(?P<param>\w+)$")
+
+
+def _same_angle_nodes(a: str, b: str) -> bool:
+    """True for the same attitude angle of one camera at two different nodes."""
+    ma, mb = _NODE_PARAM.match(a), _NODE_PARAM.match(b)
+    if ma is None or mb is None:
+        return False
+    return (
+        ma["cam"] == mb["cam"]
+        and ma["param"] == mb["param"]
+        and ma["param"] in ("phi", "omega", "kappa")
+        and ma["node"] != mb["node"]
+    )
 
 
 def _adjacent_node_angles(a: str, b: str) -> bool:

@@ -63,7 +63,7 @@ def diagnostics(
     )
     used = np.zeros(net.n_points, bool)
     used[net.obs_point[used_obs]] = True
-    moved, w_pts = point_summary(table, used, dc, net.point_kind_codes)
+    moved, w_pts, n_pts = point_summary(table, used, dc, net.point_kind_codes)
     shifts, w_cam = camera_shifts(net, cams0, cams1, xyz, dc, heights=table["height"])
     corr_info, w_corr = correlation_warnings(solver.names, stats["correlation"], dc)
     calib, w_cal = self_calibration(
@@ -75,8 +75,31 @@ def diagnostics(
         "correlations": corr_info,
         "self_calibration": calib,
         "_points": table | {"used": used},
-        "_warnings": w_pts + w_cam + w_corr + w_cal,
+        "_warnings": w_pts + ([] if _interpolation_only(corr_info) else w_corr) + w_cal,
+        "_notes": _notes(n_pts, w_cam, corr_info, w_corr),
     }
+
+
+def _interpolation_only(corr_info: dict[str, Any]) -> bool:
+    """Every correlating pair of the warning is one angle of one camera at two nodes."""
+    return corr_info.get("n_same_angle_node_pairs") == corr_info.get("n_other_pairs")
+
+
+def _notes(
+    points: list[str], cameras: list[str], corr_info: dict[str, Any], corr: list[str]
+) -> list[tuple[str, str]]:
+    """The diagnostics' lines that ask nothing of the user, as ``(kind, line)``.
+
+    A footprint's movement is what the adjustment corrected (the report tables it);
+    weighted points beyond ``point_shift_sigmas`` no more often than chance gives are
+    the a-priori errors' tail; one attitude angle of one camera correlating between
+    nodes is the interpolation's coupling. Any other correlation stays a warning.
+    """
+    out = [("weighted points beyond their sigmas, within chance", m) for m in points]
+    out += [("camera footprints moved", m) for m in cameras]
+    if _interpolation_only(corr_info):
+        out += [("node attitude correlations", m) for m in corr]
+    return out
 
 
 def round_summary(

@@ -114,14 +114,22 @@ def _warning_as_log_line(
     """Show a Python warning as one log line (no source path or code line).
 
     rasterio's ``NotGeoreferencedWarning`` is dropped: raw CCD images and the images of
-    ``match`` have no georeference by nature.
+    ``match`` have no georeference by nature. Deprecation warnings (of the libraries
+    planetref calls) are notes (:mod:`planetref.runtime.notes`): INFO, and counted.
     """
     if category.__name__ == "NotGeoreferencedWarning":
         return
     text = _one_line(str(message))
     if not issubclass(category, UserWarning) or category.__module__ != "builtins":
         text = f"{category.__name__}: {text}"
-    logging.getLogger("planetref.warnings").warning("%s", text)
+    logger = logging.getLogger("planetref.warnings")
+    if issubclass(category, (DeprecationWarning, PendingDeprecationWarning)):
+        # A library's deprecation asks the developers, not the user, to act: a note.
+        from planetref.runtime.notes import log_note
+
+        log_note(logger, "library deprecation warnings", text)
+        return
+    logger.warning("%s", text)
 
 
 def _route_warnings(ctx: click.Context) -> None:
@@ -139,6 +147,28 @@ def _route_warnings(ctx: click.Context) -> None:
     ctx.call_on_close(restore)
 
 
+def _summarize_notes(ctx: click.Context, verbosity: int) -> None:
+    """Count the notes the command logs; at the end, one line about them on stderr.
+
+    Notes are expected conditions logged at INFO (:mod:`planetref.runtime.notes`): the
+    run's log has each; at the default verbosity the terminal gets this one line
+    instead (``-v`` prints them, ``-q`` neither).
+    """
+    from planetref.runtime.notes import NoteCounter
+
+    counter = NoteCounter()
+    logger = logging.getLogger("planetref")
+    logger.addHandler(counter)
+
+    def close() -> None:
+        logger.removeHandler(counter)
+        line = counter.summary()
+        if line and verbosity == 0:
+            click.echo(line, err=True)
+
+    ctx.call_on_close(close)
+
+
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="planetref")
 @click.option("-v", "--verbose", count=True, help="More output (-vv: debug, with tracebacks).")
@@ -151,3 +181,4 @@ def main(ctx: click.Context, verbose: int, quiet: int) -> None:
     ctx.obj["quiet"] = quiet > 0
     _configure_logging(verbose - quiet)
     _route_warnings(ctx)
+    _summarize_notes(ctx, verbose - quiet)

@@ -11,10 +11,19 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from planetref.errors import InputError
+
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.runtime.execute import SchedulerSpec
 
-__all__ = ["compare_command", "demo_command", "georef_command"]
+__all__ = [
+    "DEMO_COSTS",
+    "DemoCost",
+    "compare_command",
+    "demo_command",
+    "demo_cost_notice",
+    "georef_command",
+]
 
 
 def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> Any:
@@ -226,6 +235,84 @@ def _default_demo_dir() -> Path:
     return Path(os.environ.get("PLANETREF_DEMO_DIR", "planetref-demo"))
 
 
+@dataclass(frozen=True)
+class DemoCost:
+    """What one ``planetref demo`` of a preset costs, as measured (one seed).
+
+    Attributes:
+        cpu_s: CPU seconds of the whole demo (simulation and comparison), or None where
+            not measured.
+        peak_rss_gb: Peak resident memory in GB, or None.
+        written_gb: Disk written (scene and comparison folders) in GB, or None.
+        matchers: The matchers the figures were measured with.
+        source: Where and how they were measured.
+    """
+
+    cpu_s: float | None
+    peak_rss_gb: float | None
+    written_gb: float | None
+    matchers: str
+    source: str
+
+
+DEMO_COSTS: dict[str, DemoCost] = {
+    "tiny": DemoCost(
+        cpu_s=622.0,
+        peak_rss_gb=2.0,
+        written_gb=0.08,
+        matchers="six matchers; disk with sift and ncc",
+        source="CPU and memory: docs/tutorials/demo.md and issue 32 (a 2-core machine, "
+        "about 7 minutes); disk: du of the scene (7 MB) and the sift (16 MB) and ncc "
+        "(56 MB) runs, branch newuser, 2026-12-03",
+    ),
+    "hiric-strip": DemoCost(
+        cpu_s=1416.0,
+        peak_rss_gb=2.8,
+        written_gb=1.9,
+        matchers="every matcher with weights",
+        source="issue 32: a first run as a new user on main 2553f7b (default settings)",
+    ),
+    "hiric": DemoCost(
+        cpu_s=None,
+        peak_rss_gb=None,
+        written_gb=None,
+        matchers="",
+        source="not measured; 6x the pixels of hiric-strip (3 x 6144 x 16000)",
+    ),
+}
+"""The cost of the demo per preset: the one table ``demo``'s notice is drawn from."""
+
+
+def demo_cost_notice(preset: str, n_seeds: int = 1) -> str:
+    """The one line ``demo`` prints before it starts: time, memory and disk of the preset.
+
+    Args:
+        preset: The simulator preset.
+        n_seeds: Number of scenes (time and disk add up per seed; memory does not).
+    """
+    cost = DEMO_COSTS.get(preset)
+    if cost is None or cost.cpu_s is None:
+        why = cost.source if cost is not None else "not measured"
+        return (
+            f"the {preset} demo's time, memory and disk are not known ({why}); "
+            "try --preset tiny first"
+        )
+    per = f" per seed, {n_seeds} seeds" if n_seeds > 1 else ""
+    parts = [f"about {cost.cpu_s:,.0f} CPU seconds (~{cost.cpu_s / 60:.0f} min on one core){per}"]
+    if cost.peak_rss_gb is not None:
+        parts.append(f"about {cost.peak_rss_gb:.1f} GB of memory at its peak")
+    parts.append(
+        f"about {cost.written_gb:.1f} GB of disk{per}"
+        if cost.written_gb is not None
+        else "disk not measured"
+    )
+    return (
+        f"the {preset} demo takes {', '.join(parts)} (measured with {cost.matchers}; "
+        "it depends on the matchers: --matchers sift is the quickest; a cached scene "
+        "is reused)"
+    )
+
+
 @click.command("demo")
 @click.option(
     "--out",
@@ -279,22 +366,36 @@ def demo_command(
     beyond noise) in ``seeds-<preset>-seed<first>-<last>/``.
     """
     from planetref.cli.simulate import simulate_run
-    from planetref.pipeline.compare import run_compare, summarize_compares
+    from planetref.pipeline.compare import resolve_matchers, run_compare, summarize_compares
     from planetref.simulate.config import load_config as load_sim_config
 
     quiet = _quiet(ctx)
+    # Every name is checked before the first scene is simulated (minutes of work): an
+    # unknown preset, difficulty or matcher, or matchers none of which can run, is one
+    # line naming the valid values, and nothing is written.
+    level = None if difficulty == "moderate" else difficulty
+    configs = {
+        s: load_sim_config(preset, seed=s, difficulty=level) for s in range(seed, seed + n_seeds)
+    }
+    names, skipped = resolve_matchers(matchers, run.weights_dir)
+    if not names:
+        raise InputError(
+            "none of the matchers can run: "
+            + "; ".join(f"{n}: {why}" for n, why in skipped.items())
+        )
     base = Path(out) if out else _default_demo_dir()
     tag = preset if difficulty == "moderate" else f"{preset}-{difficulty}"
     kwargs = run.run_kwargs(progress=not quiet)
+    if not quiet:
+        click.echo(demo_cost_notice(preset, n_seeds), err=True)
     dirs: dict[str, Path] = {}
-    for s in range(seed, seed + n_seeds):
+    for s, sim_config in configs.items():
         scene_dir = base / f"scene-{tag}-seed{s}"
         if not (scene_dir / "scene.toml").is_file():
             if not quiet:
                 click.echo(f"simulating the {tag} scene (seed {s}) into {scene_dir} ...", err=True)
-            level = None if difficulty == "moderate" else difficulty
             simulate_run(
-                load_sim_config(preset, seed=s, difficulty=level),
+                sim_config,
                 scene_dir,
                 overwrite=run.overwrite,
                 preview=True,

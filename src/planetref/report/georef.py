@@ -18,7 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from planetref.report.document import DEFINITIONS, Document
-from planetref.report.figures_adjust import figure_headline, figure_residual_vectors
+from planetref.report.figures_adjust import (
+    OR_AXIS_TOP_PCT,
+    figure_headline,
+    figure_residual_vectors,
+)
 from planetref.report.tables import (
     ADJ_COLUMNS,
     adjustment_rows,
@@ -260,10 +264,13 @@ def write_compare_report(
         doc.para(
             "This is a **simulated** scene: the truth is known, so the true error can be "
             "measured. It is easier than real data: the images and the reference are "
-            "rendered from one synthetic terrain by the same simulator, the camera model of "
-            "the adjustment is the one that made the images, and changes between image and "
-            "reference (illumination, season, surface) are only those the simulation "
-            "config (`truth/config.toml`) puts in."
+            "rendered from one synthetic terrain by the same simulator, and changes between "
+            "image and reference (illumination, season, surface) are only those the "
+            "simulation config (`truth/config.toml`) puts in. The camera that made the "
+            "images is not the adjustment's model: it adds what that model cannot "
+            "represent (its `truth_mismatch` and `jitter` settings: CCD placement, "
+            "lens distortion, line-rate error and attitude and position oscillations), "
+            "so the true error after the adjustment has a floor the matcher cannot remove."
         )
         add_realism(doc, context)
     doc.heading("Settings")
@@ -282,11 +289,13 @@ def write_compare_report(
         context.headline,
         "Headline metrics per matcher. Hatched: before the adjustment; coloured: after; "
         "dashes: per-CCD values; whisker: maximum true error. Each panel says which "
-        "direction is better.",
+        "direction is better. Linear axes from 0; a hatched bar cut at the top of its "
+        "panel carries its value after an upward arrow; the outlier ratio's axis runs "
+        f"to at least {OR_AXIS_TOP_PCT:g} %.",
     )
     for name, (h, r) in tables.items():
         doc.heading(_SECTIONS[name])
-        doc.table(_TABLES[name], h, r)
+        doc.table(_TABLES[name], _timing_header(h) if name == "timing" else h, r)
     if "funnel" not in tables:
         doc.para("Front-end funnel: not available (no tile journal).")
     eh, er = _extra_adjustment(runs)
@@ -323,6 +332,16 @@ def write_compare_report(
     written = doc.write(folder)
     paths.update(written)
     return paths
+
+
+def _timing_header(header: list[str]) -> list[str]:
+    """The timing table's header as the report shows it: words that wrap.
+
+    ``outputs_adjustment_files (s)`` is one unbreakable word; eleven of them made the
+    table wider than the page. The caption gives the unit (seconds); the CSV keeps the
+    full names.
+    """
+    return [h.removesuffix(" (s)").replace("_", " ") for h in header]
 
 
 def _short(v: Any) -> Any:
