@@ -319,30 +319,27 @@ def correlation_warnings(
 _NODE_PARAM = re.compile(r"^(?P<cam>.*):node(?P<node>\d+)\.(?P<param>\w+)$")
 
 
-def _same_angle_nodes(a: str, b: str) -> bool:
-    """True for the same attitude angle of one camera at two different nodes."""
+def _angle_nodes(a: str, b: str) -> tuple[int, int] | None:
+    """The two nodes of the same attitude angle of one camera, or None for another pair."""
     ma, mb = _NODE_PARAM.match(a), _NODE_PARAM.match(b)
     if ma is None or mb is None:
-        return False
-    return (
-        ma["cam"] == mb["cam"]
-        and ma["param"] == mb["param"]
-        and ma["param"] in ("phi", "omega", "kappa")
-        and ma["node"] != mb["node"]
-    )
+        return None
+    same = ma["cam"] == mb["cam"] and ma["param"] == mb["param"]
+    if not same or ma["param"] not in ("phi", "omega", "kappa"):
+        return None
+    return int(ma["node"]), int(mb["node"])
+
+
+def _same_angle_nodes(a: str, b: str) -> bool:
+    """True for the same attitude angle of one camera at two different nodes."""
+    nodes = _angle_nodes(a, b)
+    return nodes is not None and nodes[0] != nodes[1]
 
 
 def _adjacent_node_angles(a: str, b: str) -> bool:
     """True for the same attitude angle of one camera at two adjacent nodes."""
-    ma, mb = _NODE_PARAM.match(a), _NODE_PARAM.match(b)
-    if ma is None or mb is None:
-        return False
-    return (
-        ma["cam"] == mb["cam"]
-        and ma["param"] == mb["param"]
-        and ma["param"] in ("phi", "omega", "kappa")
-        and abs(int(ma["node"]) - int(mb["node"])) == 1
-    )
+    nodes = _angle_nodes(a, b)
+    return nodes is not None and abs(nodes[0] - nodes[1]) == 1
 
 
 def _mean_height_direction(names: list[str], x0: F64, camera: str) -> F64 | None:
