@@ -46,7 +46,7 @@ from planetref.control.networks import (
     template_overlap,
     template_support_m,
 )
-from planetref.errors import AdjustmentError, MatcherFailedError, MatchingError
+from planetref.errors import AdjustmentError, MatcherFailedError
 from planetref.frontend.matchers import (
     MatcherPair,
     build_matchers,
@@ -80,6 +80,7 @@ from planetref.report.blocks import (
     matching_block,
     result_block,
     rmse_px,
+    too_few_mcps,
 )
 from planetref.runtime.threads import single_threaded_blas
 from planetref.scene.inputs import (
@@ -387,12 +388,7 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
-        raise MatchingError(
-            f"strip {strip.id}: only {n} matched control points with matcher "
-            f"{matches.matcher} ({out['matching']['tile_status']}); "
-            f"at least {cfg.mcp.min_mcps} are needed. "
-            "See planetref.log for why tiles failed"
-        )
+        raise too_few_mcps(strip.id, matches.matcher, out["matching"], cfg.mcp.min_mcps)
     check = check_points(
         table["tile_id"],
         table["ccd"],
