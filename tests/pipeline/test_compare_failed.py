@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import csv
 import json
+from types import SimpleNamespace
 
 import pytest
 
-from planetref.errors import MatcherFailedError, WeightsError
+from planetref.errors import MatcherFailedError, MatchingError, WeightsError
 from planetref.report.blocks import failed_report
 
 
@@ -76,7 +77,13 @@ def test_compare_keeps_a_failed_matcher_as_a_row(tiny_scene, tmp_path, monkeypat
         raise MatcherFailedError("only 0 MCPs", report=rep)
 
     monkeypatch.setattr(georef, "run_georef", fake_run_georef)
-    outcome = run_compare(tiny_scene, "sift,ncc", tmp_path / "cmp", progress=False)
+    # No matcher finished: the report is written with every row, then the command fails
+    # in one line (issue 35).
+    with pytest.raises(MatchingError, match=r"every matcher failed \(2\)"):
+        run_compare(tiny_scene, "sift,ncc", tmp_path / "cmp", progress=False)
+    outcome = SimpleNamespace(
+        run_dir=tmp_path / "cmp", tables_markdown=(tmp_path / "cmp" / "report.md").read_text()
+    )
     rep = json.loads((outcome.run_dir / "report.json").read_text())
     assert list(rep["runs"]) == ["sift"] and rep["runs"]["sift"]["failed"] == "only 0 MCPs"
     assert list(rep["skipped"]) == ["ncc"] and "ncc.pth" in rep["skipped"]["ncc"]
@@ -95,7 +102,7 @@ def test_compare_keeps_a_failed_matcher_as_a_row(tiny_scene, tmp_path, monkeypat
         truth = list(csv.DictReader(fh))
     assert truth[0]["Matcher"] == "sift" and float(truth[0]["true OR >3 px (%)"]) == 75.0
     md = outcome.tables_markdown
-    assert "## Failed" in md and "only 0 MCPs" in md and "## Skipped (could not run)" in md
+    assert "Failed matchers" in md and "only 0 MCPs" in md and "## Skipped matchers" in md
     page = read_report_html(outcome.run_dir / "report.html")
     text = (outcome.run_dir / "report.html").read_text()
     assert "Failed matchers" in text and "Skipped matchers" in text

@@ -149,7 +149,9 @@ def test_compare_where_every_matcher_fails(mini_scene: Path, tmp_path: Path) -> 
     r = run_cli("-q", "compare", scene, "--matchers", "sift", "--out", out)
     one_line_error(r, "every matcher failed (1)", "sift", "report.md")
     assert "only 0 matched control points" in (out / "report.md").read_text()
-    assert json.loads((out / "report.json").read_text())["runs"] == {}
+    # The failed matcher stays a row of the report (issue 29), with why.
+    runs = json.loads((out / "report.json").read_text())["runs"]
+    assert list(runs) == ["sift"] and "only 0 matched control points" in runs["sift"]["failed"]
     assert _digests(scene) == before
 
 

@@ -291,10 +291,12 @@ def _run_compare(
         files = {k: v for k, v in tables.items() if k != "markdown"}
         if headline is not None:
             files["headline"] = str(headline)
-        if not runs:  # the report says why each failed; the command fails, in one line
-            first = next(iter(skipped.items()), ("", "no matcher to run"))
+        ok = [n for n, r in runs.items() if not r.get("failed")]
+        if not ok:  # the report keeps every failed row and why; the command fails in one line
+            why = {**{n: r["failed"] for n, r in runs.items()}, **skipped}
+            first = next(iter(why.items()), ("", "no matcher to run"))
             raise MatchingError(
-                f"every matcher failed ({len(skipped)}); the first, {first[0]}: "
+                f"every matcher failed ({len(why)}); the first, {first[0]}: "
                 f"{' '.join(str(first[1]).split())} (see {run.path / 'report.md'})"
             )
     return CompareOutcome(
