@@ -200,6 +200,15 @@ def test_rerun_resumes_and_never_clobbers(
     # The same adjusted camera: ISDs and orthoimages are kept, not written again.
     assert [p.stat().st_mtime_ns for p in kept] == stamps
     assert again.report["matching"] == first.report["matching"]
+    # The resumed run says so and keeps the tiles' original matching cost (the journal's).
+    assert first.report["resumed"] is False and again.report["resumed"] is True
+    tiles_s = first.report["timing_s"]["matching_tiles"]
+    assert tiles_s > 0 and again.report["timing_s"]["matching_tiles"] == tiles_s
+    from planetref.report.tables import timing_rows
+
+    _, rows = timing_rows({"sift": again.report})
+    assert rows[0][0] == "sift (resumed)"
+    assert rows[0][-1] == pytest.approx(tiles_s / first.report["matching"]["tiles_total"])
     # Another matcher into the same directory is refused without --overwrite...
     with pytest.raises(InputError, match="another run"):
         run_georef(tiny_scene, "ncc", out, progress=False)

@@ -288,6 +288,9 @@ def run_georef(
                 report["campaign"] = campaign
             if input_warnings:
                 report["input_warnings"] = list(input_warnings)
+            # A resumed run's step timings are what this process spent; the tiles' own
+            # cost is in timing_s.matching_tiles (from the journal), so it says so.
+            report["resumed"] = bool(run.resumed)
             run.write_json("report.json", report)
             write_georef_markdown(report, run.file("report.md"))
     finally:
@@ -362,6 +365,11 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
     matches = _match(job, camera, images, store)
     table = mcps_from_tiles(matches, ref=job.ref, dem=job.dem)
     job.timing["matching"] += time.perf_counter() - t0
+    # What the tiles took when they were matched, as their journal records it: a resumed
+    # run keeps the original cost instead of the seconds it spent reading the journal.
+    job.timing["matching_tiles"] = job.timing.get("matching_tiles", 0.0) + sum(
+        float(t.timings.get("total", 0.0)) for t in matches.tiles
+    )
     log.info(
         "strip %s: %d tiles matched with %s in %.0f s (%s): %d MCPs",
         strip.id,

@@ -336,7 +336,12 @@ def funnel_rows(
 
 
 def timing_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[list[Any]]]:
-    """Wall-clock seconds per step and per tile, one row per matcher."""
+    """Wall-clock seconds per step and per tile, one row per matcher.
+
+    ``matching_tiles`` is the seconds the tiles took when they were matched (recorded in
+    the tile journal), so a resumed run, whose ``matching`` step only read the journal,
+    keeps its original per-tile cost; such a run's row says ``(resumed)``.
+    """
     keys: list[str] = []
     for rep in runs.values():
         for k in rep.get("timing_s") or {}:
@@ -347,9 +352,12 @@ def timing_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[
     for name, rep in runs.items():
         t = rep.get("timing_s") or {}
         n = rep["matching"].get("tiles_total") or 0
+        # The tiles' own recorded cost where the report has it (a resumed run keeps it),
+        # else the matching step's seconds.
+        m = t.get("matching_tiles", t.get("matching"))
         rows.append(
-            [name]
+            [name + (" (resumed)" if rep.get("resumed") else "")]
             + [t.get(k) for k in keys]
-            + [t["matching"] / n if n and isinstance(t.get("matching"), int | float) else None]
+            + [m / n if n and isinstance(m, int | float) else None]
         )
     return header, rows
