@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import planetref
 from planetref.runtime.optional import SWITCH
 
@@ -76,3 +78,39 @@ def test_the_switch_turns_every_twin_off() -> None:
     assert out[0] == out[1]  # every twin off
     assert out[2] == "False"  # and numba never imported
     assert SWITCH == "PLANETREF_COMPILED"
+
+
+def test_compile_clock_reports_numba_compiling_apart() -> None:
+    """A step that compiles a kernel is charged its own time; the compile goes apart."""
+    import time
+
+    import numba
+
+    from planetref.pipeline.job import StripJob
+    from planetref.runtime.optional import CompileClock
+
+    clock = CompileClock().start()
+    assert clock.seconds() == 0.0
+
+    @numba.njit(cache=False)
+    def inner(x: float) -> float:
+        return x * 2.0
+
+    @numba.njit(cache=False)
+    def outer(x: float) -> float:  # compiles inner too: nested events count once
+        return inner(x) + 1.0
+
+    job = object.__new__(StripJob)  # only the timing and the clock are used here
+    object.__setattr__(job, "timing", {"adjustment": 0.0})
+    object.__setattr__(job, "compile_clock", clock)
+    t0, c0 = job.clock()
+    w0 = time.perf_counter()
+    assert outer(1.0) == 3.0
+    wall = time.perf_counter() - w0
+    job.charge("adjustment", t0, c0)
+    clock.stop()
+    compiled = job.timing["compile"]
+    assert 0.0 < compiled <= wall + 1e-6
+    assert job.timing["adjustment"] == pytest.approx(wall - compiled, abs=0.05)
+    before = clock.seconds()
+    assert outer(2.0) == 5.0 and clock.seconds() == before  # stopped: nothing more recorded

@@ -258,6 +258,7 @@ def run_georef(
                 figures=stack.enter_context(FigureJobs()),
             )
             job.figures.start()  # matplotlib is imported there while the tiles are matched
+            stack.callback(job.compile_clock.start().stop)  # compile seconds apart
             settings = frontend_settings(cfg.frontend)
             matched: dict[str, dict[str, Any]] = {}  # matching blocks, for a failed run
             try:
@@ -359,12 +360,12 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
     sizes = {c: camera.image_size(c) for c in images}
     out: dict[str, Any] = {"files": {}}
 
-    t0 = time.perf_counter()
+    t0, c0 = job.clock()
     # Fig. 2's tiles, kept in the run folder as they are matched (a resumed run finds them).
     store = PanelStore(persistent=job.run.path / strip.id / "tile_panels")
     matches = _match(job, camera, images, store)
     table = mcps_from_tiles(matches, ref=job.ref, dem=job.dem)
-    job.timing["matching"] += time.perf_counter() - t0
+    job.charge("matching", t0, c0)
     # What the tiles took when they were matched, as their journal records it: a resumed
     # run keeps the original cost instead of the seconds it spent reading the journal.
     job.timing["matching_tiles"] = job.timing.get("matching_tiles", 0.0) + sum(
@@ -433,10 +434,10 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         reference_gsd_m(job.ref),
         mcp_overlap(job, [table]),
     )
-    t0 = time.perf_counter()
+    t0, c0 = job.clock()
     result = adjust(network, adjust_cfg)
-    job.timing["adjustment"] += time.perf_counter() - t0
-    t0 = time.perf_counter()
+    job.charge("adjustment", t0, c0)
+    t0, c0 = job.clock()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
     camera = result.cameras[prep.id]
     # Adjusted cameras, RPC refits, residuals and reports first (beside the orthoimages
@@ -475,7 +476,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
             with part_timed(job.timing, "orthoimages"):
                 out["files"]["ortho"] = orthoimages(job, prep.id, camera, prep.images)
         out["files"]["isd"] = isd.result()
-    job.timing["outputs"] += time.perf_counter() - t0
+    job.charge("outputs", t0, c0)
     out["_residuals"] = (result.residual, result.inlier)
     return out
 
@@ -536,10 +537,10 @@ def _adjust_together(
         reference_gsd_m(job.ref),
         mcp_overlap(job, [p.table for p in preps]),
     )
-    t0 = time.perf_counter()
+    t0, c0 = job.clock()
     result = adjust(network, adjust_cfg)
-    timing["adjustment"] += time.perf_counter() - t0
-    t0 = time.perf_counter()
+    job.charge("adjustment", t0, c0)
+    t0, c0 = job.clock()
     cams = {p.id: p.camera for p in preps}
     truth = {sid: job.truth_cameras[sid] for sid in cams if sid in job.truth_cameras} or None
     dem = truth_terrain(job.truth_dem, job.dem)
@@ -581,7 +582,7 @@ def _adjust_together(
         strips[p.id] = out
     exports = campaign_points(preps, ties, cfg)
     joint_exports = control_exports(job, "campaign", exports, ("campaign", "exports"))
-    timing["outputs"] += time.perf_counter() - t0
+    job.charge("outputs", t0, c0)
     campaign = {
         "adjust_together": True,
         "n_tie_points": len(ties),

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import time
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from planetref.runtime.optional import CompileClock
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
@@ -39,6 +42,7 @@ class StripJob:
         truth_dem: True DEM (simulated scenes, read when used), else None.
         timing: Seconds per step, summed over the strips (updated in place).
         figures: Draws the figures in a child process while the run goes on.
+        compile_clock: numba's compile seconds in this process (reported apart).
         strip: The strip (None in the run-wide template that :meth:`for_strip` copies).
     """
 
@@ -55,7 +59,23 @@ class StripJob:
     truth_dem: TruthDem | None
     timing: dict[str, float]
     figures: FigureJobs
+    compile_clock: CompileClock = field(default_factory=CompileClock)
     strip: StripSpec | None = None
+
+    def clock(self) -> tuple[float, float]:
+        """``(wall seconds, compile seconds)`` now, the start of a timed step."""
+        return time.perf_counter(), self.compile_clock.seconds()
+
+    def charge(self, key: str, t0: float, c0: float) -> None:
+        """Add the seconds since :meth:`clock` to ``timing[key]``, less numba's compiling.
+
+        The one-off compile of the kernels (tens of seconds on a fresh install) goes to
+        ``timing["compile"]`` instead of the step that first called them.
+        """
+        compiled = self.compile_clock.seconds() - c0
+        self.timing[key] = self.timing.get(key, 0.0) + time.perf_counter() - t0 - compiled
+        if compiled > 0:
+            self.timing["compile"] = self.timing.get("compile", 0.0) + compiled
 
     def for_strip(self, strip: StripSpec) -> StripJob:
         """This job for one strip."""

@@ -12,6 +12,7 @@ process (for checking the numpy path, or where numba misbehaves).
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import os
@@ -19,7 +20,7 @@ from collections.abc import Callable
 from functools import cache
 from typing import Any
 
-__all__ = ["SWITCH", "compiled_enabled", "optional_module"]
+__all__ = ["SWITCH", "CompileClock", "compiled_enabled", "optional_module"]
 
 log = logging.getLogger("planetref")
 
@@ -56,3 +57,52 @@ def optional_module(name: str, what: str, check: Callable[[Any], None] | None = 
         log.warning("%s unavailable (%s): numpy is used", what, exc)
         return None
     return mod
+
+
+class CompileClock:
+    """Seconds numba spent compiling in this process since :meth:`start` (a recorder).
+
+    The one-off compile of the compiled twins (tens of seconds on a fresh install, none
+    once numba's cache holds them) happens inside whichever stage first calls a kernel;
+    a run reads this clock around its stages to report that time apart
+    (``timing_s.compile``) instead of charging it to, say, the first adjustment. Nested
+    compile events (a kernel compiling its callees) count once. Without numba the clock
+    reads 0.
+    """
+
+    def __init__(self) -> None:
+        self._stack: contextlib.ExitStack | None = None
+        self._recorder: Any = None
+
+    def start(self) -> CompileClock:
+        """Begin recording numba's compile events (a no-op without numba)."""
+        if self._stack is None and compiled_enabled():
+            try:
+                from numba.core import event
+            except Exception:  # no numba: nothing compiles
+                return self
+            self._stack = contextlib.ExitStack()
+            self._recorder = self._stack.enter_context(event.install_recorder("numba:compile"))
+        return self
+
+    def stop(self) -> None:
+        """Stop recording."""
+        if self._stack is not None:
+            self._stack.close()
+            self._stack = None
+
+    def seconds(self) -> float:
+        """Compile seconds recorded so far (outermost events only)."""
+        if self._recorder is None:
+            return 0.0
+        total, depth, begin = 0.0, 0, 0.0
+        for stamp, ev in list(self._recorder.buffer):
+            if ev.is_start:
+                if depth == 0:
+                    begin = stamp
+                depth += 1
+            elif depth:
+                depth -= 1
+                if depth == 0:
+                    total += stamp - begin
+        return total
