@@ -120,17 +120,21 @@ def test_sift_fails_on_tiny_hard_and_stays_a_row(tmp_path):
 
     scene = tmp_path / "scene"
     simulate_scene(load_config("tiny", seed=0, difficulty="hard"), scene)
-    outcome = run_compare(scene, "sift", tmp_path / "cmp", progress=False)
-    run = outcome.report["runs"]["sift"]
+    # Its only matcher failed: the report keeps the row, then compare fails in one line.
+    with pytest.raises(MatchingError, match=r"every matcher failed \(1\)"):
+        run_compare(scene, "sift", tmp_path / "cmp", progress=False)
+    report = json.loads((tmp_path / "cmp" / "report.json").read_text())
+    markdown = (tmp_path / "cmp" / "report.md").read_text()
+    run = report["runs"]["sift"]
     m = run["matching"]
-    assert run["failed"] and not outcome.report["skipped"]
+    assert run["failed"] and not report["skipped"]
     assert m["ncp"] == 0 and m["tiles_failed"] == m["tiles_total"] == 6
     assert m["funnel"]["raw"] > 0
     # What RANSAC kept is wrong (measured: all 28 matches, median true error 118 px): the
     # true OR sees the matcher's outliers that no adjustment could.
     assert m["true_outliers"]["n"] == m["funnel"]["ransac"] > 0
     assert m["true_outliers"]["pct_over_3px"] > 50.0
-    assert "| sift" in outcome.tables_markdown and "6/6" in outcome.tables_markdown
+    assert "| sift" in markdown and "6/6" in markdown
 
 
 def test_ncp_counts_the_unique_mcps_and_the_funnel_shows_the_mcp_stage():
