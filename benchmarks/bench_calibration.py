@@ -168,6 +168,23 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
     return rows
 
 
+def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
+    """The benchmarks page's figures: per scene, matcher and strip, true, formal, ratio."""
+    out: dict[str, dict[str, object]] = {}
+    for r in rows:
+        key = f"{r['scene']} {r['matcher']}" + (f" {r['strip']}" if r.get("strip") else "")
+        if "failed" in r:
+            out[f"{key}: failed"] = {"value": str(r["failed"])[:120]}
+            continue
+        out[f"{key}: true error"] = {"value": r["true_m"], "unit": "m"}
+        out[f"{key}: formal precision"] = {"value": r["formal_m"], "unit": "m"}
+        out[f"{key}: true / formal"] = {
+            "value": r["ratio"],
+            "note": "0.5-2: calibrated",
+        }
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="*", default=["tiny:moderate", "tiny:hard"])
@@ -207,13 +224,17 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             out.extend(row | s for s in strips)
     if args.json:
+        from machine import describe
+
         print(
             json.dumps(
                 {
-                    "benchmark": "calibration",
+                    "benchmark": "bench_calibration",
+                    "title": "Calibration: true vs formal ground error",
                     "date": datetime.now(UTC).isoformat(timespec="seconds"),
-                    "machine": platform.platform(),
-                    "command": " ".join(sys.argv),
+                    "machine": {**describe(), "platform": platform.platform()},
+                    "command": "python benchmarks/bench_calibration.py " + " ".join(sys.argv[1:]),
+                    "figures": figures(out),
                     "rows": out,
                 },
                 indent=1,
