@@ -75,11 +75,11 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
     from planetref.control.networks import (
         check_points,
         mcp_ground_sigmas,
-        systematic_settings,
         template_overlap,
         template_support_m,
     )
     from planetref.frontend.matchers import matcher_options
+    from planetref.pipeline.systematic import systematic_settings
     from planetref.report.blocks import check_block
     from planetref.scene.inputs import (
         open_reference,
@@ -120,7 +120,10 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         )
         gsd = reference_gsd_m(ref)
         support = template_support_m(
-            matcher, matcher_options(matcher, cfg, gsd)[0], cfg.frontend.fine_upsample, gsd
+            matcher,
+            matcher_options(matcher, cfg.matchers.get(matcher, {}), cfg.frontend, gsd)[0],
+            cfg.frontend.fine_upsample,
+            gsd,
         )
         overlap = template_overlap(table["ref_x"], table["ref_y"], support)
         adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], gsd, overlap)

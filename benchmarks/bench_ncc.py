@@ -92,12 +92,11 @@ def run_tiles(s: dict, max_tiles: int) -> tuple[list[dict], tuple | None]:
     from planetref.frontend.tile import match_tile
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching import get_matcher
-    from planetref.pipeline.config import GeorefConfig
     from planetref.raster.image import CcdImage
 
     cfg = FrontendConfig()
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
-    fine_opts, coarse_opts = matcher_options("ncc", GeorefConfig(frontend=cfg), gsd)
+    fine_opts, coarse_opts = matcher_options("ncc", {}, cfg, gsd)
     fine = get_matcher("ncc", **fine_opts)
     coarse = get_matcher("ncc", **(coarse_opts or {}))
     readers = {c: CcdImage(p) for c, p in s["images"].items()}
