@@ -21,6 +21,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from planetref.frontend.stats import FUNNEL_STAGES as TILE_FUNNEL_STAGES
+
 __all__ = [
     "ADJ_COLUMNS",
     "FUNNEL_STAGES",
@@ -48,16 +50,8 @@ ADJ_COLUMNS = [
 """Table 2 of the seed: header and report.json key (pixels, OR in percent)."""
 EXTRA_ADJ = [("RMSE x", "rmse_x_px"), ("RMSE y", "rmse_y_px")]
 """Per-axis RMSE, shown when the report holds it."""
-FUNNEL_STAGES = (
-    "raw",
-    "coarse_gate",
-    "ransac",
-    "consensus",
-    "backprojection",
-    "refine",
-    "mcp",
-    "mcp_unique",
-)
+# A tile's stages, then the strip's MCP stage (duplicates and other drops, control/).
+FUNNEL_STAGES = (*TILE_FUNNEL_STAGES, "mcp_unique")
 """Front-end stages in order (see ``TileResult.funnel``); ``mcp_unique``: the MCPs the MCP
 stage delivers to the adjustment (duplicates and points without a DEM height dropped)."""
 
