@@ -16,7 +16,6 @@ cache directory (``NUMBA_CACHE_DIR`` overrides both).
 
 from __future__ import annotations
 
-import logging
 import math
 from typing import Any
 
@@ -26,8 +25,6 @@ from numpy.typing import NDArray
 from planetref.runtime.optional import optional_module
 
 __all__ = ["available", "fill_partials", "project_points", "warm_up"]
-
-log = logging.getLogger("planetref.camera")
 
 F64 = NDArray[np.float64]
 
