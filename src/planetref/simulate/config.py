@@ -310,6 +310,14 @@ class SensorConfig(_Model):
         column_gain_rms: Relative RMS of a fixed gain per detector column (what
             flat-fielding leaves of a TDI CCD's column response: vertical striping of
             the line-scan images; the reference ortho ignores it).
+        saturation_fraction: Share of the line-scan image's pixels that saturate: the
+            exposure (``mean_signal_e``) of each CCD image is set so that this share of
+            its noise-free signal (sampled on 64 groups of lines before rendering)
+            exceeds ``full_well_e``; 0 keeps ``mean_signal_e`` (saturation only where
+            the radiance exceeds the full well). The reference ortho ignores it.
+        compression_quality: Lossy block-DCT compression of the line-scan images, as
+            an IJG/JPEG quality 1-100 (8 x 8 blocks, JPEG luminance table); 0: none.
+            The reference ortho ignores it.
     """
 
     bit_depth: Literal[8, 16] = 16
@@ -319,6 +327,8 @@ class SensorConfig(_Model):
     read_noise_e: float = Field(default=40.0, ge=0.0)
     supersample: int = Field(default=2, ge=1, le=8)
     column_gain_rms: float = Field(default=0.0, ge=0.0, le=0.2)
+    saturation_fraction: float = Field(default=0.0, ge=0.0, le=0.5)
+    compression_quality: int = Field(default=0, ge=0, le=100)
 
 
 class ReferenceConfig(_Model):

@@ -43,6 +43,8 @@ class MosaicSource:
         emission_deg: Off-nadir emission angle (0: nadir, no relief displacement).
         look_azimuth_deg: Azimuth from the ground towards the spacecraft (degrees
             clockwise from north).
+        bias: Its additive brightness offset, relative to a flat mean-albedo surface
+            (with ``gain``, the brightness step at its seams).
     """
 
     index: int
@@ -53,6 +55,7 @@ class MosaicSource:
     waves: F64
     emission_deg: float = 0.0
     look_azimuth_deg: float = 0.0
+    bias: float = 0.0
 
     def displacement(self, x: F64, y: F64, relief_m: F64 | None = None) -> tuple[F64, F64]:
         """``d_s`` at map points (m): offset plus warp, plus relief displacement.
@@ -182,6 +185,9 @@ def draw_mosaic(
             )
             for src in sources
         ]
+    if cfg.bias_spread > 0:
+        # Drawn after the emission angles, so mosaics without offsets are as they were.
+        sources = [replace(src, bias=float(rng.normal(0.0, cfg.bias_spread))) for src in sources]
     return sources, seams
 
 
@@ -202,6 +208,7 @@ def sources_to_dict(sources: list[MosaicSource], seams: Seams) -> dict[str, Any]
                 "sun_elevation_deg": s.sun.elevation_deg,
                 "haze": s.haze,
                 "gain": s.gain,
+                **({"bias": s.bias} if s.bias != 0.0 else {}),
                 "offset_m": list(s.offset_m),
                 "emission_deg": s.emission_deg,
                 "look_azimuth_deg": s.look_azimuth_deg,

@@ -107,6 +107,9 @@ class MosaicConfig(_Model):
         warp_wavelength_m: Shortest wavelength of the warp (m).
         sun_spread_deg: RMS spread of the sources' sun angles (degrees).
         gain_spread: RMS relative gain difference between sources.
+        bias_spread: RMS additive brightness offset of each source, relative to a flat
+            mean-albedo surface (with the gain, the brightness step at its seams; drawn
+            after the emission angles). 0 (default): none.
         seam_wander_m: Amplitude of the seams' meandering (m).
         emission_max_deg: Off-nadir emission angle of the sources, each drawn
             ``U(0, emission_max_deg)`` and looking east or west (CTX rolls across its
@@ -124,6 +127,7 @@ class MosaicConfig(_Model):
     gain_spread: float = Field(default=0.0, ge=0.0)
     seam_wander_m: float = Field(default=150.0, ge=0.0)
     emission_max_deg: float = Field(default=0.0, ge=0.0, le=30.0)
+    bias_spread: float = Field(default=0.0, ge=0.0, le=0.5)
 
 
 class MolaConfig(_Model):
@@ -133,8 +137,12 @@ class MolaConfig(_Model):
     tracks of azimuth ``track_azimuth_deg`` spaced ``track_spacing_m`` apart (jittered by
     30 %), one shot every ``shot_spacing_m``; every track gets its own height offset
     ``N(0, track_offset_m)`` and a linear drift along it of ``N(0, track_tilt_m)`` over
-    its length, and the grid is the linear (Delaunay) interpolation between the shots,
-    as in a gridded MEGDR where tracks are sparse. With ``areoid``, the heights are
+    its length and a horizontal geolocation error ``N(0, track_shift_m)`` per axis
+    (along, across: the shots measured the ground that far from where they are placed),
+    and the grid is the linear (Delaunay) interpolation between the shots, as in a
+    gridded MEGDR where tracks are sparse: its error grows with the distance from the
+    nearest track (``h'' u (s - u) / 2`` at ``u`` from a track for ground of curvature
+    ``h''`` across tracks ``s`` apart). With ``areoid``, the heights are
     given above an areoid-like surface: the sphere raised by ``areoid_offset_m`` plus a
     tilt of ``areoid_tilt_m_per_km`` towards ``track_azimuth_deg + 90``. With
     ``areoid_declared`` (default) the scene carries that surface as
@@ -149,6 +157,7 @@ class MolaConfig(_Model):
         track_azimuth_deg: Azimuth of the tracks (degrees from north).
         track_offset_m: RMS height offset per track (m).
         track_tilt_m: RMS height drift along a track, end to end (m).
+        track_shift_m: RMS horizontal geolocation error of each track, per axis (m).
         areoid: Refer the heights to the areoid-like surface.
         areoid_offset_m: Height of the areoid-like surface above the sphere (m).
         areoid_tilt_m_per_km: Its slope across the scene (m/km).
@@ -161,6 +170,7 @@ class MolaConfig(_Model):
     track_azimuth_deg: float = 3.0
     track_offset_m: float = Field(default=3.0, ge=0.0)
     track_tilt_m: float = Field(default=2.0, ge=0.0)
+    track_shift_m: float = Field(default=0.0, ge=0.0)
     areoid: bool = False
     areoid_offset_m: float = 0.0
     areoid_tilt_m_per_km: float = 0.0

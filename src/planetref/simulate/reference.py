@@ -82,7 +82,7 @@ def ortho_radiance(
 ) -> None:
     """Footprint-mean radiance of the ortho pixels of one source, relative to its flat radiance.
 
-    Writes ``L / (L_flat (1 + haze)) * gain`` into ``out`` where the pixel belongs to
+    Writes ``L / (L_flat (1 + haze)) * gain + bias`` into ``out`` where the pixel belongs to
     ``source`` (all pixels without a mosaic). With a source, the pixel at true map
     point ``p`` shows the surface at ``p - d_s(p)`` (its geometric error).
 
@@ -135,6 +135,8 @@ def ortho_radiance(
                 tx, ty = truth_projection.lonlat_to_map(lon, lat)
                 acc += radiance.evaluate(tx, ty, nadir)
         acc *= np.float32(scale / (ss * ss))
+        if source is not None and source.bias != 0.0:
+            acc += np.float32(source.bias)
         out[a + rr, cc] = acc
         if progress is not None:
             progress(b - a)
@@ -284,7 +286,13 @@ def gridded_tracks(
     rng: np.random.Generator,
     record: dict[str, Any] | None = None,
 ) -> F64:
-    """MOLA-like DEM: shots along tracks, per-track offsets and tilts, linear gridding.
+    """MOLA-like DEM: shots along tracks, per-track offsets, tilts and shifts, linear gridding.
+
+    Between tracks the grid is the linear interpolation of the two nearest tracks'
+    shots, so its error grows with the distance ``u`` from the nearest track: for
+    ground of curvature ``h''`` across the tracks it is ``h'' u (s - u) / 2`` between
+    tracks ``s`` apart (0 on a track, ``h'' s^2 / 8`` midway), on top of the tracks'
+    own errors (offset, tilt, and ``slope x shift`` from their horizontal shift).
 
     Args:
         xx: Map x of the grid's pixel centres (reference CRS), 2-D.
@@ -314,11 +322,20 @@ def gridded_tracks(
     along = np.arange(a0, a1 + m.shot_spacing_m, m.shot_spacing_m)
     offsets = rng.normal(0.0, m.track_offset_m, n_tracks)
     tilts = rng.normal(0.0, m.track_tilt_m, n_tracks)
+    # Horizontal geolocation error per track (along, across); drawn only when set, so
+    # DEMs without it are as they were.
+    shifts = (
+        rng.normal(0.0, m.track_shift_m, (n_tracks, 2))
+        if m.track_shift_m > 0
+        else np.zeros((n_tracks, 2))
+    )
     frac = (along - 0.5 * (a0 + a1)) / max(a1 - a0, 1.0)
     shots_xy, shots_h = [], []
     for k in range(n_tracks):
         xy = along[:, None] * u[None, :] + across[k] * v[None, :]
-        h = truth_at(xy[:, 0], xy[:, 1]) + offsets[k] + tilts[k] * frac
+        # The shot measured the ground at xy + shift but is placed at xy.
+        at = xy + (shifts[k, 0] * u + shifts[k, 1] * v)[None, :]
+        h = truth_at(at[:, 0], at[:, 1]) + offsets[k] + tilts[k] * frac
         if cfg.dem_noise_m > 0:
             h = h + cfg.dem_noise_m * rng.standard_normal(len(h))
         shots_xy.append(xy)
@@ -335,6 +352,11 @@ def gridded_tracks(
             "across_m": [float(x) for x in across],
             "offset_m": [float(x) for x in offsets],
             "tilt_m": [float(x) for x in tilts],
+            **(
+                {"shift_along_across_m": [[float(a), float(b)] for a, b in shifts]}
+                if m.track_shift_m > 0
+                else {}
+            ),
             "shot_spacing_m": m.shot_spacing_m,
         }
     return lin.reshape(xx.shape)

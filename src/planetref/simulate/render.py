@@ -47,7 +47,16 @@ from planetref.errors import GeometryError
 from planetref.raster.dem import GridTerrain
 from planetref.simulate.config import SensorConfig
 from planetref.simulate.photometry import RadianceModel
-from planetref.simulate.sensor import apply_psf, psf_halo, quantize, to_electrons, with_noise
+from planetref.simulate.sensor import (
+    BLOCK,
+    apply_psf,
+    block_dct_compress,
+    exposure_for_saturation,
+    psf_halo,
+    quantize,
+    to_electrons,
+    with_noise,
+)
 
 __all__ = ["corner_rays", "render_ccd", "render_radiance", "write_image_geotiff"]
 
@@ -187,7 +196,10 @@ def _render_block(
     if state.column_gain is not None:
         signal *= state.column_gain[None, :]
     e = with_noise(signal, state.sensor, np.random.default_rng(child))
-    return quantize(e, state.sensor)
+    dn = quantize(e, state.sensor)
+    if state.sensor.compression_quality > 0:
+        dn = block_dct_compress(dn, state.sensor.compression_quality, state.sensor.bit_depth)
+    return dn
 
 
 def _worker_block(job: tuple[int, int, np.random.SeedSequence]) -> NDArray[np.integer]:
@@ -283,7 +295,8 @@ def render_ccd(
             image does not depend on it.
 
     Returns:
-        Statistics: ``mean_dn``, ``saturated_fraction``, ``zero_fraction``.
+        Statistics: ``mean_dn``, ``saturated_fraction``, ``zero_fraction`` (and, with
+        ``sensor.saturation_fraction``, the ``mean_signal_e`` the exposure was set to).
     """
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.windows import Window
@@ -292,6 +305,8 @@ def render_ccd(
     chunk = max(1, chunk_pixels // n_samples)
     if chunk >= 256:
         chunk -= chunk % 256  # whole tile rows
+    elif sensor.compression_quality > 0 and chunk % BLOCK:
+        chunk = max(BLOCK, chunk - chunk % BLOCK)  # whole compression blocks
     dtype = "uint8" if sensor.bit_depth == 8 else "uint16"
     top = (1 << sensor.bit_depth) - 1
     total, n_sat, n_zero, n_pix = 0.0, 0, 0, 0
@@ -303,6 +318,12 @@ def render_ccd(
         # Spawned after the blocks' children, so the noise is the same with or without.
         rng = np.random.default_rng(noise_seed.spawn(1)[0])
         gain = (1.0 + sensor.column_gain_rms * rng.standard_normal(n_samples)).astype(np.float32)
+    extra: dict[str, float] = {}
+    if sensor.saturation_fraction > 0:
+        sample = _signal_sample(camera, ccd, terrain, radiance, enu, sensor, gain)
+        exposure = exposure_for_saturation(sample, sensor)
+        sensor = sensor.model_copy(update={"mean_signal_e": exposure})
+        extra["mean_signal_e"] = exposure
     state = _BlockState(camera, ccd, terrain, radiance, enu, sensor, gain)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
@@ -319,4 +340,37 @@ def render_ccd(
         "mean_dn": total / n_pix,
         "saturated_fraction": n_sat / n_pix,
         "zero_fraction": n_zero / n_pix,
+        **extra,
     }
+
+
+def _signal_sample(
+    camera: LineScanCamera,
+    ccd: str,
+    terrain: GridTerrain,
+    radiance: RadianceModel,
+    enu: F64,
+    sensor: SensorConfig,
+    gain: NDArray[np.float32] | None,
+    groups: int = 64,
+    lines: int = 4,
+) -> NDArray[np.float32]:
+    """Noise-free signal (electrons, PSF included) of ``groups`` evenly spaced line groups.
+
+    What an auto-exposure sees before the image is taken: ``groups`` groups of
+    ``lines`` lines spread over the image, each rendered with its PSF halo.
+    """
+    n_lines, _ = camera.image_size(ccd)
+    halo = psf_halo(sensor)
+    flat = radiance.flat_radiance() * (1.0 + radiance.haze)
+    starts = np.unique(np.linspace(0, max(0, n_lines - lines), groups).astype(int))
+    out = []
+    for a in starts:
+        b = min(n_lines, int(a) + lines)
+        ra, rb = max(0, int(a) - halo), min(n_lines, b + halo)
+        rad = render_radiance(camera, ccd, terrain, radiance, enu, ra, rb, sensor.supersample)
+        sig = to_electrons(apply_psf(rad, sensor)[a - ra : a - ra + (b - a)], flat, sensor)
+        if gain is not None:
+            sig = sig * gain[None, :]
+        out.append(sig.ravel())
+    return np.concatenate(out)
