@@ -303,3 +303,21 @@ def test_new_settings_are_off_outside_realistic(level: str) -> None:
     cfg = load_config("tiny", difficulty=level)
     assert cfg.sensor.compression_quality == 0 and cfg.sensor.saturation_fraction == 0.0
     assert cfg.reference.mosaic.bias_spread == 0.0 and cfg.reference.mola.track_shift_m == 0.0
+
+
+def test_realistic_level_turns_them_on_with_sources() -> None:
+    from planetref.simulate.config import load_config
+
+    cfg = load_config("tiny", difficulty="realistic")
+    assert cfg.sensor.compression_quality > 0 and cfg.reference.mosaic.bias_spread > 0
+    assert cfg.reference.mola.track_shift_m > 0
+    # Per-source misregistration of tens of metres (RMS radial), not the controlled 7 m.
+    mosaic = cfg.reference.mosaic
+    assert np.hypot(mosaic.offset_px, mosaic.offset_px) * cfg.reference.ortho_gsd_m > 20.0
+    for key in (
+        "sensor.compression_quality",
+        "sensor.saturation_fraction",
+        "reference.mosaic.bias_spread",
+        "reference.mola.track_shift_m",
+    ):
+        assert len(cfg.sources[key]) > 100, key

@@ -400,7 +400,7 @@ def test_realism_table_reads_back_from_the_written_config(tmp_path: Path) -> Non
     assert back == realism_of(cfg) and back.level == "realistic"
     by_key = {v.key: v for v in back.values}
     assert by_key["photometry.target_haze"].value == "0.45"
-    assert by_key["reference.mosaic.offset_px"].value == "1.5"
+    assert by_key["reference.mosaic.offset_px"].value == "4"
     assert "Robbins" in by_key["reference.mosaic.offset_px"].source
     assert by_key["initial_errors.position_bias_m"].value == "(70, -50, 20)"
     assert len(back.easier_than_real) == len(cfg.realism.easier_than_real)
