@@ -145,6 +145,7 @@ def run_georef(
     progress: bool = True,
     matchers: tuple[Matcher, Matcher] | None = None,
     executor: Executor | str | None = None,
+    device: str = "cpu",
 ) -> GeorefOutcome:
     """Georeference every strip of a scene with one matcher.
 
@@ -161,6 +162,9 @@ def run_georef(
             (left open), or a ``--scheduler`` spec (``"pool:4"``, ``"dask-local:4"``,
             ``"tcp://HOST:PORT"``; started for this run and closed after). Default: in
             this process. The results do not depend on it.
+        device: Torch device of the learned matchers (``"cpu"``, ``"cuda"``, ``"cuda:1"``;
+            resolved, not ``"auto"``), passed to them when they are built. Part of the
+            run's identity when it is not the CPU.
 
     Returns:
         The report and where things were written.
@@ -199,6 +203,7 @@ def run_georef(
             cfg.frontend,
             ref_gsd,
             weights_dir=weights_dir,
+            device=device,
         )
         if matchers is not None:
             pair = replace(pair, instances=matchers)
@@ -209,6 +214,8 @@ def run_georef(
             "matcher": matcher,
             "config": config_digest(cfg.identity_json()),
         }
+        if device != "cpu":  # a CPU run's identity stays what it was
+            identity["device"] = device
         run = RunDir(
             out,
             "georef",
@@ -236,6 +243,7 @@ def run_georef(
                     "matcher": matcher,
                     "weights_dir": None if weights_dir is None else str(weights_dir),
                     "planetref_version": __version__,
+                    **({} if device == "cpu" else {"device": device}),
                     **cfg.to_json(),
                 },
             )
