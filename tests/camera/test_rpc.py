@@ -151,7 +151,9 @@ def test_gdal_half_pixel_and_rpc_height_conventions(shared: Path) -> None:
 
 
 @pytest.mark.shared
-def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: Path) -> None:
+def test_terrain_intersection_agrees_with_gdal_rpc_dem(
+    shared: Path, tmp_path: Path, write_geotiff
+) -> None:
     path = _pleiades(shared, "img_02.tif")
     cam = RpcCamera.from_file(path)
     with rasterio.open(path) as src:
@@ -168,18 +170,13 @@ def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: P
     rows = y0 - (np.arange(n) + 0.5) * res
     dem = 1000.0 + gx * (cols[None, :] - lon_c) + gy * (rows[:, None] - lat_c)
     dem_path = tmp_path / "plane_dem.tif"
-    with rasterio.open(
+    write_geotiff(
         dem_path,
-        "w",
-        driver="GTiff",
-        width=n,
-        height=n,
-        count=1,
+        dem,
         dtype="float64",
         crs="EPSG:4326",
         transform=Affine(res, 0.0, x0, 0.0, -res, y0),
-    ) as dst:
-        dst.write(dem[None])
+    )
 
     class PlaneTerrain:
         ellipsoid = EARTH_WGS84
