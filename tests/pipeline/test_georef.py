@@ -342,7 +342,7 @@ def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path, ref_gr
     assert "Tiles without MCPs" in md
 
 
-def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
+def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog, write_geotiff):
     # A DEM holding only its northern rows: the strip still overlaps it (the run goes on)
     # but part of each CCD's footprint has no terrain, and a new user is told how much.
     from planetref.scene.inputs import check_strips, open_reference
@@ -352,9 +352,8 @@ def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
     dem = scene / "reference" / "dem.tif"
     with rasterio.open(dem) as ds:
         profile, data = ds.profile, ds.read(1)
-    profile["height"] = data.shape[0] // 2
-    with rasterio.open(dem, "w", **profile) as ds:
-        ds.write(data[: data.shape[0] // 2], 1)
+    keep = {k: v for k, v in profile.items() if k not in ("driver", "width", "height", "count")}
+    write_geotiff(dem, data[: data.shape[0] // 2], **keep)
     manifest, root = load_manifest(scene / "scene.toml")
     ref, terrain = open_reference(manifest, root)
     with caplog.at_level("WARNING", logger="planetref"), ref:
