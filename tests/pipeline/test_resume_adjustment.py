@@ -69,3 +69,50 @@ def test_a_deleted_adjustment_is_solved_again(rerun, tiny_sift_run):
     assert _without_timings(written) == _without_timings(original)
     assert written["adjustment"]["n_inliers"] > 50 and written["check"]["geoloc_rmse_m"] > 0
     assert out.files["strip1"]["adjustment"]["report_json"] == str(adj / "report.json")
+
+
+def test_the_fingerprint_follows_the_adjustments_inputs(tiny_sift_run):
+    import dataclasses
+    import pickle
+
+    from planetref.pipeline.artefacts import adjustment_fingerprint
+
+    adj = Path(tiny_sift_run.run_dir) / "strip1" / "adjustment"
+    with (adj / RESULT_NAME).open("rb") as fh:
+        result = pickle.load(fh)
+    net, cfg = result.network, result.config
+    digest = adjustment_fingerprint(net, cfg)
+    assert digest == (adj / RESULT_STAMP).read_text().strip()  # what the run stamped
+    assert adjustment_fingerprint(dataclasses.replace(net), cfg) == digest
+    # one observation moved by 0.01 px, one check flag, the settings, the initial camera
+    line = net.obs_line.copy()
+    line[0] += 0.01
+    check = net.obs_check.copy()
+    check[0] = not check[0]
+    cam = net.cameras[0]
+
+    class Moved:  # the initial camera, described otherwise
+        def __getattr__(self, name):
+            return getattr(cam, name)
+
+        def to_dict(self):
+            return {**cam.to_dict(), "moved": True}
+
+    class Opaque:  # the initial camera, without a description
+        def __getattr__(self, name):
+            if name == "to_dict":
+                raise AttributeError(name)
+            return getattr(cam, name)
+
+    others = [
+        dataclasses.replace(net, obs_line=line),
+        dataclasses.replace(net, obs_check=check),
+        dataclasses.replace(net, cameras=(Moved(),)),
+    ]
+    for other in others:
+        assert adjustment_fingerprint(other, cfg) not in (digest, None)
+    assert (
+        adjustment_fingerprint(net, cfg.model_copy(update={"fixed_cameras": ["strip1"]})) != digest
+    )
+    # a camera that cannot describe itself: never reloaded
+    assert adjustment_fingerprint(dataclasses.replace(net, cameras=(Opaque(),)), cfg) is None
