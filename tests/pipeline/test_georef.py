@@ -234,13 +234,20 @@ def test_deleted_adjustment_redoes_only_the_adjustment_and_what_follows(
     mcps = (out / "strip1" / "mcps.parquet").read_bytes()
     residuals = (out / "strip1" / "adjustment" / "residuals.csv").read_text()
     shutil.rmtree(out / "strip1" / "adjustment")
-    calls = []
+    import planetref.adjust.api
+
+    calls, solved = [], []
     real = planetref.frontend.tile.match_tile
     monkeypatch.setattr(
         planetref.frontend.tile, "match_tile", lambda *a, **k: calls.append(1) or real(*a, **k)
     )
+    adjust = planetref.adjust.api.adjust
+    monkeypatch.setattr(
+        planetref.adjust.api, "adjust", lambda *a, **k: solved.append(1) or adjust(*a, **k)
+    )
     again = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
     assert calls == []  # matching came from the journal: no tile matched again
+    assert solved == [1]  # the adjustment solved again, once
     assert (out / "strip1" / "tiles.jsonl").read_text() == journal
     assert (out / "strip1" / "mcps.parquet").read_bytes() == mcps  # the same MCPs
     # The adjustment and its outputs are back, identical (deterministic for the inputs).

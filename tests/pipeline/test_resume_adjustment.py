@@ -1,5 +1,5 @@
-"""Re-running georef reloads the adjustment when its inputs are unchanged, redoes it when
-its output was deleted; the tiles resume from their journal either way."""
+"""Re-running georef reloads the adjustment when its inputs are unchanged; the tiles resume
+from their journal. (A deleted adjustment is solved again: tests/pipeline/test_georef.py.)"""
 
 from __future__ import annotations
 
@@ -55,20 +55,6 @@ def test_unchanged_inputs_reload_the_adjustment(rerun, tiny_sift_run):
     written = json.loads((run_dir / "report.json").read_text())
     original = json.loads((Path(tiny_sift_run.run_dir) / "report.json").read_text())
     assert _without_timings(written) == _without_timings(original)
-
-
-def test_a_deleted_adjustment_is_solved_again(rerun, tiny_sift_run):
-    run_dir, solved, go = rerun
-    adj = run_dir / "strip1" / "adjustment"
-    shutil.rmtree(adj)
-    out = go()
-    assert solved == [1]  # the adjustment, and only it, solved again
-    assert (adj / RESULT_NAME).is_file() and (adj / "report.json").is_file()
-    written = json.loads((run_dir / "report.json").read_text())
-    original = json.loads((Path(tiny_sift_run.run_dir) / "report.json").read_text())
-    assert _without_timings(written) == _without_timings(original)
-    assert written["adjustment"]["n_inliers"] > 50 and written["check"]["geoloc_rmse_m"] > 0
-    assert out.files["strip1"]["adjustment"]["report_json"] == str(adj / "report.json")
 
 
 def test_the_fingerprint_follows_the_adjustments_inputs(tiny_sift_run):
