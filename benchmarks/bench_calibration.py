@@ -37,8 +37,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 
 def _scene(runs: Path, spec: str, seed: int) -> Path:
     from planetref.simulate.config import load_config
@@ -71,10 +69,9 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
     from planetref.adjust.precision import formal_ground_precision
     from planetref.control.ground_sigma import reference_gsd_m
     from planetref.control.mcp import read_mcps
-    from planetref.control.network import Network
     from planetref.control.networks import (
+        McpSet,
         check_points,
-        mcp_ground_sigmas,
         template_overlap,
         template_support_m,
     )
@@ -107,17 +104,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
             cfg.mcp.seed,
             cfg.mcp.check_blocks,
         )
-        network = Network.mcps(
-            camera,
-            line=table["line"],
-            sample=table["sample"],
-            xyz=table.xyz(),
-            ccd=np.asarray(table["ccd"]).astype(str),
-            camera_id=strip.id,
-            sigma_px=cfg.mcp.sigma_px,
-            check=check,
-            **mcp_ground_sigmas(table),
-        )
+        network = McpSet.of(strip.id, table, check).network(camera, cfg.mcp.sigma_px)
         gsd = reference_gsd_m(ref)
         support = template_support_m(
             matcher,
@@ -130,7 +117,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         cpu = time.process_time()
         result = adjust(network, adjust_cfg)
         cpu = time.process_time() - cpu
-        true = check_block(result, {strip.id: truth_cams[strip.id]}, terrain)
+        true = check_block(result, {strip.id: truth_cams[strip.id]}, terrain).to_json()
         cpu_formal = time.process_time()
         formal = formal_ground_precision(result, strip.id, terrain=terrain)
         cpu_formal = time.process_time() - cpu_formal

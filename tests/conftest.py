@@ -73,6 +73,55 @@ def tiny_sift_run(_tiny_sift_session):
     )
 
 
+def _write_geotiff(
+    path,
+    data,
+    *,
+    transform=None,
+    crs=None,
+    nodata=None,
+    dtype=None,
+    **profile,
+) -> Path:
+    """Write ``data`` as a GeoTIFF: one band from 2-D data, one band per plane of 3-D data.
+
+    ``dtype`` (default: the data's) is the file's; ``transform``, ``crs`` and ``nodata``
+    are written when given (a file without a CRS is a plain image: rasterio's
+    NotGeoreferencedWarning is silenced then); ``profile`` adds creation options.
+    """
+    import warnings
+
+    import numpy as np
+    import rasterio
+
+    arr = np.asarray(data)
+    bands = arr[None] if arr.ndim == 2 else arr
+    kw = {
+        "driver": "GTiff",
+        "width": bands.shape[2],
+        "height": bands.shape[1],
+        "count": bands.shape[0],
+        "dtype": np.dtype(dtype or bands.dtype).name,
+        **profile,
+    }
+    for key, value in (("transform", transform), ("crs", crs), ("nodata", nodata)):
+        if value is not None:
+            kw[key] = value
+    with warnings.catch_warnings():
+        if crs is None:
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(path, "w", **kw) as ds:
+            ds.write(bands.astype(kw["dtype"], copy=False))
+    return Path(path)
+
+
+@pytest.fixture(scope="session")
+def write_geotiff():
+    """The test suite's one GeoTIFF writer: ``write_geotiff(path, data, transform=, crs=,
+    nodata=, dtype=, **profile) -> path`` (see :func:`_write_geotiff`)."""
+    return _write_geotiff
+
+
 @pytest.fixture
 def shared() -> Path:
     """The ``../shared`` folder; skips the test when it is absent."""

@@ -84,10 +84,8 @@ def _synthetic_rpc() -> Rpc:
     )
 
 
-def _tiny_tif(path: Path) -> Path:
-    with rasterio.open(path, "w", driver="GTiff", width=8, height=6, count=1, dtype="uint8") as dst:
-        dst.write(np.zeros((1, 6, 8), np.uint8))
-    return path
+def _tiny_tif(write_geotiff, path: Path) -> Path:
+    return write_geotiff(path, np.zeros((6, 8), np.uint8))
 
 
 # ----------------------------------------------------------------- agreement with GDAL
@@ -151,7 +149,9 @@ def test_gdal_half_pixel_and_rpc_height_conventions(shared: Path) -> None:
 
 
 @pytest.mark.shared
-def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: Path) -> None:
+def test_terrain_intersection_agrees_with_gdal_rpc_dem(
+    shared: Path, tmp_path: Path, write_geotiff
+) -> None:
     path = _pleiades(shared, "img_02.tif")
     cam = RpcCamera.from_file(path)
     with rasterio.open(path) as src:
@@ -168,18 +168,13 @@ def test_terrain_intersection_agrees_with_gdal_rpc_dem(shared: Path, tmp_path: P
     rows = y0 - (np.arange(n) + 0.5) * res
     dem = 1000.0 + gx * (cols[None, :] - lon_c) + gy * (rows[:, None] - lat_c)
     dem_path = tmp_path / "plane_dem.tif"
-    with rasterio.open(
+    write_geotiff(
         dem_path,
-        "w",
-        driver="GTiff",
-        width=n,
-        height=n,
-        count=1,
+        dem,
         dtype="float64",
         crs="EPSG:4326",
         transform=Affine(res, 0.0, x0, 0.0, -res, y0),
-    ) as dst:
-        dst.write(dem[None])
+    )
 
     class PlaneTerrain:
         ellipsoid = EARTH_WGS84
@@ -315,9 +310,9 @@ def test_text_round_trip_is_exact(tmp_path: Path, writer: object, body: RpcBody 
 
 
 @pytest.mark.parametrize("fmt", ["rpb", "txt"])
-def test_gdal_reads_the_sidecars_planetref_writes(tmp_path: Path, fmt: str) -> None:
+def test_gdal_reads_the_sidecars_planetref_writes(tmp_path: Path, fmt: str, write_geotiff) -> None:
     rpc = replace(_synthetic_rpc(), err_bias=3.5, err_rand=0.125)
-    image = _tiny_tif(tmp_path / "scene.tif")
+    image = _tiny_tif(write_geotiff, tmp_path / "scene.tif")
     sidecar = write_rpc(rpc, rpc_sidecar_path(image, fmt), body=MARS_BODY)
     assert sidecar.name == {"rpb": "scene.RPB", "txt": "scene_RPC.TXT"}[fmt]
     with rasterio.open(image) as src:
@@ -488,7 +483,7 @@ def test_bad_files_give_one_line_errors_naming_file_and_field(
         assert info.value.field == field
 
 
-def test_other_bad_inputs(tmp_path: Path) -> None:
+def test_other_bad_inputs(tmp_path: Path, write_geotiff) -> None:
     with pytest.raises(MissingFileError, match="not found"):
         read_rpc(tmp_path / "nope.RPB")
     junk = tmp_path / "junk.bin"
@@ -499,7 +494,7 @@ def test_other_bad_inputs(tmp_path: Path) -> None:
     text.write_text("hello\n")
     with pytest.raises(UnsupportedFormatError, match="not an RPC file"):
         read_rpc(text)
-    plain = _tiny_tif(tmp_path / "plain.tif")
+    plain = _tiny_tif(write_geotiff, tmp_path / "plain.tif")
     with pytest.raises(InputError, match="field 'RPC': the raster has no RPC metadata"):
         read_rpc(plain)
     rpc = _synthetic_rpc()

@@ -163,14 +163,12 @@ def test_refined_rpc_refits_through_the_ladder_and_stops_at_its_first_rung():
     assert report.check_max_px == plain_report.check_max_px
 
 
-def _input_file(kind: str, folder: Path) -> Path:
+def _input_file(kind: str, folder: Path, write_geotiff) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     if kind == "geotiff":
-        path = folder / "scene.tif"
-        with rasterio.open(
-            path, "w", driver="GTiff", width=SIZE[1], height=SIZE[0], count=1, dtype="uint16"
-        ) as dst:
-            dst.write(np.arange(SIZE[0] * SIZE[1], dtype=np.uint16).reshape(1, *SIZE))
+        path = write_geotiff(
+            folder / "scene.tif", np.arange(SIZE[0] * SIZE[1], dtype=np.uint16).reshape(SIZE)
+        )
         write_rpc(_rpc(), path, body=MARS_BODY)
         return path
     path = folder / ("scene.RPB" if kind == "rpb" else "scene_RPC.TXT")
@@ -178,8 +176,8 @@ def _input_file(kind: str, folder: Path) -> Path:
 
 
 @pytest.mark.parametrize("kind", ["rpb", "txt", "geotiff"])
-def test_refined_rpc_written_in_the_inputs_format_never_over_it(tmp_path, kind):
-    src = _input_file(kind, tmp_path / "in")
+def test_refined_rpc_written_in_the_inputs_format_never_over_it(tmp_path, kind, write_geotiff):
+    src = _input_file(kind, tmp_path / "in", write_geotiff)
     before = src.read_bytes()
     cam = RpcCamera.from_file(src, image_size=SIZE)
     assert cam.source == src

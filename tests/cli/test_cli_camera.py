@@ -186,30 +186,25 @@ def test_fit_rpc_command_round_trip(camera_file, tmp_path):
     assert got["sample"] == pytest.approx(100.5, abs=1e-3)
 
 
-def _raster(path, lines, samples):
-    import rasterio
-
-    profile = dict(driver="GTiff", width=samples, height=lines, count=1, dtype="uint16")
-    with rasterio.open(path, "w", **profile) as ds:
-        ds.write(np.arange(lines * samples, dtype=np.uint16).reshape(lines, samples), 1)
-    return path
+def _raster(write_geotiff, path, lines, samples):
+    return write_geotiff(path, np.arange(lines * samples, dtype=np.uint16).reshape(lines, samples))
 
 
-def test_fit_rpc_into_a_geotiff_of_other_pixels_or_read_only(camera_file, tmp_path):
+def test_fit_rpc_into_a_geotiff_of_other_pixels_or_read_only(camera_file, tmp_path, write_geotiff):
     # Embedding RPCs in a GeoTIFF whose size is not the camera's image would give that
     # image a wrong geolocation (a CTX fit went into a 1024 x 1024 Pleiades crop); a file
     # marked read-only is not replaced even with --overwrite (root ignores os.access).
     cam, path = camera_file
     n_lines, n_samples = cam.image_size("ccd2")
     fit = ["camera", "fit-rpc", path, "--ccd", "ccd2", "--height-range", -3000, 3000, "--overwrite"]
-    other = _raster(tmp_path / "other.tif", 64, 64)
+    other = _raster(write_geotiff, tmp_path / "other.tif", 64, 64)
     before = other.read_bytes()
     r = run(*fit, "--out", other)
     assert (
         r.exit_code == 1 and "64 x 64 raster" in r.output and f"{n_lines} x {n_samples}" in r.output
     )
     assert other.read_bytes() == before
-    mine = _raster(tmp_path / "ccd2.tif", n_lines, n_samples)
+    mine = _raster(write_geotiff, tmp_path / "ccd2.tif", n_lines, n_samples)
     mine.chmod(0o444)
     before = mine.read_bytes()
     r = run(*fit, "--out", mine)

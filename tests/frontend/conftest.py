@@ -8,7 +8,6 @@ TRUE line-scan camera, and an initial camera whose orbit is shifted by tens of m
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,6 +92,7 @@ def render(
 
 def build_scene(
     root: Path,
+    write_geotiff,
     *,
     n_lines: int = 1920,
     n_samples: int = 960,
@@ -148,19 +148,7 @@ def build_scene(
 
     crs = rasterio.crs.CRS.from_user_input(CRS)
     ortho_path = root / "ref_ortho.tif"
-    with rasterio.open(
-        ortho_path,
-        "w",
-        driver="GTiff",
-        width=ref.shape[1],
-        height=ref.shape[0],
-        count=1,
-        dtype="float32",
-        crs=crs,
-        transform=ref_t,
-        nodata=-9999.0,
-    ) as ds:
-        ds.write(ref, 1)
+    write_geotiff(ortho_path, ref, dtype="float32", crs=crs, transform=ref_t, nodata=-9999.0)
     dem_path = root / "ref_dem.tif"
     dem.to_geotiff(dem_path)
 
@@ -169,25 +157,14 @@ def build_scene(
         img = render(cam, c, dem, tex, tex_t)
         images[c] = img
         paths[c] = root / f"{c}.tif"
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(
-                paths[c],
-                "w",
-                driver="GTiff",
-                width=img.shape[1],
-                height=img.shape[0],
-                count=1,
-                dtype="float32",
-            ) as ds:
-                ds.write(img, 1)
+        write_geotiff(paths[c], img, dtype="float32")
     init = shifted_camera(cam, *shift_m)
     return Scene(root, ortho_path, dem_path, paths, cam, init, dem, images, shift_m)
 
 
 @pytest.fixture(scope="session")
-def scene(tmp_path_factory) -> Scene:
-    return build_scene(tmp_path_factory.mktemp("scene"))
+def scene(tmp_path_factory, write_geotiff) -> Scene:
+    return build_scene(tmp_path_factory.mktemp("scene"), write_geotiff)
 
 
 @pytest.fixture(scope="session")

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pytest
 import rasterio
@@ -22,29 +20,13 @@ ISIS_NULL4 = float(np.array([0xFF7FFFFB], np.uint32).view(np.float32)[0])
 ISIS_HRS4 = float(np.array([0xFF7FFFFF], np.uint32).view(np.float32)[0])
 
 
-def _write(path, data, **kw):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(
-            path,
-            "w",
-            driver="GTiff",
-            width=data.shape[1],
-            height=data.shape[0],
-            count=1,
-            dtype=data.dtype.name,
-            **kw,
-        ) as ds:
-            ds.write(data, 1)
-
-
-def test_ccd_window_reads_and_masks(tmp_path):
+def test_ccd_window_reads_and_masks(tmp_path, write_geotiff):
     data = np.arange(60, dtype=np.float32).reshape(6, 10) + 1.0
     data[1, 1] = np.nan
     data[2, 2] = ISIS_NULL4
     data[3, 3] = ISIS_HRS4
     data[4, 4] = -9999.0
-    _write(tmp_path / "ccd.tif", data, nodata=-9999.0)
+    write_geotiff(tmp_path / "ccd.tif", data, nodata=-9999.0)
     with CcdImage(tmp_path / "ccd.tif") as img:
         assert img.shape == (6, 10)
         vals, valid = img.read(-1, -2, 8, 14)
@@ -131,12 +113,12 @@ def test_block_mean_read_in_strips_equals_whole():
     np.testing.assert_array_equal(va, vb)
 
 
-def test_reference_windows_and_factor(tmp_path):
+def test_reference_windows_and_factor(tmp_path, write_geotiff):
     data = np.arange(100, dtype=np.float32).reshape(10, 10)
     data[0, 0] = -9999.0
     t = Affine(5.0, 0, 1000.0, 0, -5.0, 2000.0)
     crs = rasterio.crs.CRS.from_user_input("IAU_2015:49910")
-    _write(tmp_path / "ref.tif", data, nodata=-9999.0, crs=crs, transform=t)
+    write_geotiff(tmp_path / "ref.tif", data, nodata=-9999.0, crs=crs, transform=t)
     with ReferenceOrtho(tmp_path / "ref.tif") as ref:
         assert ref.shape == (10, 10)
         win = RefWindow(-2, -2, 6, 6)
@@ -159,8 +141,8 @@ def test_reference_windows_and_factor(tmp_path):
         assert gx == pytest.approx(5.0, rel=1e-3) and gy == pytest.approx(5.0, rel=1e-3)
 
 
-def test_reference_needs_crs(tmp_path):
-    _write(
+def test_reference_needs_crs(tmp_path, write_geotiff):
+    write_geotiff(
         tmp_path / "nocrs.tif", np.zeros((4, 4), np.float32), transform=Affine(1, 0, 0, 0, -1, 0)
     )
     with pytest.raises(CrsError):

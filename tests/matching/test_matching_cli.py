@@ -6,38 +6,33 @@ import json
 
 import numpy as np
 import pytest
-import rasterio
 from click.testing import CliRunner
 from rasterio.transform import Affine
 
 from planetref.cli.match import match_command, matchers_command, read_band
 
 
-def _write_tif(path, array, nodata=None):
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=array.shape[1],
-        height=array.shape[0],
-        count=1,
-        dtype="float32",
-        nodata=nodata,
-        transform=Affine(0.25, 0.0, 1000.0, 0.0, -0.25, 5000.0),
-    ) as ds:
-        ds.write(array.astype(np.float32), 1)
+@pytest.fixture
+def write_tif(write_geotiff):
+    """``write_tif(path, array, nodata=None)``: a float32 GeoTIFF of 0.25 m pixels."""
+
+    def write(path, array, nodata=None):
+        transform = Affine(0.25, 0.0, 1000.0, 0.0, -0.25, 5000.0)
+        return write_geotiff(path, array, dtype="float32", nodata=nodata, transform=transform)
+
+    return write
 
 
 @pytest.fixture
-def pair_tifs(tmp_path, shifted_pair):
+def pair_tifs(tmp_path, shifted_pair, write_tif):
     a, b = shifted_pair(200, (3.0, -2.0), seed=4)
     a = a.copy()
     a[:20, :] = -9999.0  # nodata strip
     b = b.copy()
     b[-15:, -40:] = -3.4028226e38  # ISIS special pixels, not declared as nodata
     p0, p1 = tmp_path / "a.tif", tmp_path / "b.tif"
-    _write_tif(p0, a, nodata=-9999.0)
-    _write_tif(p1, b)
+    write_tif(p0, a, nodata=-9999.0)
+    write_tif(p1, b)
     return p0, p1
 
 
@@ -99,10 +94,10 @@ def test_match_command_writes_csv_and_figure(matcher, pair_tifs, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.tif", "b.tif", "m.csv", "m.png"]
 
 
-def test_match_command_tiles_large_images(tmp_path, shifted_pair):
+def test_match_command_tiles_large_images(tmp_path, shifted_pair, write_tif):
     a, b = shifted_pair(300, (2.0, 1.0), seed=9)
-    _write_tif(tmp_path / "a.tif", a)
-    _write_tif(tmp_path / "b.tif", b)
+    write_tif(tmp_path / "a.tif", a)
+    write_tif(tmp_path / "b.tif", b)
     res = CliRunner().invoke(
         match_command,
         [
@@ -125,7 +120,7 @@ def test_match_command_tiles_large_images(tmp_path, shifted_pair):
     assert len(np.unique(pts, axis=0)) == len(pts)  # overlaps deduplicated
 
 
-def test_match_command_errors(pair_tifs, tmp_path):
+def test_match_command_errors(pair_tifs, tmp_path, write_tif):
     runner = CliRunner()
     out = str(tmp_path / "x.csv")
 
@@ -152,13 +147,13 @@ def test_match_command_errors(pair_tifs, tmp_path):
     )
     assert "loftr_outdoor.ckpt" in msg and "http" in msg
     blank = tmp_path / "blank.tif"
-    _write_tif(blank, np.full((64, 64), 5.0))
+    write_tif(blank, np.full((64, 64), 5.0))
     # A constant or empty image is named before any matching (was "no verified matches").
     assert f"{blank}: the image is constant (5 at every valid pixel)" in run(
         str(blank), str(pair_tifs[1]), "--out", out
     )
     empty = tmp_path / "nan.tif"
-    _write_tif(empty, np.full((64, 64), np.nan))
+    write_tif(empty, np.full((64, 64), np.nan))
     assert f"{empty}: the image has no valid pixel" in run(
         str(pair_tifs[0]), str(empty), "--out", out
     )

@@ -13,7 +13,8 @@ from types import SimpleNamespace
 import pytest
 
 from planetref.errors import MatcherFailedError, MatchingError, WeightsError
-from planetref.report.blocks import failed_report
+from planetref.frontend.config import FrontendConfig
+from planetref.report.blocks import failed_report, frontend_settings
 
 
 def _matching_all_failed(n_tiles=6):
@@ -51,14 +52,16 @@ def test_failed_report_keeps_the_matching_block():
         {"strip1": _matching_all_failed()},
         "strip strip1: only 0 matched control points",
         {"matching": 3.0},
-        {"protocol": "default"},
-    )
+        frontend_settings(FrontendConfig()),
+    ).to_json()
     m = rep["matching"]
     assert rep["failed"].startswith("strip strip1") and rep["adjustment"] is None
     assert m["ncp"] == 0 and m["tiles_failed"] == m["tiles_total"] == 6
     assert m["funnel"]["ransac"] == 60 and m["true_outliers"]["pct_over_3px"] == 75.0
     assert set(m["ccds"]) == {"ccd1", "ccd2", "ccd3"}
     assert len(m["tiles_lost"]) == 6 and m["tiles_lost"][0]["strip"] == "strip1"
+    assert m["settings"]["protocol"] == "default"
+    assert rep["strips"]["strip1"] == {"matching": _matching_all_failed(), "failed": rep["failed"]}
 
 
 def test_compare_keeps_a_failed_matcher_as_a_row(tiny_scene, tmp_path, monkeypatch):
@@ -73,7 +76,7 @@ def test_compare_keeps_a_failed_matcher_as_a_row(tiny_scene, tmp_path, monkeypat
             raise WeightsError("weights missing: ncc.pth")
         rep = failed_report(
             name, "tiny", {"strip1": _matching_all_failed()}, "only 0 MCPs", {"total": 1.0}
-        )
+        ).to_json()
         raise MatcherFailedError("only 0 MCPs", report=rep)
 
     monkeypatch.setattr(georef, "run_georef", fake_run_georef)
@@ -176,7 +179,7 @@ def test_ncp_counts_the_unique_mcps_and_the_funnel_shows_the_mcp_stage():
     cols |= {c: np.zeros(7) for c in MCP_COLUMNS if c not in cols}
     cols["matcher"] = ["ncc"] * 7
     table = McpTable(cols, None, McpCounts(candidates=9, duplicates=2, kept=7))
-    m = matching_block(matches, table, {"ccd1": (100, 100), "ccd2": (100, 100)})
+    m = matching_block(matches, table, {"ccd1": (100, 100), "ccd2": (100, 100)}).to_json()
     assert m["ccds"]["ccd1"]["ncp"] == 3 and m["ccds"]["ccd2"]["ncp"] == 4
     assert m["ncp"] == m["n_mcps"] == 7
     assert m["funnel"]["mcp"] == 12 and m["funnel"]["mcp_unique"] == 7

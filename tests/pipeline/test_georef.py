@@ -234,13 +234,20 @@ def test_deleted_adjustment_redoes_only_the_adjustment_and_what_follows(
     mcps = (out / "strip1" / "mcps.parquet").read_bytes()
     residuals = (out / "strip1" / "adjustment" / "residuals.csv").read_text()
     shutil.rmtree(out / "strip1" / "adjustment")
-    calls = []
+    import planetref.adjust.api
+
+    calls, solved = [], []
     real = planetref.frontend.tile.match_tile
     monkeypatch.setattr(
         planetref.frontend.tile, "match_tile", lambda *a, **k: calls.append(1) or real(*a, **k)
     )
+    adjust = planetref.adjust.api.adjust
+    monkeypatch.setattr(
+        planetref.adjust.api, "adjust", lambda *a, **k: solved.append(1) or adjust(*a, **k)
+    )
     again = run_georef(tiny_scene, "sift", out, config=ref_grid, progress=False)
     assert calls == []  # matching came from the journal: no tile matched again
+    assert solved == [1]  # the adjustment solved again, once
     assert (out / "strip1" / "tiles.jsonl").read_text() == journal
     assert (out / "strip1" / "mcps.parquet").read_bytes() == mcps  # the same MCPs
     # The adjustment and its outputs are back, identical (deterministic for the inputs).
@@ -342,7 +349,7 @@ def test_dem_hole_and_textureless_tile_are_reported(tiny_scene, tmp_path, ref_gr
     assert "Tiles without MCPs" in md
 
 
-def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
+def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog, write_geotiff):
     # A DEM holding only its northern rows: the strip still overlaps it (the run goes on)
     # but part of each CCD's footprint has no terrain, and a new user is told how much.
     from planetref.scene.inputs import check_strips, open_reference
@@ -352,9 +359,8 @@ def test_partial_reference_coverage_is_a_warning(tiny_scene, tmp_path, caplog):
     dem = scene / "reference" / "dem.tif"
     with rasterio.open(dem) as ds:
         profile, data = ds.profile, ds.read(1)
-    profile["height"] = data.shape[0] // 2
-    with rasterio.open(dem, "w", **profile) as ds:
-        ds.write(data[: data.shape[0] // 2], 1)
+    keep = {k: v for k, v in profile.items() if k not in ("driver", "width", "height", "count")}
+    write_geotiff(dem, data[: data.shape[0] // 2], **keep)
     manifest, root = load_manifest(scene / "scene.toml")
     ref, terrain = open_reference(manifest, root)
     with caplog.at_level("WARNING", logger="planetref"), ref:

@@ -237,14 +237,14 @@ def test_asp_gcp_and_isis_csv_round_trip(tmp_path):
     assert both.obs_point.tolist() == [0, 1, 2, 2, 3, 4, 5, 5]
 
 
-def test_scene_manifest_datum_keys(tiny_scene, tmp_path):
+def test_scene_manifest_datum_keys(tiny_scene, tmp_path, write_geotiff):
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)
     manifest, root = load_manifest(scene)
     _, dem = open_reference(manifest, root)
     with rasterio.open(scene / manifest.reference.dem) as ds:
         crs, transform, shape = ds.crs, ds.transform, ds.shape
-    _write_constant_areoid(scene / "reference" / "areoid.tif", crs, transform, shape)
+    _write_constant_areoid(write_geotiff, scene / "reference" / "areoid.tif", crs, transform, shape)
     text = "\n".join(
         ln for ln in (scene / "scene.toml").read_text().splitlines() if "dem_datum" not in ln
     )
@@ -268,7 +268,7 @@ def test_scene_manifest_datum_keys(tiny_scene, tmp_path):
 
 
 @pytest.mark.slow
-def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
+def test_georef_with_an_areoid_dem(tiny_scene, tmp_path, write_geotiff):
     """The same scene declared above a +150 m areoid: every MCP's ground point lies 150 m
     above the scene's DEM (to float precision), whatever the matches."""
     from planetref.control.mcp import read_mcps
@@ -281,7 +281,7 @@ def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
     dem_file = scene / "reference" / "dem.tif"
     with rasterio.open(dem_file) as ds:
         crs, transform, shape = ds.crs, ds.transform, ds.shape
-    _write_constant_areoid(scene / "reference" / "areoid.tif", crs, transform, shape)
+    _write_constant_areoid(write_geotiff, scene / "reference" / "areoid.tif", crs, transform, shape)
     lines = [ln for ln in (scene / "scene.toml").read_text().splitlines() if "dem_datum" not in ln]
     text = "\n".join(lines) + "\n"
     head, rest = text.split("[reference]\n", 1)
@@ -306,18 +306,7 @@ def test_georef_with_an_areoid_dem(tiny_scene, tmp_path):
     assert out.report["adjustment"]["n_total"] > 0
 
 
-def _write_constant_areoid(path, crs, transform, shape, height_m=150.0):
+def _write_constant_areoid(write_geotiff, path, crs, transform, shape, height_m=150.0):
     """A constant areoid of ``height_m`` on the DEM's own grid, with a 2-pixel margin."""
     n = np.full((shape[0] + 4, shape[1] + 4), height_m)
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=n.shape[1],
-        height=n.shape[0],
-        count=1,
-        dtype="float64",
-        crs=crs,
-        transform=transform @ rasterio.Affine.translation(-2, -2),
-    ) as ds:
-        ds.write(n, 1)
+    write_geotiff(path, n, crs=crs, transform=transform @ rasterio.Affine.translation(-2, -2))

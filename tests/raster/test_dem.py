@@ -67,9 +67,7 @@ def test_fast_eqc_path_matches_proj() -> None:
         np.testing.assert_allclose(h2, 100.0, atol=1e-6)
 
 
-def test_geotiff_round_trip_with_nodata(tmp_path: Path) -> None:
-    import rasterio
-
+def test_geotiff_round_trip_with_nodata(tmp_path: Path, write_geotiff) -> None:
     dem = _plane_dem(nan_hole=True)
     p = tmp_path / "dem.tif"
     dem.to_geotiff(p)
@@ -81,19 +79,7 @@ def test_geotiff_round_trip_with_nodata(tmp_path: Path) -> None:
     q = tmp_path / "int.tif"
     h = np.arange(100, dtype=np.int16).reshape(10, 10)
     h[3, 3] = -32768
-    with rasterio.open(
-        q,
-        "w",
-        driver="GTiff",
-        width=10,
-        height=10,
-        count=1,
-        dtype="int16",
-        crs="IAU_2015:49910",
-        transform=dem.transform,
-        nodata=-32768,
-    ) as ds:
-        ds.write(h, 1)
+    write_geotiff(q, h, crs="IAU_2015:49910", transform=dem.transform, nodata=-32768)
     back = GridTerrain.from_geotiff(q, holes=DemHoles(fill=False))
     assert np.isnan(back.heights[3, 3]) and back.heights[2, 2] == 22
     # By default the one-cell hole is filled: harmonic filling is exact on a plane.

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rasterio
 from affine import Affine
 
 from planetref.camera.orbit import OrbitGeometry, ccd_row, orbit_camera
@@ -41,31 +40,22 @@ def _transform() -> Affine:
     return Affine(RES, 0.0, x0, 0.0, -RES, y0)
 
 
-def _write(path: Path, h: np.ndarray, nodata: float | None = -32768.0) -> Path:
+def _write(write_geotiff, path: Path, h: np.ndarray, nodata: float | None = -32768.0) -> Path:
     data = h.copy()
     if nodata is not None:
         data[~np.isfinite(data)] = nodata
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=h.shape[1],
-        height=h.shape[0],
-        count=1,
-        dtype="float32",
-        crs=CRS,
-        transform=_transform(),
-        nodata=nodata,
-    ) as ds:
-        ds.write(data.astype(np.float32), 1)
-    return path
+    return write_geotiff(
+        path, data, dtype="float32", crs=CRS, transform=_transform(), nodata=nodata
+    )
 
 
-def test_two_nodata_cells_are_filled_and_ground_points_recover(tmp_path: Path) -> None:
+def test_two_nodata_cells_are_filled_and_ground_points_recover(
+    tmp_path: Path, write_geotiff
+) -> None:
     truth = _heights()
     h = truth.copy()
     h[60, 60] = h[57, 63] = np.nan  # two nodata cells under the camera
-    path = _write(tmp_path / "dem_with_holes.tif", h)
+    path = _write(write_geotiff, tmp_path / "dem_with_holes.tif", h)
     with pytest.warns(UserWarning, match=r"dem_with_holes\.tif: filled 2 nodata cells in 2 holes"):
         dem = GridTerrain.from_geotiff(path)
     assert np.isfinite(dem.heights).all()
@@ -99,10 +89,10 @@ def test_two_nodata_cells_are_filled_and_ground_points_recover(tmp_path: Path) -
     np.testing.assert_allclose(with_holes[~lost], ref[~lost], atol=1e-4, rtol=0)
 
 
-def test_large_hole_is_refused_in_one_line_naming_the_file(tmp_path: Path) -> None:
+def test_large_hole_is_refused_in_one_line_naming_the_file(tmp_path: Path, write_geotiff) -> None:
     h = _heights()
     h[40:50, 40:50] = np.nan  # 100 cells
-    path = _write(tmp_path / "big_hole.tif", h)
+    path = _write(write_geotiff, tmp_path / "big_hole.tif", h)
     with pytest.raises(InputError) as info:
         GridTerrain.from_geotiff(path)
     msg = str(info.value)
@@ -112,10 +102,10 @@ def test_large_hole_is_refused_in_one_line_naming_the_file(tmp_path: Path) -> No
         GridTerrain.from_geotiff(path, holes=DemHoles(max_hole_cells=100))
 
 
-def test_many_small_holes_are_refused_by_the_fraction(tmp_path: Path) -> None:
+def test_many_small_holes_are_refused_by_the_fraction(tmp_path: Path, write_geotiff) -> None:
     h = _heights()
     h[10:110:4, 10:110:4] = np.nan  # 625 one-cell holes: 4.3% of the DEM
-    path = _write(tmp_path / "pitted.tif", h)
+    path = _write(write_geotiff, tmp_path / "pitted.tif", h)
     with pytest.raises(InputError, match=r"pitted\.tif.*625 nodata cells in 625 holes"):
         GridTerrain.from_geotiff(path)
     with pytest.warns(UserWarning, match="filled 625 nodata cells in 625 holes"):
@@ -123,11 +113,11 @@ def test_many_small_holes_are_refused_by_the_fraction(tmp_path: Path) -> None:
     assert np.isfinite(dem.heights).all()
 
 
-def test_nodata_on_the_edge_is_coverage_not_a_hole(tmp_path: Path) -> None:
+def test_nodata_on_the_edge_is_coverage_not_a_hole(tmp_path: Path, write_geotiff) -> None:
     h = _heights()
     h[:, :10] = np.nan  # a nodata margin (the DEM's coverage ends there)
     h[0:3, 50:53] = np.nan  # a notch touching the top edge
-    path = _write(tmp_path / "margin.tif", h, nodata=None)
+    path = _write(write_geotiff, tmp_path / "margin.tif", h, nodata=None)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         dem = GridTerrain.from_geotiff(path)
@@ -151,14 +141,14 @@ def test_harmonic_fill_is_exact_on_a_plane_and_bounded() -> None:
         DemHoles(max_hole_cells=-1)
 
 
-def test_hole_warning_once_per_run_not_per_worker(tmp_path: Path) -> None:
+def test_hole_warning_once_per_run_not_per_worker(tmp_path: Path, write_geotiff) -> None:
     """The run warns when it opens the DEM; a worker opening it again fills it silently."""
     from planetref.frontend.tasks import open_worker_dem
     from planetref.raster.dem_holes import DemHoleWarning
 
     h = _heights()
     h[60, 60] = np.nan
-    path = _write(tmp_path / "holey.tif", h)
+    path = _write(write_geotiff, tmp_path / "holey.tif", h)
     with pytest.warns(DemHoleWarning, match=r"holey\.tif: filled 1 nodata cells"):
         run_dem = GridTerrain.from_geotiff(path)
     with warnings.catch_warnings(record=True) as caught:

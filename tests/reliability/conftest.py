@@ -21,9 +21,8 @@ def mini_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture
-def image_pair(tmp_path: Path) -> tuple[Path, Path]:
+def image_pair(tmp_path: Path, write_geotiff) -> tuple[Path, Path]:
     """Two 192 x 192 textured GeoTIFF-less rasters, the second shifted by (7, 4) px."""
-    import rasterio
     from scipy.ndimage import gaussian_filter
 
     rng = np.random.default_rng(3)
@@ -32,9 +31,5 @@ def image_pair(tmp_path: Path) -> tuple[Path, Path]:
     paths = []
     for name, (r, c) in (("A.tif", (0, 0)), ("B.tif", (4, 7))):
         p = tmp_path / name
-        with rasterio.open(
-            p, "w", driver="GTiff", width=192, height=192, count=1, dtype="uint8"
-        ) as ds:
-            ds.write(big[r : r + 192, c : c + 192], 1)
-        paths.append(p)
+        paths.append(write_geotiff(p, big[r : r + 192, c : c + 192]))
     return paths[0], paths[1]

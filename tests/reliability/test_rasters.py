@@ -30,32 +30,20 @@ R = 3396190.0
 M_PER_DEG = R * np.pi / 180.0
 
 
-def _write(path: Path, data: np.ndarray, transform, crs: str) -> Path:
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=data.shape[1],
-        height=data.shape[0],
-        count=1,
-        dtype=data.dtype.name,
-        crs=crs,
-        transform=transform,
-    ) as ds:
-        ds.write(data, 1)
-    return path
+def _write(write_geotiff, path: Path, data: np.ndarray, transform, crs: str) -> Path:
+    return write_geotiff(path, data, transform=transform, crs=crs)
 
 
-def _dem(folder: Path, heights: np.ndarray | None = None) -> Path:
+def _dem(write_geotiff, folder: Path, heights: np.ndarray | None = None) -> Path:
     """A 40 x 50 DEM of 463 m pixels near (lon 70, lat 0) on the Mars sphere."""
     h = np.random.default_rng(0).normal(-1500.0, 400.0, (40, 50)) if heights is None else heights
     t = from_origin(70.0 * M_PER_DEG, 0.2 * M_PER_DEG, 463.0, 463.0)
-    return _write(folder / "dem.tif", h.astype(np.float32), t, EQC)
+    return _write(write_geotiff, folder / "dem.tif", h.astype(np.float32), t, EQC)
 
 
-def _areoid(folder: Path, n: np.ndarray) -> Path:
+def _areoid(write_geotiff, folder: Path, n: np.ndarray) -> Path:
     """An areoid raster in lon/lat degrees around the DEM (40 x 40 cells of 0.05 deg)."""
-    return _write(folder / "areoid.tif", n, from_origin(69.5, 1.0, 0.05, 0.05), GEO)
+    return _write(write_geotiff, folder / "areoid.tif", n, from_origin(69.5, 1.0, 0.05, 0.05), GEO)
 
 
 def _areoid_plane(tilt_m: float) -> np.ndarray:
@@ -63,27 +51,27 @@ def _areoid_plane(tilt_m: float) -> np.ndarray:
     return np.full((40, 40), 10.0) + np.linspace(-tilt_m, tilt_m, 40)[None, :]
 
 
-def test_an_areoid_with_fill_values_is_refused(tmp_path: Path) -> None:
+def test_an_areoid_with_fill_values_is_refused(tmp_path: Path, write_geotiff) -> None:
     # scene.toml: dem_datum = "areoid", areoid = "areoid.tif" holding +-1e30 cells
-    dem = _dem(tmp_path)
+    dem = _dem(write_geotiff, tmp_path)
     n = _areoid_plane(0.0)
     n[5, 7], n[30, 20] = 1e30, -1e30
-    areoid = _areoid(tmp_path, n)
+    areoid = _areoid(write_geotiff, tmp_path, n)
     with pytest.raises(InputError, match="physically meaningful range") as err:
         open_reference_dem(dem, datum="areoid", areoid=areoid, implausible="warn")
     msg = str(err.value)
     assert str(areoid) in msg and "2 value(s)" in msg and "[-33962, 33962] m" in msg
     assert "\n" not in msg
     # The same areoid without the fill values is accepted and added.
-    good = _areoid(tmp_path, _areoid_plane(0.0))
+    good = _areoid(write_geotiff, tmp_path, _areoid_plane(0.0))
     out = open_reference_dem(dem, datum="areoid", areoid=good)
     assert np.allclose(out.heights, GridTerrain.from_geotiff(dem).heights + 10.0, atol=1e-3)
 
 
-def test_a_tilted_areoid_is_implausible(tmp_path: Path) -> None:
+def test_a_tilted_areoid_is_implausible(tmp_path: Path, write_geotiff) -> None:
     # an areoid raster tilting +-20 km across the DEM (within +-1 % of the radius)
-    dem = _dem(tmp_path)
-    areoid = _areoid(tmp_path, _areoid_plane(20000.0))
+    dem = _dem(write_geotiff, tmp_path)
+    areoid = _areoid(write_geotiff, tmp_path, _areoid_plane(20000.0))
     with pytest.raises(InputError, match="areoid raster is implausible") as err:
         open_reference_dem(dem, datum="areoid", areoid=areoid)
     assert str(areoid) in str(err.value) and 'implausible_heights = "warn"' in str(err.value)
@@ -91,26 +79,26 @@ def test_a_tilted_areoid_is_implausible(tmp_path: Path) -> None:
     open_reference_dem(dem, datum="areoid", areoid=areoid, implausible="warn", warnings=warnings)
     assert len(warnings) == 1 and "areoid raster is implausible" in warnings[0]
     # +-2 km (the areoid's undulations) is plausible.
-    ok = _areoid(tmp_path, _areoid_plane(2000.0))
+    ok = _areoid(write_geotiff, tmp_path, _areoid_plane(2000.0))
     warnings.clear()
     open_reference_dem(dem, datum="areoid", areoid=ok, warnings=warnings)
     assert warnings == []
 
 
-def test_a_dem_with_a_spike_is_refused(tmp_path: Path) -> None:
+def test_a_dem_with_a_spike_is_refused(tmp_path: Path, write_geotiff) -> None:
     # the reference DEM holds one 1e30 cell (a fill value without nodata)
     h = np.random.default_rng(1).normal(-1500.0, 400.0, (40, 50))
     h[12, 34] = 1e30
-    dem = _dem(tmp_path, h)
+    dem = _dem(write_geotiff, tmp_path, h)
     with pytest.raises(InputError, match=r"1e\+30 at row 12, column 34") as err:
         open_reference_dem(dem, implausible="warn")
     assert str(dem) in str(err.value) and "reference DEM" in str(err.value)
 
 
-def test_the_dem_is_checked_after_the_areoid_is_added(tmp_path: Path) -> None:
+def test_the_dem_is_checked_after_the_areoid_is_added(tmp_path: Path, write_geotiff) -> None:
     # heights of 30 km above an areoid 10 km above the body: 40 km, beyond 1 % of R
-    dem = _dem(tmp_path, np.full((40, 50), 30000.0))
-    areoid = _areoid(tmp_path, np.full((40, 40), 10000.0))
+    dem = _dem(write_geotiff, tmp_path, np.full((40, 50), 30000.0))
+    areoid = _areoid(write_geotiff, tmp_path, np.full((40, 40), 10000.0))
     with pytest.raises(InputError, match="after the areoid was added"):
         open_reference_dem(dem, datum="areoid", areoid=areoid, implausible="warn")
 

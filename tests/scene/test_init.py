@@ -24,57 +24,51 @@ CTX_ISD = SHARED / "data" / "ale" / "ctx_isd.json"
 R = 3396190.0  # the IAU 2015 Mars sphere of IAU_2015:49910 (equirectangular, metres)
 
 
-def _raster(path: Path, data: np.ndarray, lon0: float, lat1: float, res_m: float, crs: str):
+def _raster(
+    write_geotiff, path: Path, data: np.ndarray, lon0: float, lat1: float, res_m: float, crs: str
+):
     """A one-band GeoTIFF whose top-left corner is at (lon0, lat1) degrees."""
     if crs == "EPSG:4326":  # an Earth CRS in degrees
         x0, y0, res = lon0, lat1, res_m / 111_000.0
     else:
         x0, y0, res = math.radians(lon0) * R, math.radians(lat1) * R, res_m
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=data.shape[1],
-        height=data.shape[0],
-        count=1,
-        dtype=data.dtype,
-        crs=crs,
-        transform=from_origin(x0, y0, res, res),
-        nodata=None,
-    ) as ds:
-        ds.write(data, 1)
-    return path
+    return write_geotiff(path, data, crs=crs, transform=from_origin(x0, y0, res, res))
 
 
-def _ctx_inputs(tmp_path: Path, *, lon0=-174.0, crs="IAU_2015:49912", dem_m=0.0):
+def _ctx_inputs(write_geotiff, tmp_path: Path, *, lon0=-174.0, crs="IAU_2015:49912", dem_m=0.0):
     """The real CTX ISD with a blank image of its size, and a reference around 80 S."""
     image = np.zeros((400, 5056), np.uint8)  # the ISD's image_lines x image_samples
-    with rasterio.open(
-        tmp_path / "ctx.tif",
-        "w",
-        driver="GTiff",
-        width=5056,
-        height=400,
-        count=1,
-        dtype="uint8",
-    ) as ds:
-        ds.write(image, 1)
+    write_geotiff(tmp_path / "ctx.tif", image)
     span_lon, span_lat = 6.0, 3.0
     res_o, res_d = 500.0, 2000.0
     h = int(math.radians(span_lat) * R / res_o)
     w = int(math.radians(span_lon) * R / res_o)
-    ortho = _raster(tmp_path / "ortho.tif", np.full((h, w), 100, np.uint8), lon0, -78.5, res_o, crs)
+    ortho = _raster(
+        write_geotiff,
+        tmp_path / "ortho.tif",
+        np.full((h, w), 100, np.uint8),
+        lon0,
+        -78.5,
+        res_o,
+        crs,
+    )
     hd, wd = int(h * res_o / res_d), int(w * res_o / res_d)
     dem = _raster(
-        tmp_path / "dem.tif", np.full((hd, wd), dem_m, np.float32), lon0, -78.5, res_d, crs
+        write_geotiff,
+        tmp_path / "dem.tif",
+        np.full((hd, wd), dem_m, np.float32),
+        lon0,
+        -78.5,
+        res_d,
+        crs,
     )
     return tmp_path / "ctx.tif", ortho, dem
 
 
 @pytest.mark.shared
 @pytest.mark.skipif(not CTX_ISD.exists(), reason="../shared/data/ale/ctx_isd.json not found")
-def test_a_real_csm_isd_gets_its_footprint_and_its_datum_refused(tmp_path):
-    image, ortho, dem = _ctx_inputs(tmp_path)
+def test_a_real_csm_isd_gets_its_footprint_and_its_datum_refused(tmp_path, write_geotiff):
+    image, ortho, dem = _ctx_inputs(write_geotiff, tmp_path)
     ccd = [CcdInput(image, CTX_ISD)]
     # The ISD's body is the MOLA-shaped ellipsoid (3396.19 / 3376.2 km), nearly the areoid:
     # flat heights fit both datums, so the datum is not guessed.
@@ -106,20 +100,22 @@ def test_a_real_csm_isd_gets_its_footprint_and_its_datum_refused(tmp_path):
 
 @pytest.mark.shared
 @pytest.mark.skipif(not CTX_ISD.exists(), reason="../shared/data/ale/ctx_isd.json not found")
-def test_one_line_errors_for_no_overlap_wrong_body_and_existing_scene(tmp_path):
+def test_one_line_errors_for_no_overlap_wrong_body_and_existing_scene(tmp_path, write_geotiff):
     image, ortho, dem = (
-        _ctx_inputs(tmp_path / "far", lon0=10.0) if (tmp_path / "far").mkdir() is None else None
+        _ctx_inputs(write_geotiff, tmp_path / "far", lon0=10.0)
+        if (tmp_path / "far").mkdir() is None
+        else None
     )
     with pytest.raises(InputError, match="no image point of its CCDs falls on the reference") as e:
         init_scene(tmp_path / "s1", [CcdInput(image, CTX_ISD)], ortho, dem, dem_datum="body")
     assert str(ortho) in str(e.value) and "\n" not in str(e.value)
     (tmp_path / "earth").mkdir()
-    image, ortho, dem = _ctx_inputs(tmp_path / "earth", crs="EPSG:4326")
+    image, ortho, dem = _ctx_inputs(write_geotiff, tmp_path / "earth", crs="EPSG:4326")
     with pytest.raises(CrsError, match="not a Mars CRS") as e:
         init_scene(tmp_path / "s2", [CcdInput(image, CTX_ISD)], ortho, dem, dem_datum="body")
     assert str(ortho) in str(e.value)
     (tmp_path / "ok").mkdir()
-    image, ortho, dem = _ctx_inputs(tmp_path / "ok")
+    image, ortho, dem = _ctx_inputs(write_geotiff, tmp_path / "ok")
     init_scene(tmp_path / "s3", [CcdInput(image, CTX_ISD)], ortho, dem, dem_datum="body")
     with pytest.raises(InputError, match="--overwrite"):
         init_scene(tmp_path / "s3", [CcdInput(image, CTX_ISD)], ortho, dem, dem_datum="body")
@@ -181,8 +177,8 @@ def test_heights_that_fit_one_datum_only_tell_it(tmp_path):
 
 @pytest.mark.shared
 @pytest.mark.skipif(not CTX_ISD.exists(), reason="../shared/data/ale/ctx_isd.json not found")
-def test_a_dem_on_the_sphere_under_an_ellipsoid_camera_is_reported(tmp_path):
-    image, ortho, dem = _ctx_inputs(tmp_path, crs="IAU_2015:49910")
+def test_a_dem_on_the_sphere_under_an_ellipsoid_camera_is_reported(tmp_path, write_geotiff):
+    image, ortho, dem = _ctx_inputs(write_geotiff, tmp_path, crs="IAU_2015:49910")
     result = init_scene(tmp_path / "s", [CcdInput(image, CTX_ISD)], ortho, dem, dem_datum="body")
     assert len(result.warnings) == 1
     assert "polar radius 3396190 m" in result.warnings[0] and "19990 m" in result.warnings[0]
@@ -222,7 +218,7 @@ PLEIADES = SHARED / "data" / "pleiades_rpc" / "img_01.tif"
 
 @pytest.mark.shared
 @pytest.mark.skipif(not PLEIADES.exists(), reason="../shared/data/pleiades_rpc not found")
-def test_a_real_rpc_product_on_an_earth_reference(tmp_path):
+def test_a_real_rpc_product_on_an_earth_reference(tmp_path, write_geotiff):
     """A Pléiades crop whose RPC is in its own tags: the body is the Earth's, as is the CRS."""
     with rasterio.open(PLEIADES) as ds:
         n_lines, n_samples = ds.height, ds.width
@@ -240,18 +236,12 @@ def test_a_real_rpc_product_on_an_earth_reference(tmp_path):
     w = int((lon.max() - lon.min() + 0.02) / res)
     h = int((lat.max() - lat.min() + 0.02) / res)
     for name, value, dtype in (("ortho", 100, np.uint8), ("dem", 100.0, np.float32)):
-        with rasterio.open(
+        write_geotiff(
             tmp_path / f"{name}.tif",
-            "w",
-            driver="GTiff",
-            width=w,
-            height=h,
-            count=1,
-            dtype=dtype,
+            np.full((h, w), value, dtype),
             crs="EPSG:4326",
             transform=from_origin(west, north, res, res),
-        ) as ds:
-            ds.write(np.full((h, w), value, dtype), 1)
+        )
     ccd = [CcdInput(PLEIADES, PLEIADES, name="img_01")]
     with pytest.raises(InputError, match="cannot tell the DEM's datum"):
         init_scene(tmp_path / "s", ccd, tmp_path / "ortho.tif", tmp_path / "dem.tif")

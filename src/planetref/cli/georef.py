@@ -50,8 +50,10 @@ class _RunOptions:
         Returns:
             The keywords of ``run_georef`` and ``run_compare`` these options set.
         """
+        config, device = _runtime(self.config_path, self.threads, self.device, self.scheduler)
         return {
-            "config": _runtime(self.config_path, self.threads, self.device, self.scheduler),
+            "config": config,
+            "device": device,
             "weights_dir": self.weights_dir,
             "overwrite": self.overwrite,
             "progress": progress,
@@ -121,27 +123,25 @@ def _common(command: Any) -> Any:
 
 def _runtime(
     config_path: str | None, threads: int | None, device: str, scheduler: SchedulerSpec
-) -> Any:
-    """Apply the thread budget and load the config, with ``device`` on the learned matchers."""
-    from planetref.matching.registry import MATCHERS
+) -> tuple[Any, str]:
+    """Apply the thread budget, load the config and resolve the device.
+
+    Returns:
+        ``(config, device)``: the settings and the torch device of the learned matchers
+        (``"auto"`` resolved to the device it stands for, so the run's identity names the
+        real one), a run option passed to the matchers when they are built.
+    """
     from planetref.pipeline.config import load_config
     from planetref.runtime.threads import ThreadBudget, apply_thread_budget
 
     apply_thread_budget(ThreadBudget.resolve(threads, scheduler.local_workers))
     cfg = load_config(config_path)
     if device != "cpu":
-        # Checked here, before any work (one line when the device does not exist); "auto"
-        # becomes the device it stands for, so the run's identity names the real one.
+        # Checked here, before any work (one line when the device does not exist).
         from planetref.matching._torch import resolve_device
 
         device = str(resolve_device(device))
-    if device == "cpu":
-        return cfg  # the default: the run's identity stays what it was
-    opts = {k: dict(v) for k, v in cfg.matchers.items()}
-    for name, spec in MATCHERS.items():
-        if spec.weights:
-            opts.setdefault(name, {})["device"] = device
-    return cfg.model_copy(update={"matchers": opts})
+    return cfg, device
 
 
 def _quiet(ctx: click.Context) -> bool:

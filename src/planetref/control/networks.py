@@ -24,6 +24,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.raster.image import CcdImage
 
 __all__ = [
+    "GroundSigmas",
+    "McpSet",
     "StripMcps",
     "check_points",
     "joint_network",
@@ -33,27 +35,90 @@ __all__ = [
 ]
 
 
-@dataclass
+@dataclass(frozen=True)
+class GroundSigmas:
+    """A-priori sigmas of the MCPs' ground points.
+
+    Attributes:
+        sigma_m: ``(N, 3)`` sigmas (metres) along east, north, up (``local``) or X, Y, Z.
+        local: The sigmas are along the local east, north, up axes.
+    """
+
+    sigma_m: NDArray[np.float64]
+    local: bool = True
+
+
+@dataclass(frozen=True)
+class McpSet:
+    """A strip's MCPs as the adjustment takes them: table, check flags, ground sigmas.
+
+    Attributes:
+        strip: The strip (camera id of its observations).
+        table: The MCP table (:func:`~planetref.control.mcp.mcps_from_tiles`).
+        check: Held-out check flag per MCP (:func:`check_points`).
+        ground_sigma: The ground points' a-priori sigmas, or ``None`` (known ground).
+    """
+
+    strip: str
+    table: McpTable
+    check: NDArray[np.bool_]
+    ground_sigma: GroundSigmas | None
+
+    @classmethod
+    def of(cls, strip: str, table: McpTable, check: NDArray[np.bool_]) -> McpSet:
+        """The set of a table and its check flags, with the table's ground sigmas."""
+        return cls(strip, table, np.asarray(check, bool), mcp_ground_sigmas(table))
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    def network(self, camera: Camera, sigma_px: float) -> Network:
+        """The one-strip network of these MCPs (``sigma_px``: each measure's sigma)."""
+        from planetref.control.network import Network
+
+        t = self.table
+        gs = self.ground_sigma
+        return Network.mcps(
+            camera,
+            line=t["line"],
+            sample=t["sample"],
+            xyz=t.xyz(),
+            ccd=np.asarray(t["ccd"]).astype(str),
+            camera_id=self.strip,
+            sigma_px=sigma_px,
+            check=self.check,
+            ground_sigma_m=0.0 if gs is None else gs.sigma_m,
+            ground_sigma_local=False if gs is None else gs.local,
+        )
+
+
+@dataclass(frozen=True)
 class StripMcps:
-    """A strip after matching: its camera, images, MCPs and check flags."""
+    """A strip after matching: its camera, images and MCPs.
+
+    Attributes:
+        id: The strip.
+        camera: Its camera (initial).
+        images: CCD name -> image.
+        sizes: CCD name -> ``(lines, samples)``.
+        mcps: Its MCPs, check flags and ground sigmas.
+    """
 
     id: str
     camera: Camera
     images: dict[str, CcdImage]
     sizes: dict[str, tuple[int, int]]
-    table: McpTable
-    check: NDArray[np.bool_]
-    out: dict[str, Any]
+    mcps: McpSet
 
 
-def mcp_ground_sigmas(table: Any) -> dict[str, Any]:
-    """MCP ground points weighted by their a-priori sigmas (east, north, up) if known."""
+def mcp_ground_sigmas(table: Any) -> GroundSigmas | None:
+    """MCP ground points' a-priori sigmas (east, north, up) if the table has them."""
     cols = getattr(table, "columns", {})
     if "sigma_ground_xy_m" not in cols or "sigma_ground_h_m" not in cols:
-        return {}
+        return None
     xy = np.asarray(cols["sigma_ground_xy_m"], float)
     h = np.asarray(cols["sigma_ground_h_m"], float)
-    return {"ground_sigma_m": np.column_stack([xy, xy, h]), "ground_sigma_local": True}
+    return GroundSigmas(np.column_stack([xy, xy, h]), local=True)
 
 
 def check_points(
@@ -180,21 +245,21 @@ def joint_network(
     kind: dict[str, str] = {}
     local: dict[str, bool] = {}
     for p in preps:
-        t = p.table
+        t = p.mcps.table
         pts = [f"{p.id}:mcp{i}" for i in range(len(t))]
         pxyz = t.xyz()
-        gs = mcp_ground_sigmas(t).get("ground_sigma_m")
+        gs = p.mcps.ground_sigma
         for i, pid in enumerate(pts):
             xyz[pid], kind[pid] = pxyz[i], "mcp"
-            sig_m[pid] = 0.0 if gs is None else gs[i]
-            local[pid] = gs is not None
+            sig_m[pid] = 0.0 if gs is None else gs.sigma_m[i]
+            local[pid] = gs is not None and gs.local
         obs_cam += [p.id] * len(t)
         obs_pt += pts
         obs_ccd += list(np.asarray(t["ccd"]).astype(str))
         line.append(np.asarray(t["line"], float))
         sample.append(np.asarray(t["sample"], float))
         sig_px.append(np.full(len(t), mcp.sigma_px))
-        check.append(p.check)
+        check.append(p.mcps.check)
     tie_sigma = np.inf if opts.tie_sigma_m is None else float(opts.tie_sigma_m)
     for i, pid in enumerate(ties.point_ids):
         xyz[pid], sig_m[pid], kind[pid] = ties.xyz[i], tie_sigma, "tie"

@@ -115,14 +115,19 @@ def matcher_recipes(
     ref_gsd_m: float,
     *,
     weights_dir: str | os.PathLike[str] | None = None,
+    device: str = "cpu",
 ) -> MatcherPair:
-    """The recipes of a run's fine and coarse matchers (see :func:`matcher_options`)."""
+    """The recipes of a run's fine and coarse matchers (see :func:`matcher_options`).
+
+    ``device`` (the run's ``--device``, resolved) goes to every learned matcher's
+    constructor, here and only here.
+    """
     from planetref.frontend.tasks import MatcherRecipe
 
     wd = None if weights_dir is None else str(Path(weights_dir).resolve())
     fine_opts, coarse_opts = matcher_options(name, options, fe, ref_gsd_m)
-    coarse = None if coarse_opts is None else MatcherRecipe(name, coarse_opts, wd)
-    return MatcherPair(MatcherRecipe(name, fine_opts, wd), coarse)
+    coarse = None if coarse_opts is None else MatcherRecipe(name, coarse_opts, wd, device)
+    return MatcherPair(MatcherRecipe(name, fine_opts, wd, device), coarse)
 
 
 def build_matchers(

@@ -40,11 +40,14 @@ class MatcherRecipe:
         name: Registry name (``planetref matchers``).
         options: Keyword options of the constructor.
         weights_dir: Folder of pretrained weights (learned matchers).
+        device: Torch device of a learned matcher (the run's ``--device``, resolved);
+            classical matchers run on the CPU whatever it says.
     """
 
     name: str
     options: Mapping[str, Any] = field(default_factory=dict)
     weights_dir: str | None = None
+    device: str = "cpu"
 
     def build(self) -> Matcher:
         """The matcher (learned weights load lazily, on the first match).
@@ -53,18 +56,32 @@ class MatcherRecipe:
             InputError: Unknown name or option.
             WeightsError: Missing weights.
         """
-        from planetref.matching.registry import get_matcher
+        from planetref.matching.registry import MATCHERS, get_matcher
 
-        return get_matcher(self.name, weights_dir=self.weights_dir, **dict(self.options))
+        spec = MATCHERS.get(self.name)
+        options = dict(self.options)
+        # A ``device`` among a matcher's own options ([matchers.NAME]) is that matcher's.
+        device = options.pop("device", self.device if spec is not None and spec.weights else "cpu")
+        return get_matcher(self.name, weights_dir=self.weights_dir, device=device, **options)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly form."""
-        return {"name": self.name, "options": dict(self.options), "weights_dir": self.weights_dir}
+        return {
+            "name": self.name,
+            "options": dict(self.options),
+            "weights_dir": self.weights_dir,
+            "device": self.device,
+        }
 
     @classmethod
     def from_dict(cls, doc: Mapping[str, Any]) -> MatcherRecipe:
         """Inverse of :meth:`to_dict`."""
-        return cls(str(doc["name"]), dict(doc.get("options") or {}), doc.get("weights_dir"))
+        return cls(
+            str(doc["name"]),
+            dict(doc.get("options") or {}),
+            doc.get("weights_dir"),
+            str(doc.get("device") or "cpu"),
+        )
 
 
 @dataclass(frozen=True)

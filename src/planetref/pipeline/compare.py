@@ -168,6 +168,7 @@ def run_compare(
     overwrite: bool = False,
     progress: bool = True,
     executor: Any = None,
+    device: str = "cpu",
 ) -> CompareOutcome:
     """Run georef once per matcher with identical settings and tabulate the results.
 
@@ -188,6 +189,8 @@ def run_compare(
         executor: Where the tiles are matched (see :func:`~planetref.pipeline.georef.
             run_georef`); a spec string starts one executor (e.g. one Dask cluster) that
             serves every matcher and is closed at the end.
+        device: Torch device of the learned matchers (see :func:`~planetref.pipeline.
+            georef.run_georef`).
 
     Raises:
         InputError: Unknown matcher names, a bad scene, or an output directory holding
@@ -198,7 +201,9 @@ def run_compare(
     owned = executor is not None and not isinstance(executor, Executor)
     ex = make_executor(executor)
     try:
-        return _run_compare(scene, matchers, out, config, weights_dir, overwrite, progress, ex)
+        return _run_compare(
+            scene, matchers, out, config, weights_dir, overwrite, progress, ex, device
+        )
     finally:
         if owned:
             ex.close()
@@ -213,6 +218,7 @@ def _run_compare(
     overwrite: bool,
     progress: bool,
     executor: Any,
+    device: str = "cpu",
 ) -> CompareOutcome:
     from planetref.pipeline.georef import run_georef
     from planetref.report.georef import figure_headline_bars, write_compare_report
@@ -225,6 +231,8 @@ def _run_compare(
 
     manifest, root = load_manifest(scene_path)
     identity = {"scene": str(scene_path), "config": config_digest(cfg.identity_json())}
+    if device != "cpu":  # a CPU run's identity stays what it was
+        identity["device"] = device
     run = RunDir(
         out,
         "compare",
@@ -250,6 +258,7 @@ def _run_compare(
                     overwrite=overwrite,
                     progress=progress,
                     executor=executor,
+                    device=device,
                 )
             except MatcherFailedError as exc:
                 log.warning("compare: %s failed: %s", name, exc)

@@ -39,10 +39,10 @@ import numpy as np
 from planetref import __version__
 from planetref.control.ground_sigma import reference_gsd_m
 from planetref.control.networks import (
+    McpSet,
     StripMcps,
     check_points,
     joint_network,
-    mcp_ground_sigmas,
     template_overlap,
     template_support_m,
 )
@@ -54,6 +54,7 @@ from planetref.frontend.matchers import (
     matcher_recipes,
     matcher_weight_files,
 )
+from planetref.pipeline.artefacts import StripOutcome, StripProducts, solve_or_reload
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.georef_outputs import (
     camera_isds,
@@ -81,6 +82,12 @@ from planetref.report.blocks import (
     result_block,
     rmse_px,
     too_few_mcps,
+)
+from planetref.report.model import (
+    AdjustmentSummary,
+    CampaignBlock,
+    GeorefReport,
+    StripMatching,
 )
 from planetref.runtime.threads import single_threaded_blas
 from planetref.scene.inputs import (
@@ -124,14 +131,16 @@ class GeorefOutcome:
     """What :func:`run_georef` returns.
 
     Attributes:
-        report: The report.json content.
+        report: The report.json content (``typed.to_json()``).
         run_dir: The run directory.
         files: Paths of the main outputs.
+        typed: The report as its typed model.
     """
 
     report: dict[str, Any]
     run_dir: Path
     files: dict[str, Any] = field(default_factory=dict)
+    typed: GeorefReport | None = None
 
 
 def run_georef(
@@ -145,6 +154,7 @@ def run_georef(
     progress: bool = True,
     matchers: tuple[Matcher, Matcher] | None = None,
     executor: Executor | str | None = None,
+    device: str = "cpu",
 ) -> GeorefOutcome:
     """Georeference every strip of a scene with one matcher.
 
@@ -161,6 +171,9 @@ def run_georef(
             (left open), or a ``--scheduler`` spec (``"pool:4"``, ``"dask-local:4"``,
             ``"tcp://HOST:PORT"``; started for this run and closed after). Default: in
             this process. The results do not depend on it.
+        device: Torch device of the learned matchers (``"cpu"``, ``"cuda"``, ``"cuda:1"``;
+            resolved, not ``"auto"``), passed to them when they are built. Part of the
+            run's identity when it is not the CPU.
 
     Returns:
         The report and where things were written.
@@ -199,6 +212,7 @@ def run_georef(
             cfg.frontend,
             ref_gsd,
             weights_dir=weights_dir,
+            device=device,
         )
         if matchers is not None:
             pair = replace(pair, instances=matchers)
@@ -209,6 +223,8 @@ def run_georef(
             "matcher": matcher,
             "config": config_digest(cfg.identity_json()),
         }
+        if device != "cpu":  # a CPU run's identity stays what it was
+            identity["device"] = device
         run = RunDir(
             out,
             "georef",
@@ -236,6 +252,7 @@ def run_georef(
                     "matcher": matcher,
                     "weights_dir": None if weights_dir is None else str(weights_dir),
                     "planetref_version": __version__,
+                    **({} if device == "cpu" else {"device": device}),
                     **cfg.to_json(),
                 },
             )
@@ -260,18 +277,25 @@ def run_georef(
             job.figures.start()  # matplotlib is imported there while the tiles are matched
             stack.callback(job.compile_clock.start().stop)  # compile seconds apart
             settings = frontend_settings(cfg.frontend)
-            matched: dict[str, dict[str, Any]] = {}  # matching blocks, for a failed run
+            matched: dict[str, StripMatching] = {}  # matching blocks, for a failed run
+            mcp_files: dict[str, list[str]] = {}
+            strips: dict[str, StripOutcome]
+            campaign: CampaignBlock | None
             try:
                 if cfg.campaign.adjust_together and len(manifest.strips) > 1:
-                    preps = [_strip_mcps(job.for_strip(s), matched) for s in manifest.strips]
+                    preps = [
+                        _strip_mcps(job.for_strip(s), matched, mcp_files) for s in manifest.strips
+                    ]
                     with single_threaded_blas():  # RPC refits, reports, orthoimages
-                        strips, campaign = _adjust_together(job, preps)
+                        strips, campaign, joint = _adjust_together(job, preps, matched, mcp_files)
                 else:
-                    strips, campaign = {}, None
+                    strips, campaign, joint = {}, None, None
                     for s in manifest.strips:
-                        prep = _strip_mcps(job.for_strip(s), matched)
+                        prep = _strip_mcps(job.for_strip(s), matched, mcp_files)
                         with single_threaded_blas():  # RPC refits, reports, orthoimages
-                            strips[s.id] = _adjust_strip(job.for_strip(s), prep)
+                            strips[s.id] = _adjust_strip(
+                                job.for_strip(s), prep, matched[s.id], mcp_files[s.id]
+                            )
             except (MatcherFailedError, AdjustmentError) as exc:  # the matcher ran: a result
                 with timed(job.timing, "figures"):
                     job.figures.wait()
@@ -283,24 +307,35 @@ def run_georef(
             with timed(job.timing, "figures"):  # the figures not drawn yet
                 job.figures.wait()
             job.timing["total"] = time.perf_counter() - t_start
-            report = combined_report(matcher, manifest.name, strips, job.timing, settings)
-            if campaign is not None:
-                report["adjustment"] = campaign.pop("adjustment")
-                report["campaign"] = campaign
+            typed = combined_report(
+                matcher,
+                manifest.name,
+                {sid: o.report for sid, o in strips.items()},
+                {sid: (o.residual, o.inlier) for sid, o in strips.items()},
+                job.timing,
+                settings,
+            )
+            if campaign is not None and joint is not None:
+                typed.adjustment = joint
+                typed.campaign = campaign
             if input_warnings:
-                report["input_warnings"] = list(input_warnings)
+                typed.input_warnings = list(input_warnings)
             # A resumed run's step timings are what this process spent; the tiles' own
             # cost is in timing_s.matching_tiles (from the journal), so it says so.
-            report["resumed"] = bool(run.resumed)
+            typed.resumed = bool(run.resumed)
+            report = typed.to_json()
             run.write_json("report.json", report)
             write_georef_markdown(report, run.file("report.md"))
     finally:
         if owned:
             ex.close()
-    files = {"report_json": str(run.path / "report.json"), "report_md": str(run.path / "report.md")}
-    for sid, blk in strips.items():
-        files[sid] = blk.get("files", {})
-    return GeorefOutcome(report=report, run_dir=run.path, files=files)
+    files: dict[str, Any] = {
+        "report_json": str(run.path / "report.json"),
+        "report_md": str(run.path / "report.md"),
+    }
+    for sid, o in strips.items():
+        files[sid] = o.products.to_dict()
+    return GeorefOutcome(report=report, run_dir=run.path, files=files, typed=typed)
 
 
 def _match(
@@ -349,8 +384,13 @@ def _match(
     )
 
 
-def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
-    """Match a strip's tiles, write its MCPs, draw its check points; ``matched`` += block."""
+def _strip_mcps(
+    job: StripJob, matched: dict[str, StripMatching], mcp_files: dict[str, list[str]]
+) -> StripMcps:
+    """Match a strip's tiles, write its MCPs, draw its check points.
+
+    Its ``matching`` block goes to ``matched`` and the MCP files to ``mcp_files``.
+    """
     from planetref.control.mcp import mcps_from_tiles, write_mcps
     from planetref.frontend.tile_panels import PanelStore
     from planetref.report.figures_matching import select_tiles
@@ -358,7 +398,6 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
     strip, cfg = job.spec, job.cfg
     camera, images = strip_cameras(job.manifest, job.root, strip)  # checked by check_strips
     sizes = {c: camera.image_size(c) for c in images}
-    out: dict[str, Any] = {"files": {}}
 
     t0, c0 = job.clock()
     # Fig. 2's tiles, kept in the run folder as they are matched (a resumed run finds them).
@@ -381,23 +420,21 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
         len(table),
     )
     written = write_mcps(table, job.run.file(strip.id, "mcps.parquet"))
-    out["files"]["mcps"] = [
+    mcp_files[strip.id] = [
         str(p) for p in (written if isinstance(written, list | tuple) else [written])
     ]
     cam = job.truth_cameras.get(strip.id)  # the true DEM read for it, then let go
     truth = None if cam is None else (cam, job.ref, truth_terrain(job.truth_dem, job.dem))
-    out["matching"] = matched[strip.id] = matching_block(matches, table, sizes, truth)
+    matching = matched[strip.id] = matching_block(matches, table, sizes, truth)
     del truth  # the true DEM is not held through the figures
-    for item in out["matching"]["tiles_lost"]:
-        log.warning(
-            "strip %s tile %s: %s %s", strip.id, item["tile"], item["status"], item["message"]
-        )
+    for item in matching.tiles_lost:
+        log.warning("strip %s tile %s: %s %s", strip.id, item.tile, item.status, item.message)
     with single_threaded_blas(), timed(job.timing, "figures"), store:  # figures are outputs
         figures_matching(job, matches, table, sizes, images, camera, store)
         store.keep_only(t.tile_id for _, t in select_tiles(matches.tiles))
     n = len(table)
     if n < cfg.mcp.min_mcps:
-        raise too_few_mcps(strip.id, matches.matcher, out["matching"], cfg.mcp.min_mcps)
+        raise too_few_mcps(strip.id, matches.matcher, matching, cfg.mcp.min_mcps)
     check = check_points(
         table["tile_id"],
         table["ccd"],
@@ -406,55 +443,55 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
         cfg.mcp.seed,
         cfg.mcp.check_blocks,
     )
-    return StripMcps(strip.id, camera, images, sizes, table, check, out)
+    return StripMcps(strip.id, camera, images, sizes, McpSet.of(strip.id, table, check))
 
 
-def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
-    """Adjust one strip on its own with its MCPs and write its outputs."""
+def _adjust_strip(
+    job: StripJob, prep: StripMcps, matching: StripMatching, mcp_files: list[str]
+) -> StripOutcome:
+    """Adjust one strip on its own with its MCPs and write its outputs.
+
+    The adjustment is reloaded from the run folder when its inputs did not change
+    (:func:`~planetref.pipeline.artefacts.solve_or_reload`).
+    """
     from planetref.adjust.api import adjust
-    from planetref.control.network import Network
     from planetref.report.adjustment import write_outputs
+    from planetref.report.model import StripReport
 
-    cfg, run, table, out = job.cfg, job.run, prep.table, prep.out
-    network = Network.mcps(
-        prep.camera,
-        line=table["line"],
-        sample=table["sample"],
-        xyz=table.xyz(),
-        ccd=np.asarray(table["ccd"]).astype(str),
-        camera_id=prep.id,
-        sigma_px=cfg.mcp.sigma_px,
-        check=prep.check,
-        **mcp_ground_sigmas(table),
-    )
+    cfg, run = job.cfg, job.run
+    network = prep.mcps.network(prep.camera, cfg.mcp.sigma_px)
     adjust_cfg, declared = systematic_settings(
         cfg.adjust,
         job.manifest,
         [prep.id],
         reference_gsd_m(job.ref),
-        mcp_overlap(job, [table]),
+        mcp_overlap(job, [prep.mcps]),
     )
     t0, c0 = job.clock()
-    result = adjust(network, adjust_cfg)
+    result, _ = solve_or_reload(run, (prep.id, "adjustment"), network, adjust_cfg, adjust)
     job.charge("adjustment", t0, c0)
     t0, c0 = job.clock()
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
     camera = result.cameras[prep.id]
+    products = StripProducts(mcps=mcp_files)
     # Adjusted cameras, RPC refits, residuals and reports first (beside the orthoimages
     # they raised the peak memory by ~180 MB on hiric-strip, for ~1.6 CPU-s of overlap).
     with part_timed(job.timing, "adjustment_files"):
         dem = truth_terrain(job.truth_dem, job.dem)
-        out["files"]["adjustment"] = write_outputs(
+        products.adjustment = write_outputs(
             result,
             run.file(prep.id, "adjustment"),
             truth=truth,
             terrain=dem,
             plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
         )
-        out["adjustment"] = result_block(result, systematic_source=declared)
-        out["check"] = check_block(result, truth, dem) if truth else None
+        report = StripReport(
+            matching=matching,
+            adjustment=result_block(result, systematic_source=declared),
+            check=check_block(result, truth, dem) if truth else None,
+        )
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
-    out["warnings"] = list(result.warnings)
+    report.warnings = list(result.warnings)
 
     def isds() -> list[str]:
         with part_timed(job.timing, "isd"):
@@ -467,21 +504,20 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     with ThreadPoolExecutor(1, thread_name_prefix="isd") as pool:
         isd = pool.submit(contextvars.copy_context().run, isds)
         with part_timed(job.timing, "exports"):
-            out["files"]["exports"] = control_exports(
+            products.exports = control_exports(
                 job, f"{prep.id}_mcps", mcp_points(prep, cfg), (prep.id, "exports")
             )
         with part_timed(job.timing, "figures"):  # drawn while the orthoimages are written
             figure_residuals(job, prep.id, result, prep.sizes)
         if cfg.ortho.enabled:
             with part_timed(job.timing, "orthoimages"):
-                out["files"]["ortho"] = orthoimages(job, prep.id, camera, prep.images)
-        out["files"]["isd"] = isd.result()
+                products.ortho = orthoimages(job, prep.id, camera, prep.images)
+        products.isd = isd.result()
     job.charge("outputs", t0, c0)
-    out["_residuals"] = (result.residual, result.inlier)
-    return out
+    return StripOutcome(report, products, result.residual, result.inlier)
 
 
-def mcp_overlap(job: StripJob, tables: list[Any]) -> float:
+def mcp_overlap(job: StripJob, mcps: list[McpSet]) -> float:
     """Mean number of MCPs per independent measurement (:func:`template_overlap`)."""
     fine = job.matchers.fine
     support = template_support_m(
@@ -489,14 +525,17 @@ def mcp_overlap(job: StripJob, tables: list[Any]) -> float:
     )
     if support is None:
         return 1.0
-    x = np.concatenate([np.asarray(t["ref_x"], float) for t in tables])
-    y = np.concatenate([np.asarray(t["ref_y"], float) for t in tables])
+    x = np.concatenate([np.asarray(m.table["ref_x"], float) for m in mcps])
+    y = np.concatenate([np.asarray(m.table["ref_y"], float) for m in mcps])
     return template_overlap(x, y, support)
 
 
 def _adjust_together(
-    job: StripJob, preps: list[StripMcps]
-) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    job: StripJob,
+    preps: list[StripMcps],
+    matched: dict[str, StripMatching],
+    mcp_files: dict[str, list[str]],
+) -> tuple[dict[str, StripOutcome], CampaignBlock, AdjustmentSummary]:
     """Adjust every strip in one network: all MCPs plus tie points between strips.
 
     The joint adjustment's outputs (every camera, residuals, parameters) go to
@@ -504,13 +543,14 @@ def _adjust_together(
     observations, true geolocation error, orthoimages) computed from the joint result.
 
     Returns:
-        ``(strips, campaign)``: the per-strip blocks (as :func:`_adjust_strip` returns)
-        and the ``campaign`` block of report.json (its ``adjustment`` entry is the joint
-        adjustment's).
+        ``(strips, campaign, adjustment)``: each strip's outcome (as :func:`_adjust_strip`
+        returns), the ``campaign`` block of report.json and the joint adjustment's
+        ``adjustment`` block (the run's).
     """
     from planetref.adjust.api import adjust
     from planetref.frontend.tiepoints import find_tie_points
     from planetref.report.adjustment import write_outputs
+    from planetref.report.model import StripReport
 
     cfg, run, timing = job.cfg, job.run, job.timing
     opts = cfg.campaign
@@ -535,10 +575,10 @@ def _adjust_together(
         job.manifest,
         [p.id for p in preps],
         reference_gsd_m(job.ref),
-        mcp_overlap(job, [p.table for p in preps]),
+        mcp_overlap(job, [p.mcps for p in preps]),
     )
     t0, c0 = job.clock()
-    result = adjust(network, adjust_cfg)
+    result, _ = solve_or_reload(run, ("campaign", "adjustment"), network, adjust_cfg, adjust)
     job.charge("adjustment", t0, c0)
     t0, c0 = job.clock()
     cams = {p.id: p.camera for p in preps}
@@ -557,49 +597,50 @@ def _adjust_together(
         if sid in job.truth_cameras
     }
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
-    strips: dict[str, dict[str, Any]] = {}
+    strips: dict[str, StripOutcome] = {}
     is_tie = np.asarray(network.point_kind)[network.obs_point] == "tie"
     for ci, p in enumerate(preps):
-        out = p.out
-        out["files"]["adjustment"] = joint_files
+        products = StripProducts(mcps=mcp_files[p.id], adjustment=joint_files)
         cm = result.metrics["cameras"][p.id]
         on = network.obs_camera == ci
-        out["adjustment"] = adjustment_block(
-            cm["after"],
-            rmse_px_before=cm["before"]["rmse_px"],
-            sigma0=result.sigma0,
-            converged=result.converged,
-            n_tie_observations=int(np.count_nonzero(on & is_tie)),
-            ccds={c: m["after"] for c, m in cm.get("ccds", {}).items()},
+        report = StripReport(
+            matching=matched[p.id],
+            adjustment=adjustment_block(
+                cm["after"],
+                rmse_px_before=cm["before"]["rmse_px"],
+                sigma0=result.sigma0,
+                converged=result.converged,
+                n_tie_observations=int(np.count_nonzero(on & is_tie)),
+                ccds={c: m["after"] for c, m in cm.get("ccds", {}).items()},
+            ),
+            check=checks.get(p.id),
+            warnings=list(result.warnings),
         )
-        out["check"] = checks.get(p.id)
-        out["warnings"] = list(result.warnings)
-        out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
+        products.isd = camera_isds(job, p.id, result.cameras[p.id])
         figure_residuals(job, p.id, result, p.sizes, ci)
         if cfg.ortho.enabled:
-            out["files"]["ortho"] = orthoimages(job, p.id, result.cameras[p.id], p.images)
-        out["_residuals"] = (result.residual[on], result.inlier[on])
-        strips[p.id] = out
+            products.ortho = orthoimages(job, p.id, result.cameras[p.id], p.images)
+        strips[p.id] = StripOutcome(report, products, result.residual[on], result.inlier[on])
     exports = campaign_points(preps, ties, cfg)
     joint_exports = control_exports(job, "campaign", exports, ("campaign", "exports"))
     job.charge("outputs", t0, c0)
-    campaign = {
-        "adjust_together": True,
-        "n_tie_points": len(ties),
-        "n_tie_observations": 2 * len(ties),
-        "tie_points_per_strip_pair": ties.per_strip_pair(),
-        "tie_points_per_image_pair": dict(ties.pairs),
-        "tie_sigma_m": opts.tie_sigma_m,
-        "adjustment": result_block(
-            result,
-            systematic_source=declared,
-            n_tie_points=len(ties),
-            tie_rmse_px=None if not len(ties) else rmse_px(result.residual[is_tie & result.inlier]),
-            tie_rmse_px_before=None if not len(ties) else rmse_px(result.residual_initial[is_tie]),
-        ),
-        "files": {
+    campaign = CampaignBlock(
+        adjust_together=True,
+        n_tie_points=len(ties),
+        n_tie_observations=2 * len(ties),
+        tie_points_per_strip_pair=ties.per_strip_pair(),
+        tie_points_per_image_pair=dict(ties.pairs),
+        tie_sigma_m=opts.tie_sigma_m,
+        files={
             **{k: v for k, v in joint_files.items() if k != "cameras"},
             "exports": joint_exports,
         },
-    }
-    return strips, campaign
+    )
+    joint = result_block(
+        result,
+        systematic_source=declared,
+        n_tie_points=len(ties),
+        tie_rmse_px=None if not len(ties) else rmse_px(result.residual[is_tie & result.inlier]),
+        tie_rmse_px_before=None if not len(ties) else rmse_px(result.residual_initial[is_tie]),
+    )
+    return strips, campaign, joint

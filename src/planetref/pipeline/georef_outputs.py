@@ -15,12 +15,17 @@ from planetref.errors import AdjustmentError, MatcherFailedError, PlanetrefError
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera
+    from planetref.control.exports import ControlPoints
     from planetref.control.mcp import McpTable
+    from planetref.control.networks import StripMcps
     from planetref.frontend.result import StripMatches, TileResult
+    from planetref.frontend.tiepoints import TiePoints
     from planetref.frontend.tile_panels import PanelStore
+    from planetref.pipeline.config import GeorefConfig
     from planetref.pipeline.job import StripJob
     from planetref.pipeline.rundir import RunDir
     from planetref.raster.image import CcdImage
+    from planetref.report.model import FrontendSettings, StripMatching
     from planetref.scene.manifest import SceneManifest
 
 __all__ = [
@@ -199,7 +204,7 @@ def _isd_digest(camera: Camera, lines_per_sample: float) -> str:
 
 
 def control_exports(
-    job: StripJob, name: str, points: Any, folder: tuple[str, ...]
+    job: StripJob, name: str, points: ControlPoints, folder: tuple[str, ...]
 ) -> dict[str, str]:
     """MCPs (and tie points) as an ASP GCP file and an ISIS-style control network CSV.
 
@@ -222,22 +227,22 @@ def control_exports(
     return optional_output(f"{'/'.join(folder)}: ASP GCP and ISIS control files", write, {})
 
 
-def mcp_points(prep: Any, cfg: Any) -> Any:
-    """A strip's MCPs (a :class:`~planetref.control.networks.StripMcps`) for the exports."""
-    from pathlib import Path
-
+def mcp_points(prep: StripMcps, cfg: GeorefConfig) -> ControlPoints:
+    """A strip's MCPs for the exports."""
     from planetref.control.exports import ControlPoints
 
     paths = {c: str(Path(img.path).resolve()) for c, img in prep.images.items()}
     return ControlPoints.from_mcps(
-        prep.table, paths, sigma_px=cfg.mcp.sigma_px, check=prep.check, prefix=f"{prep.id}:"
+        prep.mcps.table,
+        paths,
+        sigma_px=cfg.mcp.sigma_px,
+        check=prep.mcps.check,
+        prefix=f"{prep.id}:",
     )
 
 
-def campaign_points(preps: list[Any], ties: Any, cfg: Any) -> Any:
+def campaign_points(preps: list[StripMcps], ties: TiePoints, cfg: GeorefConfig) -> ControlPoints:
     """Every strip's MCPs and the tie points between strips, for the exports."""
-    from pathlib import Path
-
     from planetref.control.exports import ControlPoints
 
     paths = {(p.id, c): str(Path(img.path).resolve()) for p in preps for c, img in p.images.items()}
@@ -353,9 +358,9 @@ def write_failed_run(
     exc: MatcherFailedError | AdjustmentError,
     matcher: str,
     manifest: SceneManifest,
-    matched: Mapping[str, Mapping[str, Any]],
+    matched: Mapping[str, StripMatching],
     timing: Mapping[str, float],
-    settings: Mapping[str, Any],
+    settings: FrontendSettings,
 ) -> MatcherFailedError:
     """report.json and report.md of a run whose matcher ran but failed.
 
@@ -390,7 +395,7 @@ def write_failed_run(
         timing,
         settings,
         strips_not_run=[s.id for s in manifest.strips if s.id not in got],
-    )
+    ).to_json()
     run.write_json("report.json", failure.report)
     write_georef_markdown(failure.report, run.file("report.md"))
     return failure

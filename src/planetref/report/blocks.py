@@ -1,5 +1,7 @@
 """The blocks of a georef report.json: adjustment, true geolocation error, several strips.
 
+Each builder returns a block of the typed report (:mod:`planetref.report.model`);
+:func:`combined_report` and :func:`failed_report` the whole :class:`GeorefReport`.
 :func:`adjustment_block` is the one place that maps reprojection metrics
 (:func:`planetref.adjust.metrics.reprojection_metrics`) to the report's ``adjustment`` block,
 whether for a strip alone, a strip of a joint network, the joint network, or several
@@ -16,8 +18,19 @@ import numpy as np
 from planetref import __version__
 from planetref.errors import MatcherFailedError
 from planetref.frontend.truth import sum_true_outliers
+from planetref.report.model import (
+    AdjustmentSummary,
+    CheckBlock,
+    FrontendSettings,
+    GeorefReport,
+    MatchingSummary,
+    StripMatching,
+    StripReport,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
+    from numpy.typing import NDArray
+
     from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
     from planetref.control.mcp import McpTable
@@ -44,7 +57,7 @@ def matching_block(
     table: McpTable,
     sizes: Mapping[str, tuple[int, int]],
     truth: tuple[Camera, ReferenceOrtho, GridTerrain] | None = None,
-) -> dict[str, Any]:
+) -> StripMatching:
     """The ``matching`` block of one strip: NCP and SDU per CCD, tiles, funnel, drops.
 
     NCP counts the unique MCPs delivered to the adjustment: the correspondences that
@@ -97,7 +110,7 @@ def matching_block(
             "outside_reference": counts.get("outside_reference", 0),
         }
         drops.update({f"mcp_unique:{k}": int(v) for k, v in stage_drops.items() if v > 0})
-    block = {
+    block: dict[str, Any] = {
         "ccds": {c: {"ncp": int(ncp.get(c, 0)), "sdu_pct": float(sdu[c])} for c in sizes},
         "ncp": int(sum(ncp.get(c, 0) for c in sizes)),
         "n_mcps": len(table),
@@ -112,7 +125,7 @@ def matching_block(
     }
     if truth is not None:
         block["true_outliers"] = true_outliers(matches.tiles, *truth).to_dict()
-    return block
+    return StripMatching.model_validate(block)
 
 
 def camera_view(result: Any, index: int) -> Any:
@@ -153,7 +166,7 @@ def adjustment_block(
     sigma0: float,
     converged: bool,
     **extra: Any,
-) -> dict[str, Any]:
+) -> AdjustmentSummary:
     """The ``adjustment`` block of report.json, from reprojection metrics after adjustment.
 
     The one place that maps :func:`planetref.adjust.metrics.reprojection_metrics` keys to the
@@ -166,9 +179,9 @@ def adjustment_block(
         rmse_px_before: RMSE before adjustment (pixels).
         sigma0: A-posteriori sigma of unit weight.
         converged: Whether the adjustment converged.
-        **extra: Further entries, appended in order.
+        **extra: Further entries (fields of :class:`AdjustmentSummary`).
     """
-    block = {"rmse_px_before": rmse_px_before, "rmse_px": after["rmse_px"]}
+    block: dict[str, Any] = {"rmse_px_before": rmse_px_before, "rmse_px": after["rmse_px"]}
     for key in ("rmse_x_px", "rmse_y_px"):
         if key in after:
             block[key] = after[key]
@@ -187,10 +200,10 @@ def adjustment_block(
         "sigma0": sigma0,
         "converged": converged,
     }
-    return block | extra
+    return AdjustmentSummary.model_validate(block | extra)
 
 
-def result_block(result: AdjustmentResult, **extra: Any) -> dict[str, Any]:
+def result_block(result: AdjustmentResult, **extra: Any) -> AdjustmentSummary:
     """The ``adjustment`` block of a whole adjustment (a strip alone or a joint network).
 
     Its headline metrics, variance components, check MCPs and per-CCD metrics, then
@@ -229,7 +242,7 @@ def variance_block(result: AdjustmentResult) -> dict[str, Any]:
 
 def check_block(
     result: AdjustmentResult, truth: dict[str, Camera], truth_dem: GridTerrain | None
-) -> dict[str, Any]:
+) -> CheckBlock:
     """True geolocation error before and after adjustment of one strip (simulated scenes)."""
     from planetref.adjust.metrics import geolocation_error
     from planetref.adjust.precision import formal_ground_precision
@@ -250,34 +263,37 @@ def check_block(
     # declared correlated errors) propagated to the same grid (calibrated: ratio 0.5-2).
     formal = formal_ground_precision(result, sid, terrain=0.0 if truth_dem is None else truth_dem)
     true_m = rms(after, "rms_m")
-    return {
-        "geoloc_rmse_m_before": rms(before, "rms_m"),
-        "geoloc_rmse_m": true_m,
-        "formal_rmse_m": formal["rms_m"],
-        "true_over_formal": true_m / formal["rms_m"] if formal["rms_m"] > 0 else None,
-        "geoloc_rmse_px_before": rms(before, "rms_px"),
-        "geoloc_rmse_px": rms(after, "rms_px"),
-        "geoloc_max_m": float(max(i["max_m"] for i in after)),
-        "ccds": {
+    return CheckBlock(
+        geoloc_rmse_m_before=rms(before, "rms_m"),
+        geoloc_rmse_m=true_m,
+        formal_rmse_m=formal["rms_m"],
+        true_over_formal=true_m / formal["rms_m"] if formal["rms_m"] > 0 else None,
+        geoloc_rmse_px_before=rms(before, "rms_px"),
+        geoloc_rmse_px=rms(after, "rms_px"),
+        geoloc_max_m=float(max(i["max_m"] for i in after)),
+        ccds={
             c: {"before": b, "after": a}
             for c, b, a in zip(true_cam.ccd_names, before, after, strict=True)
         },
-    }
+    )
 
 
 def combined_report(
     matcher: str,
     scene: str,
-    strips: dict[str, dict[str, Any]],
-    timing: dict[str, float],
-    frontend: Mapping[str, Any] | None = None,
-) -> dict[str, Any]:
+    strips: Mapping[str, StripReport],
+    residuals: Mapping[str, tuple[NDArray[np.float64], NDArray[np.bool_]]],
+    timing: Mapping[str, float],
+    frontend: FrontendSettings | None = None,
+) -> GeorefReport:
     """report.json: one strip's blocks as they are, several strips merged.
 
     Args:
         matcher: Matcher name.
         scene: Scene name.
         strips: Per-strip blocks.
+        residuals: Per strip, its observations' ``(line, sample)`` residuals after the
+            adjustment (px) and inlier flags (the pooled metrics of several strips).
         timing: Seconds per step.
         frontend: The front-end settings that decide what the matching figures mean
             (refinement, fine-stage resolution, dense spacing, thinning), stated in the
@@ -285,47 +301,26 @@ def combined_report(
     """
     from planetref.adjust.metrics import reprojection_metrics
 
-    ccds: dict[str, Any] = {}
-    for sid, s in strips.items():
-        for c, v in s["matching"]["ccds"].items():
-            ccds[c if len(strips) == 1 else f"{sid}/{c}"] = v
-    ncp = sum(s["matching"]["ncp"] for s in strips.values())
-    sdu = float(np.mean([v["sdu_pct"] for v in ccds.values()])) if ccds else 0.0
-    matching = {
-        "ccds": ccds,
-        "ncp": ncp,
-        "sdu_pct": sdu,
-        "tiles_total": sum(s["matching"]["tiles_total"] for s in strips.values()),
-        "tiles_failed": sum(s["matching"]["tiles_failed"] for s in strips.values()),
-        "tiles_thinned": sum(s["matching"].get("tiles_thinned", 0) for s in strips.values()),
-        "tiles_lost": [
-            dict(t, strip=sid) for sid, s in strips.items() for t in s["matching"]["tiles_lost"]
-        ],
-        "funnel": _sum_counts(s["matching"].get("funnel", {}) for s in strips.values()),
-        "drops": _sum_counts(s["matching"].get("drops", {}) for s in strips.values()),
-    }
-    outliers = sum_true_outliers(s["matching"].get("true_outliers") for s in strips.values())
-    if outliers is not None:
-        matching["true_outliers"] = outliers
-    if frontend is not None:
-        matching["settings"] = dict(frontend)
+    blocks = {sid: s.to_json() for sid, s in strips.items()}
+    matching = _pooled_matching({sid: b["matching"] for sid, b in blocks.items()}, frontend)
+    adjustment: AdjustmentSummary | None
+    check: CheckBlock | None
     if len(strips) == 1:
         (only,) = strips.values()
-        adjustment = dict(only["adjustment"])
-        check = only["check"]
+        adjustment, check = only.adjustment, only.check
     else:
-        res = np.concatenate([s["_residuals"][0] for s in strips.values()])
-        inl = np.concatenate([s["_residuals"][1] for s in strips.values()])
+        res = np.concatenate([residuals[sid][0] for sid in strips])
+        inl = np.concatenate([residuals[sid][1] for sid in strips])
         adjustment = adjustment_block(
             reprojection_metrics(res[:, 1], res[:, 0], inl),
             rmse_px_before=float(
-                np.nanmean([s["adjustment"]["rmse_px_before"] for s in strips.values()])
+                np.nanmean([b["adjustment"]["rmse_px_before"] for b in blocks.values()])
             ),
-            sigma0=float(np.nanmean([s["adjustment"]["sigma0"] for s in strips.values()])),
-            converged=all(s["adjustment"]["converged"] for s in strips.values()),
+            sigma0=float(np.nanmean([b["adjustment"]["sigma0"] for b in blocks.values()])),
+            converged=all(b["adjustment"]["converged"] for b in blocks.values()),
         )
-        checks = [s["check"] for s in strips.values() if s["check"]]
-        check = (
+        checks = [b["check"] for b in blocks.values() if b.get("check")]
+        pooled = (
             None
             if not checks
             else {
@@ -340,73 +335,25 @@ def combined_report(
             }
             | {"geoloc_max_m": max(c["geoloc_max_m"] for c in checks)}
         )
-        if check and check.get("formal_rmse_m"):
-            check["true_over_formal"] = check["geoloc_rmse_m"] / check["formal_rmse_m"]
-    strips_out = {
-        sid: {k: v for k, v in s.items() if not k.startswith("_") and k != "files"}
-        for sid, s in strips.items()
-    }
-    return {
-        "matcher": matcher,
-        "scene": scene,
-        "planetref_version": __version__,
-        "matching": matching,
-        "adjustment": adjustment,
-        "check": check,
-        "timing_s": timing,
-        "strips": strips_out,
-    }
-
-
-def frontend_settings(fe: FrontendConfig) -> dict[str, Any]:
-    """The front-end settings that decide what the matching figures mean (report.json)."""
-    return {
-        "refine": fe.refine.method,
-        "fine_upsample": fe.fine_upsample,
-        "dense_spacing_ref_px": fe.dense_spacing_ref_px,
-        "max_mcps_per_tile": fe.max_mcps_per_tile,
-        "protocol": fe.protocol,
-    }
-
-
-def too_few_mcps(
-    strip_id: str, matcher: str, matching: Mapping[str, Any], min_mcps: int
-) -> MatcherFailedError:
-    """The error of a strip with fewer MCPs than the adjustment needs (its matching kept)."""
-    status = ", ".join(f"{k} {v}" for k, v in matching["tile_status"].items() if v)
-    return MatcherFailedError(
-        f"strip {strip_id}: only {matching['n_mcps']} matched control points with matcher "
-        f"{matcher} ({matching['tiles_failed']}/{matching['tiles_total']} tiles failed: "
-        f"{status}); at least {min_mcps} are needed. See planetref.log for why tiles failed",
-        matching={strip_id: dict(matching)},
+        if pooled and pooled.get("formal_rmse_m"):
+            pooled["true_over_formal"] = pooled["geoloc_rmse_m"] / pooled["formal_rmse_m"]
+        check = None if pooled is None else CheckBlock.model_validate(pooled)
+    return GeorefReport(
+        matcher=matcher,
+        scene=scene,
+        planetref_version=__version__,
+        matching=matching,
+        adjustment=adjustment,
+        check=check,
+        timing_s=dict(timing),
+        strips=dict(strips),
     )
 
 
-def failed_report(
-    matcher: str,
-    scene: str,
-    matching: Mapping[str, Mapping[str, Any]],
-    reason: str,
-    timing: Mapping[str, float],
-    frontend: Mapping[str, Any] | None = None,
-    *,
-    strips_not_run: Iterable[str] = (),
-) -> dict[str, Any]:
-    """report.json of a run whose matcher ran but which could not finish.
-
-    The ``matching`` block as in :func:`combined_report` (NCP, SDU per CCD, tiles failed,
-    funnel, drops) over the strips matched; no adjustment and no true error; ``failed``
-    says why. Such a run stays a row of the comparison's tables.
-
-    Args:
-        matcher: Matcher name.
-        scene: Scene name.
-        matching: Strip id -> its ``matching`` block (:func:`matching_block`).
-        reason: Why the run stopped (the error's message).
-        timing: Seconds per step.
-        frontend: The front-end settings (see :func:`combined_report`).
-        strips_not_run: Strips not matched because the run stopped before them.
-    """
+def _pooled_matching(
+    matching: Mapping[str, Mapping[str, Any]], frontend: FrontendSettings | None
+) -> MatchingSummary:
+    """The run's ``matching`` block: the strips' blocks (as in report.json) pooled."""
     ccds: dict[str, Any] = {}
     for sid, m in matching.items():
         for c, v in m["ccds"].items():
@@ -426,19 +373,75 @@ def failed_report(
     if outliers is not None:
         block["true_outliers"] = outliers
     if frontend is not None:
-        block["settings"] = dict(frontend)
-    return {
-        "matcher": matcher,
-        "scene": scene,
-        "planetref_version": __version__,
-        "failed": reason,
-        "strips_not_run": list(strips_not_run),
-        "matching": block,
-        "adjustment": None,
-        "check": None,
-        "timing_s": dict(timing),
-        "strips": {sid: {"matching": dict(m), "failed": reason} for sid, m in matching.items()},
+        block["settings"] = frontend.to_json()
+    return MatchingSummary.model_validate(block)
+
+
+def frontend_settings(fe: FrontendConfig) -> FrontendSettings:
+    """The front-end settings that decide what the matching figures mean (report.json)."""
+    return FrontendSettings(
+        refine=fe.refine.method,
+        fine_upsample=fe.fine_upsample,
+        dense_spacing_ref_px=fe.dense_spacing_ref_px,
+        max_mcps_per_tile=fe.max_mcps_per_tile,
+        protocol=fe.protocol,
+    )
+
+
+def too_few_mcps(
+    strip_id: str, matcher: str, matching: StripMatching, min_mcps: int
+) -> MatcherFailedError:
+    """The error of a strip with fewer MCPs than the adjustment needs (its matching kept)."""
+    status = ", ".join(f"{k} {v}" for k, v in matching.tile_status.items() if v)
+    return MatcherFailedError(
+        f"strip {strip_id}: only {matching.n_mcps} matched control points with matcher "
+        f"{matcher} ({matching.tiles_failed}/{matching.tiles_total} tiles failed: "
+        f"{status}); at least {min_mcps} are needed. See planetref.log for why tiles failed",
+        matching={strip_id: matching},
+    )
+
+
+def failed_report(
+    matcher: str,
+    scene: str,
+    matching: Mapping[str, StripMatching | Mapping[str, Any]],
+    reason: str,
+    timing: Mapping[str, float],
+    frontend: FrontendSettings | None = None,
+    *,
+    strips_not_run: Iterable[str] = (),
+) -> GeorefReport:
+    """report.json of a run whose matcher ran but which could not finish.
+
+    The ``matching`` block as in :func:`combined_report` (NCP, SDU per CCD, tiles failed,
+    funnel, drops) over the strips matched; no adjustment and no true error; ``failed``
+    says why. Such a run stays a row of the comparison's tables.
+
+    Args:
+        matcher: Matcher name.
+        scene: Scene name.
+        matching: Strip id -> its ``matching`` block (:func:`matching_block`, or its JSON).
+        reason: Why the run stopped (the error's message).
+        timing: Seconds per step.
+        frontend: The front-end settings (see :func:`combined_report`).
+        strips_not_run: Strips not matched because the run stopped before them.
+    """
+    blocks = {
+        sid: m if isinstance(m, StripMatching) else StripMatching.model_validate(m)
+        for sid, m in matching.items()
     }
+    return GeorefReport(
+        matcher=matcher,
+        scene=scene,
+        planetref_version=__version__,
+        failed=reason,
+        strips_not_run=list(strips_not_run),
+        matching=_pooled_matching({sid: m.to_json() for sid, m in blocks.items()}, frontend),
+        adjustment=None,
+        check=None,
+        timing_s=dict(timing),
+        strips={sid: StripReport(matching=m, failed=reason) for sid, m in blocks.items()},
+    )
 
 
 def _sum_counts(blocks: Iterable[Mapping[str, int]]) -> dict[str, int]:
