@@ -165,10 +165,11 @@ def _refine(tpl: F64, win: F64, y0: float, x0: float, iters: int = 4) -> tuple[f
     for _ in range(iters):
         coords = np.array([(yy + y).ravel(), (xx + x).ravel()])
         b = map_coordinates(win, coords, order=3, mode="nearest").reshape(h, w)
-        by = map_coordinates(win, coords + [[0.5], [0.0]], order=3, mode="nearest")
-        by -= map_coordinates(win, coords - [[0.5], [0.0]], order=3, mode="nearest")
-        bx = map_coordinates(win, coords + [[0.0], [0.5]], order=3, mode="nearest")
-        bx -= map_coordinates(win, coords - [[0.0], [0.5]], order=3, mode="nearest")
+        dy, dx = np.array([[0.5], [0.0]]), np.array([[0.0], [0.5]])
+        by = map_coordinates(win, coords + dy, order=3, mode="nearest")
+        by -= map_coordinates(win, coords - dy, order=3, mode="nearest")
+        bx = map_coordinates(win, coords + dx, order=3, mode="nearest")
+        bx -= map_coordinates(win, coords - dx, order=3, mode="nearest")
         sd = b.std() + 1e-12
         r = ((b - b.mean()) / sd - t).ravel()
         jac = np.column_stack([by - by.mean(), bx - bx.mean()]) / sd
@@ -201,9 +202,12 @@ def _match_pair(
     stagger: float,
     cfg: CcdOverlapConfig,
 ) -> tuple[F64, ...] | None:
-    """Ties of one pair: ``(line_a, sample_a, line_b, sample_b, pred_line, pred_sample, xyz, score)``."""
-    from planetref.camera.jitter import stagger_lines
+    """Ties of one pair.
 
+    Returns:
+        ``(line_a, sample_a, line_b, sample_b, pred_line, pred_sample, xyz, score)``, or
+        None when fewer than 3 templates match.
+    """
     r = cfg.search_px
     hl = cfg.half_lines
     width = int(s_range[1] - s_range[0]) + 1  # samples of a that b sees
