@@ -12,7 +12,7 @@ from planetref.frontend.config import CcdOverlapConfig
 from planetref.frontend.overlap import find_overlap_ties
 
 # The tiny preset with strong jitter at frequencies the overlap sees (the stagger of
-# 20 lines is 15.7 ms: gains 0.68 at 7 Hz and 1.03 at 11 Hz); 8 urad of roll moves the
+# 20 lines is 15.6 ms: gains 0.68 at 7 Hz and 1.03 at 11 Hz); 8 urad of roll moves the
 # 2.5 m pixels by 0.85 px across, 6 urad of pitch by 0.64 px along.
 JITTER = [
     {"axis": "roll", "amplitude_urad": 8.0, "frequency_hz": 11.0},
@@ -103,7 +103,7 @@ def test_overlap_ties_reproduce_the_true_jitter_difference(scenes) -> None:  # t
     measured = got - calm
     sig_rms = np.sqrt(np.mean((signal - signal.mean(axis=0)) ** 2, axis=0))
     assert sig_rms[0] > 0.25 and sig_rms[1] > 0.5, sig_rms
-    dt = 20.0 * 2.5 / 3175.0  # 20 lines of 0.79 ms (2.5 m at 3.18 km/s)
+    dt = 20.0 * float(np.ravel(cam.line_rates.period(320.0))[0])  # 20 lines of 0.78 ms
     px = 265e3 * 1e-6 / 2.5  # pixels per urad
     amp = np.array([6.0 * overlap_transfer(7.0, dt), 8.0 * overlap_transfer(11.0, dt)]) * px
     np.testing.assert_allclose(sig_rms, amp / np.sqrt(2), rtol=0.15)

@@ -19,7 +19,9 @@ not). Every tie carries its a-priori ground point: CCD ``a``'s ray on the DEM.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -30,7 +32,31 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.frontend.config import CcdOverlapConfig
     from planetref.raster.image import CcdImage
 
-__all__ = ["OverlapTies", "find_overlap_ties", "overlap_pairs"]
+__all__ = [
+    "OVERLAP_COLUMNS",
+    "OverlapTies",
+    "find_overlap_ties",
+    "overlap_pairs",
+    "write_overlap_ties",
+]
+
+OVERLAP_COLUMNS = (
+    "point_id",
+    "ccd_a",
+    "ccd_b",
+    "line_a",
+    "sample_a",
+    "line_b",
+    "sample_b",
+    "line_offset",
+    "predicted_line_b",
+    "predicted_sample_b",
+    "score",
+    "x_m",
+    "y_m",
+    "z_m",
+)
+"""Columns of ``<strip>/ccd_overlap_ties.csv`` (:func:`write_overlap_ties`)."""
 
 log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
@@ -337,3 +363,32 @@ def find_overlap_ties(
         score=np.concatenate([g[7] for _, _, g in parts]),
         pairs=pairs,
     )
+
+
+def write_overlap_ties(ties: OverlapTies, path: str | os.PathLike[str]) -> Path:
+    """Write the ties as CSV (:data:`OVERLAP_COLUMNS`; pixels and metres), atomically.
+
+    ``line_offset`` is ``line_b - line_a`` (the stagger plus what the attitude did over
+    it); ``predicted_*_b`` is where the camera of the search put the point in ``b``.
+    """
+    from planetref.runtime.atomic import write_text_atomic
+
+    rows = [",".join(OVERLAP_COLUMNS)]
+    for k, pid in enumerate(ties.point_ids):
+        vals = (
+            ties.line[k, 0],
+            ties.sample[k, 0],
+            ties.line[k, 1],
+            ties.sample[k, 1],
+            ties.line_offset[k],
+            ties.predicted[k, 0],
+            ties.predicted[k, 1],
+            ties.score[k],
+        )
+        xyz = ",".join(f"{v:.3f}" for v in ties.xyz[k])
+        rows.append(
+            f"{pid},{ties.ccd[k, 0]},{ties.ccd[k, 1]},"
+            + ",".join(f"{v:.4f}" for v in vals)
+            + f",{xyz}"
+        )
+    return write_text_atomic(path, "\n".join(rows) + "\n")

@@ -45,6 +45,7 @@ from planetref.control.networks import (
     mcp_ground_sigmas,
     template_overlap,
     template_support_m,
+    with_overlap_ties,
 )
 from planetref.errors import AdjustmentError, MatcherFailedError
 from planetref.frontend.matchers import (
@@ -96,7 +97,10 @@ from planetref.scene.inputs import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
+    from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
+    from planetref.control.network import Network
+    from planetref.frontend.overlap import OverlapTies
     from planetref.frontend.result import StripMatches
     from planetref.frontend.tasks import MatcherRecipe
     from planetref.frontend.tile_panels import PanelStore
@@ -406,7 +410,52 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
         cfg.mcp.seed,
         cfg.mcp.check_blocks,
     )
-    return StripMcps(strip.id, camera, images, sizes, table, check, out)
+    overlap = _overlap_ties(job, camera, images, out) if cfg.frontend.ccd_overlap.enabled else None
+    return StripMcps(strip.id, camera, images, sizes, table, check, out, overlap)
+
+
+def _overlap_ties(
+    job: StripJob, camera: Camera, images: dict[str, CcdImage], out: dict[str, Any]
+) -> OverlapTies:
+    """The strip's CCD-overlap tie points (``[frontend.ccd_overlap]``), written to CSV."""
+    from planetref.camera.jitter import overlap_transfer
+    from planetref.frontend.overlap import find_overlap_ties, write_overlap_ties
+
+    strip, ovl = job.spec, job.cfg.frontend.ccd_overlap
+    t0, c0 = job.clock()
+    ties = find_overlap_ties(camera, images, job.dem, ovl, strip.id)
+    job.charge("ccd_overlap", t0, c0)
+    out["files"]["ccd_overlap"] = str(
+        write_overlap_ties(ties, job.run.file(strip.id, "ccd_overlap_ties.csv"))
+    )
+    period = _line_period_s(camera)
+    pairs = {}
+    for pair, n in ties.pairs.items():
+        a, b = pair.split("~")
+        on = (ties.ccd[:, 0] == a) & (ties.ccd[:, 1] == b)
+        lines = float(np.median(ties.line_offset[on]))
+        dt = None if period is None else abs(lines) * period
+        pairs[pair] = {
+            "n_ties": n,
+            "stagger_lines": lines,
+            "stagger_s": dt,
+            # The gain |2 sin(pi f dt)| reaches 1 at 1 / (6 dt): below it the overlap
+            # sees less than the jitter itself.
+            "unit_gain_hz": None if not dt else 1.0 / (6.0 * dt),
+            "gain_at_10hz": None if not dt else float(overlap_transfer(10.0, dt)),
+        }
+    out["ccd_overlap"] = {"n_ties": len(ties), "pairs": pairs, "sigma_px": ovl.sigma_px}
+    log.info("strip %s: %d CCD-overlap tie points", strip.id, len(ties))
+    return ties
+
+
+def _line_period_s(camera: Camera) -> float | None:
+    """The camera's line period at its middle line (s), when it has a time model."""
+    rates = getattr(camera, "line_rates", None)
+    if rates is None:
+        return None
+    n_lines, _ = camera.image_size(camera.ccd_names[0])
+    return float(np.asarray(rates.period(0.5 * n_lines)).ravel()[0])
 
 
 def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
@@ -427,6 +476,8 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         check=prep.check,
         **mcp_ground_sigmas(table),
     )
+    if prep.overlap is not None:
+        network = with_overlap_ties(network, prep.overlap, cfg.frontend.ccd_overlap)
     adjust_cfg, declared = systematic_settings(
         cfg.adjust,
         job.manifest,
@@ -452,6 +503,8 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
             plots=False,  # figures/<strip>_residuals.png draws the same residual vectors
         )
         out["adjustment"] = result_block(result, systematic_source=declared)
+        if prep.overlap is not None:
+            out["ccd_overlap"].update(overlap_rmse(network, result))
         out["check"] = check_block(result, truth, dem) if truth else None
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     out["warnings"] = list(result.warnings)
@@ -479,6 +532,23 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     job.charge("outputs", t0, c0)
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+def overlap_rmse(
+    network: Network, result: AdjustmentResult, strip: str | None = None
+) -> dict[str, Any]:
+    """RMSE (px) of a strip's CCD-overlap tie observations before and after adjustment."""
+    pid = np.asarray(network.point_ids)[network.obs_point]
+    on = np.char.find(pid.astype(str), ":ovl:") >= 0
+    if strip is not None:
+        on &= np.char.startswith(pid.astype(str), f"{strip}:ovl:")
+    if not on.any():
+        return {"rmse_px_before": None, "rmse_px": None}
+    return {
+        "rmse_px_before": rmse_px(result.residual_initial[on]),
+        "rmse_px": rmse_px(result.residual[on & result.inlier]),
+        "n_inlier_observations": int(np.count_nonzero(on & result.inlier)),
+    }
 
 
 def mcp_overlap(job: StripJob, tables: list[Any]) -> float:
@@ -530,6 +600,9 @@ def _adjust_together(
     timing["tie_points"] = time.perf_counter() - t0
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg.mcp, cfg.campaign)
+    for p in preps:
+        if p.overlap is not None:
+            network = with_overlap_ties(network, p.overlap, cfg.frontend.ccd_overlap)
     adjust_cfg, declared = systematic_settings(
         cfg.adjust,
         job.manifest,
@@ -573,6 +646,8 @@ def _adjust_together(
             ccds={c: m["after"] for c, m in cm.get("ccds", {}).items()},
         )
         out["check"] = checks.get(p.id)
+        if p.overlap is not None:
+            out["ccd_overlap"].update(overlap_rmse(network, result, p.id))
         out["warnings"] = list(result.warnings)
         out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
         figure_residuals(job, p.id, result, p.sizes, ci)
