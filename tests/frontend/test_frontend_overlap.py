@@ -9,7 +9,7 @@ import pytest
 
 from planetref.camera.jitter import overlap_transfer
 from planetref.frontend.config import CcdOverlapConfig
-from planetref.frontend.overlap import find_overlap_ties
+from planetref.frontend.overlap import OverlapTies, find_overlap_ties
 
 # The tiny preset with strong jitter at frequencies the overlap sees (the stagger of
 # 20 lines is 15.6 ms: gains 0.68 at 7 Hz and 1.03 at 11 Hz); 8 urad of roll moves the
@@ -149,3 +149,78 @@ def test_overlap_transfer_and_stagger_time() -> None:
     assert overlap_unit_gain_hz(dt) == pytest.approx(26.455, abs=1e-3)
     assert overlap_transfer(overlap_unit_gain_hz(dt), dt) == pytest.approx(1.0)
     np.testing.assert_allclose(overlap_blind_frequencies(dt, 400.0), [1 / dt, 2 / dt])
+
+
+def _ties() -> OverlapTies:
+    rng = np.random.default_rng(0)
+    n = 6
+    la = np.arange(n) * 8.0 + 30.5
+    pl = la + 20.0
+    return OverlapTies(
+        strip="s1",
+        ccd=np.array([["ccd1", "ccd2"]] * 3 + [["ccd2", "ccd3"]] * 3),
+        line=np.column_stack([la, pl + 0.3 + rng.normal(0, 0.05, n)]),
+        sample=np.column_stack([np.full(n, 310.5), np.full(n, 6.5) - 0.2]),
+        predicted=np.column_stack([pl, np.full(n, 6.5)]),
+        xyz=rng.normal(0, 1, (n, 3)) + np.array([3.4e6, 0.0, 0.0]),
+        score=np.full(n, 0.9),
+        pairs={"ccd1~ccd2": 3, "ccd2~ccd3": 3},
+    )
+
+
+def test_overlap_ties_csv_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from planetref.errors import MissingFileError
+    from planetref.frontend.overlap import read_overlap_ties, write_overlap_ties
+
+    ties = _ties()
+    back = read_overlap_ties(write_overlap_ties(ties, tmp_path / "t.csv"), "s1")
+    np.testing.assert_array_equal(back.ccd, ties.ccd)
+    np.testing.assert_allclose(back.line, ties.line, atol=1e-4)
+    np.testing.assert_allclose(back.sample, ties.sample, atol=1e-4)
+    np.testing.assert_allclose(back.predicted, ties.predicted, atol=1e-4)
+    np.testing.assert_allclose(back.xyz, ties.xyz, atol=1e-3)
+    np.testing.assert_allclose(back.line_offset, ties.line_offset, atol=2e-4)
+    assert back.pairs == ties.pairs
+    assert back.point_ids == ties.point_ids
+    with pytest.raises(MissingFileError, match="not found"):
+        read_overlap_ties(tmp_path / "none.csv", "s1")
+
+
+def test_overlap_ties_enter_a_network_centred() -> None:
+    from planetref.control.network import Network
+    from planetref.control.networks import OVERLAP_PLANIMETRIC_SIGMA_M, with_overlap_ties
+    from planetref.simulate.config import load_config
+    from planetref.simulate.orbit import build_strip_cameras
+
+    cfg = load_config("tiny")
+    cam = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0)).initial
+    ties = _ties()
+    net = Network.mcps(
+        cam,
+        line=[10.5, 20.5],
+        sample=[5.5, 6.5],
+        xyz=[[3.4e6, 0, 0], [3.4e6, 1, 0]],
+        ccd="ccd1",
+        camera_id="s1",
+    )
+    ovl = CcdOverlapConfig(enabled=True, sigma_px=0.3, height_sigma_m=50.0)
+    out = with_overlap_ties(net, ties, ovl)
+    assert out.n_points == 2 + 6 and out.n_obs == 2 + 12
+    np.testing.assert_array_equal(out.point_kind, ["mcp"] * 2 + ["overlap"] * 6)
+    np.testing.assert_array_equal(out.obs_line[:2], net.obs_line)  # MCPs first, unchanged
+    np.testing.assert_allclose(out.point_sigma_m[2], [OVERLAP_PLANIMETRIC_SIGMA_M] * 2 + [50.0])
+    assert out.point_sigma_local[2] and not out.point_sigma_local[0]
+    np.testing.assert_allclose(out.obs_sigma_px[2:], 0.3)
+    # b's measures lose their pair's median offset from the prediction (0.3 line and
+    # -0.2 sample here): what is left is the variation along the strip.
+    b_line = out.obs_line[3::2]
+    b_sample = out.obs_sample[3::2]
+    off = ties.offset_from_prediction
+    for pair in (slice(0, 3), slice(3, 6)):
+        np.testing.assert_allclose(
+            b_line[pair] - ties.predicted[pair, 0], off[pair, 0] - np.median(off[pair, 0])
+        )
+        np.testing.assert_allclose(b_sample[pair], ties.predicted[pair, 1])
+    np.testing.assert_array_equal(out.obs_line[2::2], ties.line[:, 0])
+    names = [cam.ccd_names[k] for k in out.obs_ccd[2:]]
+    assert names == [c for row in ties.ccd for c in row]

@@ -37,6 +37,7 @@ __all__ = [
     "OverlapTies",
     "find_overlap_ties",
     "overlap_pairs",
+    "read_overlap_ties",
     "write_overlap_ties",
 ]
 
@@ -392,3 +393,42 @@ def write_overlap_ties(ties: OverlapTies, path: str | os.PathLike[str]) -> Path:
             + f",{xyz}"
         )
     return write_text_atomic(path, "\n".join(rows) + "\n")
+
+
+def read_overlap_ties(path: str | os.PathLike[str], strip: str) -> OverlapTies:
+    """Read ties written by :func:`write_overlap_ties` (``<strip>/ccd_overlap_ties.csv``).
+
+    Raises:
+        MissingFileError: No such file.
+        InputError: A missing column or a bad value (naming the file).
+    """
+    import csv
+
+    from planetref.errors import InputError, MissingFileError
+
+    p = Path(path)
+    if not p.is_file():
+        raise MissingFileError("CCD-overlap tie file not found", path=p)
+    with open(p, newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    missing = [c for c in OVERLAP_COLUMNS if rows and c not in rows[0]]
+    if missing:
+        raise InputError(f"missing column(s) {missing}", path=p)
+    try:
+        num = np.array(
+            [[float(r[c]) for c in OVERLAP_COLUMNS[3:]] for r in rows], np.float64
+        ).reshape(-1, len(OVERLAP_COLUMNS) - 3)
+    except ValueError as exc:
+        raise InputError(f"bad value: {exc}", path=p) from None
+    out = OverlapTies(
+        strip=strip,
+        ccd=np.array([[r["ccd_a"], r["ccd_b"]] for r in rows], dtype=str).reshape(-1, 2),
+        line=num[:, [0, 2]],
+        sample=num[:, [1, 3]],
+        predicted=num[:, 5:7],
+        xyz=num[:, 8:11],
+        score=num[:, 7],
+    )
+    for a, b in out.ccd:
+        out.pairs[f"{a}~{b}"] = out.pairs.get(f"{a}~{b}", 0) + 1
+    return out

@@ -138,7 +138,11 @@ class JitterRandomConfig(_Model):
     at most half the strip's frequency resolution; at most 4096). Drawn from the strip's
     random stream after the sinusoids' phases, only for an axis whose rms is above 0, so
     the sinusoids (and every other part of the scene) do not change when it is turned
-    on. Off (all rms 0) unless a preset or difficulty sets it.
+    on. Off (all rms 0) unless a preset or difficulty sets it: no published jitter
+    spectrum of HiRIC was at hand, and for HiRISE (1 urad pixels, staggered CCDs) Sutton
+    et al. 2017 (ISPRS Arch. XLII-3/W1, 141) resolve the jitter from the CCD overlaps
+    without a power spectral density to copy; a scene that sets it should cite its
+    figure in ``[sources]`` (``"jitter_random.rms_urad"``).
 
     Attributes:
         rms_urad: ``(roll, pitch, yaw)`` rms of the random part (microradians).
