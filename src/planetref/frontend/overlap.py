@@ -183,20 +183,21 @@ def _refine(tpl: F64, win: F64, y0: float, x0: float, iters: int = 4) -> tuple[f
     Gauss-Newton on ``sum (g * B(y + dy, x + dx) + o - T)^2`` with ``B`` resampled
     bicubically (gain ``g`` and offset ``o`` removed by normalising both sides).
     """
-    from scipy.ndimage import map_coordinates
+    from scipy.ndimage import map_coordinates, spline_filter
 
     h, w = tpl.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     t = (tpl - tpl.mean()) / (tpl.std() + 1e-12)
+    coef = spline_filter(win, order=3, mode="nearest")  # once, not per sample call
+    offsets = np.array([[0.0, 0.0], [0.5, 0.0], [-0.5, 0.0], [0.0, 0.5], [0.0, -0.5]])
     y, x = float(y0), float(x0)
     for _ in range(iters):
-        coords = np.array([(yy + y).ravel(), (xx + x).ravel()])
-        b = map_coordinates(win, coords, order=3, mode="nearest").reshape(h, w)
-        dy, dx = np.array([[0.5], [0.0]]), np.array([[0.0], [0.5]])
-        by = map_coordinates(win, coords + dy, order=3, mode="nearest")
-        by -= map_coordinates(win, coords - dy, order=3, mode="nearest")
-        bx = map_coordinates(win, coords + dx, order=3, mode="nearest")
-        bx -= map_coordinates(win, coords - dx, order=3, mode="nearest")
+        base = np.array([(yy + y).ravel(), (xx + x).ravel()])
+        coords = np.concatenate([base + o[:, None] for o in offsets], axis=1)
+        vals = map_coordinates(coef, coords, order=3, mode="nearest", prefilter=False)
+        b, yp, ym, xp, xm = vals.reshape(5, h * w)
+        b = b.reshape(h, w)
+        by, bx = yp - ym, xp - xm
         sd = b.std() + 1e-12
         r = ((b - b.mean()) / sd - t).ravel()
         jac = np.column_stack([by - by.mean(), bx - bx.mean()]) / sd
