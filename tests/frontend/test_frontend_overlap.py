@@ -224,3 +224,32 @@ def test_overlap_ties_enter_a_network_centred() -> None:
     np.testing.assert_array_equal(out.obs_line[2::2], ties.line[:, 0])
     names = [cam.ccd_names[k] for k in out.obs_ccd[2:]]
     assert names == [c for row in ties.ccd for c in row]
+
+
+def test_overlap_ties_join_a_campaign_network() -> None:
+    from planetref.control.network import Network
+    from planetref.control.networks import with_overlap_ties
+    from planetref.errors import InputError
+    from planetref.simulate.config import load_config
+    from planetref.simulate.orbit import build_strip_cameras
+
+    cfg = load_config("tiny")
+    cam = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0)).initial
+    net = Network.from_records(
+        {"s1": cam, "s2": cam},
+        obs_camera=["s1", "s2"],
+        obs_point=["p", "p"],
+        line=[10.5, 12.5],
+        sample=[5.5, 6.5],
+        point_xyz={"p": [3.4e6, 0.0, 0.0]},
+        obs_ccd=["ccd1", "ccd2"],
+    )
+    ties = _ties()
+    ties.strip = "s2"
+    out = with_overlap_ties(net, ties, CcdOverlapConfig(enabled=True))
+    assert out.n_obs == 2 + 12
+    np.testing.assert_array_equal(out.obs_camera[2:], 1)  # the strip's own camera
+    assert all(str(p).startswith("s2:ovl:") for p in out.point_ids[1:])
+    ties.strip = "s3"
+    with pytest.raises(InputError, match="no such camera"):
+        with_overlap_ties(net, ties, CcdOverlapConfig(enabled=True))
