@@ -163,7 +163,12 @@ def _adjust(
     # Points whose coordinates the rays must determine: free ones, and tie points under
     # their (loose) a-priori sigma; they need min_tie_observations rays.
     sig_inf = _rows_all(np.isinf(net.point_sigma_m))
-    free_pt = sig_inf | (_is_kind(net, "tie") & ~_rows_all(net.point_sigma_m == 0))
+    tied = _is_kind(net, "tie") | _is_kind(net, "overlap")
+    free_pt = sig_inf | (tied & ~_rows_all(net.point_sigma_m == 0))
+    # CCD-overlap ties are judged by the k x RMSE rule against their own RMSE: their
+    # residuals (what the attitude model leaves of the jitter, a tenth of a pixel) would
+    # otherwise set a threshold that rejects most MCPs.
+    own = _is_kind(net, "overlap")[net.obs_point]
     candidates = ~net.obs_check
     xyz0 = net.point_xyz.copy()
     finite_pt = _rows_all(np.isfinite(xyz0))
@@ -273,14 +278,14 @@ def _adjust(
             line, samp, _ = solver.project(c, _reference(xyz), sel)
             residual[sel] = np.stack([line - net.obs_line[sel], samp - net.obs_sample[sel]], 1)
         length = np.hypot(residual[:, 0], residual[:, 1])
-        _, rmse = classify_inliers(length, usable, inlier, cfg.outliers.k_rmse)
+        _, rmse = _classify(length, usable, inlier, cfg.outliers.k_rmse, own)
         rounds.append(round_summary(rnd, inlier, rmse, rep))
         if not rep.converged:
             warn(f"round {rnd + 1}: {rep.reason}")
         if not cfg.outliers.enabled:
             stable = rep.converged
             break
-        new, _ = classify_inliers(length, usable, inlier, cfg.outliers.k_rmse)
+        new, _ = _classify(length, usable, inlier, cfg.outliers.k_rmse, own)
         new = _supported(new, net.obs_point, free_pt, cfg.observations.min_tie_observations)
         if np.array_equal(new, inlier):
             stable = rep.converged
@@ -526,8 +531,28 @@ def _supported(
     return supported(inlier, obs_point, free_pt, min_obs)
 
 
+def _classify(
+    length: F64,
+    usable: NDArray[np.bool_],
+    inlier: NDArray[np.bool_],
+    k_rmse: float,
+    own: NDArray[np.bool_],
+) -> tuple[NDArray[np.bool_], float]:
+    """:func:`classify_inliers`, the observations flagged ``own`` against their own RMSE.
+
+    Returns:
+        The new inliers, and the RMSE of the other observations (the pooled one when
+        none is flagged).
+    """
+    if not own.any():
+        return classify_inliers(length, usable, inlier, k_rmse)
+    new, rmse = classify_inliers(length, usable & ~own, inlier & ~own, k_rmse)
+    new_own, _ = classify_inliers(length, usable & own, inlier & own, k_rmse)
+    return new | new_own, rmse
+
+
 def _is_kind(net: Network, kind: str) -> NDArray[np.bool_]:
-    """Points of one kind (``"mcp"``, ``"tie"``)."""
+    """Points of one kind (``"mcp"``, ``"tie"``, ``"overlap"``)."""
     kinds, code = net.point_kind_codes
     hit = np.flatnonzero(kinds == kind)
     return code == hit[0] if hit.size else np.zeros(net.n_points, bool)

@@ -140,11 +140,15 @@ def reprojection_blocks(
     Returns:
         ``{"all": ..., "cameras": {id: ...}, "ccds": {name: ...}}``, each with
         ``"before"``, ``"before_all"`` and ``"after"``
-        (:func:`~planetref.adjust.metrics.reprojection_metrics`); check observations excluded.
+        (:func:`~planetref.adjust.metrics.reprojection_metrics`); check observations and
+        CCD-overlap ties excluded.
     """
     # Group codes per level (-1: not in a group): 0 all adjusted observations, then
     # one per camera (when there are several), then one per CCD of multi-CCD cameras.
-    adjusted = ~net.obs_check
+    # CCD-overlap ties (kind "overlap") are left out: the metrics stay those of the
+    # MCPs (and campaign ties) whether or not the overlap ties are in the network.
+    overlap = net.point_kind[net.obs_point] == "overlap" if "overlap" in net.point_kind else False
+    adjusted = ~net.obs_check & ~overlap
     single = len(net.camera_ids) == 1
     levels = [np.where(adjusted, 0, -1)]
     n_groups = 1

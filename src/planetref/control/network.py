@@ -34,7 +34,7 @@ from planetref.errors import InputError
 
 __all__ = ["Network", "PointFrames", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]
 
-PointKind = str  # "mcp" or "tie" (informative: how a point is reported)
+PointKind = str  # "mcp", "tie" or "overlap" (a CCD-overlap tie; see adjust.api)
 F64 = NDArray[np.float64]
 
 
@@ -59,7 +59,10 @@ class Network:
         point_xyz: A priori body-fixed XYZ in metres, ``(P, 3)``; NaN allowed for free
             points (triangulated).
         point_sigma_m: Per-axis a-priori sigma (metres), ``(P, 3)``: 0 fixed, inf free.
-        point_kind: ``"mcp"`` or ``"tie"`` per point, ``(P,)`` (reporting only).
+        point_kind: ``"mcp"``, ``"tie"`` or ``"overlap"`` per point, ``(P,)``: how a
+            point is reported; tie and overlap points are unknowns under their sigma,
+            and overlap ties' observations are judged by the outlier rule apart and
+            left out of the reprojection metrics (CCD-overlap ties of one strip).
         obs_camera: Camera index of each observation, ``(M,)``.
         obs_ccd: CCD index (into the camera's ``ccd_names``), ``(M,)``.
         obs_point: Point index, ``(M,)``.

@@ -1,9 +1,11 @@
 """The adjustment networks of a georef run: a strip's MCPs and the joint campaign network.
 
-:class:`StripMcps` is a strip after matching (camera, images, MCP table, check flags);
-:func:`mcp_ground_sigmas` gives the a-priori weights of its MCPs' ground points and
-:func:`joint_network` builds one network of every strip's camera, all MCPs and the tie
-points between strips (``[campaign] adjust_together``).
+:class:`StripMcps` is a strip after matching (camera, images, MCP table, check flags,
+CCD-overlap ties); :func:`mcp_ground_sigmas` gives the a-priori weights of its MCPs'
+ground points, :func:`joint_network` builds one network of every strip's camera, all
+MCPs and the tie points between strips (``[campaign] adjust_together``) and
+:func:`with_overlap_ties` adds the tie points between the overlapping CCDs of a strip
+(``[frontend.ccd_overlap]``) to either network.
 """
 
 from __future__ import annotations
@@ -19,11 +21,13 @@ if TYPE_CHECKING:  # pragma: no cover
     from planetref.control.config import McpOptions
     from planetref.control.mcp import McpTable
     from planetref.control.network import Network
-    from planetref.frontend.config import CampaignOptions
+    from planetref.frontend.config import CampaignOptions, CcdOverlapConfig
+    from planetref.frontend.overlap import OverlapTies
     from planetref.frontend.tiepoints import TiePoints
     from planetref.raster.image import CcdImage
 
 __all__ = [
+    "OVERLAP_PLANIMETRIC_SIGMA_M",
     "GroundSigmas",
     "McpSet",
     "StripMcps",
@@ -32,6 +36,7 @@ __all__ = [
     "mcp_ground_sigmas",
     "template_overlap",
     "template_support_m",
+    "with_overlap_ties",
 ]
 
 
@@ -94,7 +99,7 @@ class McpSet:
 
 @dataclass(frozen=True)
 class StripMcps:
-    """A strip after matching: its camera, images and MCPs.
+    """A strip after matching: its camera, images, MCPs and CCD-overlap ties.
 
     Attributes:
         id: The strip.
@@ -102,6 +107,8 @@ class StripMcps:
         images: CCD name -> image.
         sizes: CCD name -> ``(lines, samples)``.
         mcps: Its MCPs, check flags and ground sigmas.
+        overlap: Its tie points between overlapping CCDs (``[frontend.ccd_overlap]``),
+            or ``None`` (not enabled).
     """
 
     id: str
@@ -109,6 +116,7 @@ class StripMcps:
     images: dict[str, CcdImage]
     sizes: dict[str, tuple[int, int]]
     mcps: McpSet
+    overlap: OverlapTies | None = None
 
 
 def mcp_ground_sigmas(table: Any) -> GroundSigmas | None:
@@ -284,4 +292,96 @@ def joint_network(
         sigma_px=np.concatenate(sig_px),
         check=np.concatenate(check),
         point_sigma_local=local,
+    )
+
+
+OVERLAP_PLANIMETRIC_SIGMA_M = 1000.0
+"""A-priori sigma (m) of a CCD-overlap tie point's east and north (its rays decide them)."""
+
+
+def with_overlap_ties(network: Network, ties: OverlapTies, cfg: CcdOverlapConfig) -> Network:
+    """``network`` with the tie points between the overlapping CCDs of one strip added.
+
+    Each tie is a point of kind ``"overlap"`` observed twice by the strip's camera (its two
+    CCDs), with sigma ``cfg.sigma_px`` per measure; its ground is the reference DEM under
+    the first CCD's ray, weighted by ``cfg.height_sigma_m`` in height (the two rays cross
+    at the stagger angle only) and by :data:`OVERLAP_PLANIMETRIC_SIGMA_M` in east and
+    north (the rays fix them to a fraction of a pixel; the loose sigma keeps every tie
+    point determined whatever the outlier rule leaves of its rays). Each CCD pair's
+    median offset from the camera's prediction (the CCDs' relative placement and lens,
+    which the camera model does not estimate) is taken off the second CCD's measures,
+    so the ties constrain only how that offset varies along the strip. The network's
+    own points and observations come first, unchanged.
+
+    Args:
+        network: A strip's or a campaign's network (the strip's camera among its cameras).
+        ties: The strip's overlap ties (:func:`planetref.frontend.overlap.find_overlap_ties`).
+        cfg: Their sigmas.
+
+    Raises:
+        InputError: The strip's camera is not in the network, or a tie names a CCD it
+            lacks.
+    """
+    from dataclasses import replace
+
+    from planetref.errors import InputError
+
+    t = len(ties)
+    if not t:
+        return network
+    if ties.strip not in network.camera_ids:
+        raise InputError(
+            f"CCD-overlap ties of strip {ties.strip!r}: no such camera in the network "
+            f"(it has {list(network.camera_ids)})",
+            field="ccd_overlap",
+        )
+    ci = network.camera_ids.index(ties.strip)
+    names = list(network.cameras[ci].ccd_names)
+    unknown = sorted(set(np.unique(ties.ccd)) - set(names))
+    if unknown:
+        raise InputError(
+            f"CCD-overlap ties of strip {ties.strip!r}: unknown CCD(s) {unknown} "
+            f"(the camera has {names})",
+            field="ccd_overlap",
+        )
+    # Each pair's constant offset from the prediction is the CCDs' relative placement
+    # (and lens): nothing the attitude can explain, and nothing the camera model
+    # estimates. Left in, it pulled the attitude into a rate that fits it; removed, the
+    # ties carry the offsets' variation along the strip: the attitude's (jitter's)
+    # change over the stagger time.
+    line_b, sample_b = ties.line[:, 1].copy(), ties.sample[:, 1].copy()
+    off = ties.offset_from_prediction
+    for pair in {(str(a), str(b)) for a, b in ties.ccd}:
+        on = (ties.ccd[:, 0] == pair[0]) & (ties.ccd[:, 1] == pair[1])
+        line_b[on] -= np.median(off[on, 0])
+        sample_b[on] -= np.median(off[on, 1])
+    p0 = network.n_points
+    sig = np.tile(
+        [OVERLAP_PLANIMETRIC_SIGMA_M, OVERLAP_PLANIMETRIC_SIGMA_M, cfg.height_sigma_m], (t, 1)
+    )
+    local = np.broadcast_to(np.asarray(network.point_sigma_local, bool), (p0,))
+    ccd_index = np.array([[names.index(str(c)) for c in row] for row in ties.ccd], np.intp)
+    return replace(
+        network,
+        point_ids=np.concatenate([network.point_ids, np.array(ties.point_ids, dtype=str)]),
+        point_xyz=np.concatenate([network.point_xyz, ties.xyz]),
+        point_sigma_m=np.concatenate([network.point_sigma_m, sig]),
+        point_kind=np.concatenate([network.point_kind, np.full(t, "overlap")]),
+        point_sigma_local=np.concatenate([local, np.ones(t, bool)]),
+        obs_camera=np.concatenate([network.obs_camera, np.full(2 * t, ci, np.intp)]),
+        obs_ccd=np.concatenate([network.obs_ccd, ccd_index.ravel()]),
+        obs_point=np.concatenate([network.obs_point, p0 + np.repeat(np.arange(t), 2)]),
+        obs_line=np.concatenate(
+            [network.obs_line, np.column_stack([ties.line[:, 0], line_b]).ravel()]
+        ),
+        obs_sample=np.concatenate(
+            [network.obs_sample, np.column_stack([ties.sample[:, 0], sample_b]).ravel()]
+        ),
+        obs_sigma_px=np.concatenate(
+            [network.obs_sigma_px, np.full((2 * t, 2), float(cfg.sigma_px))]
+        ),
+        obs_check=np.concatenate([network.obs_check, np.zeros(2 * t, bool)]),
+        obs_ids=np.concatenate(
+            [network.obs_ids, np.array([f"{p}/{k}" for p in ties.point_ids for k in "ab"])]
+        ),
     )

@@ -21,6 +21,7 @@ from planetref.runtime.tomlfile import read_toml
 __all__ = [
     "PAPER_PROTOCOL",
     "CampaignOptions",
+    "CcdOverlapConfig",
     "FrontendConfig",
     "GeometryMode",
     "Protocol",
@@ -44,6 +45,63 @@ PAPER_PROTOCOL: dict[str, Any] = {
     "fine_radius_ref_px": 3.0,
 }
 """Settings of the ``paper`` protocol (used where the configuration does not set them)."""
+
+
+class CcdOverlapConfig(Settings):
+    """Tie points between the overlapping CCDs of one strip (``[frontend.ccd_overlap]``).
+
+    Neighbouring CCDs of a staggered focal plane see the ground of their overlap at
+    different times (the stagger); where a tie point's two image positions differ from
+    what a smooth attitude predicts, the difference is the attitude's change over that
+    time: jitter (:mod:`planetref.camera.jitter` has the transfer function). The
+    overlap is matched in raw image geometry: a template of the first CCD every
+    ``step_lines`` lines, centred in the overlap, is searched (NCC, +-``search_px``)
+    around where the initial camera predicts it in the neighbouring CCD, and the peak
+    is refined to sub-pixel by least squares on the image gradients; see
+    :func:`planetref.frontend.overlap.find_overlap_ties`. The ties enter the strip's
+    adjustment (and a campaign's joint one) with the MCPs, as tie points observed twice
+    by the strip's camera, their ground from the reference DEM with only the height
+    weighted (the planimetric position under a loose 1 km sigma).
+
+    Off by default, so a default run costs what it did: they see the attitude's change
+    over the stagger time (a few milliseconds), hardly the node model's smooth attitude
+    and mostly what it cannot follow; they are the observation a high-frequency
+    attitude model needs. Their observations are judged by the outlier rule apart from
+    the MCPs and left out of the reprojection metrics (point kind ``"overlap"``); the
+    strip's report block ``ccd_overlap`` has their count, stagger and RMSE.
+
+    Attributes:
+        enabled: Match the overlaps and add the ties to the adjustment.
+        step_lines: Lines between the templates along the overlap.
+        half_lines: Half height of a template (lines); the template is
+            ``2 * half_lines + 1`` lines.
+        half_samples: Half width of a template (samples), reduced to fit the overlap
+            with the search.
+        search_px: Search radius around the predicted position (pixels, both axes).
+        min_score: Lowest NCC peak a tie needs.
+        max_deviation_px: A tie whose offset from the prediction departs from the
+            running median of its neighbours' (11 templates) by more than this and by
+            more than 4 of their robust sigmas is dropped as a blunder.
+        sigma_px: Standard deviation of a tie's image measures (pixels): their
+            matching precision (0.07-0.16 px on tiny). The ties are a variance
+            component of their own: on tiny (sift, nodes every 128 lines) the true
+            error was 1.81 m with the ties at 0.2, 0.5 or 1.0 px, 1.95 m without.
+        height_sigma_m: A-priori sigma (m) of a tie point's height (from the reference
+            DEM); its planimetric position is as good as free (1 km). The two rays of a
+            tie cross at the stagger angle (~75 urad for HiRIC), so without it their
+            height is undefined; a height error moves the tie by ``height * stagger
+            angle``, 0.75 mm per 10 m.
+    """
+
+    enabled: bool = False
+    step_lines: int = Field(8, ge=1)
+    half_lines: int = Field(12, ge=2, le=128)
+    half_samples: int = Field(16, ge=2, le=128)
+    search_px: int = Field(3, ge=1, le=32)
+    min_score: float = Field(0.7, ge=-1.0, le=1.0)
+    max_deviation_px: float = Field(0.5, gt=0.0)
+    sigma_px: float = Field(0.2, gt=0.0)
+    height_sigma_m: float = Field(100.0, gt=0.0)
 
 
 class FrontendConfig(Settings):
@@ -139,6 +197,8 @@ class FrontendConfig(Settings):
             configuration does not set them (tiles downsampled to the reference GSD,
             a 3 reference px RANSAC threshold that leaves the rejecting to the
             adjustment). The report states which protocol ran.
+        ccd_overlap: Tie points between the overlapping CCDs of each strip
+            (:class:`CcdOverlapConfig`; off by default).
     """
 
     tile_size_ref_px: int = Field(256, ge=32, le=4096)
@@ -165,6 +225,7 @@ class FrontendConfig(Settings):
     footprint_points_per_edge: int = Field(5, ge=2, le=64)
     batch_tiles: int = Field(1, ge=1, le=256)
     protocol: Protocol = "default"
+    ccd_overlap: CcdOverlapConfig = CcdOverlapConfig()
 
     @model_validator(mode="before")
     @classmethod
@@ -184,9 +245,13 @@ class FrontendConfig(Settings):
         return self
 
     def identity(self) -> dict[str, Any]:
-        """The settings that decide the results (``model_dump()`` less ``batch_tiles``)."""
+        """The settings that decide the tiles' results (``model_dump()`` less ``batch_tiles``).
+
+        ``ccd_overlap`` decides no tile (the overlap ties are matched apart): left out.
+        """
         doc = self.model_dump()
         doc.pop("batch_tiles")
+        doc.pop("ccd_overlap")
         return doc
 
     @classmethod

@@ -78,6 +78,8 @@ class StripProducts:
             for this strip (a joint adjustment writes the campaign's).
         ortho: Orthoimages and mosaic; None: orthoimages disabled.
         isd: The adjusted camera's CSM ISDs.
+        ccd_overlap: The tie points between its overlapping CCDs (``ccd_overlap_ties.csv``);
+            None: not made (``[frontend.ccd_overlap]`` off).
     """
 
     mcps: list[str] = field(default_factory=list)
@@ -85,6 +87,7 @@ class StripProducts:
     exports: dict[str, str] | None = None
     ortho: list[str] | None = None
     isd: list[str] = field(default_factory=list)
+    ccd_overlap: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The files by kind (the kinds made)."""
@@ -94,6 +97,8 @@ class StripProducts:
         if self.ortho is not None:
             out["ortho"] = self.ortho
         out["isd"] = self.isd
+        if self.ccd_overlap is not None:
+            out["ccd_overlap"] = self.ccd_overlap
         return out
 
 

@@ -63,14 +63,17 @@ class GeorefConfig(Settings):
     def to_json(self) -> dict[str, Any]:
         """The resolved configuration as plain JSON types.
 
-        The ``campaign`` table is left out while it holds the defaults, so that runs
-        without it keep their configuration digest (and resume as before).
+        The ``campaign`` table is left out while it holds the defaults, and
+        ``frontend.ccd_overlap`` while it is off, so that runs without them keep their
+        configuration digest (and resume as before).
         """
         doc = self.model_dump(mode="json")
         if self.campaign == CampaignOptions():
             doc.pop("campaign", None)
         if self.frontend.batch_tiles == 1:  # likewise for runs that do not batch tiles
             doc["frontend"].pop("batch_tiles")
+        if not self.frontend.ccd_overlap.enabled:  # and for runs without overlap ties
+            doc["frontend"].pop("ccd_overlap")
         return doc
 
     def identity_json(self) -> dict[str, Any]:

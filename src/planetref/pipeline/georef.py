@@ -45,6 +45,7 @@ from planetref.control.networks import (
     joint_network,
     template_overlap,
     template_support_m,
+    with_overlap_ties,
 )
 from planetref.errors import AdjustmentError, MatcherFailedError
 from planetref.frontend.matchers import (
@@ -86,6 +87,8 @@ from planetref.report.blocks import (
 from planetref.report.model import (
     AdjustmentSummary,
     CampaignBlock,
+    CcdOverlapBlock,
+    CcdOverlapPair,
     GeorefReport,
     StripMatching,
 )
@@ -103,7 +106,10 @@ from planetref.scene.inputs import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
+    from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
+    from planetref.control.network import Network
+    from planetref.frontend.overlap import OverlapTies
     from planetref.frontend.result import StripMatches
     from planetref.frontend.tasks import MatcherRecipe
     from planetref.frontend.tile_panels import PanelStore
@@ -443,7 +449,70 @@ def _strip_mcps(
         cfg.mcp.seed,
         cfg.mcp.check_blocks,
     )
-    return StripMcps(strip.id, camera, images, sizes, McpSet.of(strip.id, table, check))
+    overlap = _overlap_ties(job, camera, images) if cfg.frontend.ccd_overlap.enabled else None
+    return StripMcps(strip.id, camera, images, sizes, McpSet.of(strip.id, table, check), overlap)
+
+
+def _overlap_ties(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> OverlapTies:
+    """The strip's CCD-overlap tie points (``[frontend.ccd_overlap]``), written to CSV."""
+    from planetref.frontend.overlap import find_overlap_ties, write_overlap_ties
+
+    strip, ovl = job.spec, job.cfg.frontend.ccd_overlap
+    t0, c0 = job.clock()
+    ties = find_overlap_ties(camera, images, job.dem, ovl, strip.id)
+    job.charge("ccd_overlap", t0, c0)
+    write_overlap_ties(ties, _overlap_file(job, strip.id))
+    log.info("strip %s: %d CCD-overlap tie points", strip.id, len(ties))
+    return ties
+
+
+def _overlap_file(job: StripJob, strip: str) -> Path:
+    """Where a strip's CCD-overlap ties are written (``<strip>/ccd_overlap_ties.csv``)."""
+    return job.run.file(strip, "ccd_overlap_ties.csv")
+
+
+def _overlap_block(
+    job: StripJob,
+    camera: Camera,
+    ties: OverlapTies,
+    network: Network,
+    result: AdjustmentResult,
+    strip: str | None = None,
+) -> CcdOverlapBlock:
+    """The report block of a strip's CCD-overlap ties: staggers, gains and RMSE."""
+    from planetref.camera.jitter import overlap_transfer
+
+    period = _line_period_s(camera)
+    pairs: dict[str, CcdOverlapPair] = {}
+    for pair, n in ties.pairs.items():
+        a, b = pair.split("~")
+        on = (ties.ccd[:, 0] == a) & (ties.ccd[:, 1] == b)
+        lines = float(np.median(ties.line_offset[on]))
+        dt = None if period is None else abs(lines) * period
+        pairs[pair] = CcdOverlapPair(
+            n_ties=n,
+            stagger_lines=lines,
+            stagger_s=dt,
+            # The gain |2 sin(pi f dt)| reaches 1 at 1 / (6 dt): below it the overlap
+            # sees less than the jitter itself.
+            unit_gain_hz=None if not dt else 1.0 / (6.0 * dt),
+            gain_at_10hz=None if not dt else float(overlap_transfer(10.0, dt)),
+        )
+    return CcdOverlapBlock(
+        n_ties=len(ties),
+        pairs=pairs,
+        sigma_px=job.cfg.frontend.ccd_overlap.sigma_px,
+        **overlap_rmse(network, result, strip),
+    )
+
+
+def _line_period_s(camera: Camera) -> float | None:
+    """The camera's line period at its middle line (s), when it has a time model."""
+    rates = getattr(camera, "line_rates", None)
+    if rates is None:
+        return None
+    n_lines, _ = camera.image_size(camera.ccd_names[0])
+    return float(np.asarray(rates.period(0.5 * n_lines)).ravel()[0])
 
 
 def _adjust_strip(
@@ -460,6 +529,8 @@ def _adjust_strip(
 
     cfg, run = job.cfg, job.run
     network = prep.mcps.network(prep.camera, cfg.mcp.sigma_px)
+    if prep.overlap is not None:
+        network = with_overlap_ties(network, prep.overlap, cfg.frontend.ccd_overlap)
     adjust_cfg, declared = systematic_settings(
         cfg.adjust,
         job.manifest,
@@ -474,6 +545,8 @@ def _adjust_strip(
     truth = {prep.id: job.truth_cameras[prep.id]} if prep.id in job.truth_cameras else None
     camera = result.cameras[prep.id]
     products = StripProducts(mcps=mcp_files)
+    if prep.overlap is not None:
+        products.ccd_overlap = str(_overlap_file(job, prep.id))
     # Adjusted cameras, RPC refits, residuals and reports first (beside the orthoimages
     # they raised the peak memory by ~180 MB on hiric-strip, for ~1.6 CPU-s of overlap).
     with part_timed(job.timing, "adjustment_files"):
@@ -490,6 +563,8 @@ def _adjust_strip(
             adjustment=result_block(result, systematic_source=declared),
             check=check_block(result, truth, dem) if truth else None,
         )
+        if prep.overlap is not None:
+            report.ccd_overlap = _overlap_block(job, prep.camera, prep.overlap, network, result)
     del dem  # a truth DEM is not held through the orthoimages (the run's memory peak)
     report.warnings = list(result.warnings)
 
@@ -515,6 +590,23 @@ def _adjust_strip(
         products.isd = isd.result()
     job.charge("outputs", t0, c0)
     return StripOutcome(report, products, result.residual, result.inlier)
+
+
+def overlap_rmse(
+    network: Network, result: AdjustmentResult, strip: str | None = None
+) -> dict[str, Any]:
+    """RMSE (px) of a strip's CCD-overlap tie observations before and after adjustment."""
+    pid = np.asarray(network.point_ids)[network.obs_point]
+    on = np.char.find(pid.astype(str), ":ovl:") >= 0
+    if strip is not None:
+        on &= np.char.startswith(pid.astype(str), f"{strip}:ovl:")
+    if not on.any():
+        return {"rmse_px_before": None, "rmse_px": None}
+    return {
+        "rmse_px_before": rmse_px(result.residual_initial[on]),
+        "rmse_px": rmse_px(result.residual[on & result.inlier]),
+        "n_inlier_observations": int(np.count_nonzero(on & result.inlier)),
+    }
 
 
 def mcp_overlap(job: StripJob, mcps: list[McpSet]) -> float:
@@ -570,6 +662,9 @@ def _adjust_together(
     timing["tie_points"] = time.perf_counter() - t0
     log.info("campaign: %d tie points between %d strips", len(ties), len(preps))
     network = joint_network(preps, ties, cfg.mcp, cfg.campaign)
+    for p in preps:
+        if p.overlap is not None:
+            network = with_overlap_ties(network, p.overlap, cfg.frontend.ccd_overlap)
     adjust_cfg, declared = systematic_settings(
         cfg.adjust,
         job.manifest,
@@ -616,6 +711,11 @@ def _adjust_together(
             check=checks.get(p.id),
             warnings=list(result.warnings),
         )
+        if p.overlap is not None:
+            report.ccd_overlap = _overlap_block(
+                job, p.camera, p.overlap, network, result, strip=p.id
+            )
+            products.ccd_overlap = str(_overlap_file(job, p.id))
         products.isd = camera_isds(job, p.id, result.cameras[p.id])
         figure_residuals(job, p.id, result, p.sizes, ci)
         if cfg.ortho.enabled:

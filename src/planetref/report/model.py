@@ -21,6 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field
 __all__ = [
     "AdjustmentSummary",
     "CampaignBlock",
+    "CcdOverlapBlock",
+    "CcdOverlapPair",
     "CheckBlock",
     "FrontendSettings",
     "GeorefReport",
@@ -168,12 +170,36 @@ class CheckBlock(ReportModel):
     ccds: dict[str, dict[str, Metrics]] | None = None
 
 
+class CcdOverlapPair(ReportModel):
+    """The tie points of one pair of overlapping CCDs (``strips.<id>.ccd_overlap.pairs``)."""
+
+    n_ties: int
+    stagger_lines: float = Field(description="Median line difference of the pair's ties.")
+    stagger_s: float | None = Field(description="The stagger as a time (s).")
+    unit_gain_hz: float | None = Field(
+        description="Frequency (Hz) where the overlap's gain |2 sin(pi f dt)| reaches 1."
+    )
+    gain_at_10hz: float | None = Field(description="The overlap's gain at 10 Hz.")
+
+
+class CcdOverlapBlock(ReportModel):
+    """A strip's tie points between overlapping CCDs (``[frontend.ccd_overlap]``)."""
+
+    n_ties: int
+    pairs: dict[str, CcdOverlapPair]
+    sigma_px: float
+    rmse_px_before: float | None
+    rmse_px: float | None
+    n_inlier_observations: int | None = None
+
+
 class StripReport(ReportModel):
     """One strip's blocks (``strips.<id>``)."""
 
     matching: StripMatching
     adjustment: AdjustmentSummary | None = None
     check: CheckBlock | None = None
+    ccd_overlap: CcdOverlapBlock | None = None
     warnings: list[str] | None = None
     failed: str | None = None
 

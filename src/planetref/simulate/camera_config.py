@@ -18,6 +18,7 @@ __all__ = [
     "CameraConfig",
     "InitialErrorConfig",
     "JitterComponent",
+    "JitterRandomConfig",
     "OrbitConfig",
     "StripConfig",
 ]
@@ -75,7 +76,10 @@ class OrbitConfig(_Model):
         body_rotation: Include the rotation of Mars (the ground track then differs from
             the orbit plane's trace).
         truth_node_spacing_lines: Lines between orientation nodes of the true camera
-            (dense enough to carry the jitter).
+            (dense enough to carry the jitter: the simulator refuses jitter above the
+            nodes' Nyquist frequency ``1 / (2 * spacing * line_period)``, warns above
+            the frequency their Lagrange interpolation keeps within 1 %, and writes both
+            to ``truth/errors.json``).
         initial_node_spacing_lines: Lines between nodes of the initial camera.
         interpolation_order: Lagrange interpolation order of the nodes.
     """
@@ -120,6 +124,54 @@ class JitterComponent(_Model):
     axis: Literal["roll", "pitch", "yaw"]
     amplitude_urad: float = Field(ge=0.0)
     frequency_hz: float = Field(gt=0.0)
+
+
+class JitterRandomConfig(_Model):
+    """Band-limited random attitude jitter of the true orientation (besides the sinusoids).
+
+    Per axis a sum of ``n`` sinusoids, one in each of ``n`` equal bins of the band
+    ``[min_frequency_hz, max_frequency_hz]`` (its frequency uniform in the bin, its
+    phase uniform), with amplitudes ``a_k ~ f_k ** (psd_slope / 2)`` scaled so that
+    ``sqrt(sum a_k**2 / 2)`` -- the process' rms over a long strip -- is ``rms_urad``:
+    a random-phase realisation of a power spectral density ``~ f ** psd_slope`` inside
+    the band and zero outside it. ``n = max(16, ceil(2 * band * duration))`` (bins of
+    at most half the strip's frequency resolution; at most 4096). Drawn from the strip's
+    random stream after the sinusoids' phases, only for an axis whose rms is above 0, so
+    the sinusoids (and every other part of the scene) do not change when it is turned
+    on. Off (all rms 0) unless a preset or difficulty sets it: no published jitter
+    spectrum of HiRIC was at hand, and for HiRISE (1 urad pixels, staggered CCDs) Sutton
+    et al. 2017 (ISPRS Arch. XLII-3/W1, 141) resolve the jitter from the CCD overlaps
+    without a power spectral density to copy; a scene that sets it should cite its
+    figure in ``[sources]`` (``"jitter_random.rms_urad"``).
+
+    Attributes:
+        rms_urad: ``(roll, pitch, yaw)`` rms of the random part (microradians).
+        min_frequency_hz: Lower edge of the band (Hz).
+        max_frequency_hz: Upper edge of the band (Hz).
+        psd_slope: Exponent of the power spectral density inside the band (0: flat,
+            -2: a random walk's fall-off).
+    """
+
+    rms_urad: Vec3 = (0.0, 0.0, 0.0)
+    min_frequency_hz: float = Field(default=1.0, gt=0.0)
+    max_frequency_hz: float = Field(default=20.0, gt=0.0)
+    psd_slope: float = Field(default=0.0, ge=-6.0, le=6.0)
+
+    @model_validator(mode="after")
+    def _check_band(self) -> JitterRandomConfig:
+        if self.max_frequency_hz <= self.min_frequency_hz:
+            raise ValueError(
+                f"max_frequency_hz ({self.max_frequency_hz}) must be above "
+                f"min_frequency_hz ({self.min_frequency_hz})"
+            )
+        if any(r < 0.0 for r in self.rms_urad):
+            raise ValueError(f"rms_urad must be >= 0, got {list(self.rms_urad)}")
+        return self
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any axis has a random part."""
+        return any(r > 0.0 for r in self.rms_urad)
 
 
 class InitialErrorConfig(_Model):

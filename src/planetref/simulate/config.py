@@ -30,6 +30,7 @@ from planetref.simulate.camera_config import (
     CameraConfig,
     InitialErrorConfig,
     JitterComponent,
+    JitterRandomConfig,
     OrbitConfig,
     StripConfig,
 )
@@ -50,6 +51,7 @@ __all__ = [
     "FractalConfig",
     "InitialErrorConfig",
     "JitterComponent",
+    "JitterRandomConfig",
     "OrbitConfig",
     "PhotometryConfig",
     "PlainsConfig",
@@ -424,7 +426,8 @@ class SimulationConfig(_Model):
         camera: Focal plane.
         orbit: Orbit and orientation nodes.
         strips: The strips (at least one).
-        jitter: Attitude jitter components of the true orientation.
+        jitter: Attitude jitter components of the true orientation (sinusoids).
+        jitter_random: Band-limited random attitude jitter of the true orientation.
         initial_errors: Departures of the initial camera from the truth.
         sensor: Detector of the line-scan images.
         reference: Reference ortho and DEM.
@@ -448,6 +451,7 @@ class SimulationConfig(_Model):
     orbit: OrbitConfig = OrbitConfig()
     strips: tuple[StripConfig, ...] = (StripConfig(),)
     jitter: tuple[JitterComponent, ...] = ()
+    jitter_random: JitterRandomConfig = JitterRandomConfig()
     initial_errors: InitialErrorConfig = InitialErrorConfig()
     sensor: SensorConfig = SensorConfig()
     reference: ReferenceConfig = ReferenceConfig()

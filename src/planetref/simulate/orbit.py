@@ -28,6 +28,7 @@ Time runs from ``-n_lines/2 * period`` (line 0) and is 0 at the centre line.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.camera.jitter import interpolation_limit_hz, node_nyquist_hz
 from planetref.camera.linescan import (
     CcdGeometry,
     InteriorOrientation,
@@ -42,9 +44,10 @@ from planetref.camera.linescan import (
     LineScanCamera,
 )
 from planetref.camera.orbit import MARS_GM_M3_S2, ccd_row
+from planetref.errors import InputError
 from planetref.geometry.geodesy import MARS_IAU2015_SPHERE, Ellipsoid, lonlat_to_xyz
 from planetref.geometry.rotations import axis_rotation
-from planetref.simulate.config import SimulationConfig, StripConfig
+from planetref.simulate.config import JitterRandomConfig, SimulationConfig, StripConfig
 from planetref.simulate.realism import TruthMismatchConfig
 
 __all__ = [
@@ -53,9 +56,13 @@ __all__ = [
     "StripCameras",
     "angles_from_rotation",
     "build_strip_cameras",
+    "random_jitter",
 ]
 
+log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
+JitterTerm = tuple[str, float, float, float]
+_AXES = ("roll", "pitch", "yaw")
 
 MARS_ROTATION_RAD_S = math.radians(350.89198226) / 86400.0
 """Sidereal rotation rate of Mars (IAU 2015), rad/s."""
@@ -171,6 +178,8 @@ class StripCameras:
         facts: ``focal_length_mm``, ``gsd_m``, ``line_period_s``, ``ground_speed_m_s``,
             ``altitude_m``, ``duration_s``.
         jitter: ``(axis, amplitude_urad, frequency_hz, phase_rad)`` of each component.
+        jitter_random: The same for the sinusoids of the band-limited random part
+            (:func:`random_jitter`; empty when off).
         mismatch: The truth's drawn model mismatch (per-CCD placement errors,
             oscillation phases, true and nominal line periods).
     """
@@ -180,8 +189,84 @@ class StripCameras:
     initial: LineScanCamera
     orbit: CircularOrbit
     facts: dict[str, float]
-    jitter: tuple[tuple[str, float, float, float], ...]
+    jitter: tuple[JitterTerm, ...]
     mismatch: dict[str, Any] = field(default_factory=dict)
+    jitter_random: tuple[JitterTerm, ...] = ()
+
+
+def random_jitter(
+    cfg: JitterRandomConfig, duration_s: float, rng: np.random.Generator
+) -> tuple[JitterTerm, ...]:
+    """The sinusoids of the band-limited random jitter (see :class:`JitterRandomConfig`).
+
+    Args:
+        cfg: The random part's settings.
+        duration_s: The strip's duration (s); sets the number of sinusoids per axis.
+        rng: The strip's random generator (drawn from only for axes with an rms > 0).
+
+    Returns:
+        ``(axis, amplitude_urad, frequency_hz, phase_rad)`` per sinusoid, roll first.
+    """
+    out: list[JitterTerm] = []
+    band = cfg.max_frequency_hz - cfg.min_frequency_hz
+    n = int(min(4096, max(16, math.ceil(2.0 * band * duration_s))))
+    width = band / n
+    for axis, rms in zip(_AXES, cfg.rms_urad, strict=True):
+        if rms <= 0.0:
+            continue
+        freq = cfg.min_frequency_hz + (np.arange(n) + rng.uniform(0.0, 1.0, n)) * width
+        phase = rng.uniform(0.0, 2.0 * np.pi, n)
+        amp = freq ** (0.5 * cfg.psd_slope)
+        amp *= rms * math.sqrt(2.0) / np.sqrt(np.sum(amp**2))  # sqrt(sum a^2 / 2) = rms
+        out += [
+            (axis, float(a), float(f), float(p)) for a, f, p in zip(amp, freq, phase, strict=True)
+        ]
+    return tuple(out)
+
+
+def _check_node_spacing(
+    cfg: SimulationConfig, period_s: float, terms: tuple[JitterTerm, ...]
+) -> dict[str, float]:
+    """The truth nodes' frequency limits; refuses jitter above their Nyquist frequency.
+
+    Raises:
+        InputError: A jitter frequency above the Nyquist frequency of
+            ``orbit.truth_node_spacing_lines`` (naming the setting and the largest
+            spacing that would carry it).
+    """
+    orb = cfg.orbit
+    spacing = orb.truth_node_spacing_lines
+    nyquist = node_nyquist_hz(period_s, spacing)
+    limit_1 = interpolation_limit_hz(period_s, spacing, orb.interpolation_order, 0.01)
+    limit_5 = interpolation_limit_hz(period_s, spacing, orb.interpolation_order, 0.05)
+    f_max = max((f for _, a, f, _ in terms if a > 0.0), default=0.0)
+    if cfg.jitter_random.enabled:
+        f_max = max(f_max, cfg.jitter_random.max_frequency_hz)
+    if f_max > nyquist:
+        most = int(1.0 / (2.0 * f_max * period_s))
+        raise InputError(
+            f"jitter up to {f_max:g} Hz is above the Nyquist frequency {nyquist:.3g} Hz of "
+            f"the truth's nodes every {spacing} lines ({1.0 / period_s:.4g} lines/s): set "
+            f"orbit.truth_node_spacing_lines to at most {max(most, 1)} "
+            f"({max(int(limit_5 / f_max * spacing), 1)} to keep it within 5 %)",
+            field="orbit.truth_node_spacing_lines",
+        )
+    if f_max > limit_5:
+        log.warning(
+            "jitter up to %g Hz: the truth's nodes every %d lines (orbit."
+            "truth_node_spacing_lines) carry it with more than 5 %% interpolation error "
+            "(within 5 %% up to %.3g Hz, Nyquist %.3g Hz)",
+            f_max,
+            spacing,
+            limit_5,
+            nyquist,
+        )
+    return {
+        "truth_node_nyquist_hz": nyquist,
+        "truth_node_1pct_hz": limit_1,
+        "truth_node_5pct_hz": limit_5,
+        "jitter_max_frequency_hz": f_max,
+    }
 
 
 def _strip_centre(
@@ -331,15 +416,19 @@ def build_strip_cameras(
         (j.axis, j.amplitude_urad, j.frequency_hz, float(rng.uniform(0, 2 * np.pi)))
         for j in cfg.jitter
     )
+    duration = n_lines * period
+    # After the sinusoids' phases: turning the random part on changes nothing else.
+    jitter_rand = random_jitter(cfg.jitter_random, duration, rng)
+    node_facts = _check_node_spacing(cfg, true_period, jitter + jitter_rand)
 
     def jitter_angles(t: F64) -> F64:
         out = np.zeros((len(t), 3))
-        for axis, amp, freq, ph in jitter:
-            k = {"roll": 0, "pitch": 1, "yaw": 2}[axis]
-            out[:, k] += amp * 1e-6 * np.sin(2 * np.pi * freq * t + ph)
+        for terms in (jitter, jitter_rand):
+            for axis, amp, freq, ph in terms:
+                k = _AXES.index(axis)
+                out[:, k] += amp * 1e-6 * np.sin(2 * np.pi * freq * t + ph)
         return out
 
-    duration = n_lines * period
     osc_period = mm.oscillation_period_s or duration / 3.0
     osc_phase = mrng.uniform(0.0, 2.0 * np.pi, 6)
     osc_amp = np.concatenate(
@@ -411,6 +500,7 @@ def build_strip_cameras(
         "heading_deg": heading,
         "true_line_period_s": true_period,
         "oscillation_period_s": osc_period,
+        **node_facts,
     }
     return StripCameras(
         strip=strip,
@@ -419,6 +509,7 @@ def build_strip_cameras(
         orbit=orbit,
         facts=facts,
         jitter=jitter,
+        jitter_random=jitter_rand,
         mismatch={
             "ccds": ccd_facts,
             "oscillation_phase_rad": [float(p) for p in osc_phase],

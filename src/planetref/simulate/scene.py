@@ -569,6 +569,10 @@ def _build(
                 {"axis": a, "amplitude_urad": amp, "frequency_hz": f, "phase_rad": ph}
                 for a, amp, f, ph in s.jitter
             ],
+            "jitter_random": [
+                {"axis": a, "amplitude_urad": amp, "frequency_hz": f, "phase_rad": ph}
+                for a, amp, f, ph in s.jitter_random
+            ],
             "render": render_stats[s.strip.id],
             "truth_mismatch": s.mismatch,
         }
