@@ -106,6 +106,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
             cfg.mcp.min_mcps,
             cfg.mcp.seed,
             cfg.mcp.check_blocks,
+            line=table["line"],
         )
         network = Network.mcps(
             camera,

@@ -191,6 +191,40 @@ def test_check_points_are_whole_tiles():
     assert not np.any(check_points(one, np.repeat(["ccd1", "ccd2"], 50), 0.1, 12, seed=0))
 
 
+def test_check_tiles_keep_the_share_and_the_strip_controlled():
+    """XFeat*'s tiles on tiny hard (seed 0): 6 tiles of 99, 89, 32, 22, 17 and 4 MCPs, two
+    rows along the strip. The old rule held out ccd2 and ccd3 of the second row (121 of 263
+    MCPs, the second half of the strip kept 4 of 125); now at most twice the 10 % share
+    for every seed, and the lines of each held-out tile keep at least half their MCPs."""
+    sizes = {
+        "ccd3:r001c000": 99,
+        "ccd3:r000c000": 89,
+        "ccd2:r000c000": 32,
+        "ccd2:r001c000": 22,
+        "ccd1:r000c000": 17,
+        "ccd1:r001c000": 4,
+    }
+    rng = np.random.default_rng(0)
+    tile_id = np.concatenate([np.full(k, t) for t, k in sizes.items()])
+    ccd = np.array([t.split(":")[0] for t in tile_id])
+    row = np.array([int(t.split(":r")[1][:3]) for t in tile_id])
+    line = rng.uniform(0.0, 384.0, len(tile_id)) + 384.0 * row
+    n = len(tile_id)
+    old_share = (99 + 22) / n
+    assert old_share > 0.45
+    for seed in range(20):
+        chk = check_points(tile_id, ccd, 0.1, 12, seed=seed, line=line)
+        held = np.count_nonzero(chk)
+        assert 1 <= held <= 2 * round(0.1 * n), (seed, held)
+        for t in np.unique(tile_id[chk]):
+            on = tile_id == t
+            span = (line >= line[on].min()) & (line <= line[on].max())
+            assert 2 * np.count_nonzero(span & ~chk) >= np.count_nonzero(span), (seed, t)
+    # Without the lines only the share's cap applies.
+    chk = check_points(tile_id, ccd, 0.1, 12, seed=0)
+    assert np.count_nonzero(chk) <= 2 * round(0.1 * n)
+
+
 @pytest.mark.parametrize(
     ("spacing", "support", "expect"), [(4.0, 41.0, (41 / 4) ** 2), (50.0, 41.0, 1.0)]
 )

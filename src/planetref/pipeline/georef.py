@@ -405,6 +405,7 @@ def _strip_mcps(job: StripJob, matched: dict[str, dict[str, Any]]) -> StripMcps:
         cfg.mcp.min_mcps,
         cfg.mcp.seed,
         cfg.mcp.check_blocks,
+        line=table["line"],
     )
     return StripMcps(strip.id, camera, images, sizes, table, check, out)
 
