@@ -81,6 +81,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         template_overlap,
         template_support_m,
     )
+    from planetref.errors import MatchingError
     from planetref.frontend.matchers import matcher_options
     from planetref.pipeline.systematic import systematic_settings
     from planetref.report.blocks import check_block
@@ -102,6 +103,12 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         camera, _ = strip_cameras(manifest, root, strip)
         table = read_mcps(run_dir / strip.id / "mcps.parquet")
         n = len(table)
+        if n < cfg.mcp.min_mcps:
+            # The run failed (its report keeps the matcher as a row); say why, as it did.
+            raise MatchingError(
+                f"strip {strip.id}: only {n} matched control points with matcher {matcher} "
+                f"(at least {cfg.mcp.min_mcps} needed)"
+            )
         check = check_points(
             table["tile_id"],
             table["ccd"],
