@@ -10,6 +10,7 @@ block fitting the reference's errors is flagged by the held-out tiles.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -232,7 +233,8 @@ def test_check_tiles_keep_the_share_and_the_strip_controlled():
     """XFeat*'s tiles on tiny hard (seed 0): 6 tiles of 99, 89, 32, 22, 17 and 4 MCPs, two
     rows along the strip. The old rule held out ccd2 and ccd3 of the second row (121 of 263
     MCPs, the second half of the strip kept 4 of 125); now at most twice the 10 % share
-    for every seed, and the lines of each held-out tile keep at least half their MCPs."""
+    for every seed, the lines of each held-out tile keep at least half their MCPs, and no
+    two held-out tiles span the same lines."""
     sizes = {
         "ccd3:r001c000": 99,
         "ccd3:r000c000": 89,
@@ -253,10 +255,15 @@ def test_check_tiles_keep_the_share_and_the_strip_controlled():
         chk = check_points(tile_id, ccd, 0.1, 12, seed=seed, line=line)
         held = np.count_nonzero(chk)
         assert 1 <= held <= 2 * round(0.1 * n), (seed, held)
+        spans = []
         for t in np.unique(tile_id[chk]):
             on = tile_id == t
             span = (line >= line[on].min()) & (line <= line[on].max())
             assert 2 * np.count_nonzero(span & ~chk) >= np.count_nonzero(span), (seed, t)
+            spans.append((line[on].min(), line[on].max()))
+        # No two held-out tiles span the same lines (those lines keep two CCDs).
+        spans.sort()
+        assert all(a[1] < b[0] for a, b in itertools.pairwise(spans)), (seed, spans)
     # Without the lines only the share's cap applies.
     chk = check_points(tile_id, ccd, 0.1, 12, seed=0)
     assert np.count_nonzero(chk) <= 2 * round(0.1 * n)
