@@ -19,9 +19,12 @@ prints, per strip:
 Usage::
 
     python benchmarks/bench_calibration.py [--scenes tiny:moderate tiny:hard]
-        [--matchers sift ncc] [--runs DIR] [--set adjust.reference.sigma_m=0] [--json]
+        [--matchers sift ncc] [--seeds 0 1] [--runs DIR] [--set adjust.reference.sigma_m=0]
+        [--json]
 
-A scene ``tiny:hard`` is simulated (seed 0) into ``--runs`` when it is not there yet.
+A scene ``tiny:hard`` is simulated (each of ``--seeds``, default 0) into ``--runs`` when it
+is not there yet. With several seeds the figures add, per scene and matcher, the RMS of
+true and formal over the seeds, their ratio and the spread of the per-seed ratios.
 Weights: ``PLANETREF_WEIGHTS`` (or ``--weights-dir``).
 """
 
@@ -75,6 +78,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         template_overlap,
         template_support_m,
     )
+    from planetref.errors import MatchingError
     from planetref.frontend.matchers import matcher_options
     from planetref.pipeline.systematic import systematic_settings
     from planetref.report.blocks import check_block
@@ -96,6 +100,12 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         camera, _ = strip_cameras(manifest, root, strip)
         table = read_mcps(run_dir / strip.id / "mcps.parquet")
         n = len(table)
+        if n < cfg.mcp.min_mcps:
+            # The run failed (its report keeps the matcher as a row); say why, as it did.
+            raise MatchingError(
+                f"strip {strip.id}: only {n} matched control points with matcher {matcher} "
+                f"(at least {cfg.mcp.min_mcps} needed)"
+            )
         check = check_points(
             table["tile_id"],
             table["ccd"],
@@ -103,6 +113,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
             cfg.mcp.min_mcps,
             cfg.mcp.seed,
             cfg.mcp.check_blocks,
+            line=table["line"],
         )
         network = McpSet.of(strip.id, table, check).network(camera, cfg.mcp.sigma_px)
         gsd = reference_gsd_m(ref)
@@ -158,11 +169,67 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
     return rows
 
 
+def _scene_rows(
+    runs: Path, spec: str, seed: int, matchers: list[str], weights: str | None, cfg: Any
+) -> list[dict[str, Any]]:
+    """The rows of one scene and seed: each matcher's run (made if missing), measured."""
+    from planetref.errors import PlanetrefError
+    from planetref.pipeline.georef import run_georef
+
+    scene = _scene(runs, spec, seed)
+    out: list[dict[str, Any]] = []
+    for matcher in matchers:
+        run_dir = runs / f"{scene.name}-{matcher}"
+        row: dict[str, Any] = {"scene": spec, "seed": seed, "matcher": matcher}
+        try:
+            if not (run_dir / "report.json").is_file():
+                run_georef(
+                    scene, matcher, run_dir, weights_dir=weights, progress=False, overwrite=True
+                )
+            strips = measure(scene, run_dir, cfg, matcher)
+        except PlanetrefError as exc:
+            out.append(row | {"failed": str(exc)})
+            continue
+        out.extend(row | s for s in strips)
+    return out
+
+
+def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per scene, matcher and strip over the seeds that did not fail: RMS true and formal
+    error, their ratio, and the smallest and largest per-seed ratio."""
+    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        if "failed" not in r:
+            groups.setdefault((r["scene"], r["matcher"], r.get("strip", "")), []).append(r)
+    out = []
+    for (scene, matcher, strip), items in groups.items():
+        true = np.array([i["true_m"] for i in items])
+        formal = np.array([i["formal_m"] for i in items])
+        ratio = true / formal
+        out.append(
+            {
+                "scene": scene,
+                "matcher": matcher,
+                "strip": strip,
+                "seeds": [i["seed"] for i in items],
+                "true_rms_m": float(np.sqrt(np.mean(true**2))),
+                "formal_rms_m": float(np.sqrt(np.mean(formal**2))),
+                "ratio": float(np.sqrt(np.mean(true**2) / np.mean(formal**2))),
+                "ratio_min": float(ratio.min()),
+                "ratio_max": float(ratio.max()),
+            }
+        )
+    return out
+
+
 def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
     """The benchmarks page's figures: per scene, matcher and strip, true, formal, ratio."""
     out: dict[str, dict[str, object]] = {}
+    seeds = {r["seed"] for r in rows}
     for r in rows:
         key = f"{r['scene']} {r['matcher']}" + (f" {r['strip']}" if r.get("strip") else "")
+        if len(seeds) > 1:
+            key = f"{key} seed {r['seed']}"
         if "failed" in r:
             out[f"{key}: failed"] = {"value": str(r["failed"])[:120]}
             continue
@@ -172,6 +239,16 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
             "value": r["ratio"],
             "note": "0.5-2: calibrated",
         }
+    if len(seeds) > 1:
+        for g in over_seeds(rows):
+            key = f"{g['scene']} {g['matcher']}" + (f" {g['strip']}" if g["strip"] else "")
+            out[f"{key}: true / formal over {len(g['seeds'])} seeds"] = {
+                "value": g["ratio"],
+                "note": (
+                    f"RMS true {g['true_rms_m']:.2f} m / RMS formal {g['formal_rms_m']:.2f} m; "
+                    f"per seed {g['ratio_min']:.2f}-{g['ratio_max']:.2f}"
+                ),
+            }
     return out
 
 
@@ -180,39 +257,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", nargs="*", default=["tiny:moderate", "tiny:hard"])
     parser.add_argument("--matchers", nargs="*", default=["sift", "ncc"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, nargs="*", default=None)
     parser.add_argument("--runs", default="bench_calibration_runs")
     parser.add_argument("--set", dest="sets", action="append", default=[])
     parser.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
-    from planetref.errors import PlanetrefError
     from planetref.pipeline.config import GeorefConfig
-    from planetref.pipeline.georef import run_georef
 
     runs = Path(args.runs).resolve()
     runs.mkdir(parents=True, exist_ok=True)
     cfg = _override(GeorefConfig(), args.sets)
     out: list[dict[str, Any]] = []
-    for spec in args.scenes:
-        scene = _scene(runs, spec, args.seed)
-        for matcher in args.matchers:
-            run_dir = runs / f"{scene.name}-{matcher}"
-            row: dict[str, Any] = {"scene": spec, "seed": args.seed, "matcher": matcher}
-            try:
-                if not (run_dir / "report.json").is_file():
-                    run_georef(
-                        scene,
-                        matcher,
-                        run_dir,
-                        weights_dir=args.weights_dir,
-                        progress=False,
-                        overwrite=True,
-                    )
-                strips = measure(scene, run_dir, cfg, matcher)
-            except PlanetrefError as exc:
-                out.append(row | {"failed": str(exc)})
-                continue
-            out.extend(row | s for s in strips)
+    seeds = args.seeds or [args.seed]
+    for seed in seeds:
+        for spec in args.scenes:
+            out.extend(_scene_rows(runs, spec, seed, args.matchers, args.weights_dir, cfg))
     if args.json:
         from machine import describe
 
@@ -226,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
                     "command": "python benchmarks/bench_calibration.py " + " ".join(sys.argv[1:]),
                     "figures": figures(out),
                     "rows": out,
+                    "over_seeds": over_seeds(out) if len(seeds) > 1 else [],
                 },
                 indent=1,
             )
@@ -246,6 +307,14 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['ratio_meas']:6.2f} {s0 if s0 is None else f'{s0:6.2f}'}  "
             + ", ".join(f"{k} x{v:.3g}" for k, v in r["vce_factors"].items())
         )
+    if len(seeds) > 1:
+        print(f"over seeds {seeds}: RMS true, RMS formal, their ratio, per-seed ratio range")
+        for g in over_seeds(out):
+            print(
+                f"{g['scene']:16} {g['matcher']:8} {g['strip']:8} {g['true_rms_m']:7.2f} "
+                f"{g['formal_rms_m']:8.2f} {g['ratio']:6.2f}  "
+                f"{g['ratio_min']:.2f}-{g['ratio_max']:.2f} ({len(g['seeds'])} seeds)"
+            )
     return 0
 
 

@@ -10,10 +10,11 @@ block fitting the reference's errors is flagged by the held-out tiles.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
-from adjust_synth import mcp_problem, true_strip
+from adjust_synth import N_LINES, mcp_problem, true_strip
 
 from planetref.adjust import adjust
 from planetref.adjust.metrics import geolocation_error, image_grid
@@ -89,6 +90,43 @@ def test_formal_matches_true_with_reference_errors():
     ratio_meas = true_rms / np.sqrt(np.mean(meas_sq))
     assert 0.5 < ratio < 2.0, (ratio, ratio_meas)
     assert ratio_meas > 3.0, (ratio, ratio_meas)
+
+
+def _true_and_formal(res, true_cam) -> tuple[float, float]:
+    cams = res.cameras["strip"]
+    t = np.sqrt(
+        np.mean(
+            [
+                geolocation_error(cams, true_cam, ccd=c, terrain=0.0)["rms_m"] ** 2
+                for c in true_cam.ccd_names
+            ]
+        )
+    )
+    return float(t), formal_ground_precision(res, "strip", terrain=0.0)["rms_m"]
+
+
+def test_formal_matches_true_where_the_strip_is_extrapolated():
+    """XFeat* on tiny hard once held out the MCPs of the strip's second half (true/formal
+    0.35): is the covariance pessimistic where the adjustment extrapolates? Over 8 draws
+    of patch offsets, with the MCPs beyond 60 % of the lines held out but 5, the formal
+    error grows (3.1 -> 4.1 m RMS) and true/formal stays 1.07 (1.04 with every MCP)."""
+    true = true_strip()
+    sq = {"full": ([], []), "extrapolated": ([], [])}
+    for seed in range(8):
+        net, true_cam, _ = mcp_problem(300, noise_px=0.3, seed=seed, ground_sigma_m=1.0, true=true)
+        net, _ = _with_reference_error(net, np.random.default_rng(100 + seed), SIGMA_REF_M, PATCH_M)
+        far = np.flatnonzero(np.asarray(net.obs_line) > 0.6 * N_LINES)
+        held = np.zeros(net.n_obs, bool)
+        held[far[5:]] = True
+        for key, n in (("full", net), ("extrapolated", dataclasses.replace(net, obs_check=held))):
+            t, f = _true_and_formal(adjust(n, _config(SIGMA_REF_M)), true_cam)
+            sq[key][0].append(t**2)
+            sq[key][1].append(f**2)
+    formal = {k: np.sqrt(np.mean(v[1])) for k, v in sq.items()}
+    ratio = {k: np.sqrt(np.mean(v[0]) / np.mean(v[1])) for k, v in sq.items()}
+    assert formal["extrapolated"] > 1.2 * formal["full"], formal
+    assert 0.7 < ratio["extrapolated"] < 1.5, ratio
+    assert 0.7 < ratio["full"] < 1.5, ratio
 
 
 def test_sensitivity_equals_readjustment():
@@ -189,6 +227,46 @@ def test_check_points_are_whole_tiles():
     # One tile per CCD: none can be held out (each CCD would lose all its MCPs).
     one = np.repeat(["ccd1:a", "ccd2:a"], 50)
     assert not np.any(check_points(one, np.repeat(["ccd1", "ccd2"], 50), 0.1, 12, seed=0))
+
+
+def test_check_tiles_keep_the_share_and_the_strip_controlled():
+    """XFeat*'s tiles on tiny hard (seed 0): 6 tiles of 99, 89, 32, 22, 17 and 4 MCPs, two
+    rows along the strip. The old rule held out ccd2 and ccd3 of the second row (121 of 263
+    MCPs, the second half of the strip kept 4 of 125); now at most twice the 10 % share
+    for every seed, the lines of each held-out tile keep at least half their MCPs, and no
+    two held-out tiles span the same lines."""
+    sizes = {
+        "ccd3:r001c000": 99,
+        "ccd3:r000c000": 89,
+        "ccd2:r000c000": 32,
+        "ccd2:r001c000": 22,
+        "ccd1:r000c000": 17,
+        "ccd1:r001c000": 4,
+    }
+    rng = np.random.default_rng(0)
+    tile_id = np.concatenate([np.full(k, t) for t, k in sizes.items()])
+    ccd = np.array([t.split(":")[0] for t in tile_id])
+    row = np.array([int(t.split(":r")[1][:3]) for t in tile_id])
+    line = rng.uniform(0.0, 384.0, len(tile_id)) + 384.0 * row
+    n = len(tile_id)
+    old_share = (99 + 22) / n
+    assert old_share > 0.45
+    for seed in range(20):
+        chk = check_points(tile_id, ccd, 0.1, 12, seed=seed, line=line)
+        held = np.count_nonzero(chk)
+        assert 1 <= held <= 2 * round(0.1 * n), (seed, held)
+        spans = []
+        for t in np.unique(tile_id[chk]):
+            on = tile_id == t
+            span = (line >= line[on].min()) & (line <= line[on].max())
+            assert 2 * np.count_nonzero(span & ~chk) >= np.count_nonzero(span), (seed, t)
+            spans.append((line[on].min(), line[on].max()))
+        # No two held-out tiles span the same lines (those lines keep two CCDs).
+        spans.sort()
+        assert all(a[1] < b[0] for a, b in itertools.pairwise(spans)), (seed, spans)
+    # Without the lines only the share's cap applies.
+    chk = check_points(tile_id, ccd, 0.1, 12, seed=0)
+    assert np.count_nonzero(chk) <= 2 * round(0.1 * n)
 
 
 @pytest.mark.parametrize(

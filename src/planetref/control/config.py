@@ -19,8 +19,11 @@ class McpOptions(Settings):
         check_fraction: Share of MCPs held out as check points (not adjusted; their
             residuals are reported), drawn with ``seed``.
         check_blocks: ``tiles``: whole tiles are held out (at least ``check_fraction``
-            of the MCPs), so that no check point has an adjusted neighbour sharing its
-            reference patch and template pixels (independent check points);
+            of the MCPs where the tiles allow, at most twice it, never most of the
+            MCPs of the lines a tile spans, never two tiles of the same lines), so that
+            no check point has an adjusted neighbour sharing its reference patch and
+            template pixels (independent check points) while the strip stays
+            controlled where it is checked;
             ``random``: single MCPs drawn at random (their neighbours pin them).
         seed: Seed of the check-point draw.
         min_mcps: Fewest MCPs a strip needs to be adjusted.

@@ -448,6 +448,7 @@ def _strip_mcps(
         cfg.mcp.min_mcps,
         cfg.mcp.seed,
         cfg.mcp.check_blocks,
+        line=table["line"],
     )
     overlap = _overlap_ties(job, camera, images) if cfg.frontend.ccd_overlap.enabled else None
     return StripMcps(strip.id, camera, images, sizes, McpSet.of(strip.id, table, check), overlap)
