@@ -40,6 +40,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 
 def _scene(runs: Path, spec: str, seed: int) -> Path:
     from planetref.simulate.config import load_config
@@ -74,7 +76,6 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
     from planetref.control.mcp import read_mcps
     from planetref.control.networks import (
         McpSet,
-        check_points,
         template_overlap,
         template_support_m,
     )
@@ -106,16 +107,8 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
                 f"strip {strip.id}: only {n} matched control points with matcher {matcher} "
                 f"(at least {cfg.mcp.min_mcps} needed)"
             )
-        check = check_points(
-            table["tile_id"],
-            table["ccd"],
-            cfg.mcp.check_fraction,
-            cfg.mcp.min_mcps,
-            cfg.mcp.seed,
-            cfg.mcp.check_blocks,
-            line=table["line"],
-        )
-        network = McpSet.of(strip.id, table, check).network(camera, cfg.mcp.sigma_px)
+        mcps = McpSet.held_out(strip.id, table, cfg.mcp)
+        network = mcps.network(camera, cfg.mcp.sigma_px)
         gsd = reference_gsd_m(ref)
         support = template_support_m(
             matcher,

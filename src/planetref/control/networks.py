@@ -74,6 +74,20 @@ class McpSet:
         """The set of a table and its check flags, with the table's ground sigmas."""
         return cls(strip, table, np.asarray(check, bool), mcp_ground_sigmas(table))
 
+    @classmethod
+    def held_out(cls, strip: str, table: McpTable, options: McpOptions) -> McpSet:
+        """The set of a table with its check points chosen by ``[mcp]`` (:func:`check_points`)."""
+        check = check_points(
+            table["tile_id"],
+            table["ccd"],
+            options.check_fraction,
+            options.min_mcps,
+            options.seed,
+            options.check_blocks,
+            line=table["line"],
+        )
+        return cls.of(strip, table, check)
+
     def __len__(self) -> int:
         return len(self.table)
 

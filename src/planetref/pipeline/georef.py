@@ -41,7 +41,6 @@ from planetref.control.ground_sigma import reference_gsd_m
 from planetref.control.networks import (
     McpSet,
     StripMcps,
-    check_points,
     joint_network,
     template_overlap,
     template_support_m,
@@ -441,17 +440,9 @@ def _strip_mcps(
     n = len(table)
     if n < cfg.mcp.min_mcps:
         raise too_few_mcps(strip.id, matches.matcher, matching, cfg.mcp.min_mcps)
-    check = check_points(
-        table["tile_id"],
-        table["ccd"],
-        cfg.mcp.check_fraction,
-        cfg.mcp.min_mcps,
-        cfg.mcp.seed,
-        cfg.mcp.check_blocks,
-        line=table["line"],
-    )
+    mcps = McpSet.held_out(strip.id, table, cfg.mcp)
     overlap = _overlap_ties(job, camera, images) if cfg.frontend.ccd_overlap.enabled else None
-    return StripMcps(strip.id, camera, images, sizes, McpSet.of(strip.id, table, check), overlap)
+    return StripMcps(strip.id, camera, images, sizes, mcps, overlap)
 
 
 def _overlap_ties(job: StripJob, camera: Camera, images: dict[str, CcdImage]) -> OverlapTies:
