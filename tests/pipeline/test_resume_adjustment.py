@@ -3,6 +3,7 @@ from their journal. (A deleted adjustment is solved again: tests/pipeline/test_g
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -57,6 +58,19 @@ def test_unchanged_inputs_reload_the_adjustment(rerun, tiny_sift_run):
     assert _without_timings(written) == _without_timings(original)
 
 
+def test_a_result_file_not_the_recorded_one_is_solved_again(rerun):
+    """An edited result file is never unpickled: its digest differs from the stamp's."""
+    run_dir, solved, go = rerun
+    adj = run_dir / "strip1" / "adjustment"
+    data = (adj / RESULT_NAME).read_bytes()
+    (adj / RESULT_NAME).write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # one bit changed
+    go()
+    assert solved == [1]  # solved again, not loaded
+    # and written again, its new content recorded in the stamp
+    new = (adj / RESULT_NAME).read_bytes()
+    assert (adj / RESULT_STAMP).read_text().split()[1] == hashlib.sha256(new).hexdigest()
+
+
 def test_the_fingerprint_follows_the_adjustments_inputs(tiny_sift_run):
     import dataclasses
     import pickle
@@ -68,7 +82,7 @@ def test_the_fingerprint_follows_the_adjustments_inputs(tiny_sift_run):
         result = pickle.load(fh)
     net, cfg = result.network, result.config
     digest = adjustment_fingerprint(net, cfg)
-    assert digest == (adj / RESULT_STAMP).read_text().strip()  # what the run stamped
+    assert digest == (adj / RESULT_STAMP).read_text().split()[0]  # what the run stamped
     assert adjustment_fingerprint(dataclasses.replace(net), cfg) == digest
     # one observation moved by 0.01 px, one check flag, the settings, the initial camera
     line = net.obs_line.copy()

@@ -178,11 +178,17 @@ def solve_or_reload(
     digest = adjustment_fingerprint(network, config)
     path = run.file(*folder, RESULT_NAME)
     stamp = run.file(*folder, RESULT_STAMP)
-    if digest is not None and _stamp_of(stamp) == digest and path.is_file():
+    recorded = _stamp_of(stamp)
+    if digest is not None and recorded is not None and recorded[0] == digest and path.is_file():
         try:
-            with path.open("rb") as fh:
-                result = pickle.load(fh)  # the run's own file, its inputs' digest checked
-        except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:
+            data = path.read_bytes()
+            # Only the bytes this run wrote are unpickled: their own digest is in the stamp
+            # (a truncated, foreign or edited file is solved again, never loaded).
+            if hashlib.sha256(data).hexdigest() != recorded[1]:
+                raise ValueError("its content is not the one recorded")
+            result = pickle.loads(data)
+        except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError,
+                ImportError) as exc:  # fmt: skip
             log.warning("%s: cannot reload (%s); adjusting again", path, exc)
         else:
             log.info("%s: inputs unchanged, adjustment reloaded", "/".join(folder))
@@ -190,13 +196,16 @@ def solve_or_reload(
     stamp.unlink(missing_ok=True)  # never a stamp beside another run's result
     result = solve(network, config)
     if digest is not None:
-        write_bytes_atomic(path, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
-        write_text_atomic(stamp, digest + "\n")
+        data = pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL)
+        write_bytes_atomic(path, data)
+        write_text_atomic(stamp, f"{digest}\n{hashlib.sha256(data).hexdigest()}\n")
     return result, False
 
 
-def _stamp_of(path: Path) -> str | None:
+def _stamp_of(path: Path) -> tuple[str, str] | None:
+    """``(inputs' digest, result file's sha256)`` recorded in a stamp, or None."""
     try:
-        return path.read_text(encoding="utf-8").strip()
+        lines = path.read_text(encoding="utf-8").split()
     except OSError:
         return None
+    return (lines[0], lines[1]) if len(lines) == 2 else None
