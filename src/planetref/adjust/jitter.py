@@ -53,6 +53,7 @@ __all__ = [
     "line_of_sight_difference",
     "resolution_limit",
     "smoothness_sigma_rad",
+    "true_jitter",
 ]
 
 F64 = NDArray[np.float64]
@@ -208,6 +209,16 @@ def line_of_sight_difference(
     out[:, 0] = dc[:, 1] / rng
     out[:, 1] = -dc[:, 0] / rng
     return out
+
+
+def true_jitter(series: JitterSeries, dense: LineScanCamera, truth: LineScanCamera) -> F64:
+    """The truth's pointing relative to the seed at the series' lines (rad), ``(m, 3)``.
+
+    What the stage should find: the estimate minus its true error, ``w_est -
+    line_of_sight_difference(truth, dense)`` (small angles add), so attitude errors that
+    only compensate position errors cancel as in the image.
+    """
+    return np.asarray(series.angles_rad - line_of_sight_difference(truth, dense, series.line))
 
 
 def _vee(d: F64) -> F64:

@@ -59,6 +59,7 @@ from planetref.pipeline.georef_outputs import (
     camera_isds,
     campaign_points,
     control_exports,
+    figure_jitter,
     figure_residuals,
     figures_matching,
     isd_files,
@@ -472,6 +473,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
             )
         with part_timed(job.timing, "figures"):  # drawn while the orthoimages are written
             figure_residuals(job, prep.id, result, prep.sizes)
+            figure_jitter(job, prep.id, result, truth)
         if cfg.ortho.enabled:
             with part_timed(job.timing, "orthoimages"):
                 out["files"]["ortho"] = orthoimages(job, prep.id, camera, prep.images)
@@ -576,6 +578,7 @@ def _adjust_together(
         out["warnings"] = list(result.warnings)
         out["files"]["isd"] = camera_isds(job, p.id, result.cameras[p.id])
         figure_residuals(job, p.id, result, p.sizes, ci)
+        figure_jitter(job, p.id, result, truth)
         if cfg.ortho.enabled:
             out["files"]["ortho"] = orthoimages(job, p.id, result.cameras[p.id], p.images)
         out["_residuals"] = (result.residual[on], result.inlier[on])
