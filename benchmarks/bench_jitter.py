@@ -14,7 +14,8 @@ It prints per strip:
   as the image sees it (:func:`planetref.adjust.jitter.line_of_sight_difference` of the
   true and adjusted cameras at the middle CCD's centre pixel; attitude errors that only
   compensate position errors cancel); amplitude and phase come from a joint least-squares
-  fit of every component's sinusoid, a quadratic and the truth's slow oscillation;
+  fit of every component's sinusoid and a quadratic to the pointing error, added to
+  the true component (``error_urad_*``: the error's amplitude at that frequency);
   ``below_limit`` says whether the component lies below the reported resolution limit;
 * ``true_m``: the RMS ground error against the true camera (the pipeline's true-error
   metric), without and with the jitter stage, and the change in per cent;
@@ -230,28 +231,35 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
             series = forced.jitter[strip.id]
         err_dense = line_of_sight_difference(truth, series_camera, lines)
         err_seed = line_of_sight_difference(truth, seed.cameras[strip.id], lines)
-        osc = float(facts.get("facts", {}).get("oscillation_period_s") or 0.0)
         limit = series.resolution.limit_hz
         for axis in (0, 1, 2):
             mine = [c for c in comps if c["axis"] == AXES[axis]]
             if not mine:
                 continue
-            freqs = [c["frequency_hz"] for c in mine] + ([1.0 / osc] if osc > 0 else [])
-            rec_d = fit_components(t_true, j_true[:, axis] + err_dense[:, axis], freqs)
-            rec_s = fit_components(t_true, j_true[:, axis] + err_seed[:, axis], freqs)
+            freqs = [c["frequency_hz"] for c in mine]
+            # The camera's pointing error at each component's frequency (a joint fit of
+            # the components' sinusoids and a quadratic), added to the true component:
+            # what the adjusted camera holds of it.
+            e_d = fit_components(t_true, err_dense[:, axis], freqs)
+            e_s = fit_components(t_true, err_seed[:, axis], freqs)
             for i, c in enumerate(mine):
                 ph = c["phase_rad"]
+                true = c["amplitude_urad"] * 1e-6 * np.exp(1j * ph)
+                rec_d = true + e_d[i][0] * np.exp(1j * e_d[i][1])
+                rec_s = true + e_s[i][0] * np.exp(1j * e_s[i][1])
                 row["components"].append(
                     {
                         "axis": c["axis"],
                         "frequency_hz": c["frequency_hz"],
                         "true_amplitude_urad": c["amplitude_urad"],
                         "true_phase_deg": float(np.degrees(ph)),
-                        "amplitude_urad_jitter": rec_d[i][0] * 1e6,
-                        "phase_deg_jitter": float(np.degrees(rec_d[i][1])),
-                        "phase_error_deg_jitter": _wrap(np.degrees(rec_d[i][1] - ph)),
-                        "amplitude_urad_nodes": rec_s[i][0] * 1e6,
-                        "phase_error_deg_nodes": _wrap(np.degrees(rec_s[i][1] - ph)),
+                        "amplitude_urad_jitter": float(abs(rec_d)) * 1e6,
+                        "phase_deg_jitter": float(np.degrees(np.angle(rec_d))),
+                        "phase_error_deg_jitter": _wrap(np.degrees(np.angle(rec_d) - ph)),
+                        "amplitude_urad_nodes": float(abs(rec_s)) * 1e6,
+                        "phase_error_deg_nodes": _wrap(np.degrees(np.angle(rec_s) - ph)),
+                        "error_urad_jitter": e_d[i][0] * 1e6,
+                        "error_urad_nodes": e_s[i][0] * 1e6,
                         "below_limit": c["frequency_hz"] < limit,
                         "axis_observable": axis < 2,
                     }
