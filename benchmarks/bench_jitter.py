@@ -178,7 +178,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
         )
         overlap = template_overlap(table["ref_x"], table["ref_y"], support)
         adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], gsd, overlap)
-        jit = adjust_cfg.jitter.model_copy(update={"enabled": True})
+        jit = adjust_cfg.jitter.model_copy(update={"enabled": True, "mcp_support_m": support})
         jitter_cfg = adjust_cfg.model_copy(update={"jitter": jit})
         cpu = time.process_time()
         seed = adjust(

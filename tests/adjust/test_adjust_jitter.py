@@ -315,3 +315,28 @@ def test_jitter_outputs(jittered_case, tmp_path):
     summary = res.diagnostics["jitter"]["strip"]
     assert summary["kept"] is True
     assert summary["resolution"]["limit_hz"] == pytest.approx(s.resolution.limit_hz)
+
+
+def test_template_support_bounds_the_resolution_limit():
+    from planetref.adjust.jitter import resolution_limit
+
+    smooth, _ = _strip_setup()
+    cam = densify(smooth, 32)
+    lines = np.arange(0.0, N_LINES, 2.0)
+    free = resolution_limit(cam, lines, JitterConfig(max_frequency_hz=1e4))
+    assert free.support_limit_hz == math.inf
+    t01 = cam.line_rates.time(np.array([0.0, 1.0]))
+    period = float(t01[1] - t01[0])
+    assert free.limit_hz == pytest.approx(1.0 / (4 * 32 * period))  # the nodes limit
+    # Square pixels at nadir: the along-track metres per line are the across-track GSD.
+    mid = cam.ccds[1]
+    g = cam.image_to_ground(np.full(2, 1500.0), np.array([700.0, 800.0]), 0.0, ccd=mid.name)
+    gsd = float(np.linalg.norm(g[1] - g[0])) / 100.0
+    res = resolution_limit(cam, lines, JitterConfig(max_frequency_hz=1e4, mcp_support_m=50.0))
+    assert res.support_lines == pytest.approx(50.0 / gsd, rel=0.01)
+    assert res.support_limit_hz == pytest.approx(0.360 / (50.0 / gsd * period), rel=0.01)
+    # sinc(pi f T) at that limit is 0.8
+    x = math.pi * res.support_limit_hz * res.support_lines * period
+    assert math.sin(x) / x == pytest.approx(0.8, abs=2e-3)
+    assert res.limit_hz == pytest.approx(min(res.support_limit_hz, res.node_limit_hz))
+    assert free.mcp_gap_lines < 4.0

@@ -562,6 +562,11 @@ class JitterConfig(Settings):
         max_frequency_hz: Upper edge of the jitter band (Hz) the prior lets through.
         smoothness_sigma_rad: Sigma of the second difference of an attitude correction
             over consecutive nodes (radians); ``None``: derived as above.
+        mcp_support_m: Ground size (m) of the pixels one MCP is computed from (an area
+            matcher's template; ``georef`` sets it from the matcher); ``None``: point
+            measurements. A template averages the jitter over its along-track extent
+            ``L``: a sinusoid of frequency ``f`` is measured ``sinc(pi f L / v)`` times
+            its amplitude (``v`` the ground speed), which bounds the resolution limit.
         keep: ``if_check_improves`` (default): keep the dense solution only when the
             held-out check observations fit it better than the seed's (otherwise the
             seed's solution is the result, with a warning); ``always``.
@@ -572,11 +577,12 @@ class JitterConfig(Settings):
     amplitude_rad: Radians = 5e-6
     max_frequency_hz: float = Field(20.0, gt=0.0)
     smoothness_sigma_rad: Radians = None
+    mcp_support_m: Metres = None
     keep: Literal["if_check_improves", "always"] = "if_check_improves"
 
     @model_validator(mode="after")
     def _check(self) -> JitterConfig:
-        for name in ("amplitude_rad", "smoothness_sigma_rad"):
+        for name in ("amplitude_rad", "smoothness_sigma_rad", "mcp_support_m"):
             v = getattr(self, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")

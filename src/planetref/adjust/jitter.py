@@ -242,13 +242,18 @@ class JitterResolution:
         max_gap_lines: Longest gap between observed lines (lines).
         mcp_limit_hz: ``1 / (2 mcp_gap_lines * line_period_s)``: a period must span two
             typical gaps to be sampled.
+        support_lines: Along-track extent of one MCP's template (lines; 0: points).
+        support_limit_hz: ``0.360 / (support_lines * line_period_s)``: where the
+            template's averaging, ``sinc(pi f L)``, measures a sinusoid at 80 % of its
+            amplitude (inf without templates).
         band_hz: The prior's band edge (``max_frequency_hz``).
         stagger_lines: Along-track offset between the staggered CCDs (lines): tie points
             between overlapping CCDs see jitter as ``w(t + s) - w(t)``, blind at
             multiples of ``stagger_blind_hz``; MCPs against the reference are not.
         stagger_blind_hz: ``1 / (stagger_lines * line_period_s)``, or ``None`` without
             stagger.
-        limit_hz: The resolution limit: the smallest of the node, MCP and band limits.
+        limit_hz: The resolution limit: the smallest of the node, MCP gap, template
+            and band limits.
     """
 
     line_period_s: float
@@ -257,6 +262,8 @@ class JitterResolution:
     mcp_gap_lines: float
     max_gap_lines: float
     mcp_limit_hz: float
+    support_lines: float
+    support_limit_hz: float
     band_hz: float
     stagger_lines: float
     stagger_blind_hz: float | None
@@ -293,6 +300,13 @@ def resolution_limit(camera: LineScanCamera, lines: F64, cfg: JitterConfig) -> J
     pitch = camera.ccds[0].pixel_pitch_mm
     stagger = (xs[-1] - xs[0]) / pitch if len(xs) > 1 else 0.0
     blind = 1.0 / (stagger * period) if stagger > 0 else None
+    support = 0.0
+    support_limit = math.inf
+    if cfg.mcp_support_m:
+        support = float(cfg.mcp_support_m) / _metres_per_line(camera, n_lines)
+        # sinc(x) = 0.8 at x = 1.1311: a template of T seconds measures a sinusoid at
+        # f = 1.1311 / (pi T) = 0.360 / T at 80 % of its amplitude.
+        support_limit = 0.360 / (support * period)
     return JitterResolution(
         line_period_s=period,
         node_spacing_lines=spacing,
@@ -300,11 +314,21 @@ def resolution_limit(camera: LineScanCamera, lines: F64, cfg: JitterConfig) -> J
         mcp_gap_lines=g95,
         max_gap_lines=float(gaps[-1]) if gaps.size else float(n_lines),
         mcp_limit_hz=mcp_limit,
+        support_lines=support,
+        support_limit_hz=support_limit,
         band_hz=float(cfg.max_frequency_hz),
         stagger_lines=float(stagger),
         stagger_blind_hz=blind,
-        limit_hz=float(min(node_limit, mcp_limit, cfg.max_frequency_hz)),
+        limit_hz=float(min(node_limit, mcp_limit, support_limit, cfg.max_frequency_hz)),
     )
+
+
+def _metres_per_line(camera: LineScanCamera, n_lines: int) -> float:
+    """Along-track ground distance of one line at the middle CCD's centre (m)."""
+    mid = camera.ccds[len(camera.ccds) // 2]
+    lines = np.array([0.25, 0.75]) * n_lines
+    g = camera.image_to_ground(lines, np.full(2, 0.5 * mid.n_samples), 0.0, ccd=mid.name)
+    return float(np.linalg.norm(g[1] - g[0]) / (lines[1] - lines[0]))
 
 
 @dataclass(frozen=True)

@@ -435,6 +435,7 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
         reference_gsd_m(job.ref),
         mcp_overlap(job, [table]),
     )
+    adjust_cfg = with_mcp_support(job, adjust_cfg)
     t0, c0 = job.clock()
     result = adjust(network, adjust_cfg)
     job.charge("adjustment", t0, c0)
@@ -481,6 +482,22 @@ def _adjust_strip(job: StripJob, prep: StripMcps) -> dict[str, Any]:
     job.charge("outputs", t0, c0)
     out["_residuals"] = (result.residual, result.inlier)
     return out
+
+
+def with_mcp_support(job: StripJob, adjust_cfg: Any) -> Any:
+    """The jitter stage's ``mcp_support_m`` from the fine matcher's template, if unset."""
+    jit = adjust_cfg.jitter
+    if not jit.enabled or jit.mcp_support_m is not None:
+        return adjust_cfg
+    fine = job.matchers.fine
+    support = template_support_m(
+        fine.name, fine.options, job.cfg.frontend.fine_upsample, reference_gsd_m(job.ref)
+    )
+    if support is None:
+        return adjust_cfg
+    return adjust_cfg.model_copy(
+        update={"jitter": jit.model_copy(update={"mcp_support_m": support})}
+    )
 
 
 def mcp_overlap(job: StripJob, tables: list[Any]) -> float:
@@ -539,6 +556,7 @@ def _adjust_together(
         reference_gsd_m(job.ref),
         mcp_overlap(job, [p.table for p in preps]),
     )
+    adjust_cfg = with_mcp_support(job, adjust_cfg)
     t0, c0 = job.clock()
     result = adjust(network, adjust_cfg)
     job.charge("adjustment", t0, c0)
