@@ -216,9 +216,13 @@ def true_jitter(series: JitterSeries, dense: LineScanCamera, truth: LineScanCame
 
     What the stage should find: the estimate minus its true error, ``w_est -
     line_of_sight_difference(truth, dense)`` (small angles add), so attitude errors that
-    only compensate position errors cancel as in the image.
+    only compensate position errors cancel as in the image. Yaw is NaN: the centre
+    pixel does not see it, and the seed's yaw (barely observable on a narrow swath)
+    may wander by far more than any jitter.
     """
-    return np.asarray(series.angles_rad - line_of_sight_difference(truth, dense, series.line))
+    out = np.asarray(series.angles_rad - line_of_sight_difference(truth, dense, series.line))
+    out[:, 2] = np.nan
+    return out
 
 
 def _vee(d: F64) -> F64:

@@ -193,7 +193,8 @@ def write_jitter_csv(
 
     Columns ``camera_id, time_s, line, roll_urad, pitch_urad, yaw_urad,
     sigma_roll_urad, sigma_pitch_urad, sigma_yaw_urad`` and, with a truth, ``true_roll_urad,
-    true_pitch_urad, true_yaw_urad`` (the truth's pointing relative to the seed).
+    true_pitch_urad, true_yaw_urad`` (the truth's pointing relative to the seed; yaw
+    empty, see :func:`~planetref.adjust.jitter.true_jitter`).
     """
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -212,7 +213,11 @@ def write_jitter_csv(
             row += [f"{v * 1e6:.4f}" for v in s.angles_rad[i]]
             row += [f"{v * 1e6:.4f}" for v in s.sigma_rad[i]]
             if has_truth:
-                row += [f"{v * 1e6:.4f}" for v in tru[i]] if tru is not None else ["", "", ""]
+                row += (
+                    ["" if not math.isfinite(v) else f"{v * 1e6:.4f}" for v in tru[i]]
+                    if tru is not None
+                    else ["", "", ""]
+                )
             w.writerow(row)
     return write_text_atomic(path, buf.getvalue())
 

@@ -498,7 +498,9 @@ def figure_jitter(
         jitter_urad: Estimated roll, pitch, yaw (urad), ``(m, 3)``.
         sigma_urad: Their formal sigmas (urad), ``(m, 3)``.
         path: Output PNG.
-        truth_urad: The true jitter relative to the seed (urad), ``(m, 3)``, or ``None``.
+        truth_urad: The truth's pointing relative to the seed (urad), ``(m, 3)``, or
+            ``None``; drawn less its quadratic trend (the seed's smooth error), axes
+            with NaN not drawn.
         limit_hz: The resolution limit, drawn on the spectra.
         title: Figure title.
         dpi: Resolution.
@@ -526,9 +528,13 @@ def figure_jitter(
                         color="tab:blue", alpha=0.2, lw=0, label="2 sigma (formal)")  # fmt: skip
         ax.plot(t, est[:, k], color="tab:blue", lw=1.2, label="estimated")
         sp.plot(freq, spectrum(est[:, k]), color="tab:blue", lw=1.2, label="estimated")
-        if tru is not None:
-            ax.plot(t, tru[:, k], color="black", lw=0.9, ls="--", label="truth")
-            sp.plot(freq, spectrum(tru[:, k]), color="black", lw=0.9, ls="--", label="truth")
+        if tru is not None and np.all(np.isfinite(tru[:, k])):
+            # The truth relative to the node model holds the node model's own smooth
+            # error too; its quadratic trend is taken out to show the jitter.
+            base = np.stack([(t - t.mean()) ** q for q in range(3)], 1)
+            y = tru[:, k] - base @ np.linalg.lstsq(base, tru[:, k], rcond=None)[0]
+            ax.plot(t, y, color="black", lw=0.9, ls="--", label="truth (trend removed)")
+            sp.plot(freq, spectrum(y), color="black", lw=0.9, ls="--", label="truth")
         if limit_hz is not None and math.isfinite(limit_hz):
             sp.axvline(limit_hz, color="tab:red", lw=0.8, label="resolution limit")
         ax.set_ylabel(f"{name} (urad)")
