@@ -113,8 +113,14 @@ def fit_components(t: np.ndarray, y: np.ndarray, freqs: list[float]) -> list[tup
     ]
 
 
-def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str, Any]]:
-    """Adjust a run's MCPs with and without the jitter stage; compare with the truth."""
+def measure(
+    scene: Path, run_dir: Path, cfg: Any, matcher: str, figure: Path | None = None
+) -> list[dict[str, Any]]:
+    """Adjust a run's MCPs with and without the jitter stage; compare with the truth.
+
+    ``figure``: also draw the jitter figure (estimate and truth) of each strip there
+    (``<figure stem>_<strip>.png``).
+    """
     from planetref.adjust.api import adjust
     from planetref.adjust.jitter import line_of_sight_difference
     from planetref.control.ground_sigma import reference_gsd_m
@@ -229,6 +235,19 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
             )
             series_camera = forced.cameras[strip.id]
             series = forced.jitter[strip.id]
+        if figure is not None:
+            from planetref.adjust.jitter import true_jitter
+            from planetref.report.figures_adjust import figure_jitter
+
+            figure_jitter(
+                series.time_s,
+                series.angles_rad * 1e6,
+                series.sigma_rad * 1e6,
+                figure.with_name(f"{figure.stem}_{strip.id}.png"),
+                truth_urad=true_jitter(series, series_camera, truth) * 1e6,
+                limit_hz=series.resolution.limit_hz,
+                title=f"{scene.name}, {matcher}, {strip.id}: estimated jitter and the truth",
+            )
         err_dense = line_of_sight_difference(truth, series_camera, lines)
         err_seed = line_of_sight_difference(truth, seed.cameras[strip.id], lines)
         limit = series.resolution.limit_hz
@@ -309,6 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", default="bench_jitter_runs")
     parser.add_argument("--set", dest="sets", action="append", default=[])
     parser.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
+    parser.add_argument("--figure", help="draw each run's jitter figure (PNG path stem)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     from planetref.errors import PlanetrefError
@@ -323,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
         scene = _scene(runs, spec)
         for matcher in args.matchers:
             run_dir = runs / f"{scene.name}-{matcher}"
-            row: dict[str, Any] = {"scene": spec, "matcher": matcher}
+            row: dict[str, Any] = {"scene": scene.name, "matcher": matcher}
             try:
                 if not (run_dir / "report.json").is_file():
                     run_georef(
@@ -334,7 +354,14 @@ def main(argv: list[str] | None = None) -> int:
                         progress=False,
                         overwrite=True,
                     )
-                strips = measure(scene, run_dir, cfg, matcher)
+                fig = (
+                    Path(args.figure).with_name(
+                        f"{Path(args.figure).stem}_{scene.name}_{matcher}.png"
+                    )
+                    if args.figure
+                    else None
+                )
+                strips = measure(scene, run_dir, cfg, matcher, fig)
             except PlanetrefError as exc:
                 out.append(row | {"failed": str(exc)})
                 continue
