@@ -18,7 +18,9 @@ It prints per strip:
   the true component (``error_urad_*``: the error's amplitude at that frequency);
   ``below_limit`` says whether the component lies below the reported resolution limit;
 * ``true_m``: the RMS ground error against the true camera (the pipeline's true-error
-  metric), without and with the jitter stage, and the change in per cent;
+  metric), without and with the jitter stage, and the change in per cent; when the
+  stage's check rule rejects the dense solution, also that solution's
+  (``true_m_jitter_not_kept``);
 * ``formal_urad`` / ``true_urad``: the estimated jitter's formal sigma and its true error
   (the pointing error after the stage, a quadratic removed), roll and pitch.
 
@@ -235,6 +237,12 @@ def measure(
             )
             series_camera = forced.cameras[strip.id]
             series = forced.jitter[strip.id]
+            row["true_m_jitter_not_kept"] = check_block(forced, {strip.id: truth}, terrain)[
+                "geoloc_rmse_m"
+            ]
+            row["true_change_pct_not_kept"] = (
+                100.0 * (row["true_m_jitter_not_kept"] - true_seed) / true_seed
+            )
         if figure is not None:
             from planetref.adjust.jitter import true_jitter
             from planetref.report.figures_adjust import figure_jitter
