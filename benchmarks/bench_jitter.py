@@ -215,6 +215,21 @@ def measure(
             "adjust_cpu_s_jitter": cpu_dense,
             "components": [],
         }
+        series_camera = dense.cameras[strip.id]
+        if series is None and summary.get("kept") is False:
+            # The check rule kept the node model: measure the dense solution anyway.
+            forced = adjust(
+                network,
+                jitter_cfg.model_copy(update={"jitter": jit.model_copy(update={"keep": "always"})}),
+            )
+            series_camera = forced.cameras[strip.id]
+            series = forced.jitter[strip.id]
+            row["true_m_jitter_not_kept"] = check_block(forced, {strip.id: truth}, terrain)[
+                "geoloc_rmse_m"
+            ]
+            row["true_change_pct_not_kept"] = (
+                100.0 * (row["true_m_jitter_not_kept"] - true_seed) / true_seed
+            )
         if series is None:
             rows.append(row)
             continue
@@ -227,21 +242,6 @@ def measure(
                 c["amplitude_urad"]
                 * 1e-6
                 * np.sin(2 * np.pi * c["frequency_hz"] * t_true + c["phase_rad"])
-            )
-        # The dense camera as built, kept or not (the stage's own estimate).
-        dense_cam = series_camera = dense.cameras[strip.id]
-        if not summary.get("kept", True):
-            forced = adjust(
-                network,
-                jitter_cfg.model_copy(update={"jitter": jit.model_copy(update={"keep": "always"})}),
-            )
-            series_camera = forced.cameras[strip.id]
-            series = forced.jitter[strip.id]
-            row["true_m_jitter_not_kept"] = check_block(forced, {strip.id: truth}, terrain)[
-                "geoloc_rmse_m"
-            ]
-            row["true_change_pct_not_kept"] = (
-                100.0 * (row["true_m_jitter_not_kept"] - true_seed) / true_seed
             )
         if figure is not None:
             from planetref.adjust.jitter import true_jitter
@@ -299,7 +299,6 @@ def measure(
             row[f"formal_urad_{AXES[axis]}"] = float(
                 np.sqrt(np.mean(series.sigma_rad[:, axis] ** 2)) * 1e6
             )
-        del dense_cam
         rows.append(row)
     return rows
 
