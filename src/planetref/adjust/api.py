@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,14 @@ from planetref.adjust.evaluation import (
     reprojection_blocks,
     round_summary,
 )
-from planetref.adjust.models import parameterize
+from planetref.adjust.jitter import (
+    JitterParameterization,
+    dense_cameras,
+    jitter_config,
+    jitter_series,
+    replace_cameras,
+)
+from planetref.adjust.models import AdjustableCamera, parameterize
 from planetref.adjust.outliers import classify_inliers, robust_scale, supported
 from planetref.adjust.rays import rays, triangulate
 from planetref.adjust.result import STATUSES, AdjustmentResult
@@ -78,7 +86,102 @@ def adjust(
         result = _adjust(network, cfg, progress)
         if cfg.diagnostics.check_self_calibration and _self_calibrating(cfg):
             _check_self_calibration(result, network, cfg)
+        if cfg.jitter.enabled:
+            result = _jitter_stage(network, result, cfg, progress)
         return result
+
+
+def _jitter_stage(
+    network: Network,
+    seed: AdjustmentResult,
+    cfg: AdjustConfig,
+    progress: Callable[[str], None] | None,
+) -> AdjustmentResult:
+    """Adjust the seed's line-scan strips again on dense attitude nodes (see jitter.py).
+
+    The result is the dense stage's, with the seed's ``before`` metrics (the initial
+    cameras'), its initial cameras, the estimated jitter per strip
+    (``jitter``, summaries in ``diagnostics["jitter"]``) and the seed's headline numbers
+    (``diagnostics["jitter_seed"]``).
+    """
+    dense = dense_cameras(seed.cameras, cfg)
+    if all(dense[c] is seed.cameras[c] for c in dense):
+        return seed
+    net = replace_cameras(network, dense)
+    dcfg = jitter_config(cfg)
+
+    def model(cid: str, cam: Any, c: AdjustConfig) -> AdjustableCamera:
+        if cam is dense[cid] and cam is not seed.cameras[cid]:
+            return JitterParameterization(
+                cid, cam, c.linescan, cfg.jitter, fixed=cid in c.fixed_cameras
+            )
+        return parameterize(cid, cam, c)
+
+    if progress is not None:
+        progress("jitter stage: dense attitude nodes")
+    res = _adjust(net, dcfg, progress, parameterizer=model)
+    series = {}
+    offsets = np.cumsum([0] + [len(m.x0) for m in res.models])
+    for i, m in enumerate(res.models):
+        if not isinstance(m, JitterParameterization):
+            continue
+        s = slice(offsets[i], offsets[i + 1])
+        mine = res.inlier & (network.obs_camera == i)
+        series[m.camera_id] = jitter_series(
+            m,
+            seed.cameras[m.camera_id],
+            res.x[s],
+            res.covariance[s, s],
+            network.obs_line[mine],
+            cfg.jitter,
+        )
+    # Never hurts: with held-out check observations, the dense solution is kept only
+    # when they fit it better than the seed's (a jitter-free strip then stays as it was).
+    chk_seed = (seed.metrics.get("check") or {}).get("after") or {}
+    chk_dense = (res.metrics.get("check") or {}).get("after") or {}
+    if (
+        cfg.jitter.keep == "if_check_improves"
+        and chk_seed.get("n")
+        and chk_dense.get("n")
+        and not chk_dense["rms_px"] < chk_seed["rms_px"]
+    ):
+        msg = (
+            f"jitter stage not kept: the held-out check observations fit it no better "
+            f"({chk_seed['rms_px']:.4g} -> {chk_dense['rms_px']:.4g} px); the node model's "
+            f"solution is the result"
+        )
+        log.warning(msg)
+        diag = dict(seed.diagnostics)
+        diag["jitter"] = {cid: j.summary() | {"kept": False} for cid, j in series.items()}
+        return replace(seed, diagnostics=diag, warnings=[*seed.warnings, msg])
+    metrics = _with_before(res.metrics, seed.metrics)
+    diag = dict(res.diagnostics)
+    diag["jitter"] = {cid: j.summary() | {"kept": True} for cid, j in series.items()}
+    diag["jitter_seed"] = seed.summary()
+    return replace(
+        res,
+        network=network,
+        config=cfg,
+        cameras_initial=seed.cameras_initial,
+        metrics=metrics,
+        diagnostics=diag,
+        warnings=seed.warnings + res.warnings,
+        seconds=seed.seconds + res.seconds,
+        jitter=series,
+    )
+
+
+def _with_before(after: dict[str, Any], seed: dict[str, Any]) -> dict[str, Any]:
+    """``after`` with the ``before``/``before_all`` blocks of ``seed`` (same layout)."""
+    out: dict[str, Any] = {}
+    for key, value in after.items():
+        if key in ("before", "before_all") and key in seed:
+            out[key] = seed[key]
+        elif isinstance(value, dict) and isinstance(seed.get(key), dict):
+            out[key] = _with_before(value, seed[key])
+        else:
+            out[key] = value
+    return out
 
 
 def _self_calibrating(cfg: AdjustConfig) -> bool:
@@ -146,6 +249,8 @@ def _adjust(
     network: Network,
     cfg: AdjustConfig,
     progress: Callable[[str], None] | None,
+    *,
+    parameterizer: Callable[[str, Any, AdjustConfig], AdjustableCamera] = parameterize,
 ) -> AdjustmentResult:
     t0 = time.perf_counter()
     net = network
@@ -156,7 +261,7 @@ def _adjust(
         log.warning(msg)
 
     models = [
-        parameterize(cid, cam, cfg) for cid, cam in zip(net.camera_ids, net.cameras, strict=True)
+        parameterizer(cid, cam, cfg) for cid, cam in zip(net.camera_ids, net.cameras, strict=True)
     ]
     initial_cams = list(net.cameras)
     m_all = net.n_obs

@@ -41,6 +41,7 @@ __all__ = [
     "DiagnosticsConfig",
     "FocalLengthBlock",
     "InteriorBlock",
+    "JitterConfig",
     "LengthBlock",
     "LineScanParameters",
     "Mode",
@@ -542,6 +543,54 @@ class SystematicConfig(Settings):
         )
 
 
+class JitterConfig(Settings):
+    """The jitter stage: high-frequency attitude on dense nodes after the seed's adjustment.
+
+    Native line-scan strips are re-sampled on nodes ``node_spacing_lines`` apart and their
+    attitudes adjusted again (positions, interior and CCD placement held at the seed's
+    solution) under a smoothness prior derived from the declared jitter: each attitude
+    correction is weighted towards the seed with ``amplitude_rad``, and its second
+    difference over three nodes with ``smoothness_sigma_rad`` (by default
+    ``amplitude_rad * 4 sin^2(pi max_frequency_hz dt)``, ``dt`` the node spacing in
+    seconds: the second difference of a sinusoid of that amplitude at the band's edge).
+    See :mod:`planetref.adjust.jitter` and docs/adjust.md ("Jitter").
+
+    Attributes:
+        enabled: Run the stage (off by default).
+        node_spacing_lines: Line spacing of the dense nodes (lines).
+        amplitude_rad: Declared jitter amplitude per axis (radians; e.g. ``"5 urad"``).
+        max_frequency_hz: Upper edge of the jitter band (Hz) the prior lets through.
+        smoothness_sigma_rad: Sigma of the second difference of an attitude correction
+            over consecutive nodes (radians); ``None``: derived as above.
+        mcp_support_m: Ground size (m) of the pixels one MCP is computed from (an area
+            matcher's template; ``georef`` sets it from the matcher); ``None``: point
+            measurements. A template averages the jitter over its along-track extent
+            ``L``: a sinusoid of frequency ``f`` is measured ``sinc(pi f L / v)`` times
+            its amplitude (``v`` the ground speed), which bounds the resolution limit.
+        keep: ``if_check_improves`` (default): keep the dense solution only when the
+            held-out check observations fit it better than the seed's (otherwise the
+            seed's solution is the result, with a warning); ``always``.
+    """
+
+    enabled: bool = False
+    node_spacing_lines: int = Field(32, ge=2)
+    amplitude_rad: Radians = 5e-6
+    max_frequency_hz: float = Field(20.0, gt=0.0)
+    smoothness_sigma_rad: Radians = None
+    mcp_support_m: Metres = None
+    keep: Literal["if_check_improves", "always"] = "if_check_improves"
+
+    @model_validator(mode="after")
+    def _check(self) -> JitterConfig:
+        for name in ("amplitude_rad", "smoothness_sigma_rad", "mcp_support_m"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
+        if self.amplitude_rad is None:
+            raise ValueError("amplitude_rad is required")
+        return self
+
+
 class AdjustConfig(Settings):
     """Everything the adjustment can be told.
 
@@ -556,6 +605,7 @@ class AdjustConfig(Settings):
         variance: Variance component estimation.
         diagnostics: Thresholds of the datum and estimability warnings.
         systematic: Correlated errors taken into the covariance (consider parameters).
+        jitter: The jitter stage (dense attitude nodes after the seed's adjustment).
     """
 
     linescan: LineScanParameters = LineScanParameters()
@@ -568,6 +618,7 @@ class AdjustConfig(Settings):
     variance: VarianceConfig = VarianceConfig()
     diagnostics: DiagnosticsConfig = DiagnosticsConfig()
     systematic: SystematicConfig = SystematicConfig()
+    jitter: JitterConfig = JitterConfig()
 
 
 def validate_config(data: Any, *, source: str | None = None) -> AdjustConfig:

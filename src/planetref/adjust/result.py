@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig
 from planetref.adjust.consider import ConsiderTerms
+from planetref.adjust.jitter import JitterSeries
 from planetref.adjust.models import AdjustableCamera
 from planetref.control.network import Network
 
@@ -65,6 +66,8 @@ class AdjustmentResult:
         converged: The last LM run converged and the inlier set is stable.
         warnings: Messages about auto-weighted groups, unusable points, instability.
         seconds: Wall time of the adjustment.
+        jitter: Strip id -> estimated jitter of the jitter stage
+            (:class:`~planetref.adjust.jitter.JitterSeries`); empty without it.
     """
 
     network: Network
@@ -97,6 +100,7 @@ class AdjustmentResult:
     converged: bool = False
     warnings: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    jitter: dict[str, JitterSeries] = field(default_factory=dict)
 
     @property
     def inlier(self) -> NDArray[np.bool_]:

@@ -60,6 +60,7 @@ from planetref.pipeline.georef_outputs import (
     camera_isds,
     campaign_points,
     control_exports,
+    figure_jitter,
     figure_residuals,
     figures_matching,
     isd_files,
@@ -105,6 +106,7 @@ from planetref.scene.inputs import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
+    from planetref.adjust.config import AdjustConfig
     from planetref.adjust.result import AdjustmentResult
     from planetref.camera.base import Camera
     from planetref.control.network import Network
@@ -530,6 +532,7 @@ def _adjust_strip(
         reference_gsd_m(job.ref),
         mcp_overlap(job, [prep.mcps]),
     )
+    adjust_cfg = with_mcp_support(job, adjust_cfg)
     t0, c0 = job.clock()
     result, _ = solve_or_reload(run, (prep.id, "adjustment"), network, adjust_cfg, adjust)
     job.charge("adjustment", t0, c0)
@@ -576,6 +579,7 @@ def _adjust_strip(
             )
         with part_timed(job.timing, "figures"):  # drawn while the orthoimages are written
             figure_residuals(job, prep.id, result, prep.sizes)
+            figure_jitter(job, prep.id, result, truth)
         if cfg.ortho.enabled:
             with part_timed(job.timing, "orthoimages"):
                 products.ortho = orthoimages(job, prep.id, camera, prep.images)
@@ -599,6 +603,22 @@ def overlap_rmse(
         "rmse_px": rmse_px(result.residual[on & result.inlier]),
         "n_inlier_observations": int(np.count_nonzero(on & result.inlier)),
     }
+
+
+def with_mcp_support(job: StripJob, adjust_cfg: AdjustConfig) -> AdjustConfig:
+    """The jitter stage's ``mcp_support_m`` from the fine matcher's template, if unset."""
+    jit = adjust_cfg.jitter
+    if not jit.enabled or jit.mcp_support_m is not None:
+        return adjust_cfg
+    fine = job.matchers.fine
+    support = template_support_m(
+        fine.name, fine.options, job.cfg.frontend.fine_upsample, reference_gsd_m(job.ref)
+    )
+    if support is None:
+        return adjust_cfg
+    return adjust_cfg.model_copy(
+        update={"jitter": jit.model_copy(update={"mcp_support_m": support})}
+    )
 
 
 def mcp_overlap(job: StripJob, mcps: list[McpSet]) -> float:
@@ -664,6 +684,7 @@ def _adjust_together(
         reference_gsd_m(job.ref),
         mcp_overlap(job, [p.mcps for p in preps]),
     )
+    adjust_cfg = with_mcp_support(job, adjust_cfg)
     t0, c0 = job.clock()
     result, _ = solve_or_reload(run, ("campaign", "adjustment"), network, adjust_cfg, adjust)
     job.charge("adjustment", t0, c0)
@@ -710,6 +731,7 @@ def _adjust_together(
             products.ccd_overlap = str(_overlap_file(job, p.id))
         products.isd = camera_isds(job, p.id, result.cameras[p.id])
         figure_residuals(job, p.id, result, p.sizes, ci)
+        figure_jitter(job, p.id, result, truth)
         if cfg.ortho.enabled:
             products.ortho = orthoimages(job, p.id, result.cameras[p.id], p.images)
         strips[p.id] = StripOutcome(report, products, result.residual[on], result.inlier[on])

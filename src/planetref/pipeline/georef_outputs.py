@@ -32,6 +32,7 @@ __all__ = [
     "camera_isds",
     "campaign_points",
     "control_exports",
+    "figure_jitter",
     "figure_residuals",
     "figures_matching",
     "isd_files",
@@ -329,6 +330,29 @@ def figures_matching(
         run.file("figures", f"{strip}_tile_matches.png"),
         title=f"{matches.matcher}, {strip}: tiles with the most, the median and the "
         "fewest verified matches (rows); coarse and fine stage (columns)",
+    )
+
+
+def figure_jitter(job: StripJob, strip: str, result: Any, truth: dict[str, Any] | None) -> None:
+    """figures/<strip>_jitter.png: the jitter stage's estimate (and the truth's), if any."""
+    series = result.jitter.get(strip)
+    if series is None:
+        return
+    from planetref.report.adjustment import jitter_truth
+    from planetref.report.figures_adjust import figure_jitter as draw
+
+    tru = jitter_truth(result, strip, truth)
+    job.figures.submit(
+        f"{strip}_jitter",
+        draw,
+        series.time_s,
+        series.angles_rad * 1e6,
+        series.sigma_rad * 1e6,
+        job.run.file("figures", f"{strip}_jitter.png"),
+        truth_urad=None if tru is None else tru * 1e6,
+        limit_hz=series.resolution.limit_hz,
+        title=f"{strip}: estimated jitter (dense nodes minus the node model)"
+        + (" and the truth" if tru is not None else ""),
     )
 
 

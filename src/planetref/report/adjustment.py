@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from planetref.adjust.jitter import true_jitter
 from planetref.adjust.metrics import geolocation_error
 from planetref.adjust.network_file import safe_name
 from planetref.adjust.result import AdjustmentResult
@@ -126,6 +127,8 @@ def write_outputs(
     written["residuals"] = str(_write_residuals(result, out / "residuals.csv"))
     written["points"] = str(write_points(result, out / "points.csv"))
     written["parameters"] = str(_write_parameters(result, out / "parameters.csv"))
+    if result.jitter:
+        written["jitter"] = str(write_jitter_csv(result, out / "jitter.csv", truth))
     buf = io.BytesIO()
     np.savez_compressed(
         buf,
@@ -173,6 +176,50 @@ def write_outputs(
         write_text_atomic(out / "report.md", report_md(result, geo, rpc_reports, notes))
     )
     return written
+
+
+def jitter_truth(result: AdjustmentResult, cid: str, truth: Mapping[str, Any] | None) -> Any:
+    """The true jitter of strip ``cid`` relative to the seed (rad, ``(m, 3)``), or None."""
+    cam = (truth or {}).get(cid)
+    if not isinstance(cam, LineScanCamera) or cid not in result.jitter:
+        return None
+    return true_jitter(result.jitter[cid], result.cameras[cid], cam)
+
+
+def write_jitter_csv(
+    result: AdjustmentResult, path: Path, truth: Mapping[str, Any] | None = None
+) -> Path:
+    """jitter.csv: the estimated jitter per strip and node, with formal sigmas (urad).
+
+    Columns ``camera_id, time_s, line, roll_urad, pitch_urad, yaw_urad,
+    sigma_roll_urad, sigma_pitch_urad, sigma_yaw_urad`` and, with a truth, ``true_roll_urad,
+    true_pitch_urad, true_yaw_urad`` (the truth's pointing relative to the seed; yaw
+    empty, see :func:`~planetref.adjust.jitter.true_jitter`).
+    """
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    axes = ("roll", "pitch", "yaw")
+    has_truth = any(jitter_truth(result, c, truth) is not None for c in result.jitter)
+    w.writerow(
+        ["camera_id", "time_s", "line"]
+        + [f"{a}_urad" for a in axes]
+        + [f"sigma_{a}_urad" for a in axes]
+        + ([f"true_{a}_urad" for a in axes] if has_truth else [])
+    )
+    for cid, s in result.jitter.items():
+        tru = jitter_truth(result, cid, truth)
+        for i in range(len(s.line)):
+            row = [cid, f"{s.time_s[i]:.6f}", f"{s.line[i]:.1f}"]
+            row += [f"{v * 1e6:.4f}" for v in s.angles_rad[i]]
+            row += [f"{v * 1e6:.4f}" for v in s.sigma_rad[i]]
+            if has_truth:
+                row += (
+                    ["" if not math.isfinite(v) else f"{v * 1e6:.4f}" for v in tru[i]]
+                    if tru is not None
+                    else ["", "", ""]
+                )
+            w.writerow(row)
+    return write_text_atomic(path, buf.getvalue())
 
 
 def _write_residuals(result: AdjustmentResult, path: Path) -> Path:
@@ -530,6 +577,7 @@ def _report_dict(
         },
         "correlation_check": result.diagnostics.get("correlations", {}),
         "self_calibration": result.diagnostics.get("self_calibration", []),
+        "jitter": result.diagnostics.get("jitter"),
         "rounds": result.rounds,
         "warnings": result.warnings,
         "rpc_fits": rpc,

@@ -37,6 +37,7 @@ __all__ = [
     "PATTERN_MIN_C",
     "ResidualPattern",
     "figure_headline",
+    "figure_jitter",
     "figure_residual_vectors",
     "residual_pattern",
 ]
@@ -476,4 +477,74 @@ def figure_headline(
         frameon=False,
     )
     fig.suptitle(f"Matcher comparison{': ' + scene if scene else ''}", fontsize=11)
+    return save(fig, path, dpi)
+
+
+def figure_jitter(
+    time_s: ArrayLike,
+    jitter_urad: ArrayLike,
+    sigma_urad: ArrayLike,
+    path: str | os.PathLike[str],
+    *,
+    truth_urad: ArrayLike | None = None,
+    limit_hz: float | None = None,
+    title: str = "",
+    dpi: int = 110,
+) -> Path:
+    """The estimated jitter per axis: time series (with 2 sigma) and amplitude spectrum.
+
+    Args:
+        time_s: Times of the dense nodes (s), ``(m,)``, evenly spaced.
+        jitter_urad: Estimated roll, pitch, yaw (urad), ``(m, 3)``.
+        sigma_urad: Their formal sigmas (urad), ``(m, 3)``.
+        path: Output PNG.
+        truth_urad: The truth's pointing relative to the seed (urad), ``(m, 3)``, or
+            ``None``; drawn less its quadratic trend (the seed's smooth error), axes
+            with NaN not drawn.
+        limit_hz: The resolution limit, drawn on the spectra.
+        title: Figure title.
+        dpi: Resolution.
+    """
+    from matplotlib.figure import Figure
+
+    t = np.asarray(time_s, float)
+    est = np.asarray(jitter_urad, float)
+    sig = np.asarray(sigma_urad, float)
+    tru = None if truth_urad is None else np.asarray(truth_urad, float)
+    fig = Figure(figsize=(10.0, 7.0), layout="constrained")
+    axes = fig.subplots(3, 2, width_ratios=(2.2, 1.0))
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    freq = np.fft.rfftfreq(len(t), dt)
+
+    def spectrum(y: np.ndarray) -> np.ndarray:
+        # Single-sided amplitude of a Hann-windowed series (a sinusoid of amplitude A
+        # peaks near A).
+        w = np.hanning(len(y))
+        return np.asarray(2.0 * np.abs(np.fft.rfft((y - y.mean()) * w)) / w.sum())
+
+    for k, name in enumerate(("roll", "pitch", "yaw")):
+        ax, sp = axes[k]
+        ax.fill_between(t, est[:, k] - 2 * sig[:, k], est[:, k] + 2 * sig[:, k],
+                        color="tab:blue", alpha=0.2, lw=0, label="2 sigma (formal)")  # fmt: skip
+        ax.plot(t, est[:, k], color="tab:blue", lw=1.2, label="estimated")
+        sp.plot(freq, spectrum(est[:, k]), color="tab:blue", lw=1.2, label="estimated")
+        if tru is not None and np.all(np.isfinite(tru[:, k])):
+            # The truth relative to the node model holds the node model's own smooth
+            # error too; its quadratic trend is taken out to show the jitter.
+            base = np.stack([(t - t.mean()) ** q for q in range(3)], 1)
+            y = tru[:, k] - base @ np.linalg.lstsq(base, tru[:, k], rcond=None)[0]
+            ax.plot(t, y, color="black", lw=0.9, ls="--", label="truth (trend removed)")
+            sp.plot(freq, spectrum(y), color="black", lw=0.9, ls="--", label="truth")
+        if limit_hz is not None and math.isfinite(limit_hz):
+            sp.axvline(limit_hz, color="tab:red", lw=0.8, label="resolution limit")
+        ax.set_ylabel(f"{name} (urad)")
+        sp.set_ylabel("amplitude (urad)")
+        ax.grid(alpha=0.3)
+        sp.grid(alpha=0.3)
+    axes[2][0].set_xlabel("time (s)")
+    axes[2][1].set_xlabel("frequency (Hz)")
+    axes[0][0].legend(fontsize=7, loc="upper right")
+    axes[0][1].legend(fontsize=7, loc="upper right")
+    if title:
+        fig.suptitle(title)
     return save(fig, path, dpi)

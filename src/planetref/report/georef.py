@@ -437,4 +437,7 @@ _RUN_FIGURES = {
     "matches, coarse and fine stage side by side (green: kept, red: rejected)",
     "mcp_distribution": "MCP distribution per CCD in image coordinates with the SDU grid",
     "residuals": "residual vectors after the adjustment per CCD (black: check points)",
+    "jitter": "jitter stage: estimated roll, pitch, yaw (dense attitude nodes minus the node "
+    "model) with 2 sigma, and their amplitude spectra; dashed: the truth's pointing relative "
+    "to the node model; red: the resolution limit",
 }
