@@ -23,7 +23,10 @@ and keypoints per image, and the tile's status, matches and inliers.
 
 ``--variants NAME=JSON ...`` runs each matcher once per option set (registry options
 merged over the run's own, e.g. ``k2048='{"max_keypoints": 2048}'``) on the same tiles in
-the same run, so that their CPU seconds compare as ratios.
+the same run, so that their CPU seconds compare as ratios. The option ``"_kornia_cross":
+true`` puts kornia's own LightGlue cross-attention back (planetref fuses its two
+directions, :func:`planetref.matching._torch.fused_cross_block`): the way before, e.g.
+``--variants kornia='{"_kornia_cross": true}' fused='{}'``.
 
 Usage::
 
@@ -105,8 +108,14 @@ def profile(
 
     gsd = float(np.mean(scene["ref"].ground_sampling_m()))
     fine_opts, _ = matcher_options(name, {}, cfg, gsd)
-    m = get_matcher(name, **{**fine_opts, **options})
+    opts = dict(options)
+    kornia_cross = bool(opts.pop("_kornia_cross", False))
+    m = get_matcher(name, **{**fine_opts, **opts})
     m.build()
+    if kornia_cross and hasattr(m, "_extract_batch"):
+        # the way before: kornia's own CrossBlock (the M x N matrix on the CPU)
+        for layer in m._model["matcher"].transformers:
+            layer.cross_attn.__class__ = type(layer.cross_attn).__mro__[1]
     acc: dict[str, float] = {}
     layers: list[tuple[int, int, int]] = []
     _instrument(m, acc, layers)
