@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{preset}: simulation {sim['cpu_s']:.0f} CPU-s, {sim['wall_s']:.0f} s (apart)")  # type: ignore[index]
     if args.json_out:
         record = result_record(
-            "bench_demo",
+            Path(args.json_out).stem,
             figures,
             title="planetref demo: CPU seconds and wall per matcher",
             machine=machine,
