@@ -197,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     from bench_frontend import load
     from machine import describe, result_record, write_result
 
+    from planetref.errors import PlanetrefError
     from planetref.frontend.config import FrontendConfig
     from planetref.frontend.tiles import plan_tiles
     from planetref.matching.registry import MATCHERS
@@ -223,7 +224,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"skipped {name}: no weights", file=sys.stderr)
             continue
         for vname, opts in variants.items():
-            r = profile(name, opts, scene, cfg, tiles, args.threads)
+            try:
+                r = profile(name, opts, scene, cfg, tiles, args.threads)
+            except PlanetrefError as exc:  # e.g. max_keypoints for XFeat*
+                print(f"skipped {name} {vname}: {exc}", file=sys.stderr)
+                continue
             r["variant"] = vname
             results.append(r)
             p = r["per_tile"]
