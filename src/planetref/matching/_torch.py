@@ -202,7 +202,9 @@ def _fused_cross_forward(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``forward`` of kornia's ``CrossBlock`` with both directions fused off CUDA."""
     if mask is not None or x0.device.type == "cuda":
-        return super(type(self), self).forward(x0, x1, mask)  # type: ignore[no-any-return]
+        from kornia.feature.lightglue import CrossBlock
+
+        return CrossBlock.forward(self, x0, x1, mask)  # type: ignore[no-any-return]
     qk0, qk1 = self.to_qk(x0), self.to_qk(x1)
     v0, v1 = self.to_v(x0), self.to_v(x1)
     qk0, qk1, v0, v1 = (
