@@ -84,7 +84,7 @@ def bench_preset(
     seed: int,
     threads: int,
     work: Path,
-    together: bool,
+    together: bool | str,
 ) -> dict[str, object]:
     """Simulate ``preset`` once, then run the demo per matcher (and all together)."""
     cli = [PYTHON, "-m", "planetref"]
@@ -99,7 +99,8 @@ def bench_preset(
             raise SystemExit(f"bench_demo: simulating {preset} failed (see {work})")
         sim = {"cpu_s": cpu, "wall_s": wall}
     runs: dict[str, dict[str, object]] = {}
-    jobs = [(m, [m]) for m in matchers] + ([("all", matchers)] if together else [])
+    jobs = [] if together == "only" else [(m, [m]) for m in matchers]
+    jobs += [("all", matchers)] if together else []
     for label, names in jobs:
         out = work / f"demo-{preset}-{label}"
         out.mkdir(parents=True, exist_ok=True)
@@ -140,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=None, help="default: the cores available")
     ap.add_argument("--together", action="store_true", help="also one demo with all matchers")
+    ap.add_argument(
+        "--together-only", action="store_true", help="only the one demo with all matchers"
+    )
     ap.add_argument("--work", type=Path, default=None, help="keep the runs here (default: temp)")
     ap.add_argument("--json-out", default=None, help="write the result record here")
     args = ap.parse_args(argv)
@@ -155,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         for preset in args.presets:
-            results.append(bench_preset(preset, matchers, args.seed, threads, work, args.together))
+            together = "only" if args.together_only else args.together
+            results.append(bench_preset(preset, matchers, args.seed, threads, work, together))
     figures: list[dict[str, object]] = []
     print(f"machine: {machine['cpu']}, {cores} cores, load {machine['load_1min']} at the start")
     print("| preset | matcher | CPU-s | wall s | idle wall est. s | NCP | true RMSE m |")
@@ -182,23 +187,24 @@ def main(argv: list[str] | None = None) -> int:
                     "unit": "m",
                 },
             ]
-        print(
-            f"| {preset} | sum of the {len(per)} runs | {total_cpu:.0f} | {total_wall:.0f} | "
-            f"{total_cpu / cores:.0f} | | |"
-        )
-        figures += [
-            {
-                "name": f"{preset} sum of per-matcher runs CPU",
-                "value": round(total_cpu, 1),
-                "unit": "CPU-s",
-            },
-            {
-                "name": f"{preset} idle wall estimate (CPU-s / {cores} cores)",
-                "value": round(total_cpu / cores, 1),
-                "unit": "s",
-                "note": "a lower bound: assumes every core busy throughout",
-            },
-        ]
+        if per:
+            print(
+                f"| {preset} | sum of the {len(per)} runs | {total_cpu:.0f} | {total_wall:.0f} | "
+                f"{total_cpu / cores:.0f} | | |"
+            )
+            figures += [
+                {
+                    "name": f"{preset} sum of per-matcher runs CPU",
+                    "value": round(total_cpu, 1),
+                    "unit": "CPU-s",
+                },
+                {
+                    "name": f"{preset} idle wall estimate (CPU-s / {cores} cores)",
+                    "value": round(total_cpu / cores, 1),
+                    "unit": "s",
+                    "note": "a lower bound: assumes every core busy throughout",
+                },
+            ]
         if "all" in runs:
             a = runs["all"]
             cpu, wall = float(a["cpu_s"]), float(a["wall_s"])  # type: ignore[arg-type]
