@@ -226,7 +226,8 @@ def main() -> None:
         for r in rows:
             g = r.get("georef", {})
             if "ratio_to_baseline" in g:
-                print(f"{r['level']} {r['matcher']}: true error / baseline {g['ratio_to_baseline']:.2f}")
+                ratio = g["ratio_to_baseline"]
+                print(f"{r['level']} {r['matcher']}: true error / baseline {ratio:.2f}")
 
 
 def _line(r: dict[str, Any]) -> str:
