@@ -24,7 +24,8 @@ Usage::
 
     python benchmarks/bench_initial_error.py [--preset tiny] [--levels preset 1km 2km]
         [--matchers ncc xfeat-lighterglue] [--tiles 4] [--georef] [--runs DIR]
-        [--baseline preset] [--threads 1] [--json] [--out FILE]
+        [--georef-levels preset 1km] [--georef-matchers ncc] [--baseline preset]
+        [--threads 1] [--json] [--out FILE]
 
 Weights: ``PLANETREF_WEIGHTS`` (or ``--weights-dir``).
 """
@@ -155,6 +156,8 @@ def main() -> None:
     ap.add_argument("--matchers", nargs="+", default=["ncc", "xfeat-lighterglue"])
     ap.add_argument("--tiles", type=int, default=4, help="tiles timed per level (0: none)")
     ap.add_argument("--georef", action="store_true", help="also run georef per level")
+    ap.add_argument("--georef-levels", nargs="+", default=None, help="default: --levels")
+    ap.add_argument("--georef-matchers", nargs="+", default=None, help="default: --matchers")
     ap.add_argument("--baseline", default="preset", help="level the true errors compare to")
     ap.add_argument("--runs", type=Path, default=Path("bench-initial-error"))
     ap.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
@@ -176,7 +179,11 @@ def main() -> None:
             row: dict[str, Any] = {"level": level, "matcher": matcher, "scene": str(scene)}
             if args.tiles > 0:
                 row.update(tile_costs(scene, matcher, args.tiles, args.weights_dir))
-            if args.georef:
+            if (
+                args.georef
+                and level in (args.georef_levels or args.levels)
+                and matcher in (args.georef_matchers or args.matchers)
+            ):
                 out = args.runs / "runs" / f"{args.preset}-{level}-s{args.seed}-{matcher}"
                 row["georef"] = georef(scene, out, matcher, args.weights_dir)
             rows.append(row)
