@@ -45,16 +45,92 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def scene_dir(runs: Path, preset: str, level: str, seed: int) -> Path:
-    """The level's scene, simulated into ``runs/scenes`` when it is not there yet."""
+def _config(preset: str, level: str, seed: int):
     from planetref.simulate.config import load_config
+
+    return load_config(preset, seed=seed, initial_errors=None if level == "preset" else level)
+
+
+def scene_dir(runs: Path, preset: str, level: str, seed: int, host: str | None) -> Path:
+    """The level's scene, made in ``runs/scenes`` when it is not there yet.
+
+    Without ``host`` the level's scene is simulated. With it, only the ``host`` level's
+    scene is simulated, and the others are that scene with their own initial cameras
+    (:func:`swap_initial_cameras`): the simulated domain grows with the initial error's
+    footprint, so scenes simulated apart differ in their terrain's random draw.
+    """
     from planetref.simulate.scene import simulate_scene
 
     out = runs / "scenes" / f"{preset}-{level}-s{seed}"
-    if not (out / "scene.toml").is_file():
-        ie = None if level == "preset" else level
-        simulate_scene(load_config(preset, seed=seed, initial_errors=ie), out)
+    if (out / "scene.toml").is_file():
+        return out
+    if host is None or level == host:
+        simulate_scene(_config(preset, level, seed), out)
+    else:
+        src = scene_dir(runs, preset, host, seed, None)
+        swap_initial_cameras(src, _config(preset, level, seed), out)
     return out
+
+
+def swap_initial_cameras(src: Path, cfg: Any, out: Path) -> None:
+    """``src`` with the initial cameras (and declared uncertainty) of ``cfg``'s errors.
+
+    The images, reference and truth are linked from ``src``; each strip's initial camera
+    is rebuilt from the orbit with ``cfg.initial_errors`` (the truth camera comes out of
+    the same random streams, and is checked against the scene's), the manifest declares
+    ``cfg``'s uncertainty and names no RPC (those were fitted to ``src``'s cameras) nor
+    ``truth/errors.json`` (``src``'s measured initial errors).
+    """
+    import shutil
+
+    from planetref.camera.linescan import LineScanCamera
+    from planetref.scene.manifest import load_manifest, write_manifest
+    from planetref.simulate.orbit import build_strip_cameras
+    from planetref.simulate.streams import stream
+
+    manifest, root = load_manifest(src)
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for path in sorted(root.rglob("*")):
+        rel = path.relative_to(root)
+        if path.is_dir() or path.name in ("scene.toml", "errors.json") or path.suffix == ".RPB":
+            continue
+        dest = tmp / rel
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.link(path, dest) if path.suffix == ".tif" else shutil.copyfile(path, dest)
+    strips = []
+    for i, strip_cfg in enumerate(cfg.strips):
+        cams = build_strip_cameras(
+            cfg, strip_cfg, stream(cfg.seed, "strip", i), stream(cfg.seed, "mismatch", i)
+        )
+        spec = manifest.strip(strip_cfg.id)
+        assert manifest.truth is not None
+        truth = LineScanCamera.from_json(root / manifest.truth.cameras[spec.id])
+        if not np.array_equal(truth.nodes, cams.truth.nodes):
+            raise SystemExit(f"{src}: its truth camera is not {cfg.name}'s; cannot swap")
+        (tmp / spec.ccds[0].camera).unlink()
+        cams.initial.to_json(tmp / spec.ccds[0].camera)
+        ccds = tuple(c.model_copy(update={"rpc": None}) for c in spec.ccds)
+        strips.append(
+            spec.model_copy(
+                update={
+                    "ccds": ccds,
+                    "initial_uncertainty_m": cfg.initial_errors.declared_uncertainty_m,
+                }
+            )
+        )
+    write_manifest(
+        manifest.model_copy(
+            update={
+                "strips": tuple(strips),
+                "name": cfg.name,
+                # the measured initial errors were the host's
+                "truth": manifest.truth.model_copy(update={"errors": None}),
+            }
+        ),
+        tmp / "scene.toml",
+    )
+    tmp.rename(out)
 
 
 def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> dict[str, Any]:
@@ -159,6 +235,12 @@ def main() -> None:
     ap.add_argument("--georef-levels", nargs="+", default=None, help="default: --levels")
     ap.add_argument("--georef-matchers", nargs="+", default=None, help="default: --matchers")
     ap.add_argument("--baseline", default="preset", help="level the true errors compare to")
+    ap.add_argument(
+        "--host",
+        default=None,
+        help="simulate only this level's scene; the others are it with their own initial "
+        "cameras (the same terrain draw; default: each level simulated)",
+    )
     ap.add_argument("--runs", type=Path, default=Path("bench-initial-error"))
     ap.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
     ap.add_argument("--threads", type=int, default=1, help="threads of torch/OpenCV/BLAS")
@@ -174,7 +256,7 @@ def main() -> None:
     machine = describe()
     rows: list[dict[str, Any]] = []
     for level in args.levels:
-        scene = scene_dir(args.runs, args.preset, level, args.seed)
+        scene = scene_dir(args.runs, args.preset, level, args.seed, args.host)
         for matcher in args.matchers:
             row: dict[str, Any] = {"level": level, "matcher": matcher, "scene": str(scene)}
             if args.tiles > 0:
