@@ -72,3 +72,41 @@ def test_template_support():
     # NCC's 21-pixel template (radius 10 at the reference grid) on a twice finer grid.
     assert template_support_m("ncc", {"template_radius": 20}, 2, 5.0) == pytest.approx(102.5)
     assert template_support_m("sift", {}, 2, 5.0) is None
+
+
+def _declaring(*uncertainties) -> SceneManifest:
+    return SceneManifest(
+        reference=ReferenceSpec(ortho="o.tif", dem="d.tif"),
+        strips=tuple(
+            StripSpec(
+                id=f"s{k}",
+                ccds=(CcdSpec(name="c1", image="i.tif", camera="c.json"),),
+                initial_uncertainty_m=u,
+            )
+            for k, u in enumerate(uncertainties)
+        ),
+    )
+
+
+def test_uncertainty_from_the_config_then_the_scene_then_the_default():
+    from planetref.frontend.config import FrontendConfig
+    from planetref.pipeline.systematic import declared_uncertainty
+
+    # The scene's declared uncertainty (the largest of its strips) when the config is silent.
+    fe, src = declared_uncertainty(FrontendConfig(), _declaring(1300.0, None, 800.0))
+    assert (fe.uncertainty_m, src) == (1300.0, "scene")
+    assert fe.coarse_level(5.0) == 4 and FrontendConfig().uncertainty_m == 300.0
+    # A config that sets it wins, even at the default's value.
+    fe, src = declared_uncertainty(FrontendConfig(uncertainty_m=300.0), _declaring(1300.0))
+    assert (fe.uncertainty_m, src) == (300.0, "config")
+    fe, src = declared_uncertainty(
+        FrontendConfig.from_mapping({"uncertainty_m": 2000}), _declaring(1300.0)
+    )
+    assert (fe.uncertainty_m, src) == (2000.0, "config")
+    # Nothing declared: the default.
+    fe, src = declared_uncertainty(FrontendConfig(), _declaring(None))
+    assert (fe.uncertainty_m, src) == (300.0, "default")
+    # The resolved value is part of the run's identity.
+    resolved, _ = declared_uncertainty(FrontendConfig(), _declaring(1300.0))
+    assert resolved.identity()["uncertainty_m"] == 1300.0
+    assert FrontendConfig().identity() != resolved.identity()

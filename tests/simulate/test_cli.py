@@ -93,3 +93,21 @@ def test_difficulty_option(tmp_path: Path) -> None:
     for cmd in (["simulate", str(tmp_path / "x")], ["demo", "--out", str(tmp_path / "d")]):
         r = CliRunner().invoke(main, ["-q", *cmd, "--difficulty", "brutal"])
         assert r.exit_code == 2 and "brutal" in r.output
+
+
+def test_initial_errors_option_declares_the_uncertainty(tmp_path: Path) -> None:
+    import json
+
+    cfg = tmp_path / "mini.toml"
+    cfg.write_text(MINI_TOML)
+    out = tmp_path / "scene"
+    cmd = ["-q", "simulate", str(out), "--preset", "tiny", "--config", str(cfg)]
+    r = CliRunner().invoke(main, [*cmd, "--initial-errors", "1km"])
+    assert r.exit_code == 0, r.output
+    assert "initial_uncertainty_m = 1300.0" in (out / "scene.toml").read_text()
+    assert 'name = "tiny-ie1km"' in (out / "truth" / "config.toml").read_text()
+    errors = json.loads((out / "truth" / "errors.json").read_text())
+    ground = errors["strip1"]["initial_errors"]["ground_m"]["horizontal"]
+    assert 1000.0 < ground["rms"] < 1100.0
+    r = CliRunner().invoke(main, [*cmd, "--initial-errors", "9km"])
+    assert r.exit_code == 2 and "9km" in r.output

@@ -77,6 +77,15 @@ def simulate_run(
     help="Difficulty level merged over the preset (default: the preset as is, moderate).",
 )
 @click.option(
+    "--initial-errors",
+    "initial_errors",
+    type=click.Choice(["100m", "1km", "2km"]),
+    default=None,
+    help="Magnitude of the initial cameras' error on the ground, from every physical term "
+    "(position, attitude incl. yaw, altitude, focal length; sourced values), with its "
+    "a-priori uncertainty declared in scene.toml (default: the preset's, ~110 m, undeclared).",
+)
+@click.option(
     "--seed",
     type=click.IntRange(min=0),
     default=None,
@@ -101,6 +110,7 @@ def simulate_command(
     out_dir: Path,
     preset: str,
     difficulty: str | None,
+    initial_errors: str | None,
     seed: int | None,
     config_path: Path | None,
     preview: bool,
@@ -115,7 +125,9 @@ def simulate_command(
     from planetref.simulate.config import load_config
 
     quiet = bool(ctx.obj and ctx.obj.get("quiet"))
-    cfg = load_config(preset, config_path, seed=seed, difficulty=difficulty)
+    cfg = load_config(
+        preset, config_path, seed=seed, difficulty=difficulty, initial_errors=initial_errors
+    )
 
     def log(msg: str) -> None:
         if not quiet:

@@ -7,6 +7,7 @@ ratio of the two ground sampling distances.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from os import PathLike
 from pathlib import Path
@@ -114,14 +115,25 @@ class FrontendConfig(Settings):
         tile_overlap_ref_px: Overlap of neighbouring tiles, reference pixels (matches in
             the overlap are kept by the tile whose core holds them, once).
         uncertainty_m: A-priori uncertainty of the initial camera on the ground (metres);
-            the coarse stage searches a window padded by this much.
+            the coarse stage searches a window padded by this much. A run takes it from
+            the scene manifest (the strips' ``initial_uncertainty_m``) when its config
+            does not set it (:func:`planetref.pipeline.systematic.frontend_settings_for`).
         geometry: ``"orthorectify"`` resamples the CCD tile onto the reference grid
             through the initial camera and the DEM (removes scale, rotation and most
             relief displacement); ``"downsample"`` only averages the raw tile down to the
             reference GSD (the seed's way).
         coarse: Run the coarse stage (otherwise the fine stage searches the whole
             uncertainty window at full resolution).
-        coarse_factor: Downsampling of both images in the coarse stage.
+        coarse_factor: Downsampling of both images in the coarse stage (the finest
+            coarse level; see ``coarse_max_px``).
+        coarse_max_px: Largest side of the coarse stage's window, in coarse pixels. When
+            the footprint padded by the uncertainty would be larger at ``coarse_factor``,
+            the coarse stage matches at a coarser level of the reference (and of the CCD
+            tile, orthorectified alike), the smallest whole factor that fits
+            (:meth:`coarse_level`), so the pixels it matches, and an area-based
+            matcher's coarse search radius, stay bounded whatever the uncertainty. The
+            default 256 leaves the coarse level of a 5 m reference at 4 up to 1.3 km
+            of uncertainty (tiles of 256 reference px).
         coarse_min_matches: Fewest consistent coarse matches to trust the coarse offset.
         coarse_radius_ref_px: Consensus radius of the coarse translation, reference px.
         fine_pad_ref_px: Margin of the fine reference window around the footprint
@@ -207,6 +219,7 @@ class FrontendConfig(Settings):
     geometry: GeometryMode = "orthorectify"
     coarse: bool = True
     coarse_factor: int = Field(4, ge=1, le=32)
+    coarse_max_px: int = Field(256, ge=32, le=4096)
     coarse_min_matches: int = Field(6, ge=3)
     coarse_radius_ref_px: float = Field(6.0, gt=0.0)
     fine_pad_ref_px: int = Field(16, ge=0)
@@ -243,6 +256,24 @@ class FrontendConfig(Settings):
                 f"smaller than tile_size_ref_px ({self.tile_size_ref_px})"
             )
         return self
+
+    def coarse_level(self, ref_gsd_m: float) -> int:
+        """The coarse stage's downsampling factor for this uncertainty.
+
+        The smallest factor, at least ``coarse_factor``, at which a tile's coarse window
+        (``tile_size_ref_px`` padded on each side by the uncertainty and
+        ``fine_pad_ref_px``) is at most ``coarse_max_px`` coarse pixels wide. The front
+        end and the coarse matcher's search radius both take it from here.
+
+        Args:
+            ref_gsd_m: Ground sampling distance of the reference (metres per pixel).
+
+        Returns:
+            The factor (reference pixels per coarse pixel).
+        """
+        pad = math.ceil(self.uncertainty_m / ref_gsd_m) + self.fine_pad_ref_px
+        side = self.tile_size_ref_px + 2 * pad
+        return max(self.coarse_factor, math.ceil(side / self.coarse_max_px))
 
     def identity(self) -> dict[str, Any]:
         """The settings that decide the tiles' results (``model_dump()`` less ``batch_tiles``).

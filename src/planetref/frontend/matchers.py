@@ -103,7 +103,9 @@ def matcher_options(
         cls.search_option, (fe.fine_pad_ref_px + int(np.ceil(fe.coarse_radius_ref_px)) + 4) * up
     )
     coarse = {**cls.coarse_defaults, **options}
-    radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_factor))) + 4
+    # At the coarse level the front end picks for this uncertainty (FrontendConfig.
+    # coarse_level), so the radius stays bounded by the window whatever the uncertainty.
+    radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_level(ref_gsd_m)))) + 4
     coarse[cls.search_option] = max(radius, int(coarse.get(cls.search_option, 0)))
     return fine, coarse
 

@@ -338,7 +338,10 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
     # initial error: area-based matchers with a bounded search work as well as the rest.
     coarse_offset: F64 | None = None
     if cfg.coarse:
-        f = cfg.coarse_factor
+        # The coarse level adapts to the uncertainty (a bounded window; see
+        # FrontendConfig.coarse_level): from the reference's nominal GSD, as the coarse
+        # matcher's search radius is (frontend.matchers.matcher_options).
+        f = cfg.coarse_level(float(np.mean(ref.ground_sampling_m())))
         with _timed(timings, "coarse_prepare"):
             cwin = RefWindow.around(*base.bounds_px, pad_px=pad_unc + cfg.fine_pad_ref_px, factor=f)
             side = _image_side(f, cwin, tile, inputs, cfg, ratio)

@@ -37,6 +37,7 @@ from planetref.errors import (
 )
 from planetref.pipeline.config import GeorefConfig
 from planetref.pipeline.rundir import RunDir, config_digest
+from planetref.pipeline.systematic import declared_uncertainty
 from planetref.scene.inputs import scene_input_files
 from planetref.scene.inputs import scene_path as scene_path_of
 from planetref.scene.manifest import load_manifest
@@ -464,7 +465,8 @@ def _matcher_settings(name: str, cfg: GeorefConfig, run_dir: Path) -> dict[str, 
 
         with rasterio.open(manifest.resolve(root, manifest.reference.ortho)) as ds:
             gsd = float(abs(ds.res[0]))
-        fine, coarse = matcher_options(name, cfg.matchers.get(name, {}), cfg.frontend, gsd)
+        fe, _ = declared_uncertainty(cfg.frontend, manifest)
+        fine, coarse = matcher_options(name, cfg.matchers.get(name, {}), fe, gsd)
         user = (conf.get("matchers") or {}).get(name, {})
         out.update({f"fine {k}": v for k, v in fine.items() if user.get(k) != v})
         out.update({f"coarse {k}": v for k, v in (coarse or {}).items()})

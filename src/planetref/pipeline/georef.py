@@ -72,7 +72,7 @@ from planetref.pipeline.georef_outputs import (
 )
 from planetref.pipeline.job import StripJob
 from planetref.pipeline.rundir import RunDir, config_digest
-from planetref.pipeline.systematic import systematic_settings
+from planetref.pipeline.systematic import declared_uncertainty, systematic_settings
 from planetref.products.ortho_strip import GDAL_CACHE_MB
 from planetref.report.blocks import (
     adjustment_block,
@@ -203,6 +203,10 @@ def run_georef(
         cfg = config or GeorefConfig()
         scene_file = scene_path(scene)
         manifest, root = load_manifest(scene_file)
+        # How far the coarse stage searches: the config's, else the scene's declared
+        # a-priori uncertainty of its initial cameras (part of the run's identity).
+        fe, uncertainty_source = declared_uncertainty(cfg.frontend, manifest)
+        cfg = cfg.model_copy(update={"frontend": fe})
         # Inputs checked and matchers built before the run folder is claimed, so a failed
         # start (unknown matcher, missing weights, unreadable reference, camera or image, no
         # overlap) leaves nothing behind.
@@ -249,6 +253,12 @@ def run_georef(
                 matcher,
                 run.path,
                 " (resuming)" if run.resumed else "",
+            )
+            log.info(
+                "a-priori uncertainty %g m (%s): coarse level %d",
+                cfg.frontend.uncertainty_m,
+                uncertainty_source,
+                cfg.frontend.coarse_level(ref_gsd),
             )
             for warning in input_warnings:  # stderr, planetref.log, and report.json below
                 log.warning("%s", warning)

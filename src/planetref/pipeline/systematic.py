@@ -13,11 +13,13 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.adjust.config import AdjustConfig
+    from planetref.frontend.config import FrontendConfig
     from planetref.scene.manifest import SceneManifest
 
 __all__ = [
     "DEFAULT_CCD_ACCURACY_PX",
     "DEFAULT_REFERENCE_ACCURACY_REF_PX",
+    "declared_uncertainty",
     "systematic_settings",
 ]
 
@@ -84,3 +86,24 @@ def systematic_settings(
         src["measurement_overlap"] = "config"
     new = sysc.model_copy(update=upd)
     return adjust.model_copy(update={"systematic": new}), src
+
+
+def declared_uncertainty(
+    frontend: FrontendConfig, manifest: SceneManifest
+) -> tuple[FrontendConfig, str]:
+    """The front end's settings with the a-priori uncertainty the scene declares.
+
+    ``frontend.uncertainty_m`` (how far the coarse stage searches) comes from the run
+    config when it sets it, else from the scene manifest (the largest of its strips'
+    ``initial_uncertainty_m``), else it keeps its default.
+
+    Returns:
+        ``(settings, source)``: the settings and where the uncertainty came from
+        (``"config"``, ``"scene"`` or ``"default"``).
+    """
+    if "uncertainty_m" in frontend.model_fields_set:
+        return frontend, "config"
+    values = [s.initial_uncertainty_m for s in manifest.strips if s.initial_uncertainty_m]
+    if not values:
+        return frontend, "default"
+    return frontend.model_copy(update={"uncertainty_m": float(max(values))}), "scene"

@@ -172,11 +172,16 @@ class StripSpec(_Model):
             per image axis (pixels) of each CCD's placement error in the focal plane.
             Sets the adjustment's ``[adjust.systematic] ccd_offset_sigma_px`` unless the
             run config does.
+        initial_uncertainty_m: The a-priori ground uncertainty of the strip's initial
+            camera as its navigation states it (metres, a bound on how far its ground
+            positions may be off). Sets the front end's ``uncertainty_m`` (how far the
+            coarse stage searches) unless the run config does.
     """
 
     id: str = Field(pattern=_ID)
     ccds: tuple[CcdSpec, ...] = Field(min_length=1)
     ccd_accuracy_px: float | None = Field(default=None, ge=0.0)
+    initial_uncertainty_m: float | None = Field(default=None, gt=0.0)
 
     @model_validator(mode="after")
     def _unique_ccds(self) -> StripSpec:

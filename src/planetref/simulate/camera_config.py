@@ -189,6 +189,21 @@ class InitialErrorConfig(_Model):
         attitude_bias_urad: (roll, pitch, yaw) attitude bias (µrad).
         attitude_drift_urad_per_s: (roll, pitch, yaw) attitude drift (µrad/s).
         focal_length_error_ppm: Relative focal-length error (ppm).
+        declared_uncertainty_m: The a-priori ground uncertainty of the initial camera as
+            a navigation team would state it (metres, a bound on the ground error); the
+            scene manifest declares it (each strip's ``initial_uncertainty_m``) and the
+            front end's coarse stage searches that far unless the run's config sets
+            ``frontend.uncertainty_m``. None: not declared (the front end's default).
+
+    What each term does on the ground at HiRIC's 265 km (a 3 km swath, 4 km strips of
+    1.2 s): a position bias moves the ground 1:1 (radial: scale ``dh / h``, 1 km of it
+    ``3.8e-3``, 5.7 m at the swath edge); roll and pitch move it by ``h * angle`` (1 mrad:
+    265 m); yaw about the boresight rotates it about the strip centre (200 urad: 0.3 m at
+    the swath edge, 0.4 m at the strip ends); a focal-length error scales it (300 ppm:
+    0.45 m at the swath edge); drifts act over +-0.6 s (50 urad/s: 8 m). Over a strip a
+    km of initial error is thus a translation to within metres.
+    See the named levels in ``presets/initial_errors``
+    (:data:`planetref.simulate.config.INITIAL_ERROR_LEVELS`).
     """
 
     position_bias_m: Vec3 = (40.0, -25.0, 15.0)
@@ -196,3 +211,4 @@ class InitialErrorConfig(_Model):
     attitude_bias_urad: Vec3 = (150.0, -250.0, 300.0)
     attitude_drift_urad_per_s: Vec3 = (20.0, -15.0, 10.0)
     focal_length_error_ppm: float = 300.0
+    declared_uncertainty_m: float | None = Field(default=None, gt=0.0)

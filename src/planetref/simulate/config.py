@@ -43,6 +43,7 @@ from planetref.simulate.realism import (
 
 __all__ = [
     "DIFFICULTIES",
+    "INITIAL_ERROR_LEVELS",
     "STRESS_LADDER",
     "AlbedoConfig",
     "CameraConfig",
@@ -70,6 +71,7 @@ __all__ = [
     "available_presets",
     "load_config",
     "load_difficulty_dict",
+    "load_initial_errors_dict",
     "load_preset_dict",
     "merge_overrides",
     "validate_config",
@@ -519,6 +521,31 @@ def load_difficulty_dict(name: str) -> dict[str, Any]:
     return tomllib.loads((folder / f"{name}.toml").read_text(encoding="utf-8"))
 
 
+INITIAL_ERROR_LEVELS = ("100m", "1km", "2km")
+"""Named magnitudes of the initial orientation error (``presets/initial_errors/<name>.toml``).
+
+Each sets every term of ``[initial_errors]`` (position bias and drift along, across and
+radial; roll, pitch and yaw bias and drift; focal length) and the declared a-priori
+uncertainty, with the source of each value in ``[sources]``; merged over a preset and
+difficulty (``load_config(initial_errors=...)``, ``planetref simulate --initial-errors``)."""
+
+
+def load_initial_errors_dict(name: str) -> dict[str, Any]:
+    """The overlay table of a named initial-error level (merged over a preset).
+
+    Raises:
+        InputError: If no level has that name (the message lists the valid names).
+    """
+    if name not in INITIAL_ERROR_LEVELS:
+        raise InputError(
+            f"unknown initial-error level {name!r}; valid levels: "
+            f"{', '.join(INITIAL_ERROR_LEVELS)}",
+            field="initial_errors",
+        )
+    folder = resources.files("planetref.simulate") / "presets" / "initial_errors"
+    return tomllib.loads((folder / f"{name}.toml").read_text(encoding="utf-8"))
+
+
 def load_preset_dict(name: str) -> dict[str, Any]:
     """The raw (unvalidated) table of a preset.
 
@@ -561,6 +588,7 @@ def load_config(
     *,
     seed: int | None = None,
     difficulty: str | None = None,
+    initial_errors: str | None = None,
 ) -> SimulationConfig:
     """A preset with optional difficulty, overrides and seed.
 
@@ -572,6 +600,9 @@ def load_config(
         seed: If given, replaces the config's seed.
         difficulty: A level of :data:`DIFFICULTIES` merged over the preset (the scene's
             name gets ``-<difficulty>`` appended); None keeps the preset as it is.
+        initial_errors: A level of :data:`INITIAL_ERROR_LEVELS` merged after the
+            difficulty (the scene's name gets ``-ie<level>`` appended); None keeps the
+            preset's (or the difficulty's) initial errors.
 
     Returns:
         The validated, frozen config.
@@ -585,6 +616,9 @@ def load_config(
     if difficulty is not None:
         data = merge_overrides(data, load_difficulty_dict(difficulty))
         data["name"] = f"{data.get('name', preset)}-{difficulty}"
+    if initial_errors is not None:
+        data = merge_overrides(data, load_initial_errors_dict(initial_errors))
+        data["name"] = f"{data.get('name', preset)}-ie{initial_errors}"
     source = None
     if overrides is not None:
         if isinstance(overrides, dict):

@@ -472,6 +472,8 @@ def _build(
                     id=s.strip.id,
                     ccds=tuple(specs),
                     ccd_accuracy_px=cfg.truth_mismatch.ccd_offset_px,
+                    # The navigation's stated bound, where the config declares one.
+                    initial_uncertainty_m=cfg.initial_errors.declared_uncertainty_m,
                 )
             )
             s.truth.to_json(root / "truth" / f"{s.strip.id}.camera.json")
