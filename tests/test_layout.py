@@ -34,7 +34,7 @@ ROOT = Path(planetref.__file__).parent
 
 #: The floors of the house, lowest first. ``errors`` is the exception root every part uses.
 LAYERS: tuple[frozenset[str], ...] = (
-    frozenset({"errors", "__init__", "py.typed"}),
+    frozenset({"errors", "arrays", "__init__", "py.typed"}),
     frozenset({"runtime"}),
     frozenset({"geometry"}),
     frozenset({"camera", "raster", "matching"}),

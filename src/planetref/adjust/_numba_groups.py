@@ -16,9 +16,8 @@ from typing import Any
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from planetref.arrays import F64
 
 #: Buckets longer than this are sorted by numba's merge sort instead of by insertion.
 _INSERTION_MAX = 48

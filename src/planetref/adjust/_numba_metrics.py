@@ -17,9 +17,8 @@ from typing import Any
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from planetref.arrays import F64
 
 #: The sums of :func:`group_sums`, in column order (x = sample, y = line residual).
 SUMS = ("x2+y2", "x2", "y2", "x", "y", "hypot")

@@ -14,10 +14,8 @@ from typing import Any
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
-
+from planetref.arrays import F64
 
 _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 

@@ -41,6 +41,7 @@ from planetref.adjust.rays import rays, triangulate
 from planetref.adjust.result import STATUSES, AdjustmentResult
 from planetref.adjust.solver import BundleSolver
 from planetref.adjust.variance import variance_components
+from planetref.arrays import F64
 from planetref.control.network import Network
 from planetref.errors import AdjustmentError
 from planetref.runtime.blas import single_threaded_blas
@@ -50,7 +51,6 @@ from planetref.runtime.threads import compute_threads
 __all__ = ["STATUSES", "AdjustmentResult", "adjust", "rays", "triangulate"]
 
 log = logging.getLogger("planetref.adjust")
-F64 = NDArray[np.float64]
 
 
 def adjust(

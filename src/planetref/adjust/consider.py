@@ -29,11 +29,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import SystematicConfig
+from planetref.arrays import F64
 from planetref.control.network import Network, enu_rotation
 
 __all__ = ["ConsiderTerms", "consider_layout"]
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

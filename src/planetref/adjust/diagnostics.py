@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import DiagnosticsConfig
+from planetref.arrays import F64
 from planetref.control.network import Network, small_unique
 from planetref.geometry.geodesy import xyz_to_lonlat
 
@@ -36,7 +37,6 @@ __all__ = [
     "self_calibration",
 ]
 
-F64 = NDArray[np.float64]
 
 #: Parameter names (after ``camera_id:``) that are interior orientation / self-calibration.
 SELF_CALIBRATION = re.compile(r"(^|[.\]:])(x0|y0|f|focal_m|focal|placement\w*|ccd_\w+)$|interior")

@@ -23,11 +23,10 @@ from planetref.adjust.diagnostics import (
 from planetref.adjust.metrics import grouped_reprojection_metrics
 from planetref.adjust.rays import ground_error_m
 from planetref.adjust.solver import BundleSolver, LmReport
+from planetref.arrays import F64
 from planetref.control.network import Network
 
 __all__ = ["check_metrics", "diagnostics", "reprojection_blocks", "round_summary"]
-
-F64 = NDArray[np.float64]
 
 
 def diagnostics(

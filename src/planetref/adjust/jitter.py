@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from planetref.adjust.config import AdjustConfig, JitterConfig, LineScanParameters
 from planetref.adjust.models.linescan import LineScanParameterization
 from planetref.adjust.models.protocol import CoverageIssue
+from planetref.arrays import F64
 from planetref.camera.linescan import LineScanCamera
 from planetref.geometry.rotations import rotation_matrix
 
@@ -56,7 +57,6 @@ __all__ = [
     "true_jitter",
 ]
 
-F64 = NDArray[np.float64]
 AXES = ("roll", "pitch", "yaw")
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.robust import robust_rho
+from planetref.arrays import F64
 from planetref.runtime.optional import optional_module
 from planetref.runtime.threads import compute_threads
 
@@ -32,9 +33,6 @@ if TYPE_CHECKING:
     from planetref.control.network import Network, PointMatrices
 
 __all__ = ["LinearizationMixin", "chunk_shares", "group_kernels", "run_shares"]
-
-
-F64 = NDArray[np.float64]
 
 
 @dataclass

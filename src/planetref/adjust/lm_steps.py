@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import NDArray
+
+from planetref.arrays import F64
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.adjust.linearization import Linearization
@@ -26,8 +27,6 @@ __all__ = [
     "anderson_correction",
     "cost_resolution",
 ]
-
-F64 = NDArray[np.float64]
 
 
 @dataclass

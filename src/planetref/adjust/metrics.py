@@ -37,6 +37,7 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.errors import InputError
 from planetref.runtime.optional import optional_module
 
@@ -47,8 +48,6 @@ __all__ = [
     "image_grid",
     "reprojection_metrics",
 ]
-
-F64 = NDArray[np.float64]
 
 
 def reprojection_metrics(

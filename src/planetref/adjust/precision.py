@@ -21,10 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.metrics import image_grid
+from planetref.arrays import F64
 
 __all__ = ["analytic_ground_jacobian", "formal_ground_precision", "ground_jacobian"]
 
-F64 = NDArray[np.float64]
 
 #: Finite-difference step of a parameter, in its a-posteriori sigmas: small against the
 #: scale on which the ground point bends (a camera moves by a tenth of its uncertainty),

@@ -12,12 +12,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.control.network import Network
 from planetref.geometry.geodesy import ray_ellipsoid_intersection, xyz_to_lonlat
 
 __all__ = ["ground_error_m", "rays", "triangulate"]
-
-F64 = NDArray[np.float64]
 
 
 def rays(

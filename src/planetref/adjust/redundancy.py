@@ -32,13 +32,13 @@ from numpy.typing import NDArray
 
 from planetref.adjust.linearization import Layout, Linearization
 from planetref.adjust.solver import BundleSolver
+from planetref.arrays import F64
 
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
 
 __all__ = ["Redundancy", "group_sum", "redundancy"]
 
-F64 = NDArray[np.float64]
 _PAIR_CHUNK = 65536
 
 

@@ -19,17 +19,15 @@ from typing import Any
 import numpy as np
 import scipy.optimize
 import scipy.sparse
-from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig, validate_config
 from planetref.adjust.models import Evaluation, LineScanParameterization, parameterize
 from planetref.adjust.solver import BundleSolver
+from planetref.arrays import F64
 from planetref.control.network import Network
 from planetref.errors import InputError
 
 __all__ = ["ScipyProblem", "solve_with_scipy"]
-
-F64 = NDArray[np.float64]
 
 
 class ScipyProblem:

@@ -12,11 +12,11 @@ from planetref.adjust.config import AdjustConfig
 from planetref.adjust.consider import ConsiderTerms
 from planetref.adjust.jitter import JitterSeries
 from planetref.adjust.models import AdjustableCamera
+from planetref.arrays import F64
 from planetref.control.network import Network
 
 __all__ = ["STATUSES", "AdjustmentResult"]
 
-F64 = NDArray[np.float64]
 
 #: Observation status codes of :attr:`AdjustmentResult.status`.
 STATUSES = ("inlier", "outlier", "unusable", "check")

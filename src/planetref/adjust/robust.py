@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.errors import AdjustmentError
 
 __all__ = ["robust_rho"]
-
-F64 = NDArray[np.float64]
 
 
 def robust_rho(s: F64, loss: str, t: F64 | float) -> tuple[F64, F64]:

@@ -16,6 +16,7 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from planetref.adjust.linearization import Layout, Linearization
+from planetref.arrays import F64
 from planetref.errors import AdjustmentError
 from planetref.runtime.optional import optional_module
 
@@ -24,9 +25,6 @@ if TYPE_CHECKING:
     from planetref.control.network import Network, PointMatrices
 
 __all__ = ["SchurMixin"]
-
-
-F64 = NDArray[np.float64]
 
 
 @dataclass

@@ -44,6 +44,7 @@ from planetref.adjust.models import AdjustableCamera, Evaluation
 from planetref.adjust.robust import robust_rho
 from planetref.adjust.schur import Iterate, SchurMixin, Structure
 from planetref.adjust.statistics import StatisticsMixin
+from planetref.arrays import F64
 from planetref.control.network import Network, PointFrames, PointMatrices
 from planetref.errors import AdjustmentError
 from planetref.runtime.threads import compute_threads
@@ -51,7 +52,6 @@ from planetref.runtime.threads import compute_threads
 __all__ = ["BundleSolver", "LmReport", "robust_rho"]
 
 log = logging.getLogger("planetref.adjust")
-F64 = NDArray[np.float64]
 #: Steps below this many sigmas that do not lower the cost are rounding noise.
 _STEP_FLOOR_SIGMA = 1e-6
 #: Relative cost decrease below which a robust (IRLS) run stops.

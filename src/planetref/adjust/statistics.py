@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.linearization import quadratic
 from planetref.adjust.schur import Iterate
+from planetref.arrays import F64
 from planetref.control.network import enu_rotation
 from planetref.errors import AdjustmentError
 
@@ -29,8 +30,6 @@ if TYPE_CHECKING:
     from planetref.control.network import PointMatrices
 
 __all__ = ["StatisticsMixin"]
-
-F64 = NDArray[np.float64]
 
 
 class StatisticsMixin:

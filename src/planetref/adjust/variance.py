@@ -27,6 +27,7 @@ from planetref.adjust.config import VarianceConfig
 from planetref.adjust.linearization import Linearization, group_kernels
 from planetref.adjust.redundancy import Redundancy, group_sum, redundancy
 from planetref.adjust.solver import BundleSolver
+from planetref.arrays import F64
 from planetref.errors import AdjustmentError
 
 __all__ = ["Redundancy", "VceResult", "redundancy", "variance_components"]
@@ -37,7 +38,6 @@ log = logging.getLogger("planetref.adjust")
 _VCE_FTOL = 1e-9
 #: Most LM iterations of one re-weighted adjustment.
 _VCE_MAX_LM = 8
-F64 = NDArray[np.float64]
 
 
 # ------------------------------------------------------------------ groups and VCE

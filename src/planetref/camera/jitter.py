@@ -24,8 +24,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera, Terrain
 from planetref.errors import InputError
 from planetref.geometry.lagrange import LagrangeWindows
@@ -39,8 +40,6 @@ __all__ = [
     "overlap_unit_gain_hz",
     "stagger_lines",
 ]
-
-F64 = NDArray[np.float64]
 
 
 def node_nyquist_hz(line_period_s: float, node_spacing_lines: float) -> float:

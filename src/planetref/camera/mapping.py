@@ -18,8 +18,9 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera, Terrain
 from planetref.geometry.geodesy import lonlat_to_xyz
 from planetref.raster.ortho import ReferenceOrtho
@@ -31,8 +32,6 @@ __all__ = [
     "project_to_image",
     "rays_to_ground",
 ]
-
-F64 = NDArray[np.float64]
 
 
 def rays_to_ground(

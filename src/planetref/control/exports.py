@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.geometry.geodesy import Ellipsoid, xyz_to_lonlat
 from planetref.runtime.atomic import write_text_atomic
 
@@ -86,8 +87,6 @@ CNET_COLUMNS = (
     "LineSigma",
     "MeasureType",
 )
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

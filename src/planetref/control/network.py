@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera
 from planetref.control.records import NetworkRecords, check_in_images, point_value
 from planetref.errors import InputError
@@ -35,7 +36,6 @@ from planetref.errors import InputError
 __all__ = ["Network", "PointFrames", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]
 
 PointKind = str  # "mcp", "tie" or "overlap" (a CCD-overlap tie; see adjust.api)
-F64 = NDArray[np.float64]
 
 
 def _as_float(a: ArrayLike, shape: tuple[int, ...], name: str) -> F64:

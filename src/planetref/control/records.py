@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera
 from planetref.errors import InputError
 
@@ -24,7 +25,6 @@ __all__ = [
     "point_value",
 ]
 
-F64 = NDArray[np.float64]
 
 IMAGE_MARGIN_PX = 1.0
 """How far outside its image's edges a measure may lie (sub-pixel measures on border

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
 __all__ = ["FineWindow", "read_fine"]
 
-F64 = NDArray[np.float64]
 _PAD = 2  # reference pixels read around the window for the bicubic kernel
 
 

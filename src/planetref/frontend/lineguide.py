@@ -21,13 +21,12 @@ from numpy.typing import NDArray
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 from scipy.spatial import QhullError
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera, Terrain
 from planetref.camera.mapping import image_to_ref_pixel
 from planetref.raster.ortho import ReferenceOrtho
 
 __all__ = ["LineGuide"]
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

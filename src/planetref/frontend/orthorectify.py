@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera, Terrain
 from planetref.camera.mapping import (
     image_to_ref_pixel,
@@ -57,7 +58,6 @@ __all__ = [
     "orthorectify",
 ]
 
-F64 = NDArray[np.float64]
 _UNSET = object()  # a lazily built attribute not built yet
 
 

@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
+
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera, Terrain
     from planetref.frontend.config import CcdOverlapConfig
@@ -60,7 +62,6 @@ OVERLAP_COLUMNS = (
 """Columns of ``<strip>/ccd_overlap_ties.csv`` (:func:`write_overlap_ties`)."""
 
 log = logging.getLogger(__name__)
-F64 = NDArray[np.float64]
 
 
 @dataclass

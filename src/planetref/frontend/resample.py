@@ -15,11 +15,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from planetref.arrays import F64
 from planetref.runtime.optional import optional_module
 
 __all__ = ["bilinear_blocks", "bilinear_blocks_numpy"]
-
-F64 = NDArray[np.float64]
 
 
 def bilinear_blocks_numpy(

@@ -19,6 +19,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.errors import InputError
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.stats import FUNNEL_STAGES
@@ -37,7 +38,6 @@ TileStatus = Literal["ok", "too_few_inliers", "no_overlap", "no_texture", "error
 STATUSES: tuple[str, ...] = ("ok", "too_few_inliers", "no_overlap", "no_texture", "error")
 
 
-F64 = NDArray[np.float64]
 _ARRAYS = ("line", "sample", "ref_col", "ref_row", "ref_x", "ref_y", "confidence", "sigma_px")
 
 

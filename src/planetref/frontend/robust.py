@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["robust_translation", "spread_select", "verify_points"]
+from planetref.arrays import F64
 
-F64 = NDArray[np.float64]
+__all__ = ["robust_translation", "spread_select", "verify_points"]
 
 
 def robust_translation(

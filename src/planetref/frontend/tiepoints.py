@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.errors import PlanetrefError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -35,7 +36,6 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = ["TiePoints", "find_tie_points"]
 
 log = logging.getLogger(__name__)
-F64 = NDArray[np.float64]
 
 
 @dataclass

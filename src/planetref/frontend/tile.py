@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera, Terrain
 from planetref.frontend.batched import (
     StageAnswer,
@@ -66,8 +67,6 @@ from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
 __all__ = ["TileInputs", "inference_mode", "match_tile", "tile_steps"]
-
-F64 = NDArray[np.float64]
 
 
 def _flat(image: NDArray[np.float32], valid: NDArray[np.bool_]) -> bool:

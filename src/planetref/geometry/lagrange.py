@@ -20,11 +20,10 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.errors import InputError
 
 __all__ = ["LagrangeWindows", "lagrange_window"]
-
-F64 = NDArray[np.float64]
 
 
 class LagrangeWindows:

@@ -19,9 +19,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["bilinear_lattice", "lattice_cell", "lerp"]
+from planetref.arrays import F64
 
-F64 = NDArray[np.float64]
+__all__ = ["bilinear_lattice", "lattice_cell", "lerp"]
 
 
 def lattice_cell(pos: F64, n: int) -> tuple[NDArray[np.intp], F64]:

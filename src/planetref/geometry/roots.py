@@ -28,6 +28,8 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
+
 __all__ = [
     "Bracket",
     "Residual",
@@ -36,7 +38,6 @@ __all__ = [
     "refine_bracketed",
 ]
 
-F64 = NDArray[np.float64]
 Rows = NDArray[np.intp]
 Residual = Callable[[F64, Rows], F64]
 ResidualWithSlope = Callable[[F64, Rows], tuple[F64, F64]]

@@ -19,7 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
+
+from planetref.arrays import F64
 
 __all__ = [
     "CameraFrameVectors",
@@ -28,8 +30,6 @@ __all__ = [
     "rotation_matrix",
     "rotation_matrix_derivatives",
 ]
-
-F64 = NDArray[np.float64]
 
 
 def axis_rotation(axis: int, angle: ArrayLike) -> F64:

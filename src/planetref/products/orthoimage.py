@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.camera.base import Camera, Terrain
 from planetref.camera.mapping import project_to_image, rays_to_ground
 from planetref.errors import GeometryError
@@ -49,7 +50,6 @@ from planetref.geometry.lattice import lattice_cell as _cell
 
 __all__ = ["LatticeProjector", "OrthoGrid", "OrthoSettings", "bilinear_lattice"]
 
-F64 = NDArray[np.float64]
 DIGEST_SUFFIX = ".inputs.sha256"
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter, shift
 
+from planetref.arrays import F64
 from planetref.simulate.config import SimulationConfig
 from planetref.simulate.grid import MapGrid
 from planetref.simulate.terrain import (
@@ -38,7 +39,6 @@ from planetref.simulate.terrain import (
 __all__ = ["ChangeRecord", "apply_surface_change", "dust_devil_tracks"]
 
 F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
 
 
 @dataclass

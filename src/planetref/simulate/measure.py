@@ -11,15 +11,13 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.camera.linescan import LineScanCamera
 from planetref.geometry.geodesy import xyz_to_lonlat
 from planetref.raster.dem import GridTerrain
 
 __all__ = ["checkpoints", "measure_consistency", "measure_initial_errors", "pixel_grid"]
-
-F64 = NDArray[np.float64]
 
 
 def pixel_grid(n_lines: int, n_samples: int, n: int) -> tuple[F64, F64]:

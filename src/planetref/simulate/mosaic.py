@@ -19,13 +19,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.simulate.config import PhotometryConfig, SunConfig
 from planetref.simulate.grid import MapGrid
 from planetref.simulate.realism import MosaicConfig
 
 __all__ = ["MosaicSource", "Seams", "draw_mosaic", "reference_accuracy", "sources_to_dict"]
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

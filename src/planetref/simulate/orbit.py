@@ -34,8 +34,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.camera.jitter import interpolation_limit_hz, node_nyquist_hz
 from planetref.camera.linescan import (
     CcdGeometry,
@@ -60,7 +60,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-F64 = NDArray[np.float64]
 JitterTerm = tuple[str, float, float, float]
 _AXES = ("roll", "pitch", "yaw")
 

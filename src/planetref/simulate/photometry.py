@@ -41,6 +41,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.simulate.config import AlbedoConfig, PhotometryConfig, SunConfig
 from planetref.simulate.grid import MapGrid
 from planetref.simulate.terrain import fractal_field
@@ -58,7 +59,6 @@ __all__ = [
 ]
 
 F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
 
 
 def sun_vector(sun: SunConfig) -> F64:

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter, map_coordinates
 
+from planetref.arrays import F64
 from planetref.raster.dem import MapProjection
 from planetref.simulate.config import ReferenceConfig
 from planetref.simulate.grid import MapGrid
@@ -47,7 +48,6 @@ __all__ = [
 ]
 
 F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
 
 
 def box_in_crs(

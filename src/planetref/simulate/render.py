@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.camera.linescan import LineScanCamera
 from planetref.errors import GeometryError
 from planetref.raster.dem import GridTerrain
@@ -61,7 +62,6 @@ from planetref.simulate.sensor import (
 __all__ = ["corner_rays", "render_ccd", "render_radiance", "write_image_geotiff"]
 
 F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
 
 
 def corner_rays(camera: LineScanCamera, ccd: str, lines: F64, samples: F64) -> tuple[F64, F64]:

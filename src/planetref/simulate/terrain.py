@@ -34,6 +34,7 @@ import scipy.fft
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
+from planetref.arrays import F64
 from planetref.simulate.config import SimulationConfig, TerrainConfig
 from planetref.simulate.grid import MapGrid, cubic_resample
 
@@ -51,7 +52,6 @@ __all__ = [
 ]
 
 F32 = NDArray[np.float32]
-F64 = NDArray[np.float64]
 
 
 # ------------------------------------------------------------------------ noise fields

@@ -10,11 +10,11 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import CsmParameters
 from planetref.adjust.models.protocol import CoverageIssue, Evaluation, mode_and_sigma
+from planetref.arrays import F64
 from planetref.errors import AdjustmentError
 
 __all__ = ["CsmParameterization"]
 
-F64 = NDArray[np.float64]
 #: Line step (image lines) of the central differences of the detector offset along lines.
 _LINE_STEP = 0.05
 _CSM_TERMS = (

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.config import LineScanParameters
 from planetref.adjust.models.protocol import CoverageIssue, Evaluation, mode_and_sigma
+from planetref.arrays import F64
 from planetref.camera.linescan import CcdGeometry, InteriorOrientation, LineScanCamera, compiled
 from planetref.camera.linescan.kernel import RAW_COLUMNS
 from planetref.errors import AdjustmentError, InputError
@@ -29,7 +30,6 @@ __all__ = ["LineScanParameterization"]
 
 log = logging.getLogger("planetref.adjust")
 
-F64 = NDArray[np.float64]
 _EO_NAMES = ("X", "Y", "Z", "phi", "omega", "kappa")
 _EO_UNITS = ("m", "m", "m", "rad", "rad", "rad")
 _IO_NAMES = ("x0", "y0", "f")

@@ -26,10 +26,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import Mode
+from planetref.arrays import F64
 
 __all__ = ["MODE_CODE", "AdjustableCamera", "CoverageIssue", "Evaluation", "mode_and_sigma"]
 
-F64 = NDArray[np.float64]
 MODE_CODE = {"free": 0, "weighted": 1, "fixed": 2}
 
 

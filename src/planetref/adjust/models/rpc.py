@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.models.protocol import CoverageIssue, Evaluation, mode_and_sigma
 from planetref.adjust.rpc_config import RpcParameters
+from planetref.arrays import F64
 from planetref.camera.rpc import RpcCamera
 from planetref.camera.rpc.bias import BIAS_MODELS, BIAS_TERMS, BiasedRpcCamera, RpcBias
 from planetref.camera.rpc.strip import RpcStripCamera
@@ -26,8 +27,6 @@ from planetref.errors import AdjustmentError
 from planetref.geometry.geodesy import lonlat_xyz_jacobian, xyz_to_lonlat
 
 __all__ = ["RpcParameterization"]
-
-F64 = NDArray[np.float64]
 
 
 class RpcParameterization:

@@ -26,11 +26,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
+
+from planetref.arrays import F64
 
 __all__ = ["radtan_basis", "radtan_displacement"]
 
-F64 = NDArray[np.float64]
 #: ``(x, y) -> (fx, fy, dfx/dx, dfx/dy, dfy/dx, dfy/dy)``: a forward map and its Jacobian.
 _Forward = Callable[[F64, F64], tuple[F64, F64, F64, F64, F64, F64]]
 

@@ -19,15 +19,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.camera.csm.interpolation import hermite, lagrange, natural_spline
 from planetref.camera.csm.isd import J2000, MIN_EPHEMERIS_NODES, CsmIsd
 from planetref.camera.csm.orientation import AleOrientations, qmatrix
 
 __all__ = ["CsmEphemeris"]
-
-F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

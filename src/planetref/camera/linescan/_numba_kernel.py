@@ -11,9 +11,9 @@ from typing import Any
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from planetref.arrays import F64
+
 _CHORD_ITERATIONS = 40
 
 njit = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})

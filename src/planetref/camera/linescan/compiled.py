@@ -22,11 +22,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from planetref.arrays import F64
 from planetref.runtime.optional import optional_module
 
 __all__ = ["available", "fill_partials", "project_points", "warm_up"]
-
-F64 = NDArray[np.float64]
 
 
 def _compiled() -> Any:

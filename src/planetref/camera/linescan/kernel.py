@@ -51,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 import planetref.camera.linescan.compiled as compiled
+from planetref.arrays import F64
 from planetref.camera.linescan.lens import clip_radius_mm, detector_position
 from planetref.geometry.lagrange import LagrangeWindows
 from planetref.geometry.roots import bracket_first_sign_change, refine_bracketed
@@ -67,7 +68,6 @@ __all__ = [
     "Projection",
 ]
 
-F64 = NDArray[np.float64]
 
 #: Chord iterations on the line stop when the step is below this (pixels).
 CHORD_TOL = 1e-6

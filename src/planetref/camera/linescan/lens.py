@@ -20,11 +20,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
+
+from planetref.arrays import F64
 
 __all__ = ["NO_DISTORTION", "clip_radius_mm", "detector_position", "ideal_position"]
 
-F64 = NDArray[np.float64]
 
 NO_DISTORTION = (0.0, 0.0, 0.0, 0.0)
 """``(k1, k2, p1, p2)`` of a distortion-free lens."""

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.camera.base import ConstantHeight, ImagePoints, OnMiss, Terrain
 from planetref.camera.linescan.kernel import RAW_COLUMNS, LineScanKernel
 from planetref.camera.linescan.sensor import CcdGeometry, InteriorOrientation, LineRateTable
@@ -63,8 +64,6 @@ __all__ = [
 
 FORMAT_NAME = "planetref-linescan"
 FORMAT_VERSION = 1
-
-F64 = NDArray[np.float64]
 
 
 # ----------------------------------------------------------------- partials

@@ -16,12 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planetref.arrays import F64
 from planetref.camera.linescan.lens import NO_DISTORTION, ideal_position
 from planetref.errors import InputError
 
 __all__ = ["CcdGeometry", "InteriorOrientation", "LineRateTable"]
-
-F64 = NDArray[np.float64]
 
 
 # --------------------------------------------------------------------------- time

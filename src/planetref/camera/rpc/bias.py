@@ -46,8 +46,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from planetref.arrays import F64
 from planetref.camera.base import ImagePoints, OnMiss, Terrain
 from planetref.camera.rpc.body import RpcBody
 from planetref.camera.rpc.camera import RpcCamera
@@ -68,7 +69,6 @@ __all__ = [
     "write_refined_rpc",
 ]
 
-F64 = NDArray[np.float64]
 BiasModel = Literal["shift", "shift+drift", "affine"]
 
 #: Names of the six coefficients, in the order of :attr:`RpcBias.coefficients`:
