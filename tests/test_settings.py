@@ -84,8 +84,8 @@ def _package_modules():
 
 def test_settings_is_the_only_pydantic_base_and_error_translator():
     # Every settings model derives from planetref.runtime.settings.Settings (frozen, unknown keys
-    # rejected): no other module builds a pydantic base, sets a model_config, or reads
-    # a ValidationError's errors() itself.
+    # rejected) and every output record from its Record: no other module builds a pydantic
+    # base, sets a model_config, or reads a ValidationError's errors() itself.
     import ast
 
     offenders = []

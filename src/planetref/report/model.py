@@ -16,7 +16,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from planetref.runtime.settings import Record
 
 __all__ = [
     "AdjustmentSummary",
@@ -38,10 +40,8 @@ __all__ = [
 Metrics = dict[str, Any]
 
 
-class ReportModel(BaseModel):
+class ReportModel(Record):
     """A block of report.json: no key beyond the declared ones, written as set."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=False)
 
     def to_json(self) -> dict[str, Any]:
         """The block as report.json holds it (the keys set, in declaration order)."""

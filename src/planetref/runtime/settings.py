@@ -30,6 +30,7 @@ from planetref.errors import InputError
 
 __all__ = [
     "Problem",
+    "Record",
     "Settings",
     "deep_merge",
     "describe_validation_error",
@@ -45,6 +46,15 @@ class Settings(BaseModel):
     """Base of every settings model: frozen (hashable, never mutated), unknown keys rejected."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Record(BaseModel):
+    """Base of every output record (report.json's blocks): unknown keys rejected.
+
+    Not frozen: a record is filled in as a run goes, and what was set is what is written.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=False)
 
 
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
