@@ -363,7 +363,9 @@ def _adjust(
         # partials and the node-wise solve is singular there and crawls. One
         # correction common to all nodes first removes the offset.
         free_models = list(solver.models)
-        solver.set_models([m if r is None else r() for m, r in zip(free_models, rigid)])
+        solver.set_models(
+            [m if r is None else r() for m, r in zip(free_models, rigid, strict=True)]
+        )
         _set_threshold(solver, cfg, res0, inlier, True)
         c, xyz, rep0, _, _ = solver.run(c, xyz, np.flatnonzero(inlier), xyz_start, initial=lin0)
         log.info("rigid start: %s after %d iteration(s)", rep0.reason, rep0.iterations)
