@@ -356,6 +356,22 @@ def _adjust(
     inlier = usable.copy()
     c = solver.x0.copy()
     xyz = xyz_start
+    rigid = [getattr(m, "rigid", None) for m in solver.models]
+    if cfg.solver.rigid_start and any(r is not None for r in rigid):
+        # A line scanner is linearised at each observation's projected line: from a
+        # start far off along track the nodes beyond the projected lines get no
+        # partials and the node-wise solve is singular there and crawls. One
+        # correction common to all nodes first removes the offset.
+        free_models = list(solver.models)
+        solver.set_models(
+            [m if r is None else r() for m, r in zip(free_models, rigid, strict=True)]
+        )
+        _set_threshold(solver, cfg, res0, inlier, True)
+        c, xyz, rep0, _, _ = solver.run(c, xyz, np.flatnonzero(inlier), xyz_start, initial=lin0)
+        log.info("rigid start: %s after %d iteration(s)", rep0.reason, rep0.iterations)
+        solver.set_models(free_models)
+        solver.last_lambda = None
+        lin0 = None  # made at the initial cameras
     residual = res0  # read only until the first round replaces it
     rounds: list[dict[str, Any]] = []
     stable = False

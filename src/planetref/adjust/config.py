@@ -454,6 +454,14 @@ class SolverConfig(Settings):
             in order, so a given thread count gives the same numbers every run.
         min_rcond: Reciprocal condition number of the (Jacobi-scaled) reduced normal
             matrix below which the problem is declared degenerate.
+        rigid_start: Before the first outlier round, solve for one correction common
+            to every orientation node of each line-scan strip (a rigid shift and
+            rotation of the trajectory), then free the nodes. A line scanner is
+            linearised at the projected line of each observation: from an initial
+            camera a kilometre off along track the projected lines lag the measured
+            ones by thousands of lines, the nodes beyond them get no partials (a null
+            direction) and the node-wise solve crawls; the rigid solve removes the
+            offset first.
     """
 
     max_iterations: int = Field(50, ge=1)
@@ -469,6 +477,7 @@ class SolverConfig(Settings):
     chunk_size: int = Field(32768, ge=256)
     threads: int | None = Field(None, ge=1)
     min_rcond: float = Field(1e-14, gt=0.0, lt=1.0)
+    rigid_start: bool = True
 
 
 class OutlierConfig(Settings):

@@ -397,6 +397,38 @@ class LineScanParameterization:
             f"values ({listing})"
         ]
 
+    def rigid(self) -> LineScanParameterization:
+        """A copy whose nodes share one correction (a rigid shift and rotation).
+
+        Adds, per parameter and pair of consecutive nodes, ``d_i - d_{i+1} = 0`` (``d``
+        the correction ``x - x0``) within the weak-node smoothing sigmas (as good as
+        exact), to this model's own constraints. Used for a first solve from a far
+        start (:attr:`~planetref.adjust.config.SolverConfig.rigid_start`).
+        """
+        cfg = self.config
+        n = len(self.x0)
+        rows, weights = [], []
+        for i in range(self._n_nodes - 1):
+            for c in range(6):
+                if self.mode[6 * i + c] == 2 or self.mode[6 * (i + 1) + c] == 2:
+                    continue
+                row = np.zeros(n)
+                row[6 * i + c], row[6 * (i + 1) + c] = 1.0, -1.0
+                rows.append(row)
+                sig = cast(
+                    float,
+                    cfg.weak_node_smooth_sigma_m if c < 3 else cfg.weak_node_smooth_sigma_rad,
+                )
+                weights.append(1.0 / sig**2)
+        if not rows:
+            return self
+        a = np.array(rows)
+        w = np.array(weights)
+        if self.constraints is not None:
+            a = np.vstack([self.constraints[0], a])
+            w = np.concatenate([self.constraints[1], w])
+        return self._with(self.mode, self.sigma, (a, w))
+
     def _with(
         self, mode: NDArray[np.int8], sigma: F64, constraints: tuple[F64, F64] | None
     ) -> LineScanParameterization:
