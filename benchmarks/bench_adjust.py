@@ -203,7 +203,8 @@ CONFIG = {
         "attitude": {"mode": "free"},
         "interior": {"mode": "fixed"},
     },
-    "solver": {"loss": "linear"},
+    # From the same start as scipy and Ceres (no rigid first solve: they have none).
+    "solver": {"loss": "linear", "rigid_start": False},
     "outliers": {"enabled": False},
     # The solver alone: the same weights as scipy gets (no variance components).
     "variance": {"enabled": False},
