@@ -99,8 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     from planetref.adjust.precision import formal_ground_precision
     from planetref.control.ground_sigma import reference_gsd_m
     from planetref.control.mcp import read_mcps
-    from planetref.control.network import Network, enu_rotation
-    from planetref.control.networks import check_points, mcp_ground_sigmas
+    from planetref.control.network import enu_rotation
+    from planetref.control.networks import McpSet
     from planetref.pipeline.config import GeorefConfig
     from planetref.pipeline.systematic import systematic_settings
     from planetref.report.blocks import check_block
@@ -132,15 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     line = np.asarray(table["line"], np.float64)
     sample = np.asarray(table["sample"], np.float64)
     ccd = np.asarray(table["ccd"]).astype(str)
-    check = check_points(
-        table["tile_id"],
-        table["ccd"],
-        cfg.mcp.check_fraction,
-        cfg.mcp.min_mcps,
-        cfg.mcp.seed,
-        cfg.mcp.check_blocks,
-        line=line,
-    )
+    mcps = McpSet.held_out(strip.id, table, cfg.mcp)  # georef's check tiles
     gsd = reference_gsd_m(ref)
     # Feature matchers only: the template overlap of area-based ones is the run's.
     adjust_cfg, _ = systematic_settings(cfg.adjust, manifest, [strip.id], gsd, 1.0)
@@ -174,19 +166,9 @@ def main(argv: list[str] | None = None) -> int:
             d = rng.normal(0.0, acc, (inv.max() + 1, 2))[inv]
         move = own + d
         pts = ground + move[:, :1] * enu[:, 0] + move[:, 1:] * enu[:, 1]
-        net = Network.mcps(
-            camera,
-            line=line,
-            sample=sample,
-            xyz=pts,
-            ccd=ccd,
-            camera_id=strip.id,
-            sigma_px=cfg.mcp.sigma_px,
-            check=check,
-            **mcp_ground_sigmas(table),
-        )
+        net = mcps.network(camera, cfg.mcp.sigma_px, xyz=pts)
         res = adjust(net, adjust_cfg)
-        true = check_block(res, {strip.id: true_cam}, terrain)["geoloc_rmse_m"]
+        true = check_block(res, {strip.id: true_cam}, terrain).geoloc_rmse_m
         formal = formal_ground_precision(res, strip.id, terrain=terrain)["rms_m"]
         rows.append({"draw": k, "true_m": true, "formal_m": formal, "ratio": true / formal})
         if not args.json:
@@ -201,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         "ratio_max": float(np.max(t / f)),
         "scene_matching_error_rms_m": float(np.sqrt(np.mean(own**2))),
         "n_mcps": len(line),
-        "n_check": int(np.count_nonzero(check)),
+        "n_check": int(np.count_nonzero(mcps.check)),
     }
     key = f"{args.scene} {args.matcher} {args.field} field, {args.draws} draws"
     if args.json:

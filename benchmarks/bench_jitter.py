@@ -127,13 +127,7 @@ def measure(
     from planetref.adjust.jitter import line_of_sight_difference
     from planetref.control.ground_sigma import reference_gsd_m
     from planetref.control.mcp import read_mcps
-    from planetref.control.network import Network
-    from planetref.control.networks import (
-        check_points,
-        mcp_ground_sigmas,
-        template_overlap,
-        template_support_m,
-    )
+    from planetref.control.networks import McpSet, template_overlap, template_support_m
     from planetref.frontend.matchers import matcher_options
     from planetref.pipeline.systematic import systematic_settings
     from planetref.report.blocks import check_block
@@ -158,25 +152,8 @@ def measure(
         facts = errors[strip.id]
         comps = facts.get("jitter", [])
         table = read_mcps(run_dir / strip.id / "mcps.parquet")
-        check = check_points(
-            table["tile_id"],
-            table["ccd"],
-            cfg.mcp.check_fraction,
-            cfg.mcp.min_mcps,
-            cfg.mcp.seed,
-            cfg.mcp.check_blocks,
-        )
-        network = Network.mcps(
-            camera,
-            line=table["line"],
-            sample=table["sample"],
-            xyz=table.xyz(),
-            ccd=np.asarray(table["ccd"]).astype(str),
-            camera_id=strip.id,
-            sigma_px=cfg.mcp.sigma_px,
-            check=check,
-            **mcp_ground_sigmas(table),
-        )
+        # The check tiles of the run (georef's rule, McpSet.held_out).
+        network = McpSet.held_out(strip.id, table, cfg.mcp).network(camera, cfg.mcp.sigma_px)
         gsd = reference_gsd_m(ref)
         support = template_support_m(
             matcher,
@@ -197,8 +174,8 @@ def measure(
         cpu = time.process_time()
         dense = adjust(network, jitter_cfg)
         cpu_dense = time.process_time() - cpu
-        true_seed = check_block(seed, {strip.id: truth}, terrain)["geoloc_rmse_m"]
-        true_dense = check_block(dense, {strip.id: truth}, terrain)["geoloc_rmse_m"]
+        true_seed = check_block(seed, {strip.id: truth}, terrain).geoloc_rmse_m
+        true_dense = check_block(dense, {strip.id: truth}, terrain).geoloc_rmse_m
         summary = dense.diagnostics.get("jitter", {}).get(strip.id, {})
         series = dense.jitter.get(strip.id)
         row: dict[str, Any] = {
@@ -224,9 +201,9 @@ def measure(
             )
             series_camera = forced.cameras[strip.id]
             series = forced.jitter[strip.id]
-            row["true_m_jitter_not_kept"] = check_block(forced, {strip.id: truth}, terrain)[
-                "geoloc_rmse_m"
-            ]
+            row["true_m_jitter_not_kept"] = check_block(
+                forced, {strip.id: truth}, terrain
+            ).geoloc_rmse_m
             row["true_change_pct_not_kept"] = (
                 100.0 * (row["true_m_jitter_not_kept"] - true_seed) / true_seed
             )

@@ -91,8 +91,17 @@ class McpSet:
     def __len__(self) -> int:
         return len(self.table)
 
-    def network(self, camera: Camera, sigma_px: float) -> Network:
-        """The one-strip network of these MCPs (``sigma_px``: each measure's sigma)."""
+    def network(
+        self, camera: Camera, sigma_px: float, xyz: NDArray[np.float64] | None = None
+    ) -> Network:
+        """The one-strip network of these MCPs.
+
+        Args:
+            camera: The strip's camera.
+            sigma_px: Each measure's sigma (px).
+            xyz: ``(N, 3)`` ground points in place of the table's (e.g. the same MCPs
+                on redrawn reference errors); ``None``: the table's.
+        """
         from planetref.control.network import Network
 
         t = self.table
@@ -101,7 +110,7 @@ class McpSet:
             camera,
             line=t["line"],
             sample=t["sample"],
-            xyz=t.xyz(),
+            xyz=t.xyz() if xyz is None else xyz,
             ccd=np.asarray(t["ccd"]).astype(str),
             camera_id=self.strip,
             sigma_px=sigma_px,
