@@ -39,6 +39,7 @@ __all__ = [
     "overlap_transfer",
     "overlap_unit_gain_hz",
     "stagger_lines",
+    "stagger_points",
 ]
 
 
@@ -170,6 +171,24 @@ def stagger_lines(
         ``(line_b, sample_b)``; ``line_b - line`` is the stagger in lines (its time is
         that times the line period), NaN where the ray misses or does not project.
     """
+    lb, sb, _ = stagger_points(camera, ccd_a, ccd_b, line, sample, terrain)
+    return lb, sb
+
+
+def stagger_points(
+    camera: Camera,
+    ccd_a: str,
+    ccd_b: str,
+    line: ArrayLike,
+    sample: ArrayLike,
+    terrain: Terrain | float = 0.0,
+) -> tuple[F64, F64, F64]:
+    """:func:`stagger_lines` with the ground points it went through.
+
+    Returns:
+        ``(line_b, sample_b, xyz)``: as :func:`stagger_lines`, and the ``(N, 3)`` ground
+        points (body-fixed, m) of ``(line, sample)`` in ``ccd_a``, NaN where the ray misses.
+    """
     ln = np.atleast_1d(np.asarray(line, np.float64))
     sm = np.atleast_1d(np.asarray(sample, np.float64))
     xyz = camera.image_to_ground(ln, sm, terrain, ccd=ccd_a, on_miss="nan")
@@ -180,4 +199,4 @@ def stagger_lines(
         ip = camera.ground_to_image(xyz[ok], ccd=ccd_b)
         lb[ok] = np.where(ip.valid, ip.line, np.nan)
         sb[ok] = np.where(ip.valid, ip.sample, np.nan)
-    return lb, sb
+    return lb, sb, xyz

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.arrays import F64
+from planetref.camera.jitter import stagger_lines, stagger_points
 
 if TYPE_CHECKING:  # pragma: no cover
     from planetref.camera.base import Camera, Terrain
@@ -135,8 +136,6 @@ def overlap_pairs(
         ``(a, b, s0, s1, stagger_lines)``: the samples ``[s0, s1]`` of ``a`` that ``b``
         sees (with the margin) and the median ``line_b - line_a`` there.
     """
-    from planetref.camera.jitter import stagger_lines
-
     names = list(camera.ccd_names)
     out = []
     for i, a in enumerate(names):
@@ -251,14 +250,7 @@ def _match_pair(
     rows = np.arange(first, last + 1, cfg.step_lines)
     la = rows + 0.5
     sa = np.full(len(rows), s_c + 0.5)
-    xyz = camera.image_to_ground(la, sa, terrain, ccd=a, on_miss="nan")
-    ok = np.all(np.isfinite(xyz), axis=1)
-    pl = np.full(len(rows), np.nan)
-    ps = np.full(len(rows), np.nan)
-    if ok.any():
-        ip = camera.ground_to_image(xyz[ok], ccd=b)
-        pl[ok] = np.where(ip.valid, ip.line, np.nan)
-        ps[ok] = np.where(ip.valid, ip.sample, np.nan)
+    pl, ps, xyz = stagger_points(camera, a, b, la, sa, terrain)
     # Column slabs of both images, read once.
     a0 = s_c - hs
     data_a, valid_a = img_a.read(0, a0, n_a, 2 * hs + 1)
@@ -274,7 +266,7 @@ def _match_pair(
     out_sb = np.full(len(rows), np.nan)
     score = np.full(len(rows), np.nan)
     for k, row in enumerate(rows):
-        if not (ok[k] and np.isfinite(pl[k]) and np.isfinite(ps[k])):
+        if not (np.isfinite(pl[k]) and np.isfinite(ps[k])):  # NaN: missed or off b
             continue
         jl, js = int(np.floor(pl[k])), int(np.floor(ps[k]))
         if jl - hl - r < 0 or jl + hl + r >= n_b or js - hs - r < 0 or js + hs + r >= nb_s:
