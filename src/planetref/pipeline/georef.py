@@ -535,14 +535,7 @@ def _adjust_strip(
     network = prep.mcps.network(prep.camera, cfg.mcp.sigma_px)
     if prep.overlap is not None:
         network = with_overlap_ties(network, prep.overlap, cfg.frontend.ccd_overlap)
-    adjust_cfg, declared = systematic_settings(
-        cfg.adjust,
-        job.manifest,
-        [prep.id],
-        reference_gsd_m(job.ref),
-        mcp_overlap(job, [prep.mcps]),
-    )
-    adjust_cfg = with_mcp_support(job, adjust_cfg)
+    adjust_cfg, declared = _adjust_settings(job, [prep.id], [prep.mcps])
     t0, c0 = job.clock()
     result, _ = solve_or_reload(run, (prep.id, "adjustment"), network, adjust_cfg, adjust)
     job.charge("adjustment", t0, c0)
@@ -615,33 +608,32 @@ def overlap_rmse(
     }
 
 
-def with_mcp_support(job: StripJob, adjust_cfg: AdjustConfig) -> AdjustConfig:
-    """The jitter stage's ``mcp_support_m`` from the fine matcher's template, if unset."""
+def _adjust_settings(
+    job: StripJob, strip_ids: list[str], mcps: list[McpSet]
+) -> tuple[AdjustConfig, dict[str, Any]]:
+    """The adjustment's settings for these strips' MCPs, and their systematic sources.
+
+    The sources are :func:`~planetref.pipeline.systematic.systematic_settings`'s. The
+    fine matcher's template (:func:`template_support_m`) decides both the MCPs' mean
+    number per independent measurement (:func:`template_overlap`, 1 for sparse
+    matchers) and, when the jitter stage is on and ``mcp_support_m`` unset, the
+    template the jitter's resolution limit is bounded by.
+    """
+    fine, gsd = job.matchers.fine, reference_gsd_m(job.ref)
+    support = template_support_m(fine.name, fine.options, job.cfg.frontend.fine_upsample, gsd)
+    overlap = 1.0
+    if support is not None:
+        x = np.concatenate([np.asarray(m.table["ref_x"], float) for m in mcps])
+        y = np.concatenate([np.asarray(m.table["ref_y"], float) for m in mcps])
+        overlap = template_overlap(x, y, support)
+    adjust_cfg, declared = systematic_settings(
+        job.cfg.adjust, job.manifest, strip_ids, gsd, overlap
+    )
     jit = adjust_cfg.jitter
-    if not jit.enabled or jit.mcp_support_m is not None:
-        return adjust_cfg
-    fine = job.matchers.fine
-    support = template_support_m(
-        fine.name, fine.options, job.cfg.frontend.fine_upsample, reference_gsd_m(job.ref)
-    )
-    if support is None:
-        return adjust_cfg
-    return adjust_cfg.model_copy(
-        update={"jitter": jit.model_copy(update={"mcp_support_m": support})}
-    )
-
-
-def mcp_overlap(job: StripJob, mcps: list[McpSet]) -> float:
-    """Mean number of MCPs per independent measurement (:func:`template_overlap`)."""
-    fine = job.matchers.fine
-    support = template_support_m(
-        fine.name, fine.options, job.cfg.frontend.fine_upsample, reference_gsd_m(job.ref)
-    )
-    if support is None:
-        return 1.0
-    x = np.concatenate([np.asarray(m.table["ref_x"], float) for m in mcps])
-    y = np.concatenate([np.asarray(m.table["ref_y"], float) for m in mcps])
-    return template_overlap(x, y, support)
+    if jit.enabled and jit.mcp_support_m is None and support is not None:
+        jit = jit.model_copy(update={"mcp_support_m": support})
+        adjust_cfg = adjust_cfg.model_copy(update={"jitter": jit})
+    return adjust_cfg, declared
 
 
 def _adjust_together(
@@ -687,14 +679,7 @@ def _adjust_together(
     for p in preps:
         if p.overlap is not None:
             network = with_overlap_ties(network, p.overlap, cfg.frontend.ccd_overlap)
-    adjust_cfg, declared = systematic_settings(
-        cfg.adjust,
-        job.manifest,
-        [p.id for p in preps],
-        reference_gsd_m(job.ref),
-        mcp_overlap(job, [p.mcps for p in preps]),
-    )
-    adjust_cfg = with_mcp_support(job, adjust_cfg)
+    adjust_cfg, declared = _adjust_settings(job, [p.id for p in preps], [p.mcps for p in preps])
     t0, c0 = job.clock()
     result, _ = solve_or_reload(run, ("campaign", "adjustment"), network, adjust_cfg, adjust)
     job.charge("adjustment", t0, c0)
