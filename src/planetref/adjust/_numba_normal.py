@@ -327,3 +327,49 @@ def diag_cofactor(
         out[i, 0, 1] = h01
         out[i, 1, 0] = h01
         out[i, 1, 1] = h11
+
+
+@_jit
+def tie_rows(
+    partials: tuple[F64, F64, Any, Any],
+    ground: tuple[F64, Any],
+    tie_pos: Any,
+    gp: Any,
+    out: tuple[F64, F64, Any],
+) -> None:
+    """Write the partials of a chunk's rows on unknown points into the tie arrays.
+
+    The twin of the numpy scatter in
+    :meth:`~planetref.adjust.linearization.LinearizationMixin._linearize` (``_tie_rows``:
+    the factors expanded for the tie rows, then fancy-indexed stores): row ``i`` with
+    ``tie_pos[i] = t >= 0`` gets ``a_t[t, r, c] = imp[i, r, src[c]] * weights[i, node[c]]``
+    (times 1 where ``node[c] < 0``) for its ``len(src)`` pattern columns (the rest of
+    ``a_t[t]`` is left as it is), ``b_t[t, r, c] = gsrc[i, r, gcol[c]]`` and
+    ``gpat_t[t] = gp[i]``. The same products, so the same numbers bit for bit.
+
+    Args:
+        partials: ``(imp, weights, src, node)`` as in :func:`linearize_rows`.
+        ground: ``(gsrc (m, 2, *), gcol (3,))``: the array holding the ground partials
+            and their three columns in it.
+        tie_pos: Row in the tie arrays of each chunk row, or -1, ``(m,)``.
+        gp: Global pattern of each row ``(m,)``.
+        out: ``(a_t (Mt, 2, q), b_t (Mt, 2, 3), gpat_t (Mt,))``, written at the tie rows.
+    """
+    imp, wn, src, node = partials
+    gsrc, gcol = ground
+    a_t, b_t, gpat_t = out
+    qm = src.shape[0]
+    factored = wn.shape[0] == tie_pos.shape[0] and tie_pos.shape[0] > 0
+    for i in range(tie_pos.shape[0]):
+        t = tie_pos[i]
+        if t < 0:
+            continue
+        for r in range(2):
+            for c in range(qm):
+                v = imp[i, r, src[c]]
+                if factored and node[c] >= 0:
+                    v = v * wn[i, node[c]]
+                a_t[t, r, c] = v
+            for c in range(3):
+                b_t[t, r, c] = gsrc[i, r, gcol[c]]
+        gpat_t[t] = gp[i]

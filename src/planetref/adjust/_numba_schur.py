@@ -43,12 +43,21 @@ def eliminate_points(
     Only the upper triangle of ``s_mat`` is updated point by point (each term is
     symmetric); the lower one is copied from it at the end, so ``s_mat`` leaves exactly
     symmetric. Points seen by one observation (MCPs) take a rank-2 form
-    (:func:`_one_observation`).
+    (:func:`_one_observation`); a point seen by several (a tie point) sums its
+    ``Y = sum_o A_o^T W_o B_o`` over the distinct active columns of its observations
+    first and updates ``S`` once with ``z z^T`` (``z = Y C``, ``C C^T = V^-1``), over
+    those columns only (the same sum as the pairs of observations' ``z_k1 z_k2^T``;
+    when all its observations share one pattern it is summed per pattern like the
+    one-observation terms).
     """
     q = a_t.shape[2]
     n_u = len(starts) - 1
-    y = np.empty((1, q, 3))
-    z = np.empty((1, q, 3))
+    # A point's compact columns (the distinct active columns of its observations, at
+    # most ``sink``), their rows of Y (then z), and each column's place among them.
+    ucol = np.empty(sink + 1, np.intp)
+    y0, y1, y2 = np.empty(sink + 1), np.empty(sink + 1), np.empty(sink + 1)
+    mark = np.full(sink + 1, -1, np.intp)
+    pos = np.zeros(sink + 1, np.intp)
     # Scratch, overwritten for every point (no allocation per point).
     v = np.empty((3, 3))
     g = np.empty(3)
@@ -122,46 +131,68 @@ def eliminate_points(
             block = pool[gp] if pooled else s_mat
             _one_observation(a_t, b_t, w_t, o0, act, cols[gp], vi, vb, block, pooled, rhs, p0, p1)
             continue
-        # C C^T = V^-1 (lower): S -= (y C)(y C)^T keeps each point's term symmetric PSD.
-        c00, c10, c20, c11, c21, c22 = _cholesky3(vi)
-        if y.shape[0] < n_o:
-            y = np.empty((n_o, q, 3))
-            z = np.empty((n_o, q, 3))
-        # y_o = A_o^T W_o B_o (q x 3); z_o = y_o C.
-        for k in range(n_o):
-            o = o0 + k
+        # Several observations: Y = sum_o A_o^T W_o B_o over the union of their active
+        # columns (compact, in increasing parameter column), z = Y C with C C^T = V^-1
+        # (lower), and S -= z z^T: each point's term stays symmetric PSD.
+        nu = 0
+        same = True
+        gp0 = gpat_t[o0]
+        for o in range(o0, o1):
             gp = gpat_t[o]
-            for c in range(q):
-                col = cols[gp, c]
-                if col == sink:
-                    continue
-                for i in range(3):
-                    y[k, c, i] = (
-                        a_t[o, 0, c] * w_t[o, 0] * b_t[o, 0, i]
-                        + a_t[o, 1, c] * w_t[o, 1] * b_t[o, 1, i]
-                    )
-                rhs[col] -= y[k, c, 0] * vb[0] + y[k, c, 1] * vb[1] + y[k, c, 2] * vb[2]
-                z[k, c, 0] = y[k, c, 0] * c00 + y[k, c, 1] * c10 + y[k, c, 2] * c20
-                z[k, c, 1] = y[k, c, 1] * c11 + y[k, c, 2] * c21
-                z[k, c, 2] = y[k, c, 2] * c22
-        for k1 in range(n_o):
-            g1 = gpat_t[o0 + k1]
-            for k2 in range(n_o):
-                g2 = gpat_t[o0 + k2]
-                for c1 in range(q):
-                    col1 = cols[g1, c1]
-                    if col1 == sink:
-                        continue
-                    for c2 in range(q):
-                        col2 = cols[g2, c2]
-                        # The upper triangle only; mirrored below.
-                        if col2 == sink or col2 < col1:
-                            continue
-                        s_mat[col1, col2] -= (
-                            z[k1, c1, 0] * z[k2, c2, 0]
-                            + z[k1, c1, 1] * z[k2, c2, 1]
-                            + z[k1, c1, 2] * z[k2, c2, 2]
-                        )
+            same = same and gp == gp0
+            for ii in range(act_n[gp]):
+                col = cols[gp, act_c[gp, ii]]
+                if mark[col] != u:
+                    mark[col] = u
+                    ucol[nu] = col
+                    nu += 1
+        if not same:  # a union of patterns: sort its columns (a few dozen at most)
+            for i in range(1, nu):
+                x = ucol[i]
+                j = i
+                while j > 0 and ucol[j - 1] > x:
+                    ucol[j] = ucol[j - 1]
+                    j -= 1
+                ucol[j] = x
+        for i in range(nu):
+            pos[ucol[i]] = i
+            y0[i] = 0.0
+            y1[i] = 0.0
+            y2[i] = 0.0
+        for o in range(o0, o1):
+            gp = gpat_t[o]
+            w0, w1 = w_t[o, 0], w_t[o, 1]
+            wb00, wb01, wb02 = w0 * b_t[o, 0, 0], w0 * b_t[o, 0, 1], w0 * b_t[o, 0, 2]
+            wb10, wb11, wb12 = w1 * b_t[o, 1, 0], w1 * b_t[o, 1, 1], w1 * b_t[o, 1, 2]
+            for ii in range(act_n[gp]):
+                c = act_c[gp, ii]
+                i = pos[cols[gp, c]]
+                a0, a1 = a_t[o, 0, c], a_t[o, 1, c]
+                y0[i] += a0 * wb00 + a1 * wb10
+                y1[i] += a0 * wb01 + a1 * wb11
+                y2[i] += a0 * wb02 + a1 * wb12
+        c00, c10, c20, c11, c21, c22 = _cholesky3(vi)
+        for i in range(nu):
+            t0, t1, t2 = y0[i], y1[i], y2[i]
+            rhs[ucol[i]] -= t0 * vb[0] + t1 * vb[1] + t2 * vb[2]
+            y0[i] = t0 * c00 + t1 * c10 + t2 * c20
+            y1[i] = t1 * c11 + t2 * c21
+            y2[i] = t2 * c22
+        if same and pooled:
+            # One pattern: its compact columns are the pattern's active ones in the
+            # same order; whole rows (both triangles) vectorise.
+            block = pool[gp0]
+            for i in range(nu):
+                x0, x1, x2 = y0[i], y1[i], y2[i]
+                row = block[i]
+                for j in range(nu):
+                    row[j] += x0 * y0[j] + x1 * y1[j] + x2 * y2[j]
+            continue
+        for i in range(nu):  # the upper triangle of S (mirrored below)
+            col1 = ucol[i]
+            x0, x1, x2 = y0[i], y1[i], y2[i]
+            for j in range(i, nu):
+                s_mat[col1, ucol[j]] -= x0 * y0[j] + x1 * y1[j] + x2 * y2[j]
     for gp in range(n_pat if pooled else 0):
         for i in range(act_n[gp]):
             col1 = cols[gp, act_c[gp, i]]

@@ -316,6 +316,18 @@ class LinearizationMixin:
             # The partials of observations of unknown points, for the Schur complement.
             if n_tie:
                 tp = tie_pos[a:b]
+                if fn is not None:
+                    # Compiled: straight from the factors into the tie rows.
+                    f = ev.factors
+                    if f is not None:
+                        fac = (f.imp, f.weights, f.src, f.node)
+                        grd = (f.imp, f.ground)
+                    else:
+                        d = ev.d_params
+                        fac = _plain_factors(d)
+                        grd = (ev.d_ground, _GROUND_COLUMNS)
+                    fn.tie_rows(fac, grd, tp, gp, (a_t, b_t, gpat_t))
+                    return
                 is_t = tp >= 0
                 if np.any(is_t):
                     if ev.factors is not None and not np.all(is_t):
@@ -595,12 +607,18 @@ def _partial_factors(ev: Evaluation) -> tuple[Any, ...]:
     if f is not None:
         basis = f.basis if f.basis is not None else _NO_BASIS
         return (f.imp, f.weights, f.src, f.node, *basis)
-    d = ev.d_params
+    return (*_plain_factors(ev.d_params), *_NO_BASIS)
+
+
+def _plain_factors(d: F64) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.intp]]:
+    """``(imp, weights, src, node)`` of plain partials ``d (m, 2, q)``: no node factors."""
     q = d.shape[2]
-    return (d, _NO_WEIGHTS, np.arange(q, dtype=np.intp), np.full(q, -1, np.intp), *_NO_BASIS)
+    return (d, _NO_WEIGHTS, np.arange(q, dtype=np.intp), np.full(q, -1, np.intp))
 
 
 _NO_WEIGHTS = np.ones((1, 1))
+#: The columns of plain ground partials ``d_ground (m, 2, 3)``.
+_GROUND_COLUMNS = np.arange(3, dtype=np.intp)
 _NO_BASIS = (np.empty(0), np.empty(0, np.intp), np.empty((0, 0, 0)))
 
 

@@ -483,11 +483,14 @@ class _Factors:
 
     ``d_params[i, r, 6 j + c] = imp[i, r, c] * weights[i, j]`` for node ``j`` of the
     window and EO column ``c``; the interior (and placement) columns are columns of
-    ``imp``; ``d_ground`` is ``imp``'s ground columns. ``basis``: ``(tau, start,
-    coef)`` with ``weights[i, j] = sum_q coef[start[i], j, q] tau[i]^q``, or ``None``.
+    ``imp``; ``d_ground`` is ``imp``'s ground columns (:attr:`ground`). ``basis``:
+    ``(tau, start, coef)`` with ``weights[i, j] = sum_q coef[start[i], j, q] tau[i]^q``,
+    or ``None``.
     """
 
     __slots__ = ("basis", "imp", "node", "placement", "src", "weights")
+    #: ``d_ground``'s columns in ``imp`` (those ``compiled.fill_partials`` copies).
+    ground = np.arange(RAW_COLUMNS["ground"].start, RAW_COLUMNS["ground"].stop, dtype=np.intp)
 
     def __init__(
         self,
