@@ -118,3 +118,63 @@ def shared_data() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"{SHARED} not found (the real data of this test live in ../shared)")
     return SHARED / "data"
+
+
+def tie_problem(
+    n_tie: int = 80,
+    n_mcp: int = 60,
+    *,
+    seed: int = 7,
+    tie_sigma_m: float = np.inf,
+    mcp_sigma_m: float = 5.0,
+    triple: int = 0,
+):
+    """Tie points in the overlaps of neighbouring CCDs plus weighted MCPs.
+
+    Each tie point is seen in both CCDs of its overlap (2 observations; ``triple`` of
+    them also by a second strip, ``strip2``, a differently perturbed copy, in the second
+    CCD), its a-priori XYZ 20 m off with sigma ``tie_sigma_m`` (``inf``: free). The
+    CCDs' 1 mm stagger puts the two observations ~100 lines apart, so some straddle a
+    change of Lagrange window (two patterns). Returns the network.
+    """
+    true = true_strip()
+    init = perturb(true)
+    rng = np.random.default_rng(seed)
+    first = rng.integers(0, 2, n_tie)  # overlap ccd1/ccd2 or ccd2/ccd3
+    line = rng.uniform(200, N_LINES - 200, n_tie)
+    sample = rng.uniform(N_SAMPLES - 14, N_SAMPLES - 2, n_tie)
+    xyz_t = ground_points(true, first, line, sample, rng.uniform(-500, 500, n_tie))
+    other = np.empty((n_tie, 2))
+    for k in range(2):
+        m = first == k
+        ip = true.ground_to_image(xyz_t[m], ccd=true.ccd_names[k + 1])
+        other[m] = np.stack([ip.line, ip.sample], 1)
+    ccd_m = rng.integers(0, 3, n_mcp)
+    lm, sm = rng.uniform(0, N_LINES, n_mcp), rng.uniform(0, N_SAMPLES, n_mcp)
+    xyz_m = ground_points(true, ccd_m, lm, sm, rng.uniform(-500, 500, n_mcp))
+    names = np.array(true.ccd_names)
+    t3 = np.arange(triple)
+    obs_point = [f"t{i}" for i in range(n_tie)] * 2 + [f"t{i}" for i in t3]
+    obs_point += [f"m{i}" for i in range(n_mcp)]
+    cams = ["strip"] * (2 * n_tie) + ["strip2"] * triple + ["strip"] * n_mcp
+    ccd = np.concatenate([names[first], names[first + 1], names[first[t3] + 1], names[ccd_m]])
+    obs_line = np.concatenate([line, other[:, 0], other[t3, 0], lm])
+    obs_sample = np.concatenate([sample, other[:, 1], other[t3, 1], sm])
+    n_obs = len(obs_line)
+    pts = {f"t{i}": xyz_t[i] + rng.normal(0, 20, 3) for i in range(n_tie)}
+    pts.update({f"m{i}": xyz_m[i] for i in range(n_mcp)})
+    sig = {f"t{i}": tie_sigma_m for i in range(n_tie)}
+    sig.update({f"m{i}": mcp_sigma_m for i in range(n_mcp)})
+    second = perturb(true, pos_bias=(-10.0, 15.0, 5.0), att_bias=(-1e-5, 2e-5, 2e-5))
+    cameras = {"strip": init, "strip2": second} if triple else {"strip": init}
+    return Network.from_records(
+        cameras,
+        obs_camera=cams,
+        obs_point=obs_point,
+        obs_ccd=list(ccd),
+        line=obs_line + rng.normal(0, 0.3, n_obs),
+        sample=obs_sample + rng.normal(0, 0.3, n_obs),
+        point_xyz=pts,
+        point_sigma_m=sig,
+        sigma_px=0.3,
+    )

@@ -12,12 +12,13 @@ import dataclasses
 
 import numpy as np
 import pytest
-from adjust_synth import mcp_problem
+from adjust_synth import mcp_problem, tie_problem
 
 from planetref.adjust import adjust, linearization, schur
 from planetref.adjust.config import validate_config
 from planetref.adjust.models import parameterize
-from planetref.adjust.redundancy import _diag_cofactor, _PairG
+from planetref.adjust.redundancy import _diag_cofactor, _PairG, redundancy
+from planetref.adjust.schur import Iterate
 from planetref.adjust.solver import BundleSolver
 from planetref.camera.linescan import compiled
 
@@ -299,3 +300,87 @@ def test_point_frames_index_like_the_dense_array():
     idx = np.array([5, 0, 5, net.n_points - 1])
     assert np.array_equal(frames[idx], dense[idx])
     assert len(frames) == net.n_points
+
+
+def _tie_solver(**kw):
+    """A solver of :func:`adjust_synth.tie_problem` (positions weighted, attitudes free)."""
+    net = tie_problem(**kw)
+    cfg = validate_config({**CONFIG, "outliers": {"enabled": False}})
+    models = [parameterize(i, cam, cfg) for i, cam in zip(net.camera_ids, net.cameras)]
+    solver = BundleSolver(net, models, cfg.solver)
+    obs = np.arange(net.n_obs)
+    st = solver._structure(obs)
+    solver._unknown_ids = st.unknown
+    xyz = net.point_xyz.copy()
+    lin = solver._linearize(solver.x0, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz)
+    return net, solver, st, lin, Iterate(lin, st.chunks, solver.x0, xyz, xyz, st.unknown)
+
+
+@pytest.mark.parametrize("pool", [schur._POOL_ELEMENTS, 0])
+@pytest.mark.parametrize("lam", [0.0, 1e-3])
+def test_tie_point_elimination_compiled_equals_numpy_reference(monkeypatch, pool, lam):
+    """Points of 2 and 3 observations, some over two Lagrange windows (patterns): the
+    compiled elimination (one ``z z^T`` per point over the union of its columns, summed
+    per pattern or straight into S) against the numpy pairs of observations."""
+    _, solver, st, lin, at = _tie_solver(n_tie=120, triple=30, tie_sigma_m=30.0)
+    starts = np.append([ch.obs[0] + ch.starts for ch in st.chunks], len(lin.a_t))
+    mixed = [
+        len(np.unique(lin.gpat_t[a:b])) > 1 for a, b in zip(starts[:-1], starts[1:], strict=True)
+    ]
+    assert 5 < sum(mixed) < len(mixed)  # both kinds of point
+    assert np.max(np.diff(starts)) == 3
+    monkeypatch.setattr(schur, "_POOL_ELEMENTS", pool)
+    s_mat, rhs, d_c, blocks = solver._reduced(at, lam)
+    assert np.array_equal(s_mat, s_mat.T)
+    monkeypatch.setattr(schur, "_compiled", lambda: None)
+    s_np, rhs_np, d_np, blocks_np = solver._reduced(at, lam)
+    act = solver.active
+    sa, sn = s_mat[np.ix_(act, act)], s_np[np.ix_(act, act)]
+    scale = np.sqrt(np.outer(np.diag(sn), np.diag(sn)))
+    assert np.max(np.abs(sa - sn) / scale) < 1e-9
+    # The gradient against its largest element (6e-12 here; the compiled elimination
+    # before the per-point union, pairs of observations, gave the same 6e-12).
+    assert np.max(np.abs(rhs - rhs_np)[act]) < 1e-9 * np.max(np.abs(rhs_np[act]))
+    assert np.array_equal(d_c, d_np)
+    for (v, bx, dx), (v_np, bx_np, dx_np) in zip(blocks, blocks_np, strict=True):
+        assert np.allclose(v, v_np, rtol=1e-9, atol=0.0)
+        assert np.allclose(bx, bx_np, rtol=1e-9, atol=1e-12 * np.abs(bx_np).max())
+        assert np.allclose(dx, dx_np, rtol=1e-12, atol=0.0)
+
+
+def test_tie_rows_compiled_equal_numpy_reference():
+    """The tie arrays written by the compiled scatter equal the expanded factors'."""
+    net, solver, st, lin, _ = _tie_solver(n_tie=60, triple=10)
+    solver.compiled_normal = False
+    ref = solver._linearize(
+        solver.x0, net.point_xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, net.point_xyz
+    )
+    assert lin.a_t.shape == ref.a_t.shape and np.abs(ref.a_t).max() > 0
+    for name in ("a_t", "b_t", "gpat_t", "weight_t", "r_t"):
+        assert np.array_equal(getattr(lin, name), getattr(ref, name)), name
+
+
+@pytest.mark.parametrize(("tie_sigma", "tol"), [(30.0, 1e-9), (np.inf, 1e-6)])
+def test_tie_redundancy_compiled_equals_numpy_reference(tie_sigma, tol):
+    """The redundancy numbers of tie observations and the points' cofactors (compiled
+    per point) against the numpy loop over pairs of observations.
+
+    Free tie points are nearly singular (depth along the 1 mm CCD stagger: cond(Q_XX)
+    ~1e7): ``H_i`` cancels its large terms, and both sums lose ~1e-7 to rounding (the
+    numbers sum to the 264 degrees of freedom within 1e-6 either way)."""
+    net, solver, _, _, _ = _tie_solver(n_tie=120, triple=30, tie_sigma_m=tie_sigma)
+    obs = np.arange(net.n_obs)
+    c, xyz, _, lin, stats = solver.run(solver.x0, net.point_xyz, obs, net.point_xyz)
+    fast = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"], lin)
+    solver.compiled_normal = False
+    ref = redundancy(solver, c, xyz, obs, net.point_xyz, stats["cofactor"], lin)
+    tie = ~solver.point_fixed[net.obs_point[ref.obs]]
+    assert tie.sum() == 330  # 270 tie observations, 60 of weighted MCPs
+    r_tie = ref.obs_r[tie]
+    assert np.all((r_tie > 0.0) & (r_tie < 1.0))
+    assert np.max(np.abs(fast.obs_r - ref.obs_r)) < tol
+    assert np.array_equal(fast.unknown, ref.unknown)
+    q = ref.point_cofactor
+    scale = np.sqrt(np.einsum("pii,pjj->pij", q, q))
+    assert np.max(np.abs(fast.point_cofactor - q) / scale) < max(tol, 1e-8)
+    assert fast.total == pytest.approx(stats["dof"], rel=1e-6)

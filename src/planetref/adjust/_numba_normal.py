@@ -373,3 +373,156 @@ def tie_rows(
             for c in range(3):
                 b_t[t, r, c] = gsrc[i, r, gcol[c]]
         gpat_t[t] = gp[i]
+
+
+@_jit
+def point_redundancy(
+    a_u: F64,
+    b_u: F64,
+    gpat_u: Any,
+    w: F64,
+    rows: Any,
+    starts: Any,
+    prior_w: F64,
+    q_mat: F64,
+    tables: tuple[Any, Any, Any],
+    h_out: F64,
+    qjj_out: F64,
+) -> None:
+    """Cofactor diagonals of the observations of unknown points, and the points' cofactors.
+
+    The twin of the pair loop of :func:`planetref.adjust.redundancy._finish` (the numpy
+    reference). Point ``u`` owns the kept rows ``rows[starts[u]:starts[u + 1]]`` of
+    ``a_u``/``b_u``/``gpat_u`` (``w``: their weights, in the order of ``rows``). With
+    ``V = P_u + sum_k B_k^T W_k B_k``, ``C_k = V^-1 B_k^T W_k`` and ``G_ik = A_i Q A_k^T``
+    (over each pattern's active columns)::
+
+        T_i = sum_k G_ik C_k^T,   Q_XX = V^-1 + sum_i C_i T_i,
+        H_i = G_ii - T_i B_i^T - B_i T_i^T + B_i Q_XX B_i^T
+
+    ``h_out[j]`` gets ``diag(H_i)`` of the ``j``-th row in ``rows``' order (``(n, 2)``),
+    ``qjj_out[u]`` gets ``Q_XX`` (``(n_u, 3, 3)``).
+
+    Args:
+        a_u: Camera partials ``(Mt, 2, q)`` in pattern column order.
+        b_u: Ground partials ``(Mt, 2, 3)``.
+        gpat_u: Global pattern of each kept row.
+        w: Plain weights ``(n, 2)`` of the rows in ``rows``' order.
+        rows: Kept rows, point after point.
+        starts: First position in ``rows`` of each point, then ``len(rows)``.
+        prior_w: A-priori weight matrices of the points ``(n_u, 3, 3)``.
+        q_mat: Cofactor matrix of the camera parameters ``(P, P)``.
+        tables: ``(act_n, act_loc, act_col)`` (see :func:`linearize_rows`).
+        h_out: Output ``(n, 2)``.
+        qjj_out: Output ``(n_u, 3, 3)``.
+    """
+    act_n, act_loc, act_col = tables
+    q = act_loc.shape[1]
+    n_max = 0
+    for u in range(len(starts) - 1):
+        n_max = max(n_max, starts[u + 1] - starts[u])
+    # Per observation of the point: Q A_k^T over the active columns of every
+    # observation of the point (qa[k, i, a, s]: row i's column a), C_k, T_k.
+    qa = np.empty((n_max, n_max, q, 2))
+    cm = np.empty((n_max, 3, 2))
+    tm = np.empty((n_max, 2, 3))
+    gd = np.empty((n_max, 2, 2))
+    v = np.empty((3, 3))
+    vi = np.empty((3, 3))
+    for u in range(len(starts) - 1):
+        j0, j1 = starts[u], starts[u + 1]
+        n = j1 - j0
+        for i in range(3):
+            for j in range(3):
+                v[i, j] = prior_w[u, i, j]
+        for jj in range(j0, j1):
+            o = rows[jj]
+            for r in range(2):
+                wr = w[jj, r]
+                for i in range(3):
+                    wb = wr * b_u[o, r, i]
+                    for j in range(3):
+                        v[i, j] += wb * b_u[o, r, j]
+        _inverse3(v, vi)
+        for k in range(n):
+            o = rows[j0 + k]
+            for i in range(3):
+                for r in range(2):
+                    cm[k, i, r] = (
+                        vi[i, 0] * b_u[o, r, 0] + vi[i, 1] * b_u[o, r, 1] + vi[i, 2] * b_u[o, r, 2]
+                    ) * w[j0 + k, r]
+        # qa[k, i, a, s] = sum_b Q[col_a(i), col_b(k)] A_k[s, b].
+        for k in range(n):
+            ok = rows[j0 + k]
+            gk = gpat_u[ok]
+            nk = act_n[gk]
+            for i in range(n):
+                gi = gpat_u[rows[j0 + i]]
+                for a in range(act_n[gi]):
+                    ca = act_col[gi, a]
+                    s0 = 0.0
+                    s1 = 0.0
+                    for b in range(nk):
+                        qv = q_mat[ca, act_col[gk, b]]
+                        lb = act_loc[gk, b]
+                        s0 += qv * a_u[ok, 0, lb]
+                        s1 += qv * a_u[ok, 1, lb]
+                    qa[k, i, a, 0] = s0
+                    qa[k, i, a, 1] = s1
+        for i in range(n):
+            oi = rows[j0 + i]
+            gi = gpat_u[oi]
+            for r in range(2):
+                for c in range(3):
+                    tm[i, r, c] = 0.0
+            for k in range(n):
+                # G_ik = A_i (Q A_k^T)
+                g00 = g01 = g10 = g11 = 0.0
+                for a in range(act_n[gi]):
+                    la = act_loc[gi, a]
+                    x0, x1 = a_u[oi, 0, la], a_u[oi, 1, la]
+                    g00 += x0 * qa[k, i, a, 0]
+                    g01 += x0 * qa[k, i, a, 1]
+                    g10 += x1 * qa[k, i, a, 0]
+                    g11 += x1 * qa[k, i, a, 1]
+                if k == i:
+                    gd[i, 0, 0], gd[i, 0, 1], gd[i, 1, 0], gd[i, 1, 1] = g00, g01, g10, g11
+                for c in range(3):
+                    tm[i, 0, c] += g00 * cm[k, c, 0] + g01 * cm[k, c, 1]
+                    tm[i, 1, c] += g10 * cm[k, c, 0] + g11 * cm[k, c, 1]
+        qx = qjj_out[u]
+        for i in range(3):
+            for j in range(3):
+                acc = vi[i, j]
+                for k in range(n):
+                    acc += cm[k, i, 0] * tm[k, 0, j] + cm[k, i, 1] * tm[k, 1, j]
+                qx[i, j] = acc
+        for i in range(n):
+            oi = rows[j0 + i]
+            for r in range(2):
+                tb = 0.0
+                bqb = 0.0
+                for c in range(3):
+                    tb += tm[i, r, c] * b_u[oi, r, c]
+                    for d in range(3):
+                        bqb += b_u[oi, r, c] * qx[c, d] * b_u[oi, r, d]
+                h_out[j0 + i, r] = gd[i, r, r] - 2.0 * tb + bqb
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _inverse3(m: F64, out: F64) -> None:
+    """``out = m^-1`` of a 3x3 matrix (cofactors over the determinant)."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+    inv = 1.0 / det
+    out[0, 0] = c00 * inv
+    out[1, 0] = c01 * inv
+    out[2, 0] = c02 * inv
+    out[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) * inv
+    out[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) * inv
+    out[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) * inv
+    out[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) * inv
+    out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) * inv
+    out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) * inv

@@ -302,53 +302,19 @@ def _finish(
     """
     c, xyz, xyz0 = sol
     v_all, h, w, slot_r = eqs
-    tpos, a_u, gpat_u, b_u = kept
     obs = lay.obs
     pt = lay.point
     t_all = np.flatnonzero(~solver.point_fixed[pt])
-    pairs = _PairG(solver, a_u, gpat_u, cofactor)
     # Observations of unknown points, sorted by point (positions into obs; ``tpos``
     # maps them into the kept partials).
     t = t_all[np.argsort(pt[t_all], kind="stable")]
     unknown, first, counts = np.unique(pt[t], return_index=True, return_counts=True)
-    u = len(unknown)
-    loc = np.repeat(np.arange(u), counts)
-    bt = b_u[tpos[t]]
-    bw = bt * w[t][:, :, None]  # W B, (m, 2, 3)
-    vmat = np.einsum("mki,mkj->mij", bt, bw)
-    vsum = np.zeros((u, 3, 3))
-    np.add.at(vsum, loc, vmat)
-    vsum += solver.point_prior_w[unknown]
-    vinv = np.linalg.inv(vsum)
-    cmat = np.matmul(vinv[loc], np.transpose(bw, (0, 2, 1)))  # C_k = V^-1 B^T W, (m, 3, 2)
-    # Pairs (i, k) of observations of the same point, in t's order.
-    cnt = counts[loc]
-    pa = np.repeat(np.arange(len(t)), cnt)
-    within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    pb = first[loc[pa]] + within
-    tmat = np.zeros((len(t), 2, 3))
-    umat = np.zeros((u, 3, 3))
-    ht = np.zeros((len(t), 2, 2))  # J_i Q J_i^T of the observations of unknown points
-    for s0 in range(0, len(pa), _PAIR_CHUNK):
-        ia, ib = pa[s0 : s0 + _PAIR_CHUNK], pb[s0 : s0 + _PAIR_CHUNK]
-        g = pairs(tpos[t[ia]], tpos[t[ib]])  # (k, 2, 2)
-        gc = np.matmul(g, np.transpose(cmat[ib], (0, 2, 1)))  # G_ik C_k^T, (k, 2, 3)
-        np.add.at(tmat, ia, gc)
-        np.add.at(umat, loc[ia], np.matmul(cmat[ia], gc))
-        diag = ia == ib
-        ht[ia[diag]] = g[diag]
-    btt = np.transpose(bt, (0, 2, 1))
-    qjj = vinv + umat
-    ht += (
-        -np.matmul(tmat, btt)
-        - np.matmul(bt, np.transpose(tmat, (0, 2, 1)))
-        + np.matmul(np.matmul(bt, qjj[loc]), btt)
-    )
+    hd, qjj = _tie_cofactors(solver, kept, w[t], t, (unknown, first, counts), cofactor)
     if h is None:
         obs_r = np.zeros((len(obs), 2))
     else:
         obs_r = 1.0 - w * np.stack([h[:, 0, 0], h[:, 1, 1]], axis=1)
-    obs_r[t] = 1.0 - w[t] * np.stack([ht[:, 0, 0], ht[:, 1, 1]], axis=1)
+    obs_r[t] = 1.0 - w[t] * hd
     # With slot sums (``h`` None) the rows of the observations of fixed points stay 0:
     # they are summed per slot instead.
     # Priors of weighted points, in their sigma frames.
@@ -393,6 +359,88 @@ def _finish(
         own=t_all if h is None else None,
         slot=lay.slot if len(slot_r) else None,
     )
+
+
+def _tie_cofactors(
+    solver: BundleSolver,
+    kept: tuple[NDArray[np.intp], F64, NDArray[np.intp], F64],
+    w_t: F64,
+    t: NDArray[np.intp],
+    points: tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]],
+    cofactor: F64,
+) -> tuple[F64, F64]:
+    """``diag(J_i Q J_i^T)`` of the observations of unknown points and the points' ``Q_XX``.
+
+    Compiled (:func:`~planetref.adjust._numba_normal.point_redundancy`) when the solver's
+    normal kernels are; the numpy loop over pairs of observations below is its reference.
+
+    Args:
+        solver: The solver.
+        kept: ``(tpos, a_u, gpat_u, b_u)`` (see :func:`_evaluate`).
+        w_t: Plain weights of the observations ``t``, ``(n, 2)``.
+        t: The observations of unknown points (layout positions), sorted by point.
+        points: ``(unknown, first, counts)``: the points of ``t`` (network indices),
+            their first position in ``t`` and their number of observations.
+        cofactor: ``S^-1`` of the camera parameters.
+
+    Returns:
+        ``(h, qjj)``: ``(n, 2)`` in ``t``'s order and ``(n_u, 3, 3)``.
+    """
+    tpos, a_u, gpat_u, b_u = kept
+    unknown, first, counts = points
+    u = len(unknown)
+    fn = solver.normal_kernels()
+    if fn is not None:
+        h = np.empty((len(t), 2))
+        qjj = np.empty((u, 3, 3))
+        fn.point_redundancy(
+            a_u,
+            b_u,
+            gpat_u,
+            np.ascontiguousarray(w_t),
+            tpos[t],
+            np.append(first, len(t)).astype(np.intp),
+            np.ascontiguousarray(solver.point_prior_w[unknown]),
+            np.ascontiguousarray(cofactor),
+            (solver.act_n, solver.act_loc, solver.act_col),
+            h,
+            qjj,
+        )
+        return h, qjj
+    pairs = _PairG(solver, a_u, gpat_u, cofactor)
+    loc = np.repeat(np.arange(u), counts)
+    bt = b_u[tpos[t]]
+    bw = bt * w_t[:, :, None]  # W B, (m, 2, 3)
+    vmat = np.einsum("mki,mkj->mij", bt, bw)
+    vsum = np.zeros((u, 3, 3))
+    np.add.at(vsum, loc, vmat)
+    vsum += solver.point_prior_w[unknown]
+    vinv = np.linalg.inv(vsum)
+    cmat = np.matmul(vinv[loc], np.transpose(bw, (0, 2, 1)))  # C_k = V^-1 B^T W, (m, 3, 2)
+    # Pairs (i, k) of observations of the same point, in t's order.
+    cnt = counts[loc]
+    pa = np.repeat(np.arange(len(t)), cnt)
+    within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    pb = first[loc[pa]] + within
+    tmat = np.zeros((len(t), 2, 3))
+    umat = np.zeros((u, 3, 3))
+    ht = np.zeros((len(t), 2, 2))  # J_i Q J_i^T of the observations of unknown points
+    for s0 in range(0, len(pa), _PAIR_CHUNK):
+        ia, ib = pa[s0 : s0 + _PAIR_CHUNK], pb[s0 : s0 + _PAIR_CHUNK]
+        g = pairs(tpos[t[ia]], tpos[t[ib]])  # (k, 2, 2)
+        gc = np.matmul(g, np.transpose(cmat[ib], (0, 2, 1)))  # G_ik C_k^T, (k, 2, 3)
+        np.add.at(tmat, ia, gc)
+        np.add.at(umat, loc[ia], np.matmul(cmat[ia], gc))
+        diag = ia == ib
+        ht[ia[diag]] = g[diag]
+    btt = np.transpose(bt, (0, 2, 1))
+    qjj = vinv + umat
+    ht += (
+        -np.matmul(tmat, btt)
+        - np.matmul(bt, np.transpose(tmat, (0, 2, 1)))
+        + np.matmul(np.matmul(bt, qjj[loc]), btt)
+    )
+    return np.stack([ht[:, 0, 0], ht[:, 1, 1]], axis=1), qjj
 
 
 def _diag_cofactor(solver: BundleSolver, d: F64, gp: NDArray[np.intp], cofactor: F64) -> F64:
