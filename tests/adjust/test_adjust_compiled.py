@@ -9,6 +9,7 @@ accumulation over active columns and the cofactor products of the redundancy num
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -306,7 +307,7 @@ def _tie_solver(**kw):
     """A solver of :func:`adjust_synth.tie_problem` (positions weighted, attitudes free)."""
     net = tie_problem(**kw)
     cfg = validate_config({**CONFIG, "outliers": {"enabled": False}})
-    models = [parameterize(i, cam, cfg) for i, cam in zip(net.camera_ids, net.cameras)]
+    models = [parameterize(i, cam, cfg) for i, cam in zip(net.camera_ids, net.cameras, strict=True)]
     solver = BundleSolver(net, models, cfg.solver)
     obs = np.arange(net.n_obs)
     st = solver._structure(obs)
@@ -324,9 +325,7 @@ def test_tie_point_elimination_compiled_equals_numpy_reference(monkeypatch, pool
     per pattern or straight into S) against the numpy pairs of observations."""
     _, solver, st, lin, at = _tie_solver(n_tie=120, triple=30, tie_sigma_m=30.0)
     starts = np.append([ch.obs[0] + ch.starts for ch in st.chunks], len(lin.a_t))
-    mixed = [
-        len(np.unique(lin.gpat_t[a:b])) > 1 for a, b in zip(starts[:-1], starts[1:], strict=True)
-    ]
+    mixed = [len(np.unique(lin.gpat_t[a:b])) > 1 for a, b in itertools.pairwise(starts)]
     assert 5 < sum(mixed) < len(mixed)  # both kinds of point
     assert np.max(np.diff(starts)) == 3
     monkeypatch.setattr(schur, "_POOL_ELEMENTS", pool)

@@ -343,9 +343,10 @@ def tie_rows(
     :meth:`~planetref.adjust.linearization.LinearizationMixin._linearize` (``_tie_rows``:
     the factors expanded for the tie rows, then fancy-indexed stores): row ``i`` with
     ``tie_pos[i] = t >= 0`` gets ``a_t[t, r, c] = imp[i, r, src[c]] * weights[i, node[c]]``
-    (times 1 where ``node[c] < 0``) for its ``len(src)`` pattern columns (the rest of
-    ``a_t[t]`` is left as it is), ``b_t[t, r, c] = gsrc[i, r, gcol[c]]`` and
-    ``gpat_t[t] = gp[i]``. The same products, so the same numbers bit for bit.
+    (times 1 where ``node[c] < 0``) for its ``len(src)`` pattern columns and 0 in the
+    columns after them, ``b_t[t, r, c] = gsrc[i, r, gcol[c]]`` and ``gpat_t[t] =
+    gp[i]``: every element of the row is written (the arrays may be a retired
+    linearisation's). The same products, so the same numbers bit for bit.
 
     Args:
         partials: ``(imp, weights, src, node)`` as in :func:`linearize_rows`.
@@ -370,6 +371,8 @@ def tie_rows(
                 if factored and node[c] >= 0:
                     v = v * wn[i, node[c]]
                 a_t[t, r, c] = v
+            for c in range(qm, a_t.shape[2]):
+                a_t[t, r, c] = 0.0
             for c in range(3):
                 b_t[t, r, c] = gsrc[i, r, gcol[c]]
         gpat_t[t] = gp[i]

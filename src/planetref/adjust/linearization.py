@@ -118,6 +118,9 @@ class LinearizationMixin:
     loss: str
     threshold: F64 | float
     _active_cache: dict[tuple[int, int], tuple[NDArray[np.intp] | None, NDArray[np.intp]]]
+    #: The tie arrays ``(a_t, b_t, gpat_t)`` of a retired linearisation, or ``None``
+    #: (:meth:`retire`): the next linearisation writes into them.
+    tie_spare: tuple[F64, F64, NDArray[np.intp]] | None
     _groups: Callable[[NDArray[np.intp]], list[tuple[int, int, NDArray[np.intp]]]]
     _prior_cost: Callable[[F64], float]
 
@@ -234,9 +237,16 @@ class LinearizationMixin:
         g_c = np.zeros(p + 1)
         n_slot, size = len(lay.slot_obs), lay.slot_size
         slot_n = np.zeros((n_slot, size, size))
-        a_t = np.zeros((n_tie, 2, q))
-        b_t = np.zeros((n_tie, 2, 3))
-        gpat_t = np.zeros(n_tie, np.intp)
+        fn = self.normal_kernels()
+        # The compiled scatter writes every element of the tie rows: a retired
+        # linearisation's arrays serve again (no fresh pages for tens of MB per pass).
+        spare, self.tie_spare = self.tie_spare, None
+        if fn is not None and spare is not None and spare[0].shape == (n_tie, 2, q):
+            a_t, b_t, gpat_t = spare
+        else:
+            a_t = np.zeros((n_tie, 2, q))
+            b_t = np.zeros((n_tie, 2, 3))
+            gpat_t = np.zeros(n_tie, np.intp)
         thr = self.threshold
         thr_l = thr if np.ndim(thr) == 0 else np.asarray(thr)[lay.obs]
         pxyz = lay.fixed_xyz if lay.fixed_xyz is not None else xyz[lay.point]
@@ -247,7 +257,6 @@ class LinearizationMixin:
             (np.zeros_like(n_cc), np.zeros_like(g_c), np.zeros_like(slot_n)) for _ in parts[1:]
         ]
 
-        fn = self.normal_kernels()
         if fn is not None:
             loss_code = fn.LOSS_CODES.get(self.loss)
             if loss_code is None:
@@ -377,6 +386,16 @@ class LinearizationMixin:
             slot_n,
             self.loss,
         )
+
+    def retire(self, lin: Linearization) -> None:
+        """Hand a linearisation that nothing reads any more back for its tie arrays.
+
+        The next :meth:`_linearize` of the same shape writes into them instead of new
+        arrays (tens of MB at 1e5 tie observations). Only its owner may retire it: its
+        ``a_t``, ``b_t`` and ``gpat_t`` are overwritten.
+        """
+        if len(lin.a_t):
+            self.tie_spare = (lin.a_t, lin.b_t, lin.gpat_t)
 
     def chunk_parts(self, lay: Layout) -> list[list[tuple[int, int, int, int]]]:
         """The layout's chunks ``(model, ccd, start, stop)`` in contiguous shares.

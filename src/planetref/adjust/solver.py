@@ -125,6 +125,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             tuple[NDArray[np.intp], list[tuple[int, int, NDArray[np.intp]]]] | None
         ) = None
         self._structure_cache: tuple[NDArray[np.intp], Structure] | None = None
+        self.tie_spare = None
 
     # ------------------------------------------------------------------ setup
     def set_point_sigma(self, sigma_m: F64) -> None:
@@ -253,17 +254,22 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
     def _groups(self, obs: NDArray[np.intp]) -> list[tuple[int, int, NDArray[np.intp]]]:
         """``(model, ccd, positions into obs)`` groups.
 
-        Within a group the positions are sorted by the whole part of the observed line
-        (stable: ties keep the order of ``obs``): observations that share a Lagrange
-        window (a pattern) then form contiguous runs, so the normal equations accumulate
-        from array views instead of gathered copies.
+        One group per (camera, CCD) and kind of point: the observations of fixed points,
+        then those of unknown points (eliminated by the Schur complement). Within a group
+        the positions are sorted by the whole part of the observed line (stable: ties
+        keep the order of ``obs``): observations that share a Lagrange window (a
+        pattern) then form contiguous runs, so the normal equations accumulate from
+        array views instead of gathered copies, and long runs take the moment form of
+        the compiled accumulation (mixed, the two kinds would break every run: the
+        observations of fixed points also sum into their slot's matrix).
         """
         cached = self._group_cache
         if cached is not None and np.array_equal(cached[0], obs):
             return cached[1]
         net = self.net
-        base = max(len(cam.ccd_names) for cam in net.cameras)
-        key = net.obs_camera[obs].astype(np.int64) * base + net.obs_ccd[obs]
+        base = 2 * max(len(cam.ccd_names) for cam in net.cameras)
+        unknown = ~self.point_fixed.take(net.obs_point.take(obs))
+        key = (net.obs_camera[obs].astype(np.int64) * base + 2 * net.obs_ccd[obs]) + unknown
         order = group_order(key, net.obs_line[obs])
         ks = key[order]
         cut = np.flatnonzero(np.diff(ks)) + 1
@@ -271,7 +277,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         for seg in np.split(order, cut):
             if seg.size:
                 k = int(key[seg[0]])
-                out.append((k // base, k % base, seg))
+                out.append((k // base, (k % base) // 2, seg))
         self._group_cache = (obs.copy(), out)
         return out
 
@@ -396,6 +402,8 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
             xyz0: A priori point coordinates (for weighted points).
             initial: A linearisation of exactly these observations at ``(c, xyz)`` with
                 the current loss (from :meth:`linearize`), reused instead of a new pass.
+                Handed over: once a step replaces it, its tie arrays are reused
+                (:meth:`retire`).
             check_rank: Check the rank of the reduced system first (``False`` when only
                 the weights changed since a run that checked it: the rank cannot change).
 
@@ -452,9 +460,12 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         # iterate and its plain camera step (:func:`anderson_correction`).
         history: list[tuple[F64, F64]] = []
         correct = True  # False right after a corrected step was rejected
+        last_s: tuple[Linearization, F64] | None = None
         while it < cfg.max_iterations:
             at = Iterate(lin, chunks, c, xyz, xyz0, unknown)
             s_mat, rhs, d_c, blocks = self._reduced(at, lam)
+            # Undamped at the final iterate, it is the statistics' S too.
+            last_s = (lin, s_mat) if lam == 0.0 else None
             try:
                 delta_c, sig_c = self._solve_reduced(s_mat, rhs)
             except np.linalg.LinAlgError:
@@ -521,6 +532,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                     history.clear()
                 else:  # the iterate left behind and its plain step
                     history[:] = [*history[-(ANDERSON_DEPTH - 1) :], (c, gn_step)]
+                self.retire(lin)
                 c, xyz, lin = c_new, xyz_new, new
                 _take_guesses(lay, new)
                 rep.history.append((it, lin.cost, lam))
@@ -542,6 +554,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 # and stop (rejecting it would leave the solution wherever the cost's
                 # rounding noise happened to stop it).
                 it += 1
+                self.retire(lin)
                 c, xyz, lin = c_new, xyz_new, new
                 _take_guesses(lay, new)
                 rep.history.append((it, lin.cost, lam))
@@ -549,6 +562,7 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
                 break
             else:
                 history.clear()
+                self.retire(new)
                 if corr is not None:
                     # Not judged by a corrected step: the plain one comes next.
                     correct = False
@@ -575,7 +589,9 @@ class BundleSolver(LinearizationMixin, SchurMixin, StatisticsMixin):
         rep.iterations = it
         rep.cost_final = lin.cost
         self.last_lambda = min(lam, cfg.initial_lambda)
-        stats = self._statistics(Iterate(lin, chunks, c, xyz, xyz0, unknown))
+        self.tie_spare = None  # not held beyond the run
+        undamped = last_s[1] if last_s is not None and last_s[0] is lin else None
+        stats = self._statistics(Iterate(lin, chunks, c, xyz, xyz0, unknown), undamped)
         rep.seconds = time.perf_counter() - t_start
         rep.cpu_seconds = time.process_time() - c_start
         return c, xyz, rep, lin, stats

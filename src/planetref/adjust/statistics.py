@@ -124,10 +124,16 @@ class StatisticsMixin:
                 f"parameters (e.g. a datum: a fixed camera or control points)"
             )
 
-    def _statistics(self, at: Iterate) -> dict[str, object]:
+    def _statistics(self, at: Iterate, s_mat: F64 | None = None) -> dict[str, object]:
+        """sigma0, covariance and correlations at ``at``.
+
+        ``s_mat``: the undamped reduced matrix at ``at`` when the caller has it (the LM
+        loop's last one), else it is formed here.
+        """
         lin, _, c, xyz, xyz0, unknown = at
         p = self.n_params
-        s_mat, _, _, _ = self._reduced(at, 0.0)
+        if s_mat is None:
+            s_mat, _, _, _ = self._reduced(at, 0.0)
         act = self.active
         # v^T P v with the final (robust) weights, plus the pseudo-observations.
         vtpv = float(np.sum(lin.weight * np.where(lin.valid[:, None], lin.r, 0.0) ** 2))
