@@ -51,8 +51,8 @@ Usage::
 
     python benchmarks/bench_adjust.py --vs ceres --sizes 20000,200000,1000000 --repeat 3 \\
         --json --out benchmarks/results/bench_adjust_ceres.json
-    python benchmarks/bench_adjust.py --vs ceres --sizes 20000,200000 --tie-fraction 0.5 \\
-        --json --out benchmarks/results/bench_adjust_ceres_ties.json
+    python benchmarks/bench_adjust.py --vs ceres --sizes 20000,200000,1000000 --repeat 3 \\
+        --tie-fraction 0.5 --json --out benchmarks/results/bench_adjust_ceres_ties.json
 """
 
 from __future__ import annotations
