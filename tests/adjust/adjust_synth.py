@@ -176,5 +176,9 @@ def tie_problem(
         sample=obs_sample + rng.normal(0, 0.3, n_obs),
         point_xyz=pts,
         point_sigma_m=sig,
+        point_kind={
+            **{f"t{i}": "tie" for i in range(n_tie)},
+            **{f"m{i}": "mcp" for i in range(n_mcp)},
+        },
         sigma_px=0.3,
     )

@@ -383,3 +383,27 @@ def test_tie_redundancy_compiled_equals_numpy_reference(tie_sigma, tol):
     scale = np.sqrt(np.einsum("pii,pjj->pij", q, q))
     assert np.max(np.abs(fast.point_cofactor - q) / scale) < max(tol, 1e-8)
     assert fast.total == pytest.approx(stats["dof"], rel=1e-6)
+
+
+def test_reused_tie_arrays_give_the_same_adjustment(monkeypatch):
+    """A retired linearisation's tie arrays serve the next one: the same solution, bit
+    for bit, as with fresh arrays for every pass."""
+    net = tie_problem(n_tie=120, triple=30, tie_sigma_m=30.0)
+    cfg = {**CONFIG, "outliers": {"enabled": False}}
+    retired = []
+    real = BundleSolver.retire
+
+    def counting(self, lin):
+        retired.append(lin.a_t.shape)
+        real(self, lin)
+
+    monkeypatch.setattr(BundleSolver, "retire", counting)
+    reused = adjust(net, cfg)
+    # 270 tie observations and 60 of weighted MCPs (unknowns too).
+    assert len(retired) >= 2 and all(s[0] == 330 for s in retired)
+    assert reused.rounds[0]["converged"]
+    monkeypatch.setattr(BundleSolver, "retire", lambda self, lin: None)
+    fresh = adjust(net, cfg)
+    assert np.array_equal(reused.x, fresh.x)
+    assert np.array_equal(reused.sigma, fresh.sigma)
+    assert np.array_equal(reused.point_xyz, fresh.point_xyz)
