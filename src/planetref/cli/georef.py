@@ -257,13 +257,13 @@ class DemoCost:
 
 DEMO_COSTS: dict[str, DemoCost] = {
     "tiny": DemoCost(
-        cpu_s=622.0,
+        cpu_s=277.0,
         peak_rss_gb=2.0,
         written_gb=0.08,
-        matchers="six matchers; disk with sift and ncc",
-        source="CPU and memory: docs/tutorials/demo.md and issue 32 (a 2-core machine, "
-        "about 7 minutes); disk: du of the scene (7 MB) and the sift (16 MB) and ncc "
-        "(56 MB) runs, branch newuser, 2026-12-03",
+        matchers="the six matchers with weights",
+        source="CPU: benchmarks/results/bench_demo_tiny_all.json (277 CPU-s, 2:47 wall on "
+        "an idle 2-core AMD EPYC, scene and numba cache in place, 2026-12-03); memory: "
+        "issue 32; disk: du of the scene (7 MB) and the sift (16 MB) and ncc (56 MB) runs",
     ),
     "hiric-strip": DemoCost(
         cpu_s=1416.0,
