@@ -139,7 +139,7 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
 
     from planetref.frontend.batched import answer
     from planetref.frontend.config import FrontendConfig
-    from planetref.frontend.matchers import build_matchers
+    from planetref.frontend.matchers import build_matchers, coarse_fallback_matcher
     from planetref.frontend.tile import TileInputs, tile_steps
     from planetref.frontend.tiles import plan_tiles
     from planetref.pipeline.systematic import declared_uncertainty
@@ -149,6 +149,7 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
     cfg, source = declared_uncertainty(FrontendConfig(), s["man"])
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
     fine, coarse = build_matchers(matcher, {}, cfg, gsd, weights_dir=weights)
+    fallback = coarse_fallback_matcher(cfg, gsd)
     readers = {c: CcdImage(p) for c, p in s["images"].items()}
     plans = {c: plan_tiles(s["init"], c, s["ref"], s["dem"], cfg) for c in readers}
     tiles = [(t, plans[c].ratio) for c in readers for t in plans[c].tiles]
@@ -171,10 +172,15 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
         shape = request.ref_image.shape
         got = answer(request)
         c_coarse = time.process_time() - c0
+        c_fallback = 0.0
         try:
             request = steps.send(got)
             while True:
-                request = steps.send(answer(request))
+                c1 = time.process_time()
+                got = answer(request)
+                if request.matcher is fallback and fallback is not coarse:
+                    c_fallback += time.process_time() - c1
+                request = steps.send(got)
         except StopIteration as stop:
             r = stop.value
         cpu = time.process_time() - c0
@@ -186,7 +192,9 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
                 "status": r.status,
                 "coarse_inliers": r.n_coarse_inliers,
                 "coarse_window_px": [int(shape[0]), int(shape[1])],
+                "coarse_source": r.coarse_source,
                 "coarse_cpu_s": c_coarse,
+                "fallback_cpu_s": c_fallback,
                 "tile_cpu_s": cpu,
                 "offset_error_px": truth_error(s, r),
             }
@@ -199,10 +207,19 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
         "coarse_level": cfg.coarse_level(gsd),
         "tiles": rows,
         "coarse_cpu_s_mean": float(np.mean([r["coarse_cpu_s"] for r in rows])),
+        "fallback_cpu_s_mean": float(np.mean([r["fallback_cpu_s"] for r in rows])),
+        "coarse_sources": _count(r["coarse_source"] for r in rows),
         "tile_cpu_s_mean": float(np.mean([r["tile_cpu_s"] for r in rows])),
         "tiles_ok": sum(r["status"] == "ok" for r in rows),
         "offset_error_px_max": float(np.nanmax([r["offset_error_px"] for r in rows])),
     }
+
+
+def _count(values: Any) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for v in values:
+        out[str(v)] = out.get(str(v), 0) + 1
+    return out
 
 
 def georef(scene: Path, out: Path, matcher: str, weights: str | None) -> dict[str, Any]:
@@ -215,9 +232,26 @@ def georef(scene: Path, out: Path, matcher: str, weights: str | None) -> dict[st
     else:
         report = run_georef(scene, matcher, out, weights_dir=weights, progress=False).report
     m, c = report["matching"], report["check"]
+    tiles = [
+        json.loads(line).get("result") or {}
+        for sid in report.get("strips") or {}
+        if (out / sid / "tiles.jsonl").is_file()
+        for line in (out / sid / "tiles.jsonl").read_text(encoding="utf-8").splitlines()
+        if line.strip()
+    ]
     return {
         "tiles_total": int(m["tiles_total"]),
         "tiles_found": int(m["tiles_total"]) - int(m["tiles_failed"]),
+        # what placed each tile's fine window (frontend.coarse_fallback)
+        "coarse_sources": _count(t.get("coarse_source") for t in tiles if t),
+        # seconds (wall, one process) of the matcher's coarse stage and of the NCC search
+        "coarse_match_s": float(
+            sum((t.get("timings") or {}).get("coarse_match", 0.0) for t in tiles)
+        ),
+        "coarse_fallback_s": float(
+            sum((t.get("timings") or {}).get("coarse_fallback", 0.0) for t in tiles)
+        ),
+        "tile_s": float(sum((t.get("timings") or {}).get("total", 0.0) for t in tiles)),
         "true_error_before_m": float(c["geoloc_rmse_m_before"]),
         "true_error_m": float(c["geoloc_rmse_m"]),
         "run": str(out),
