@@ -63,7 +63,7 @@ from planetref.frontend.orthorectify import (
 from planetref.frontend.result import StageDebug, TileResult, TileStatus
 from planetref.frontend.robust import robust_translation, spread_select, verify_points
 from planetref.frontend.tiles import Tile, tile_footprint
-from planetref.matching.base import Matcher
+from planetref.matching.base import BaseMatcher, Matcher
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
@@ -237,6 +237,22 @@ def _verify_fine(
             inl[idx[~cons]] = False
         res.record("consensus", int(inl.sum()), {"off_translation": n_ransac - int(inl.sum())})
     return inl, ransac_inl
+
+
+def _same_search(coarse: Matcher, fallback: Matcher) -> bool:
+    """Whether the coarse matcher already searched as far as the fallback would.
+
+    True for NCC's own coarse stage (the fallback is NCC's coarse instance; the run's
+    may carry the user's options, and a radius at least the fallback's).
+    """
+    if type(coarse) is not type(fallback):
+        return False
+    opt = type(fallback).search_option if isinstance(fallback, BaseMatcher) else None
+    if opt is None:
+        return True
+    reach = getattr(fallback, opt, 0)
+    offset = getattr(coarse, "initial_offset", (0.0, 0.0))
+    return bool(getattr(coarse, opt, 0) >= reach and tuple(offset) == (0.0, 0.0))
 
 
 def _name(matcher: Matcher) -> str:
@@ -433,7 +449,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
                 )
             )
         fallback = coarse_fallback_matcher(cfg, gsd)
-        fallback_pending = fallback is not None and _name(fallback) != _name(coarse)
+        fallback_pending = fallback is not None and not _same_search(coarse, fallback)
         if coarse_offset is None and cfg.coarse_fallback == "ncc":
             # The front end's own bounded search of the same coarse windows (the same for
             # every matcher); when it finds nothing either, no wider search follows.
