@@ -12,13 +12,16 @@ matcher:
 1. **tiles** (``--tiles N``, 0: none): ``N`` tiles spread over the strip, each matched once
    with the run's settings (after one warm-up tile), timed with ``time.process_time``
    (other jobs on the cores do not count): CPU seconds of the coarse stage (footprint,
-   coarse windows, coarse matcher call) and of the whole tile, the coarse window's side
-   in coarse pixels, the tile's status and the error of its offset against the truth
-   (reference pixels);
+   coarse windows, coarse matcher call), of the front end's NCC search where the coarse
+   matcher found no usable consensus (``frontend.coarse_fallback``) and of the whole
+   tile, what placed the tile's fine window (``coarse_source``: the matcher, the NCC
+   search), the coarse window's side in coarse pixels, the tile's status and the error
+   of its offset against the truth (reference pixels);
 2. **georef** (``--georef``): the full ``planetref georef`` run (reused from ``--runs``
-   when there): tiles found of all, the true ground error after adjustment (RMS over the
-   check grid of every CCD against the true camera) and its ratio to the ``--baseline``
-   level's with the same matcher (the issue's goal: within 1.2 at 1 km).
+   when there): tiles found of all (and what placed them, from the run's journal), the
+   true ground error after adjustment (RMS over the check grid of every CCD against the
+   true camera) and its ratio to the ``--baseline`` level's with the same matcher (the
+   issue's goal: within 1.2 at 1 km).
 
 Usage::
 
@@ -313,14 +316,22 @@ def main() -> None:
             figures += [
                 {"name": f"{tag}: CPU per tile", "value": r["tile_cpu_s_mean"], "unit": "s"},
                 {"name": f"{tag}: coarse-stage CPU", "value": r["coarse_cpu_s_mean"], "unit": "s"},
+                {
+                    "name": f"{tag}: NCC fallback CPU",
+                    "value": r["fallback_cpu_s_mean"],
+                    "unit": "s",
+                    "note": "per timed tile; tiles placed by: "
+                    + ", ".join(f"{k} {v}" for k, v in sorted(r["coarse_sources"].items())),
+                },
             ]
         g = r.get("georef")
         if g:
+            placed = ", ".join(f"{k} {v}" for k, v in sorted(g["coarse_sources"].items()))
             figures.append(
                 {
                     "name": f"{tag}: tiles found",
                     "value": g["tiles_found"],
-                    "note": f"of {g['tiles_total']}",
+                    "note": f"of {g['tiles_total']}; fine window placed by: {placed}",
                 }
             )
             figures.append({"name": f"{tag}: true error", "value": g["true_error_m"], "unit": "m"})
@@ -359,14 +370,16 @@ def _line(r: dict[str, Any]) -> str:
         parts.append(
             f"uncertainty {r['uncertainty_m']:g} m ({r['uncertainty_source']}), "
             f"coarse level {r['coarse_level']}, window {r['tiles'][0]['coarse_window_px']} px; "
-            f"CPU/tile {r['tile_cpu_s_mean']:.2f} s (coarse {r['coarse_cpu_s_mean']:.2f} s); "
+            f"CPU/tile {r['tile_cpu_s_mean']:.2f} s (coarse {r['coarse_cpu_s_mean']:.2f} s, "
+            f"NCC fallback {r['fallback_cpu_s_mean']:.2f} s; placed by {r['coarse_sources']}); "
             f"tiles ok {r['tiles_ok']}/{len(r['tiles'])}, "
             f"offset error max {r['offset_error_px_max']:.2f} px"
         )
     g = r.get("georef")
     if g:
         parts.append(
-            f"georef: {g['tiles_found']}/{g['tiles_total']} tiles, true error "
+            f"georef: {g['tiles_found']}/{g['tiles_total']} tiles "
+            f"(placed by {g['coarse_sources']}), true error "
             f"{g['true_error_before_m']:.1f} m -> {g['true_error_m']:.3f} m"
         )
     return "  ".join(parts)
