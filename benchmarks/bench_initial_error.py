@@ -136,8 +136,14 @@ def swap_initial_cameras(src: Path, cfg: Any, out: Path) -> None:
     tmp.rename(out)
 
 
-def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> dict[str, Any]:
-    """CPU seconds of the coarse stage and of whole tiles (see the module docstring)."""
+def tile_costs(
+    scene: Path, matcher: str, n_tiles: int, weights: str | None, fallback: str = "ncc"
+) -> dict[str, Any]:
+    """CPU seconds of the coarse stage and of whole tiles (see the module docstring).
+
+    ``fallback`` is ``frontend.coarse_fallback`` (``"fine"``: the full-resolution search
+    of the whole window that it replaced, for comparison).
+    """
     from bench_frontend import load, truth_error
 
     from planetref.frontend.batched import answer
@@ -149,10 +155,10 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
     from planetref.raster.image import CcdImage
 
     s = load(scene)
-    cfg, source = declared_uncertainty(FrontendConfig(), s["man"])
+    cfg, source = declared_uncertainty(FrontendConfig(coarse_fallback=fallback), s["man"])
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
     fine, coarse = build_matchers(matcher, {}, cfg, gsd, weights_dir=weights)
-    fallback = coarse_fallback_matcher(cfg, gsd)
+    ncc = coarse_fallback_matcher(cfg, gsd)
     readers = {c: CcdImage(p) for c, p in s["images"].items()}
     plans = {c: plan_tiles(s["init"], c, s["ref"], s["dem"], cfg) for c in readers}
     tiles = [(t, plans[c].ratio) for c in readers for t in plans[c].tiles]
@@ -176,13 +182,16 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
         got = answer(request)
         c_coarse = time.process_time() - c0
         c_fallback = 0.0
+        fine_windows = []  # the fine stage's reference windows (fine-grid px)
         try:
             request = steps.send(got)
             while True:
                 c1 = time.process_time()
                 got = answer(request)
-                if request.matcher is fallback and fallback is not coarse:
+                if ncc is not None and request.matcher is ncc and ncc is not coarse:
                     c_fallback += time.process_time() - c1
+                elif request.matcher is fine:
+                    fine_windows.append([int(v) for v in request.ref_image.shape])
                 request = steps.send(got)
         except StopIteration as stop:
             r = stop.value
@@ -196,6 +205,7 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
                 "coarse_inliers": r.n_coarse_inliers,
                 "coarse_window_px": [int(shape[0]), int(shape[1])],
                 "coarse_source": r.coarse_source,
+                "fine_windows_px": fine_windows,
                 "coarse_cpu_s": c_coarse,
                 "fallback_cpu_s": c_fallback,
                 "tile_cpu_s": cpu,
@@ -205,6 +215,7 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
     for rd in readers.values():
         rd.close()
     return {
+        "coarse_fallback": cfg.coarse_fallback,
         "uncertainty_m": cfg.uncertainty_m,
         "uncertainty_source": source,
         "coarse_level": cfg.coarse_level(gsd),
@@ -278,6 +289,12 @@ def main() -> None:
         help="simulate only this level's scene; the others are it with their own initial "
         "cameras (the same terrain draw; default: each level simulated)",
     )
+    ap.add_argument(
+        "--coarse-fallback",
+        default="ncc",
+        choices=["ncc", "fine"],
+        help="frontend.coarse_fallback of the timed tiles (georef runs use the default)",
+    )
     ap.add_argument("--runs", type=Path, default=Path("bench-initial-error"))
     ap.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
     ap.add_argument("--threads", type=int, default=1, help="threads of torch/OpenCV/BLAS")
@@ -297,7 +314,9 @@ def main() -> None:
         for matcher in args.matchers:
             row: dict[str, Any] = {"level": level, "matcher": matcher, "scene": str(scene)}
             if args.tiles > 0:
-                row.update(tile_costs(scene, matcher, args.tiles, args.weights_dir))
+                row.update(
+                    tile_costs(scene, matcher, args.tiles, args.weights_dir, args.coarse_fallback)
+                )
             if (
                 args.georef
                 and level in (args.georef_levels or args.levels)
