@@ -26,7 +26,8 @@ matcher:
 Usage::
 
     python benchmarks/bench_initial_error.py [--preset tiny] [--levels preset 1km 2km]
-        [--matchers ncc xfeat-lighterglue] [--tiles 4] [--georef] [--runs DIR]
+        [--matchers ncc xfeat-lighterglue] [--tiles 4] [--tile-matchers xfeat-lighterglue]
+        [--coarse-fallback ncc|fine] [--georef] [--runs DIR]
         [--georef-levels preset 1km] [--georef-matchers ncc] [--baseline preset]
         [--threads 1] [--json] [--out FILE]
 
@@ -279,6 +280,7 @@ def main() -> None:
     ap.add_argument("--levels", nargs="+", default=["preset", "1km", "2km"])
     ap.add_argument("--matchers", nargs="+", default=["ncc", "xfeat-lighterglue"])
     ap.add_argument("--tiles", type=int, default=4, help="tiles timed per level (0: none)")
+    ap.add_argument("--tile-matchers", nargs="+", default=None, help="default: --matchers")
     ap.add_argument("--georef", action="store_true", help="also run georef per level")
     ap.add_argument("--georef-levels", nargs="+", default=None, help="default: --levels")
     ap.add_argument("--georef-matchers", nargs="+", default=None, help="default: --matchers")
@@ -313,7 +315,7 @@ def main() -> None:
         scene = scene_dir(args.runs, args.preset, level, args.seed, args.host)
         for matcher in args.matchers:
             row: dict[str, Any] = {"level": level, "matcher": matcher, "scene": str(scene)}
-            if args.tiles > 0:
+            if args.tiles > 0 and matcher in (args.tile_matchers or args.matchers):
                 row.update(
                     tile_costs(scene, matcher, args.tiles, args.weights_dir, args.coarse_fallback)
                 )
