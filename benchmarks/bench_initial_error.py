@@ -210,7 +210,7 @@ def tile_costs(
                 "coarse_cpu_s": c_coarse,
                 "fallback_cpu_s": c_fallback,
                 "tile_cpu_s": cpu,
-                "offset_error_px": truth_error(s, r),
+                "offset_error_px": _finite(truth_error(s, r)),
             }
         )
     for rd in readers.values():
@@ -226,8 +226,18 @@ def tile_costs(
         "coarse_sources": _count(r["coarse_source"] for r in rows),
         "tile_cpu_s_mean": float(np.mean([r["tile_cpu_s"] for r in rows])),
         "tiles_ok": sum(r["status"] == "ok" for r in rows),
-        "offset_error_px_max": float(np.nanmax([r["offset_error_px"] for r in rows])),
+        "offset_error_px_max": _finite(
+            max(
+                (r["offset_error_px"] for r in rows if r["offset_error_px"] is not None),
+                default=np.nan,
+            )
+        ),
     }
+
+
+def _finite(value: float) -> float | None:
+    """``value``, or None where it is not finite (a failed tile has no offset error)."""
+    return float(value) if np.isfinite(value) else None
 
 
 def _count(values: Any) -> dict[str, int]:
@@ -394,7 +404,7 @@ def _line(r: dict[str, Any]) -> str:
             f"CPU/tile {r['tile_cpu_s_mean']:.2f} s (coarse {r['coarse_cpu_s_mean']:.2f} s, "
             f"NCC fallback {r['fallback_cpu_s_mean']:.2f} s; placed by {r['coarse_sources']}); "
             f"tiles ok {r['tiles_ok']}/{len(r['tiles'])}, "
-            f"offset error max {r['offset_error_px_max']:.2f} px"
+            f"offset error max {r['offset_error_px_max']} px"
         )
     g = r.get("georef")
     if g:
