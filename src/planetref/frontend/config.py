@@ -137,15 +137,19 @@ class FrontendConfig(Settings):
             default 256 leaves the coarse level of a 5 m reference at 4 up to 1.3 km
             of uncertainty (tiles of 256 reference px).
         coarse_fallback: What places the fine window of a tile whose coarse matcher finds
-            no consensus (``coarse_min_matches`` within ``coarse_radius_ref_px``).
-            ``"ncc"`` (default): the same coarse windows are searched by area-based NCC
+            no consensus (``coarse_min_matches`` within ``coarse_radius_ref_px``), or one
+            around which the fine stage finds fewer than ``min_inliers`` (a consensus of
+            wrong matches). ``"ncc"`` (default): the same coarse windows are searched by
+            area-based NCC
             (:func:`~planetref.frontend.matchers.coarse_fallback_matcher`: NCC's own
             coarse instance, a search radius covering the uncertainty at the coarse
             level), the same for every matcher; its consensus places the fine stage as
-            the matcher's own would have, and a tile where it finds none either fails
+            the matcher's own would have (after a rejected offset, when it lies beyond
+            the first fine window's reach), and a tile where it finds none either fails
             (``too_few_inliers``) without a wider search. Its cost is bounded by the
             coarse window (``coarse_max_px``) whatever the uncertainty: on hiric-strip
-            0.2-0.6 CPU-s per tile at 100 m and at 1 km (docs/guide/pipeline.md). The
+            0.01-0.02 CPU-s per tile at 100 m and 0.20-0.62 s at 1 km, against 5-7 s for
+            the whole-window search it replaced (docs/guide/pipeline.md). The
             tile's ``coarse_source`` says which search placed it. The NCC matcher
             itself has no fallback (its coarse stage is that search). ``"fine"``: the
             fine stage searches the whole uncertainty window at full resolution, and a
