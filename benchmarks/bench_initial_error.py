@@ -148,8 +148,9 @@ def tile_costs(
     from bench_frontend import load, truth_error
 
     from planetref.frontend.batched import answer
+    from planetref.frontend.coarse import coarse_fallback_matcher
     from planetref.frontend.config import FrontendConfig
-    from planetref.frontend.matchers import build_matchers, coarse_fallback_matcher
+    from planetref.frontend.matchers import build_matchers
     from planetref.frontend.tile import TileInputs, tile_steps
     from planetref.frontend.tiles import plan_tiles
     from planetref.pipeline.systematic import declared_uncertainty

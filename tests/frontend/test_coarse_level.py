@@ -59,7 +59,7 @@ def test_area_based_coarse_radius_covers_the_uncertainty_at_the_adapted_level() 
 
 
 def test_the_coarse_fallback_is_ncc_coarse_search_and_bounded_by_the_window() -> None:
-    from planetref.frontend.matchers import coarse_fallback_matcher
+    from planetref.frontend.coarse import coarse_fallback_matcher
     from planetref.matching.ncc import NccMatcher
 
     gsd = 5.0

@@ -204,8 +204,8 @@ def test_a_wrong_coarse_consensus_is_caught_by_the_fine_stage_and_replaced(
     (NCC as the fine matcher would not do here: around a wrong offset its dense,
     overlapping templates can agree on one false peak, 8-87 "inliers" in a corner of the
     tile, and the tile ends ``ok`` at the wrong place; measured on this scene.)"""
+    from planetref.frontend.coarse import coarse_fallback_matcher
     from planetref.frontend.config import FrontendConfig
-    from planetref.frontend.matchers import coarse_fallback_matcher
     from planetref.frontend.tile import match_tile
     from planetref.pipeline.systematic import declared_uncertainty
     from planetref.raster.image import CcdImage

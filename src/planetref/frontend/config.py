@@ -141,7 +141,7 @@ class FrontendConfig(Settings):
             around which the fine stage finds fewer than ``min_inliers`` (a consensus of
             wrong matches). ``"ncc"`` (default): the same coarse windows are searched by
             area-based NCC
-            (:func:`~planetref.frontend.matchers.coarse_fallback_matcher`: NCC's own
+            (:func:`~planetref.frontend.coarse.coarse_fallback_matcher`: NCC's own
             coarse instance, a search radius covering the uncertainty at the coarse
             level), the same for every matcher; its consensus places the fine stage as
             the matcher's own would have (after a rejected offset, when it lies beyond

@@ -8,7 +8,6 @@ end's settings into the options of the fine and coarse instances.
 
 from __future__ import annotations
 
-import functools
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -25,7 +24,6 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "MatcherPair",
     "build_matchers",
-    "coarse_fallback_matcher",
     "matcher_options",
     "matcher_recipes",
     "matcher_weight_files",
@@ -81,6 +79,7 @@ def matcher_options(
         ``(fine_options, coarse_options)``; ``coarse_options`` is None when the fine
         matcher serves both stages.
     """
+    from planetref.frontend.coarse import coarse_search_radius
     from planetref.matching.registry import MATCHERS
 
     options = dict(options)
@@ -107,43 +106,9 @@ def matcher_options(
     coarse = {**cls.coarse_defaults, **options}
     # At the coarse level the front end picks for this uncertainty (FrontendConfig.
     # coarse_level), so the radius stays bounded by the window whatever the uncertainty.
-    radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_level(ref_gsd_m)))) + 4
+    radius = coarse_search_radius(fe, ref_gsd_m)
     coarse[cls.search_option] = max(radius, int(coarse.get(cls.search_option, 0)))
     return fine, coarse
-
-
-#: The area-based search of :func:`coarse_fallback_matcher`.
-COARSE_FALLBACK_MATCHER = "ncc"
-
-
-@functools.lru_cache(maxsize=8)
-def _fallback(options: tuple[tuple[str, Any], ...]) -> Matcher:
-    from planetref.matching.registry import get_matcher
-
-    return get_matcher(COARSE_FALLBACK_MATCHER, **dict(options))
-
-
-def coarse_fallback_matcher(fe: FrontendConfig, ref_gsd_m: float) -> Matcher | None:
-    """The front end's own coarse search, for tiles whose coarse matcher found no consensus.
-
-    NCC's coarse-stage instance (:func:`matcher_options` with NCC's defaults): templates
-    on a grid of the coarse image side, each searched over a radius that covers the
-    a-priori uncertainty at the coarse level. It is part of the front end, not of the
-    run's matcher, so it is the same whatever the matcher (``frontend.coarse_fallback``);
-    one instance per process and settings.
-
-    Args:
-        fe: The front end's settings.
-        ref_gsd_m: Ground sampling distance of the reference ortho (metres).
-
-    Returns:
-        The matcher, or None when ``fe.coarse_fallback`` is not ``"ncc"``.
-    """
-    if fe.coarse_fallback != "ncc":
-        return None
-    _, coarse = matcher_options(COARSE_FALLBACK_MATCHER, {}, fe, ref_gsd_m)
-    assert coarse is not None  # NCC declares a bounded search
-    return _fallback(tuple(sorted(coarse.items())))
 
 
 def matcher_recipes(

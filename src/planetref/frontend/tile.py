@@ -51,9 +51,9 @@ from planetref.frontend.batched import (
     inference_mode,
     run_steps,
 )
+from planetref.frontend.coarse import coarse_fallback_matcher
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.grid import FineWindow, read_fine
-from planetref.frontend.matchers import coarse_fallback_matcher
 from planetref.frontend.orthorectify import (
     ImageSide,
     downsample_tile,
