@@ -12,18 +12,22 @@ matcher:
 1. **tiles** (``--tiles N``, 0: none): ``N`` tiles spread over the strip, each matched once
    with the run's settings (after one warm-up tile), timed with ``time.process_time``
    (other jobs on the cores do not count): CPU seconds of the coarse stage (footprint,
-   coarse windows, coarse matcher call) and of the whole tile, the coarse window's side
-   in coarse pixels, the tile's status and the error of its offset against the truth
-   (reference pixels);
+   coarse windows, coarse matcher call), of the front end's NCC search where the coarse
+   matcher found no usable consensus (``frontend.coarse_fallback``) and of the whole
+   tile, what placed the tile's fine window (``coarse_source``: the matcher, the NCC
+   search), the coarse window's side in coarse pixels, the tile's status and the error
+   of its offset against the truth (reference pixels);
 2. **georef** (``--georef``): the full ``planetref georef`` run (reused from ``--runs``
-   when there): tiles found of all, the true ground error after adjustment (RMS over the
-   check grid of every CCD against the true camera) and its ratio to the ``--baseline``
-   level's with the same matcher (the issue's goal: within 1.2 at 1 km).
+   when there): tiles found of all (and what placed them, from the run's journal), the
+   true ground error after adjustment (RMS over the check grid of every CCD against the
+   true camera) and its ratio to the ``--baseline`` level's with the same matcher (the
+   issue's goal: within 1.2 at 1 km).
 
 Usage::
 
     python benchmarks/bench_initial_error.py [--preset tiny] [--levels preset 1km 2km]
-        [--matchers ncc xfeat-lighterglue] [--tiles 4] [--georef] [--runs DIR]
+        [--matchers ncc xfeat-lighterglue] [--tiles 4] [--tile-matchers xfeat-lighterglue]
+        [--coarse-fallback ncc|fine] [--georef] [--runs DIR]
         [--georef-levels preset 1km] [--georef-matchers ncc] [--baseline preset]
         [--threads 1] [--json] [--out FILE]
 
@@ -133,11 +137,18 @@ def swap_initial_cameras(src: Path, cfg: Any, out: Path) -> None:
     tmp.rename(out)
 
 
-def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> dict[str, Any]:
-    """CPU seconds of the coarse stage and of whole tiles (see the module docstring)."""
+def tile_costs(
+    scene: Path, matcher: str, n_tiles: int, weights: str | None, fallback: str = "ncc"
+) -> dict[str, Any]:
+    """CPU seconds of the coarse stage and of whole tiles (see the module docstring).
+
+    ``fallback`` is ``frontend.coarse_fallback`` (``"fine"``: the full-resolution search
+    of the whole window that it replaced, for comparison).
+    """
     from bench_frontend import load, truth_error
 
     from planetref.frontend.batched import answer
+    from planetref.frontend.coarse import coarse_fallback_matcher
     from planetref.frontend.config import FrontendConfig
     from planetref.frontend.matchers import build_matchers
     from planetref.frontend.tile import TileInputs, tile_steps
@@ -146,9 +157,10 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
     from planetref.raster.image import CcdImage
 
     s = load(scene)
-    cfg, source = declared_uncertainty(FrontendConfig(), s["man"])
+    cfg, source = declared_uncertainty(FrontendConfig(coarse_fallback=fallback), s["man"])
     gsd = float(np.mean(s["ref"].ground_sampling_m()))
     fine, coarse = build_matchers(matcher, {}, cfg, gsd, weights_dir=weights)
+    ncc = coarse_fallback_matcher(cfg, gsd)
     readers = {c: CcdImage(p) for c, p in s["images"].items()}
     plans = {c: plan_tiles(s["init"], c, s["ref"], s["dem"], cfg) for c in readers}
     tiles = [(t, plans[c].ratio) for c in readers for t in plans[c].tiles]
@@ -171,10 +183,18 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
         shape = request.ref_image.shape
         got = answer(request)
         c_coarse = time.process_time() - c0
+        c_fallback = 0.0
+        fine_windows = []  # the fine stage's reference windows (fine-grid px)
         try:
             request = steps.send(got)
             while True:
-                request = steps.send(answer(request))
+                c1 = time.process_time()
+                got = answer(request)
+                if ncc is not None and request.matcher is ncc and ncc is not coarse:
+                    c_fallback += time.process_time() - c1
+                elif request.matcher is fine:
+                    fine_windows.append([int(v) for v in request.ref_image.shape])
+                request = steps.send(got)
         except StopIteration as stop:
             r = stop.value
         cpu = time.process_time() - c0
@@ -186,23 +206,46 @@ def tile_costs(scene: Path, matcher: str, n_tiles: int, weights: str | None) -> 
                 "status": r.status,
                 "coarse_inliers": r.n_coarse_inliers,
                 "coarse_window_px": [int(shape[0]), int(shape[1])],
+                "coarse_source": r.coarse_source,
+                "fine_windows_px": fine_windows,
                 "coarse_cpu_s": c_coarse,
+                "fallback_cpu_s": c_fallback,
                 "tile_cpu_s": cpu,
-                "offset_error_px": truth_error(s, r),
+                "offset_error_px": _finite(truth_error(s, r)),
             }
         )
     for rd in readers.values():
         rd.close()
     return {
+        "coarse_fallback": cfg.coarse_fallback,
         "uncertainty_m": cfg.uncertainty_m,
         "uncertainty_source": source,
         "coarse_level": cfg.coarse_level(gsd),
         "tiles": rows,
         "coarse_cpu_s_mean": float(np.mean([r["coarse_cpu_s"] for r in rows])),
+        "fallback_cpu_s_mean": float(np.mean([r["fallback_cpu_s"] for r in rows])),
+        "coarse_sources": _count(r["coarse_source"] for r in rows),
         "tile_cpu_s_mean": float(np.mean([r["tile_cpu_s"] for r in rows])),
         "tiles_ok": sum(r["status"] == "ok" for r in rows),
-        "offset_error_px_max": float(np.nanmax([r["offset_error_px"] for r in rows])),
+        "offset_error_px_max": _finite(
+            max(
+                (r["offset_error_px"] for r in rows if r["offset_error_px"] is not None),
+                default=np.nan,
+            )
+        ),
     }
+
+
+def _finite(value: float) -> float | None:
+    """``value``, or None where it is not finite (a failed tile has no offset error)."""
+    return float(value) if np.isfinite(value) else None
+
+
+def _count(values: Any) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for v in values:
+        out[str(v)] = out.get(str(v), 0) + 1
+    return out
 
 
 def georef(scene: Path, out: Path, matcher: str, weights: str | None) -> dict[str, Any]:
@@ -215,9 +258,26 @@ def georef(scene: Path, out: Path, matcher: str, weights: str | None) -> dict[st
     else:
         report = run_georef(scene, matcher, out, weights_dir=weights, progress=False).report
     m, c = report["matching"], report["check"]
+    tiles = [
+        json.loads(line).get("result") or {}
+        for sid in report.get("strips") or {}
+        if (out / sid / "tiles.jsonl").is_file()
+        for line in (out / sid / "tiles.jsonl").read_text(encoding="utf-8").splitlines()
+        if line.strip()
+    ]
     return {
         "tiles_total": int(m["tiles_total"]),
         "tiles_found": int(m["tiles_total"]) - int(m["tiles_failed"]),
+        # what placed each tile's fine window (frontend.coarse_fallback)
+        "coarse_sources": _count(t.get("coarse_source") for t in tiles if t),
+        # seconds (wall, one process) of the matcher's coarse stage and of the NCC search
+        "coarse_match_s": float(
+            sum((t.get("timings") or {}).get("coarse_match", 0.0) for t in tiles)
+        ),
+        "coarse_fallback_s": float(
+            sum((t.get("timings") or {}).get("coarse_fallback", 0.0) for t in tiles)
+        ),
+        "tile_s": float(sum((t.get("timings") or {}).get("total", 0.0) for t in tiles)),
         "true_error_before_m": float(c["geoloc_rmse_m_before"]),
         "true_error_m": float(c["geoloc_rmse_m"]),
         "run": str(out),
@@ -231,6 +291,7 @@ def main() -> None:
     ap.add_argument("--levels", nargs="+", default=["preset", "1km", "2km"])
     ap.add_argument("--matchers", nargs="+", default=["ncc", "xfeat-lighterglue"])
     ap.add_argument("--tiles", type=int, default=4, help="tiles timed per level (0: none)")
+    ap.add_argument("--tile-matchers", nargs="+", default=None, help="default: --matchers")
     ap.add_argument("--georef", action="store_true", help="also run georef per level")
     ap.add_argument("--georef-levels", nargs="+", default=None, help="default: --levels")
     ap.add_argument("--georef-matchers", nargs="+", default=None, help="default: --matchers")
@@ -240,6 +301,12 @@ def main() -> None:
         default=None,
         help="simulate only this level's scene; the others are it with their own initial "
         "cameras (the same terrain draw; default: each level simulated)",
+    )
+    ap.add_argument(
+        "--coarse-fallback",
+        default="ncc",
+        choices=["ncc", "fine"],
+        help="frontend.coarse_fallback of the timed tiles (georef runs use the default)",
     )
     ap.add_argument("--runs", type=Path, default=Path("bench-initial-error"))
     ap.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
@@ -259,8 +326,10 @@ def main() -> None:
         scene = scene_dir(args.runs, args.preset, level, args.seed, args.host)
         for matcher in args.matchers:
             row: dict[str, Any] = {"level": level, "matcher": matcher, "scene": str(scene)}
-            if args.tiles > 0:
-                row.update(tile_costs(scene, matcher, args.tiles, args.weights_dir))
+            if args.tiles > 0 and matcher in (args.tile_matchers or args.matchers):
+                row.update(
+                    tile_costs(scene, matcher, args.tiles, args.weights_dir, args.coarse_fallback)
+                )
             if (
                 args.georef
                 and level in (args.georef_levels or args.levels)
@@ -279,14 +348,22 @@ def main() -> None:
             figures += [
                 {"name": f"{tag}: CPU per tile", "value": r["tile_cpu_s_mean"], "unit": "s"},
                 {"name": f"{tag}: coarse-stage CPU", "value": r["coarse_cpu_s_mean"], "unit": "s"},
+                {
+                    "name": f"{tag}: NCC fallback CPU",
+                    "value": r["fallback_cpu_s_mean"],
+                    "unit": "s",
+                    "note": "per timed tile; tiles placed by: "
+                    + ", ".join(f"{k} {v}" for k, v in sorted(r["coarse_sources"].items())),
+                },
             ]
         g = r.get("georef")
         if g:
+            placed = ", ".join(f"{k} {v}" for k, v in sorted(g["coarse_sources"].items()))
             figures.append(
                 {
                     "name": f"{tag}: tiles found",
                     "value": g["tiles_found"],
-                    "note": f"of {g['tiles_total']}",
+                    "note": f"of {g['tiles_total']}; fine window placed by: {placed}",
                 }
             )
             figures.append({"name": f"{tag}: true error", "value": g["true_error_m"], "unit": "m"})
@@ -325,14 +402,16 @@ def _line(r: dict[str, Any]) -> str:
         parts.append(
             f"uncertainty {r['uncertainty_m']:g} m ({r['uncertainty_source']}), "
             f"coarse level {r['coarse_level']}, window {r['tiles'][0]['coarse_window_px']} px; "
-            f"CPU/tile {r['tile_cpu_s_mean']:.2f} s (coarse {r['coarse_cpu_s_mean']:.2f} s); "
+            f"CPU/tile {r['tile_cpu_s_mean']:.2f} s (coarse {r['coarse_cpu_s_mean']:.2f} s, "
+            f"NCC fallback {r['fallback_cpu_s_mean']:.2f} s; placed by {r['coarse_sources']}); "
             f"tiles ok {r['tiles_ok']}/{len(r['tiles'])}, "
-            f"offset error max {r['offset_error_px_max']:.2f} px"
+            f"offset error max {r['offset_error_px_max']} px"
         )
     g = r.get("georef")
     if g:
         parts.append(
-            f"georef: {g['tiles_found']}/{g['tiles_total']} tiles, true error "
+            f"georef: {g['tiles_found']}/{g['tiles_total']} tiles "
+            f"(placed by {g['coarse_sources']}), true error "
             f"{g['true_error_before_m']:.1f} m -> {g['true_error_m']:.3f} m"
         )
     return "  ".join(parts)

@@ -56,3 +56,38 @@ def test_area_based_coarse_radius_covers_the_uncertainty_at_the_adapted_level() 
     fe = FrontendConfig(uncertainty_m=5000.0)
     assert fe.coarse_level(gsd) == 9
     assert matcher_options("ncc", {}, fe, gsd)[1] == {"spacing": 8, "search_radius": 116}
+
+
+def test_the_coarse_fallback_is_ncc_coarse_search_and_bounded_by_the_window() -> None:
+    from planetref.frontend.coarse import coarse_fallback_matcher
+    from planetref.matching.ncc import NccMatcher
+
+    gsd = 5.0
+    for u in (150.0, 1300.0, 5000.0):
+        fe = FrontendConfig(uncertainty_m=u)
+        fb = coarse_fallback_matcher(fe, gsd)
+        assert isinstance(fb, NccMatcher)
+        # NCC's own coarse instance: the same radius, the same template grid
+        assert {"spacing": fb.spacing, "search_radius": fb.search_radius} == matcher_options(
+            "ncc", {}, fe, gsd
+        )[1]
+        assert fb.search_radius * fe.coarse_level(gsd) * gsd >= u
+        assert fb.search_radius <= fe.coarse_max_px // 2 + 4
+        assert coarse_fallback_matcher(fe, gsd) is fb  # one instance per settings
+    # 150 m: level 4, 8 + 4 coarse px; 1300 m: still level 4 (808 ref px), 65 + 4
+    assert coarse_fallback_matcher(FrontendConfig(uncertainty_m=150.0), gsd).search_radius == 12
+    assert coarse_fallback_matcher(FrontendConfig(uncertainty_m=1300.0), gsd).search_radius == 69
+    assert coarse_fallback_matcher(FrontendConfig(coarse_fallback="fine"), gsd) is None
+
+
+def test_tile_results_keep_what_placed_their_fine_window() -> None:
+    from planetref.frontend.result import TileResult
+    from planetref.frontend.tiles import Tile
+
+    tile = Tile("ccd1:r000c000", "ccd1", 0, 0, 64, 64)
+    for source in ("matcher", "ncc", "fine", None):
+        r = TileResult(tile=tile, matcher="xfeat-lighterglue", status="ok", coarse_source=source)
+        assert TileResult.from_dict(r.to_dict()).coarse_source == source
+    doc = TileResult(tile=tile, matcher="sift", status="ok").to_dict()
+    del doc["coarse_source"]  # journals written before the field
+    assert TileResult.from_dict(doc).coarse_source is None

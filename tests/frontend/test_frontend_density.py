@@ -223,7 +223,9 @@ def test_dense_ncc_reaches_the_ccd_edges(scene, ref):
 
 
 def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
-    """Without a coarse offset, a first fine pass's offset places the fine window."""
+    """Without a coarse offset, a first fine pass's offset places the fine window
+    (``coarse_fallback = "fine"``); by default the front end's NCC search of the coarse
+    windows places it instead, with the same fine offset."""
     from planetref.camera.mapping import image_to_ref_pixel
     from planetref.matching.ncc import NccMatcher
 
@@ -233,18 +235,23 @@ def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
     tc, tr = image_to_ref_pixel(scene.true_cam, "ccd1", [lc], [sc], ref, scene.dem)
     ic, ir = image_to_ref_pixel(scene.init_cam, "ccd1", [lc], [sc], ref, scene.dem)
     truth = np.array([tc[0] - ic[0], tr[0] - ir[0]])  # ~(12, 7) reference px
-    r = match_tile(
-        tile,
-        image=CcdImage(scene.images["ccd1"]),
-        camera=scene.init_cam,
-        ref=ref,
-        terrain=scene.dem,
-        matcher=NccMatcher(spacing=8, search_radius=20),
-        # a coarse search of 2 px cannot reach the ~6 coarse px of the initial error
-        coarse_matcher=NccMatcher(spacing=8, search_radius=2),
-        config=CFG,
-    )
+
+    def match(cfg):
+        return match_tile(
+            tile,
+            image=CcdImage(scene.images["ccd1"]),
+            camera=scene.init_cam,
+            ref=ref,
+            terrain=scene.dem,
+            matcher=NccMatcher(spacing=8, search_radius=20),
+            # a coarse search of 2 px cannot reach the ~6 coarse px of the initial error
+            coarse_matcher=NccMatcher(spacing=8, search_radius=2),
+            config=cfg,
+        )
+
+    r = match(CFG.model_copy(update={"coarse_fallback": "fine"}))
     assert r.status == "ok", r.message
+    assert r.coarse_source == "fine"
     assert r.n_coarse_inliers < CFG.coarse_min_matches  # the coarse stage found nothing
     assert np.max(np.abs(np.asarray(r.coarse_offset_px) - truth)) < 0.5
     assert np.max(np.abs(np.asarray(r.offset_px) - truth)) < 0.1
@@ -255,6 +262,14 @@ def test_no_coarse_consensus_recentres_the_fine_stage(scene, ref):
     assert (col0 - win.col0, row0 - win.row0) != (0, 0)
     dc, dr = np.asarray(r.coarse_offset_px)
     assert abs(col0 - win.col0 - dc) <= 1 and abs(row0 - win.row0 - dr) <= 1
+
+    d = match(CFG)  # coarse_fallback = "ncc"
+    assert d.status == "ok", d.message
+    assert d.coarse_source == "ncc" and "coarse_fallback" in d.timings
+    assert d.n_coarse_inliers == r.n_coarse_inliers
+    f = CFG.coarse_level(float(np.mean(ref.ground_sampling_m())))
+    assert np.max(np.abs(np.asarray(d.coarse_offset_px) - truth)) < f  # a coarse pixel
+    assert np.max(np.abs(np.asarray(d.offset_px) - truth)) < 0.1
 
 
 def test_dense_ncc_compiled_path_gives_the_reference_s_tile(scene, ref, monkeypatch):

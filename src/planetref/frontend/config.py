@@ -23,6 +23,7 @@ __all__ = [
     "PAPER_PROTOCOL",
     "CampaignOptions",
     "CcdOverlapConfig",
+    "CoarseFallback",
     "FrontendConfig",
     "GeometryMode",
     "Protocol",
@@ -33,6 +34,7 @@ __all__ = [
 GeometryMode = Literal["orthorectify", "downsample"]
 RansacModel = Literal["homography", "affine"]
 Protocol = Literal["default", "paper"]
+CoarseFallback = Literal["ncc", "fine"]
 
 PAPER_PROTOCOL: dict[str, Any] = {
     # Sec. 3.2 of the seed: the CCD tile is downsampled to the reference GSD and matched
@@ -134,6 +136,26 @@ class FrontendConfig(Settings):
             matcher's coarse search radius, stay bounded whatever the uncertainty. The
             default 256 leaves the coarse level of a 5 m reference at 4 up to 1.3 km
             of uncertainty (tiles of 256 reference px).
+        coarse_fallback: What places the fine window of a tile whose coarse matcher finds
+            no consensus (``coarse_min_matches`` within ``coarse_radius_ref_px``), or one
+            around which the fine stage finds fewer than ``min_inliers`` (a consensus of
+            wrong matches). ``"ncc"`` (default): the same coarse windows are searched by
+            area-based NCC
+            (:func:`~planetref.frontend.coarse.coarse_fallback_matcher`: NCC's own
+            coarse instance, a search radius covering the uncertainty at the coarse
+            level), the same for every matcher; its consensus places the fine stage as
+            the matcher's own would have (after a rejected offset, when it lies beyond
+            the first fine window's reach), and a tile where it finds none either fails
+            (``too_few_inliers``) without a wider search. Its cost is bounded by the
+            coarse window (``coarse_max_px``) whatever the uncertainty: on hiric-strip
+            0.01-0.02 CPU-s per tile at 100 m and 0.20-0.62 s at 1 km, against 5-7 s for
+            the whole-window search it replaced (docs/guide/pipeline.md). The
+            tile's ``coarse_source`` says which search placed it. The NCC matcher
+            itself has no fallback (its coarse stage is that search). ``"fine"``: the
+            fine stage searches the whole uncertainty window at full resolution, and a
+            second fine pass sits on its consensus (the behaviour before this option;
+            its cost grows with the square of the uncertainty, and learned matchers
+            spread their keypoint budget over the whole window).
         coarse_min_matches: Fewest consistent coarse matches to trust the coarse offset.
         coarse_radius_ref_px: Consensus radius of the coarse translation, reference px.
         fine_pad_ref_px: Margin of the fine reference window around the footprint
@@ -220,6 +242,7 @@ class FrontendConfig(Settings):
     coarse: bool = True
     coarse_factor: int = Field(4, ge=1, le=32)
     coarse_max_px: int = Field(256, ge=32, le=4096)
+    coarse_fallback: CoarseFallback = "ncc"
     coarse_min_matches: int = Field(6, ge=3)
     coarse_radius_ref_px: float = Field(6.0, gt=0.0)
     fine_pad_ref_px: int = Field(16, ge=0)

@@ -79,6 +79,7 @@ def matcher_options(
         ``(fine_options, coarse_options)``; ``coarse_options`` is None when the fine
         matcher serves both stages.
     """
+    from planetref.frontend.coarse import coarse_search_radius
     from planetref.matching.registry import MATCHERS
 
     options = dict(options)
@@ -105,7 +106,7 @@ def matcher_options(
     coarse = {**cls.coarse_defaults, **options}
     # At the coarse level the front end picks for this uncertainty (FrontendConfig.
     # coarse_level), so the radius stays bounded by the window whatever the uncertainty.
-    radius = int(np.ceil(fe.uncertainty_m / (ref_gsd_m * fe.coarse_level(ref_gsd_m)))) + 4
+    radius = coarse_search_radius(fe, ref_gsd_m)
     coarse[cls.search_option] = max(radius, int(coarse.get(cls.search_option, 0)))
     return fine, coarse
 

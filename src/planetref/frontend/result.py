@@ -85,6 +85,10 @@ class TileResult:
             px: the coarse stage's, or, when it found no consensus, that of a first fine
             pass over the whole uncertainty (the funnel is the second pass's); None if
             the coarse stage did not run or neither found a consensus.
+        coarse_source: What placed the fine window: ``"matcher"`` (the coarse
+            matcher's consensus), ``"ncc"`` (the front end's NCC search after the coarse
+            matcher found none; ``frontend.coarse_fallback``), ``"fine"`` (a first fine
+            pass over the whole uncertainty), None (nothing did).
         offset_px: Fine offset (mean displacement of the verified inliers), reference px.
         offset_mad_px: Median absolute deviation of the inlier displacements, reference px.
         n_coarse_matches: Matches of the coarse stage.
@@ -118,8 +122,8 @@ class TileResult:
             position NaN where it has none), for the true outlier ratio on simulated
             scenes (:mod:`planetref.frontend.truth`); empty when RANSAC did not run.
         timings: Seconds per step (``footprint``, ``coarse_prepare``, ``coarse_match``,
-            ``fine_prepare``, ``fine_match``, ``verify``, ``backmap``, ``refine``,
-            ``forward``, ``total``).
+            ``coarse_fallback``, ``fine_prepare``, ``fine_match``, ``verify``,
+            ``backmap``, ``refine``, ``forward``, ``total``).
         debug: Stage images and matches (only when asked for; never serialised).
     """
 
@@ -130,6 +134,7 @@ class TileResult:
     geometry: str = "orthorectify"
     search_window: tuple[int, ...] | None = None
     coarse_offset_px: tuple[float, float] | None = None
+    coarse_source: str | None = None
     offset_px: tuple[float, float] | None = None
     offset_mad_px: tuple[float, float] | None = None
     n_coarse_matches: int = 0
@@ -193,6 +198,7 @@ class TileResult:
             "geometry": self.geometry,
             "search_window": None if self.search_window is None else list(self.search_window),
             "coarse_offset_px": _opt_pair(self.coarse_offset_px),
+            "coarse_source": self.coarse_source,
             "offset_px": _opt_pair(self.offset_px),
             "offset_mad_px": _opt_pair(self.offset_mad_px),
             "n_coarse_matches": self.n_coarse_matches,
@@ -240,6 +246,9 @@ class TileResult:
                 geometry=str(doc.get("geometry", "orthorectify")),
                 search_window=None if win is None else tuple(int(v) for v in win),
                 coarse_offset_px=_opt_pair(doc.get("coarse_offset_px")),
+                coarse_source=None
+                if doc.get("coarse_source") is None
+                else str(doc["coarse_source"]),
                 offset_px=_opt_pair(doc.get("offset_px")),
                 offset_mad_px=_opt_pair(doc.get("offset_mad_px")),
                 n_coarse_matches=int(doc.get("n_coarse_matches", 0)),

@@ -51,6 +51,7 @@ from planetref.frontend.batched import (
     inference_mode,
     run_steps,
 )
+from planetref.frontend.coarse import coarse_fallback_matcher
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.grid import FineWindow, read_fine
 from planetref.frontend.orthorectify import (
@@ -62,7 +63,7 @@ from planetref.frontend.orthorectify import (
 from planetref.frontend.result import StageDebug, TileResult, TileStatus
 from planetref.frontend.robust import robust_translation, spread_select, verify_points
 from planetref.frontend.tiles import Tile, tile_footprint
-from planetref.matching.base import Matcher
+from planetref.matching.base import BaseMatcher, Matcher
 from planetref.raster.image import CcdImage
 from planetref.raster.ortho import ReferenceOrtho, RefWindow
 
@@ -172,6 +173,90 @@ def _match_stage(
     pc, pr = side.predicted_ref_pixel(kp0[:, 0], kp0[:, 1])
     ac, ar = ref_window.to_ref_pixel(kp1[:, 0], kp1[:, 1])
     return _Stage(kp0, kp1, conf, np.column_stack([pc, pr]), np.column_stack([ac, ar]))
+
+
+def _coarse_consensus(st: _Stage, cfg: FrontendConfig) -> tuple[F64 | None, NDArray[np.bool_]]:
+    """A coarse stage's offset (None below ``coarse_min_matches``) and its inlier mask."""
+    disp = st.actual - st.predicted
+    ok = np.all(np.isfinite(disp), axis=1)
+    offset, inl = robust_translation(disp[ok], cfg.coarse_radius_ref_px, st.conf[ok])
+    full_inl = np.zeros(len(disp), bool)
+    full_inl[np.flatnonzero(ok)] = inl
+    if offset is None or int(full_inl.sum()) < cfg.coarse_min_matches:
+        return None, full_inl
+    return offset, full_inl
+
+
+def _verify_fine(
+    st: _Stage,
+    coarse_offset: F64 | None,
+    cfg: FrontendConfig,
+    res: TileResult,
+    timings: dict[str, float],
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """The fine stage's verification (funnel stages ``raw`` to ``consensus``).
+
+    Returns:
+        ``(inliers, ransac_inliers)``: the matches that passed the translation consensus,
+        and those that passed USAC_MAGSAC.
+    """
+    res.n_matches = len(st.kp0)
+    res.record("raw", res.n_matches)
+    with _timed(timings, "verify"):
+        # Gate: a predicted position, and (after a coarse consensus) a displacement that
+        # the fine window around the coarse offset can hold at all.
+        ok = np.all(np.isfinite(st.predicted), axis=1)
+        gate = {"no_prediction": int(np.count_nonzero(~ok))}
+        if coarse_offset is not None:
+            reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
+            with np.errstate(invalid="ignore"):
+                far = np.any(np.abs(st.actual - st.predicted - coarse_offset) > reach, axis=1)
+            gate["outside_window"] = int(np.count_nonzero(ok & far))
+            ok &= ~far
+        res.record("coarse_gate", int(ok.sum()), gate)
+        src = st.predicted if cfg.geometry == "orthorectify" else st.kp0
+        inl = np.zeros(len(st.kp0), bool)
+        inl[ok] = verify_points(
+            src[ok],
+            st.actual[ok],
+            cfg.ransac_model,
+            cfg.ransac_threshold_ref_px,
+            cfg.ransac_confidence,
+            cfg.ransac_max_iters,
+        )
+        res.record("ransac", int(inl.sum()), {"outlier": int(ok.sum() - inl.sum())})
+        ransac_inl = inl.copy()
+        n_ransac = int(inl.sum())
+        if inl.any():
+            # True matches of one tile share (nearly) one displacement; a homography
+            # fitted to wrong matches does not, whatever its residuals.
+            idx = np.flatnonzero(inl)
+            _, cons = robust_translation(
+                (st.actual - st.predicted)[idx], cfg.fine_radius_ref_px, st.conf[idx]
+            )
+            inl[idx[~cons]] = False
+        res.record("consensus", int(inl.sum()), {"off_translation": n_ransac - int(inl.sum())})
+    return inl, ransac_inl
+
+
+def _same_search(coarse: Matcher, fallback: Matcher) -> bool:
+    """Whether the coarse matcher already searched as far as the fallback would.
+
+    True for NCC's own coarse stage (the fallback is NCC's coarse instance; the run's
+    may carry the user's options, and a radius at least the fallback's).
+    """
+    if type(coarse) is not type(fallback):
+        return False
+    opt = type(fallback).search_option if isinstance(fallback, BaseMatcher) else None
+    if opt is None:
+        return True
+    reach = getattr(fallback, opt, 0)
+    offset = getattr(coarse, "initial_offset", (0.0, 0.0))
+    return bool(getattr(coarse, opt, 0) >= reach and tuple(offset) == (0.0, 0.0))
+
+
+def _name(matcher: Matcher) -> str:
+    return str(getattr(matcher, "name", type(matcher).__name__))
 
 
 def _valid_fraction(valid: NDArray[np.bool_]) -> float:
@@ -300,7 +385,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
     camera, ref, terrain = inputs.camera, inputs.ref, inputs.terrain
     matcher, ratio, debug = inputs.matcher, inputs.ratio, inputs.debug
     cfg = inputs.config or FrontendConfig()
-    name = str(getattr(matcher, "name", type(matcher).__name__))
+    name = _name(matcher)
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
     res = TileResult(tile=tile, matcher=name, status="ok", geometry=cfg.geometry)
@@ -336,44 +421,74 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
     # matched with, so the expected displacement between the two arrays is just the
     # initial error: area-based matchers with a bounded search work as well as the rest.
     coarse_offset: F64 | None = None
+    fallback_pending = False  # the NCC search of the coarse windows may still be tried
     if cfg.coarse:
         # The coarse level adapts to the uncertainty (a bounded window; see
         # FrontendConfig.coarse_level): from the reference's nominal GSD, as the coarse
         # matcher's search radius is (frontend.matchers.matcher_options).
-        f = cfg.coarse_level(float(np.mean(ref.ground_sampling_m())))
+        gsd = float(np.mean(ref.ground_sampling_m()))
+        f = cfg.coarse_level(gsd)
         with _timed(timings, "coarse_prepare"):
             cwin = RefWindow.around(*base.bounds_px, pad_px=pad_unc + cfg.fine_pad_ref_px, factor=f)
-            side = _image_side(f, cwin, tile, inputs, cfg, ratio)
+            cside = _image_side(f, cwin, tile, inputs, cfg, ratio)
             cref, cvalid = ref.read(cwin)
-        problem = _unmatchable(side, cref, cvalid, _area_share(base, cwin, cfg), cfg)
+        problem = _unmatchable(cside, cref, cvalid, _area_share(base, cwin, cfg), cfg)
         if problem is not None:
             return finish(*problem)
-        st = yield from _match_stage(
-            side, cref, cvalid, cwin, inputs.coarse_matcher or matcher, timings, "coarse_match"
-        )
+        coarse = inputs.coarse_matcher or matcher
+        st = yield from _match_stage(cside, cref, cvalid, cwin, coarse, timings, "coarse_match")
         res.n_coarse_matches = len(st.kp0)
-        disp = st.actual - st.predicted
-        ok = np.all(np.isfinite(disp), axis=1)
-        offset, inl = robust_translation(disp[ok], cfg.coarse_radius_ref_px, st.conf[ok])
-        full_inl = np.zeros(len(disp), bool)
-        full_inl[np.flatnonzero(ok)] = inl
+        coarse_offset, full_inl = _coarse_consensus(st, cfg)
         res.n_coarse_inliers = int(full_inl.sum())
-        if offset is not None and res.n_coarse_inliers >= cfg.coarse_min_matches:
-            coarse_offset = offset
-            res.coarse_offset_px = (float(offset[0]), float(offset[1]))
+        if coarse_offset is not None:
+            res.coarse_source = "matcher"
         if debug:
             res.debug.append(
-                StageDebug("coarse", side.image, side.valid, cref, cvalid, st.kp0, st.kp1, full_inl)
+                StageDebug(
+                    "coarse", cside.image, cside.valid, cref, cvalid, st.kp0, st.kp1, full_inl
+                )
             )
+        fallback = coarse_fallback_matcher(cfg, gsd)
+        fallback_pending = fallback is not None and not _same_search(coarse, fallback)
+        if coarse_offset is None and cfg.coarse_fallback == "ncc":
+            # The front end's own bounded search of the same coarse windows (the same for
+            # every matcher); when it finds nothing either, no wider search follows.
+            n_fb = ""
+            if fallback_pending:
+                assert fallback is not None
+                fallback_pending = False
+                fb = yield from _match_stage(
+                    cside, cref, cvalid, cwin, fallback, timings, "coarse_fallback"
+                )
+                coarse_offset, fb_inl = _coarse_consensus(fb, cfg)
+                n_fb = f", NCC {int(fb_inl.sum())} of {len(fb.kp0)}"
+                if coarse_offset is not None:
+                    res.coarse_source = "ncc"
+            if coarse_offset is None:
+                return finish(
+                    "too_few_inliers",
+                    f"no coarse consensus: {res.n_coarse_inliers} of {res.n_coarse_matches}"
+                    f"{n_fb}, {cfg.coarse_min_matches} needed",
+                )
+        if coarse_offset is not None:
+            res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
 
     # ---- fine stage
-    # When the coarse stage ran but found no consensus, the fine stage searches the whole
-    # a-priori uncertainty; matchers whose precision falls with the displacement (XFeat*'s
-    # head is ~1 px only within ~2 px of its cell) then give loose matches that a 1-px
-    # RANSAC mostly rejects. The first fine pass's consensus offset then places the
-    # window of a second pass, as a coarse offset would have (the same for every matcher).
-    passes = 2 if cfg.coarse and coarse_offset is None else 1
-    for attempt in range(passes):
+    # The fine stage checks the coarse offset: when it finds too few inliers around the
+    # coarse matcher's offset (a consensus of a few wrong matches: XFeat on 20 m coarse
+    # pixels agreed on a 2 km error in 1 of 12 hiric-strip tiles at 1 km), the NCC search
+    # of the coarse windows (``coarse_fallback = "ncc"``) gives a second offset, and the
+    # fine stage runs once more around it when it lies beyond the first window's reach.
+    # With ``coarse_fallback = "fine"``, when the coarse stage ran but found no consensus,
+    # the fine stage searches the whole a-priori uncertainty; matchers whose precision
+    # falls with the displacement (XFeat*'s head is ~1 px only within ~2 px of its cell)
+    # then give loose matches that a 1-px RANSAC mostly rejects. The first fine pass's
+    # consensus offset then places the window of a second pass, as a coarse offset would
+    # have (the same for every matcher).
+    reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
+    attempt = 0
+    while True:
+        attempt += 1
         res.funnel, res.drops = {}, {}
         up = cfg.fine_upsample
         with _timed(timings, "fine_prepare"):
@@ -390,49 +505,39 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
             fref, fvalid = read_fine(ref, fine_ref)
         res.search_window = fwin.to_tuple()
         problem = _unmatchable(side, fref, fvalid, _area_share(base, iwin, cfg), cfg)
+        if problem is not None and not fallback_pending:
+            return finish(*problem)
+        if problem is None:
+            st = yield from _match_stage(
+                side, fref, fvalid, fine_ref, matcher, timings, "fine_match"
+            )
+            inl, ransac_inl = _verify_fine(st, coarse_offset, cfg, res, timings)
+            found = int(inl.sum()) >= cfg.min_inliers
+            if coarse_offset is None:
+                # coarse_fallback = "fine": this pass searched the whole window; its
+                # consensus places a second pass
+                if attempt == 1 and cfg.coarse and found:
+                    coarse_offset = np.mean((st.actual - st.predicted)[inl], axis=0)
+                    res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
+                    res.coarse_source = "fine"
+                    continue
+                break
+            if found:
+                break
+        if fallback_pending and coarse_offset is not None:
+            fallback_pending = False
+            assert fallback is not None
+            fb = yield from _match_stage(
+                cside, cref, cvalid, cwin, fallback, timings, "coarse_fallback"
+            )
+            offset, _ = _coarse_consensus(fb, cfg)
+            if offset is not None and np.any(np.abs(offset - coarse_offset) > reach):
+                coarse_offset = offset
+                res.coarse_offset_px = (float(offset[0]), float(offset[1]))
+                res.coarse_source = "ncc"
+                continue
         if problem is not None:
             return finish(*problem)
-        st = yield from _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
-        res.n_matches = len(st.kp0)
-        res.record("raw", res.n_matches)
-        with _timed(timings, "verify"):
-            # Gate: a predicted position, and (after a coarse consensus) a displacement that
-            # the fine window around the coarse offset can hold at all.
-            ok = np.all(np.isfinite(st.predicted), axis=1)
-            gate = {"no_prediction": int(np.count_nonzero(~ok))}
-            if coarse_offset is not None:
-                reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
-                with np.errstate(invalid="ignore"):
-                    far = np.any(np.abs(st.actual - st.predicted - coarse_offset) > reach, axis=1)
-                gate["outside_window"] = int(np.count_nonzero(ok & far))
-                ok &= ~far
-            res.record("coarse_gate", int(ok.sum()), gate)
-            src = st.predicted if cfg.geometry == "orthorectify" else st.kp0
-            inl = np.zeros(len(st.kp0), bool)
-            inl[ok] = verify_points(
-                src[ok],
-                st.actual[ok],
-                cfg.ransac_model,
-                cfg.ransac_threshold_ref_px,
-                cfg.ransac_confidence,
-                cfg.ransac_max_iters,
-            )
-            res.record("ransac", int(inl.sum()), {"outlier": int(ok.sum() - inl.sum())})
-            ransac_inl = inl.copy()
-            n_ransac = int(inl.sum())
-            if inl.any():
-                # True matches of one tile share (nearly) one displacement; a homography
-                # fitted to wrong matches does not, whatever its residuals.
-                idx = np.flatnonzero(inl)
-                _, cons = robust_translation(
-                    (st.actual - st.predicted)[idx], cfg.fine_radius_ref_px, st.conf[idx]
-                )
-                inl[idx[~cons]] = False
-            res.record("consensus", int(inl.sum()), {"off_translation": n_ransac - int(inl.sum())})
-        if attempt + 1 < passes and int(inl.sum()) >= cfg.min_inliers:
-            coarse_offset = np.mean((st.actual - st.predicted)[inl], axis=0)
-            res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
-            continue
         break
     with _timed(timings, "backmap"):
         # Every match RANSAC kept, before the consensus and the back-projection, with its
@@ -442,12 +547,10 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         rl, rs, rgood = side.to_raw(st.kp0[ridx, 0], st.kp0[ridx, 1])
         rc, rr = fine_ref.to_ref_pixel(st.kp1[ridx, 0], st.kp1[ridx, 1])
         # Rounded to 1e-3 px as the journal keeps them, so a resumed run measures the same.
-        res.ransac_points = np.round(
-            np.column_stack(
-                [np.where(rgood, rl, np.nan), np.where(rgood, rs, np.nan), rc, rr]
-            ).astype(np.float64),
-            3,
-        )
+        points = np.column_stack(
+            [np.where(rgood, rl, np.nan), np.where(rgood, rs, np.nan), rc, rr]
+        ).astype(np.float64)
+        res.ransac_points = np.asarray(np.round(points, 3), np.float64)
     res.n_inliers = int(inl.sum())
     if debug:
         res.debug.append(
