@@ -83,6 +83,18 @@ def test_table1_and_table2_in_the_paper_layout():
     assert rows[1][:3] == ["ncc", "s1", 0.75] and rows[0][8] == 3.0
 
 
+def test_table1_counts_tiles_placed_by_the_ncc_fallback_only_when_a_matcher_needed_it():
+    runs = {"sift": _run(), "ncc": _run((5, 6, 7))}
+    # NCC's coarse stage is NCC's own search: it never makes the column appear.
+    runs["ncc"]["matching"]["coarse_sources"] = {"ncc": 4}
+    h, _ = matching_rows(runs)
+    assert h[-1] == "tiles failed"
+    runs["sift"]["matching"]["coarse_sources"] = {"matcher": 1, "ncc": 2}
+    h, rows = matching_rows(runs)
+    assert h[-1] == "tiles placed by NCC fallback"
+    assert rows[0][-1] == "2/4" and rows[0][-2] == "1/4"
+
+
 def test_per_axis_rmse_shown_when_present_and_missing_prints_dash():
     runs = {"a": _run(extra={"rmse_x_px": 0.3, "rmse_y_px": 0.4}), "b": _run()}
     h, rows = adjustment_rows(runs)

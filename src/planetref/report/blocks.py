@@ -10,6 +10,7 @@ strips pooled.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -118,6 +119,12 @@ def matching_block(
         "tiles_failed": len(matches.tiles) - statuses.get("ok", 0),
         "tiles_thinned": sum(t.thinned for t in matches.tiles),
         "tile_status": statuses,
+        # Which search placed each tile's fine window (frontend.coarse_fallback): a
+        # matcher whose own coarse stage needed NCC's search is not on the same terms as
+        # one that placed its tiles itself, and Table 1 says so.
+        "coarse_sources": dict(
+            Counter(t.coarse_source for t in matches.tiles if t.coarse_source is not None)
+        ),
         "tiles_lost": lost,
         "funnel": funnel,
         "drops": drops,
@@ -365,6 +372,7 @@ def _pooled_matching(
         "tiles_total": sum(m["tiles_total"] for m in matching.values()),
         "tiles_failed": sum(m["tiles_failed"] for m in matching.values()),
         "tiles_thinned": sum(m.get("tiles_thinned", 0) for m in matching.values()),
+        "coarse_sources": _sum_counts(m.get("coarse_sources", {}) for m in matching.values()),
         "tiles_lost": [dict(t, strip=sid) for sid, m in matching.items() for t in m["tiles_lost"]],
         "funnel": _sum_counts(m.get("funnel", {}) for m in matching.values()),
         "drops": _sum_counts(m.get("drops", {}) for m in matching.values()),

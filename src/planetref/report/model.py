@@ -96,6 +96,7 @@ class StripMatching(ReportModel):
     tiles_failed: int
     tiles_thinned: int = 0
     tile_status: dict[str, int]
+    coarse_sources: dict[str, int] = Field(default_factory=dict)
     tiles_lost: list[LostTile]
     funnel: dict[str, int] = Field(default_factory=dict)
     drops: dict[str, int] = Field(default_factory=dict)
@@ -112,6 +113,7 @@ class MatchingSummary(ReportModel):
     tiles_total: int = 0
     tiles_failed: int = 0
     tiles_thinned: int = 0
+    coarse_sources: dict[str, int] = Field(default_factory=dict)
     tiles_lost: list[LostTile] = Field(default_factory=list)
     funnel: dict[str, int] = Field(default_factory=dict)
     drops: dict[str, int] = Field(default_factory=dict)

@@ -140,18 +140,27 @@ def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], lis
     """Table 1: NCP and SDU per CCD image, one row per matcher.
 
     NCP is the unique MCPs delivered to the adjustment; a matcher whose run failed keeps
-    its row (NCP and SDU as matched, usually 0, and its failed tiles).
+    its row (NCP and SDU as matched, usually 0, and its failed tiles). When a matcher's
+    own coarse stage left tiles to NCC's coarse search (``frontend.coarse_fallback``), a
+    column counts them per matcher.
     """
     ccds: list[str] = []
     for rep in runs.values():
         for c in rep["matching"]["ccds"]:
             if c not in ccds:
                 ccds.append(c)
+    # Tiles whose fine window NCC's coarse search placed (frontend.coarse_fallback): shown
+    # only when some matcher needed it, so that it is never hidden and never noise.
+    fallback = {
+        n: (r["matching"].get("coarse_sources") or {}).get("ncc", 0) for n, r in runs.items()
+    }
+    show_fallback = any(v and n != "ncc" for n, v in fallback.items())
     header = (
         ["Matcher"]
         + [f"{c} NCP" for c in ccds]
         + [f"{c} SDU (%)" for c in ccds]
         + ["NCP", "SDU (%)", "tiles failed"]
+        + (["tiles placed by NCC fallback"] if show_fallback else [])
     )
     rows = []
     for name, rep in runs.items():
@@ -162,6 +171,7 @@ def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], lis
             + [per.get(c, {}).get("ncp") for c in ccds]
             + [per.get(c, {}).get("sdu_pct") for c in ccds]
             + [m["ncp"], m["sdu_pct"], f"{m.get('tiles_failed', '-')}/{m.get('tiles_total', '-')}"]
+            + ([f"{fallback[name]}/{m.get('tiles_total', '-')}"] if show_fallback else [])
         )
     return header, rows
 
