@@ -22,12 +22,22 @@ It prints per strip:
   stage's check rule rejects the dense solution, also that solution's
   (``true_m_jitter_not_kept``);
 * ``formal_urad`` / ``true_urad``: the estimated jitter's formal sigma and its true error
-  (the pointing error after the stage, a quadratic removed), roll and pitch.
+  (the pointing error after the stage, a quadratic removed), roll and pitch;
+* ``formal_m_*``: the formal ground precision (check_block's, the true error's formal
+  counterpart);
+* yaw, which the image barely sees: ``yaw_error_urad_rms_*`` the yaw error of the
+  node model and after the stage, ``yaw_stage_urad_rms`` what the stage changed of
+  the node model's yaw, and ``true_m_*_yaw_removed`` the true error of the same camera
+  with its yaw error taken off (:func:`without_yaw_error`): what yaw costs on the ground.
+
+With ``--ties`` both adjustments also get the strip's CCD-overlap tie points (the run
+is made with ``[frontend.ccd_overlap] enabled = true``; an existing run must hold
+``<strip>/ccd_overlap_ties.csv``), as georef adds them.
 
 Usage::
 
     python benchmarks/bench_jitter.py [--runs DIR] [--matchers ncc]
-        [--scenes strong nojitter] [--json]
+        [--scenes strong nojitter] [--ties] [--json]
 
 Scenes: ``strong`` (hiric-strip with --jitter-config), ``nojitter`` (hiric-strip with
 ``jitter = []``), or a path to a simulated scene folder.
@@ -382,7 +392,17 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
             "value": r["true_m_jitter_yaw_removed"],
             "unit": "m",
         }
+        if "yaw_stage_urad_rms" in r:
+            out[f"{key}: yaw changed by the stage (RMS)"] = {
+                "value": r["yaw_stage_urad_rms"],
+                "unit": "urad",
+            }
         for c in r["components"]:
+            if not c["axis_observable"]:
+                # Yaw: the image barely sees it, and the camera's yaw against the truth is
+                # mostly the node model's (hundreds of urad that only trade with its
+                # position); a sinusoid fitted to it is no recovered amplitude.
+                continue
             name = f"{key}: {c['axis']} {c['frequency_hz']:g} Hz"
             out[f"{name} amplitude (true {c['true_amplitude_urad']:g})"] = {
                 "value": c["amplitude_urad_jitter"],
@@ -490,6 +510,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{c['phase_error_deg_nodes']:+6.1f} deg | jitter {c['amplitude_urad_jitter']:5.2f}"
                 f" urad {c['phase_error_deg_jitter']:+6.1f} deg"
                 + ("" if c["below_limit"] else " (above the limit)")
+                + ("" if c["axis_observable"] else " (not observable: the node model's yaw)")
             )
         for a in ("roll", "pitch"):
             if f"true_urad_{a}" in r:

@@ -33,6 +33,7 @@ from planetref.adjust.jitter import (
     dense_cameras,
     jitter_config,
     jitter_series,
+    mcps_by_overlap,
     replace_cameras,
 )
 from planetref.adjust.models import AdjustableCamera, parameterize
@@ -107,7 +108,7 @@ def _jitter_stage(
     dense = dense_cameras(seed.cameras, cfg)
     if all(dense[c] is seed.cameras[c] for c in dense):
         return seed
-    net = replace_cameras(network, dense)
+    net = mcps_by_overlap(replace_cameras(network, dense), cfg.systematic.measurement_overlap)
     dcfg = jitter_config(cfg)
 
     def model(cid: str, cam: Any, c: AdjustConfig) -> AdjustableCamera:
