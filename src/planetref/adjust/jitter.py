@@ -108,15 +108,14 @@ def densify(camera: LineScanCamera, spacing_lines: int) -> LineScanCamera:
     return camera.replace(node_lines=lines, nodes=np.asarray(nodes, np.float64))
 
 
-def jitter_config(cfg: AdjustConfig) -> AdjustConfig:
+def jitter_config(cfg: AdjustConfig, mcp_overlap: float = 1.0) -> AdjustConfig:
     """The seed's configuration for the dense stage: positions, interior, placement fixed.
 
-    With a measurement overlap ``f > 1`` (dense templates sharing their pixels) the
-    MCPs are adjusted with ``1 / f`` of their weight (:func:`mcps_by_overlap` scales
-    their sigmas, VCE's ``mcp_weight_share`` keeps the share) and the covariance needs
-    no sandwich for them (``measurement_overlap`` 1): at the frequencies the stage
-    estimates, ``f`` overlapping MCPs are one measurement, not ``f``, against the
-    smoothness prior and the CCD-overlap ties.
+    With ``mcp_overlap`` ``f > 1`` (the MCPs' measurement overlap, when the network
+    also holds CCD-overlap ties) the MCPs are adjusted with ``1 / f`` of their weight
+    (:func:`mcps_by_overlap` scales their sigmas, VCE's ``mcp_weight_share`` keeps the
+    share) and the covariance needs no sandwich for them (``measurement_overlap`` 1):
+    ``f`` overlapping MCPs are one measurement, not ``f``, against the ties.
     """
     ls = cfg.linescan
     amp = cast_float(cfg.jitter.amplitude_rad)
@@ -129,7 +128,7 @@ def jitter_config(cfg: AdjustConfig) -> AdjustConfig:
         }
     )
     update: dict[str, Any] = {"linescan": dense}
-    f = float(cfg.systematic.measurement_overlap)
+    f = float(mcp_overlap)
     if f > 1.0:
         update["systematic"] = cfg.systematic.model_copy(update={"measurement_overlap": 1.0})
         update["variance"] = cfg.variance.model_copy(update={"mcp_weight_share": 1.0 / f})
