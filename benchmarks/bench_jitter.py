@@ -22,12 +22,22 @@ It prints per strip:
   stage's check rule rejects the dense solution, also that solution's
   (``true_m_jitter_not_kept``);
 * ``formal_urad`` / ``true_urad``: the estimated jitter's formal sigma and its true error
-  (the pointing error after the stage, a quadratic removed), roll and pitch.
+  (the pointing error after the stage, a quadratic removed), roll and pitch;
+* ``formal_m_*``: the formal ground precision (check_block's, the true error's formal
+  counterpart);
+* yaw, which the image barely sees: ``yaw_error_urad_rms_*`` the yaw error of the
+  node model and after the stage, ``yaw_stage_urad_rms`` what the stage changed of
+  the node model's yaw, and ``true_m_*_yaw_removed`` the true error of the same camera
+  with its yaw error taken off (:func:`without_yaw_error`): what yaw costs on the ground.
+
+With ``--ties`` both adjustments also get the strip's CCD-overlap tie points (the run
+is made with ``[frontend.ccd_overlap] enabled = true``; an existing run must hold
+``<strip>/ccd_overlap_ties.csv``), as georef adds them.
 
 Usage::
 
     python benchmarks/bench_jitter.py [--runs DIR] [--matchers ncc]
-        [--scenes strong nojitter] [--json]
+        [--scenes strong nojitter] [--ties] [--json]
 
 Scenes: ``strong`` (hiric-strip with --jitter-config), ``nojitter`` (hiric-strip with
 ``jitter = []``), or a path to a simulated scene folder.
@@ -115,20 +125,80 @@ def fit_components(t: np.ndarray, y: np.ndarray, freqs: list[float]) -> list[tup
     ]
 
 
+def true_m(camera: Any, truth: Any, terrain: Any) -> float:
+    """The pipeline's true error (check_block's): RMS over the CCDs of each CCD's RMS (m)."""
+    from planetref.adjust.metrics import geolocation_error
+
+    vals = [
+        geolocation_error(camera, truth, ccd=c, terrain=terrain)["rms_m"] for c in truth.ccd_names
+    ]
+    return float(np.sqrt(np.mean(np.square(vals))))
+
+
+def without_yaw_error(camera: Any, truth: Any, spacing: int = 32) -> Any:
+    """``camera`` with its yaw error against ``truth`` taken off (rotated about its z axis).
+
+    The camera is re-sampled on nodes ``spacing`` lines apart (exactly its trajectory,
+    :func:`planetref.adjust.jitter.densify`) and each node's attitude turned by minus
+    the yaw of :func:`~planetref.adjust.jitter.attitude_difference` at its line: the
+    true error of the result is the camera's without what its yaw contributes.
+    """
+    from planetref.adjust.jitter import attitude_difference, densify
+    from planetref.geometry.rotations import rotation_matrix
+
+    if float(np.median(np.diff(camera.node_lines))) > spacing:
+        camera = densify(camera, spacing)
+    lines = np.asarray(camera.node_lines, np.float64)
+    yaw = attitude_difference(truth, camera, lines)[:, 2]
+    nodes = np.array(camera.nodes, np.float64)
+    base = rotation_matrix(nodes[:, 3], nodes[:, 4], nodes[:, 5])
+    jac = np.empty((len(lines), 3, 3))
+    h = 1e-7
+    for j in range(3):
+        ang = nodes[:, 3:].copy()
+        ang[:, j] += h
+        pert = rotation_matrix(ang[:, 0], ang[:, 1], ang[:, 2])
+        d = np.einsum("mji,mjk->mik", base, pert)
+        jac[:, :, j] = (
+            0.5
+            * np.stack(
+                [d[:, 2, 1] - d[:, 1, 2], d[:, 0, 2] - d[:, 2, 0], d[:, 1, 0] - d[:, 0, 1]], 1
+            )
+            / h
+        )
+    want = np.zeros((len(lines), 3))
+    want[:, 2] = -yaw
+    nodes[:, 3:] += np.linalg.solve(jac, want[:, :, None])[:, :, 0]
+    return camera.replace(nodes=nodes)
+
+
 def measure(
-    scene: Path, run_dir: Path, cfg: Any, matcher: str, figure: Path | None = None
+    scene: Path,
+    run_dir: Path,
+    cfg: Any,
+    matcher: str,
+    figure: Path | None = None,
+    ties: bool = False,
 ) -> list[dict[str, Any]]:
     """Adjust a run's MCPs with and without the jitter stage; compare with the truth.
 
     ``figure``: also draw the jitter figure (estimate and truth) of each strip there
-    (``<figure stem>_<strip>.png``).
+    (``<figure stem>_<strip>.png``). ``ties``: add the run's CCD-overlap ties
+    (``<strip>/ccd_overlap_ties.csv``, a run made with ``[frontend.ccd_overlap]``) to
+    both adjustments, as georef does.
     """
     from planetref.adjust.api import adjust
     from planetref.adjust.jitter import line_of_sight_difference
     from planetref.control.ground_sigma import reference_gsd_m
     from planetref.control.mcp import read_mcps
-    from planetref.control.networks import McpSet, template_overlap, template_support_m
+    from planetref.control.networks import (
+        McpSet,
+        template_overlap,
+        template_support_m,
+        with_overlap_ties,
+    )
     from planetref.frontend.matchers import matcher_options
+    from planetref.frontend.overlap import read_overlap_ties
     from planetref.pipeline.systematic import systematic_settings
     from planetref.report.blocks import check_block
     from planetref.scene.inputs import (
@@ -154,6 +224,11 @@ def measure(
         table = read_mcps(run_dir / strip.id / "mcps.parquet")
         # The check tiles of the run (georef's rule, McpSet.held_out).
         network = McpSet.held_out(strip.id, table, cfg.mcp).network(camera, cfg.mcp.sigma_px)
+        n_ties = 0
+        if ties:
+            tie_set = read_overlap_ties(run_dir / strip.id / "ccd_overlap_ties.csv", strip.id)
+            network = with_overlap_ties(network, tie_set, cfg.frontend.ccd_overlap)
+            n_ties = len(tie_set)
         gsd = reference_gsd_m(ref)
         support = template_support_m(
             matcher,
@@ -174,16 +249,27 @@ def measure(
         cpu = time.process_time()
         dense = adjust(network, jitter_cfg)
         cpu_dense = time.process_time() - cpu
-        true_seed = check_block(seed, {strip.id: truth}, terrain).geoloc_rmse_m
-        true_dense = check_block(dense, {strip.id: truth}, terrain).geoloc_rmse_m
+        block_seed = check_block(seed, {strip.id: truth}, terrain)
+        block_dense = check_block(dense, {strip.id: truth}, terrain)
+        true_seed, true_dense = block_seed.geoloc_rmse_m, block_dense.geoloc_rmse_m
         summary = dense.diagnostics.get("jitter", {}).get(strip.id, {})
         series = dense.jitter.get(strip.id)
         row: dict[str, Any] = {
             "strip": strip.id,
             "n_mcps": len(table),
+            "n_overlap_ties": n_ties,
             "true_m_nodes": true_seed,
             "true_m_jitter": true_dense,
             "true_change_pct": 100.0 * (true_dense - true_seed) / true_seed,
+            "formal_m_nodes": block_seed.formal_rmse_m,
+            "formal_m_jitter": block_dense.formal_rmse_m,
+            # What the yaw error contributes: the true error with it taken off.
+            "true_m_nodes_yaw_removed": true_m(
+                without_yaw_error(seed.cameras[strip.id], truth), truth, terrain
+            ),
+            "true_m_jitter_yaw_removed": true_m(
+                without_yaw_error(dense.cameras[strip.id], truth), truth, terrain
+            ),
             "check_px_nodes": (seed.metrics.get("check") or {}).get("after", {}).get("rms_px"),
             "check_px_jitter": (dense.metrics.get("check") or {}).get("after", {}).get("rms_px"),
             "kept": summary.get("kept"),
@@ -268,6 +354,10 @@ def measure(
                         "axis_observable": axis < 2,
                     }
                 )
+        # Yaw: the node model's error, and what the stage changed of it (its prior holds it).
+        row["yaw_error_urad_rms_nodes"] = float(np.sqrt(np.mean(err_seed[:, 2] ** 2)) * 1e6)
+        row["yaw_error_urad_rms_jitter"] = float(np.sqrt(np.mean(err_dense[:, 2] ** 2)) * 1e6)
+        row["yaw_stage_urad_rms"] = float(np.sqrt(np.mean(series.angles_rad[:, 2] ** 2)) * 1e6)
         base = np.stack([t_true**k for k in range(3)], 1)
         for axis in (0, 1):
             e = err_dense[:, axis]
@@ -289,13 +379,30 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
     out: dict[str, dict[str, object]] = {}
     for r in rows:
         key = f"{r['scene']} {r['matcher']} {r.get('strip', '')}".strip()
+        if r.get("n_overlap_ties"):
+            key += " +ties"
         if "failed" in r:
             out[f"{key}: failed"] = {"value": str(r["failed"])[:120]}
             continue
         out[f"{key}: true error, node model"] = {"value": r["true_m_nodes"], "unit": "m"}
         out[f"{key}: true error, jitter stage"] = {"value": r["true_m_jitter"], "unit": "m"}
         out[f"{key}: true error change"] = {"value": r["true_change_pct"], "unit": "%"}
+        out[f"{key}: formal error, jitter stage"] = {"value": r["formal_m_jitter"], "unit": "m"}
+        out[f"{key}: true error, jitter stage, yaw error removed"] = {
+            "value": r["true_m_jitter_yaw_removed"],
+            "unit": "m",
+        }
+        if "yaw_stage_urad_rms" in r:
+            out[f"{key}: yaw changed by the stage (RMS)"] = {
+                "value": r["yaw_stage_urad_rms"],
+                "unit": "urad",
+            }
         for c in r["components"]:
+            if not c["axis_observable"]:
+                # Yaw: the image barely sees it, and the camera's yaw against the truth is
+                # mostly the node model's (hundreds of urad that only trade with its
+                # position); a sinusoid fitted to it is no recovered amplitude.
+                continue
             name = f"{key}: {c['axis']} {c['frequency_hz']:g} Hz"
             out[f"{name} amplitude (true {c['true_amplitude_urad']:g})"] = {
                 "value": c["amplitude_urad_jitter"],
@@ -313,6 +420,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="sets", action="append", default=[])
     parser.add_argument("--weights-dir", default=os.environ.get("PLANETREF_WEIGHTS"))
     parser.add_argument("--figure", help="draw each run's jitter figure (PNG path stem)")
+    parser.add_argument(
+        "--ties",
+        action="store_true",
+        help="add the CCD-overlap ties to both adjustments (a new run is made with them)",
+    )
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     from planetref.errors import PlanetrefError
@@ -321,7 +433,10 @@ def main(argv: list[str] | None = None) -> int:
 
     runs = Path(args.runs).resolve()
     runs.mkdir(parents=True, exist_ok=True)
-    cfg = _override(GeorefConfig(), args.sets)
+    sets = list(args.sets)
+    if args.ties:
+        sets.append("frontend.ccd_overlap.enabled=true")
+    cfg = _override(GeorefConfig(), sets)
     out: list[dict[str, Any]] = []
     for spec in args.scenes:
         scene = _scene(runs, spec)
@@ -330,10 +445,12 @@ def main(argv: list[str] | None = None) -> int:
             row: dict[str, Any] = {"scene": scene.name, "matcher": matcher}
             try:
                 if not (run_dir / "report.json").is_file():
+                    # Defaults (jitter stage off); with --ties, the ties matched too.
                     run_georef(
                         scene,
                         matcher,
                         run_dir,
+                        config=_override(GeorefConfig(), sets[len(args.sets) :]),
                         weights_dir=args.weights_dir,
                         progress=False,
                         overwrite=True,
@@ -345,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
                     if args.figure
                     else None
                 )
-                strips = measure(scene, run_dir, cfg, matcher, fig)
+                strips = measure(scene, run_dir, cfg, matcher, fig, ties=args.ties)
             except PlanetrefError as exc:
                 out.append(row | {"failed": str(exc)})
                 continue
@@ -377,6 +494,14 @@ def main(argv: list[str] | None = None) -> int:
             f" -> {r['true_m_jitter']:.3f} m ({r['true_change_pct']:+.1f} %), kept {r['kept']}, "
             f"limit {((r.get('resolution') or {}).get('limit_hz') or float('nan')):.1f} Hz"
         )
+        print(
+            f"    formal {r['formal_m_nodes']:.3f} -> {r['formal_m_jitter']:.3f} m; yaw error "
+            f"removed: {r['true_m_nodes_yaw_removed']:.3f} -> "
+            f"{r['true_m_jitter_yaw_removed']:.3f} m; yaw error RMS "
+            f"{r.get('yaw_error_urad_rms_nodes', float('nan')):.1f} -> "
+            f"{r.get('yaw_error_urad_rms_jitter', float('nan')):.1f} urad (stage "
+            f"{r.get('yaw_stage_urad_rms', float('nan')):.2f}); {r['n_overlap_ties']} ties"
+        )
         for c in r["components"]:
             print(
                 f"    {c['axis']:5} {c['frequency_hz']:5.1f} Hz true "
@@ -385,6 +510,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{c['phase_error_deg_nodes']:+6.1f} deg | jitter {c['amplitude_urad_jitter']:5.2f}"
                 f" urad {c['phase_error_deg_jitter']:+6.1f} deg"
                 + ("" if c["below_limit"] else " (above the limit)")
+                + ("" if c["axis_observable"] else " (not observable: the node model's yaw)")
             )
         for a in ("roll", "pitch"):
             if f"true_urad_{a}" in r:

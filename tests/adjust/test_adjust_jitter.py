@@ -230,6 +230,22 @@ def test_smoothness_prior_from_amplitude_and_band():
     assert smoothness_sigma_rad(over, 0.01) == pytest.approx(2e-7)
 
 
+def test_dense_stage_counts_overlapping_mcps_once():
+    # Dense templates sharing their pixels (measurement overlap 80) beside CCD-overlap
+    # ties: the dense stage adjusts the MCPs with 1/80 of their weight and no
+    # covariance sandwich; MCPs alone (mcp_overlap 1) keep the seed's settings.
+    from planetref.adjust.jitter import jitter_config
+
+    cfg = validate_config({"systematic": {"measurement_overlap": 80.0}})
+    dense = jitter_config(cfg, 80.0)
+    assert dense.systematic.measurement_overlap == 1.0
+    assert dense.variance.mcp_weight_share == pytest.approx(1.0 / 80.0)
+    assert dense.linescan.position.mode == "fixed"
+    plain = jitter_config(cfg)
+    assert plain.variance.mcp_weight_share == 1.0
+    assert plain.systematic == cfg.systematic
+
+
 def test_jitter_settings_validated():
     cfg = validate_config({})
     assert cfg.jitter.enabled is False

@@ -273,3 +273,47 @@ def test_per_axis_metrics_hand_computed():
     assert m["rmse_px"] == pytest.approx(np.sqrt(27.0 / 2.0))
     assert m["mean_x_px"] == pytest.approx(1.0) and m["mean_y_px"] == pytest.approx(2.5)
     assert m["outlier_ratio_pct"] == pytest.approx(100.0 / 3.0)
+
+
+def test_mcp_weight_share_keeps_the_mcps_own_sigma():
+    """MCPs adjusted with a quarter of their weight: VCE still finds their own noise.
+
+    ``mcps_by_overlap(net, 4)`` doubles the MCPs' sigmas (four overlapping templates are
+    one measurement) and ``variance.mcp_weight_share = 0.25`` keeps that share through
+    the re-weighting: the groups' sigmas come out at twice the true noise (0.7 px, 1.5 m),
+    i.e. the noise itself at the share's weight.
+    """
+    from planetref.adjust.jitter import mcps_by_overlap
+
+    noise_px, ground_m = 0.7, 1.5
+    cams, obs, pts = _two_strips(250, noise_px, ground_m, seed=5)
+    init = {
+        k: perturb(c, pos_bias=(8.0, -5.0, 3.0), pos_drift=(1.0, 1.0, 0.0)) for k, c in cams.items()
+    }
+    sig = {p: (4.0, 4.0, 2.0) for p in pts}
+    net = Network.from_records(
+        init,
+        **obs,
+        point_xyz=pts,
+        point_sigma_m=sig,
+        point_kind="mcp",
+        sigma_px=1.0,
+        point_sigma_local=True,
+    )
+    scaled = mcps_by_overlap(net, 4.0)
+    np.testing.assert_allclose(scaled.obs_sigma_px, 2.0)
+    np.testing.assert_allclose(scaled.point_sigma_m, np.tile([8.0, 8.0, 4.0], (net.n_points, 1)))
+    assert mcps_by_overlap(net, 1.0) is net
+    res = adjust(scaled, {**LINEAR, "variance": {"mcp_weight_share": 0.25}})
+    groups = {g["group"]: g for g in res.variance["groups"]}
+    image = [g for g in groups.values() if g["kind"] == "image" and g["estimated"]]
+    n = sum(g["n_equations"] for g in image)
+    est_px = np.sqrt(sum(g["sigma_px"] ** 2 * g["n_equations"] for g in image) / n)
+    est_m = groups["ground mcp planimetric"]["sigma_m"]
+    assert 0.5 * est_px == pytest.approx(noise_px, rel=0.15)
+    assert 0.5 * est_m == pytest.approx(ground_m, rel=0.15)
+    assert res.variance["converged"]
+    # Ordinary VCE on the scaled network would undo the share: sigmas back at the noise.
+    plain = adjust(scaled, LINEAR)
+    g1 = {g["group"]: g for g in plain.variance["groups"]}
+    assert g1["ground mcp planimetric"]["sigma_m"] == pytest.approx(ground_m, rel=0.15)

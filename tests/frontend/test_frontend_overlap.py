@@ -226,6 +226,37 @@ def test_overlap_ties_enter_a_network_centred() -> None:
     assert names == [c for row in ties.ccd for c in row]
 
 
+def test_overlap_ties_carry_no_ccd_offset_consider_term() -> None:
+    # A constant offset of either CCD leaves the ties unchanged (their pair's median
+    # offset is taken off), so the consider analysis must not propagate a CCD offset
+    # through them; the MCPs of the same CCDs still carry theirs.
+    from planetref.adjust.config import SystematicConfig
+    from planetref.adjust.consider import consider_layout
+    from planetref.control.network import Network
+    from planetref.control.networks import with_overlap_ties
+    from planetref.simulate.config import load_config
+    from planetref.simulate.orbit import build_strip_cameras
+
+    cfg = load_config("tiny")
+    cam = build_strip_cameras(cfg, cfg.strips[0], np.random.default_rng(0)).initial
+    net = Network.mcps(
+        cam,
+        line=[10.5, 20.5],
+        sample=[5.5, 6.5],
+        xyz=[[3.4e6, 0, 0], [3.4e6, 1, 0]],
+        ccd="ccd2",
+        camera_id="s1",
+    )
+    out = with_overlap_ties(net, _ties(), CcdOverlapConfig(enabled=True))
+    sys_cfg = SystematicConfig(ccd_offset_sigma_px=0.5)
+    weighted = np.zeros(out.n_points, bool)
+    *_, obs_key, n_keys, names, _, sigma, _ = consider_layout(out, sys_cfg, weighted, [False])
+    # Only ccd2 has MCPs: one key (line and sample offsets), on the two MCP observations.
+    assert n_keys == 1 and names == ["s1/ccd2 line offset", "s1/ccd2 sample offset"]
+    np.testing.assert_array_equal(obs_key, [0, 0] + [-1] * 12)
+    np.testing.assert_allclose(sigma, 0.5)
+
+
 def test_overlap_ties_join_a_campaign_network() -> None:
     from planetref.control.network import Network
     from planetref.control.networks import with_overlap_ties

@@ -33,6 +33,7 @@ from planetref.adjust.jitter import (
     dense_cameras,
     jitter_config,
     jitter_series,
+    mcps_by_overlap,
     replace_cameras,
 )
 from planetref.adjust.models import AdjustableCamera, parameterize
@@ -107,8 +108,14 @@ def _jitter_stage(
     dense = dense_cameras(seed.cameras, cfg)
     if all(dense[c] is seed.cameras[c] for c in dense):
         return seed
-    net = replace_cameras(network, dense)
-    dcfg = jitter_config(cfg)
+    # With CCD-overlap ties beside the MCPs, overlapping templates count once against
+    # them (else the MCPs, biased at the frequencies their templates average, outweigh
+    # the ties ~20-fold there). MCPs alone keep their weights: the prior was set
+    # against those, and their covariance takes the overlap as a sandwich.
+    kinds, _ = network.point_kind_codes
+    f = float(cfg.systematic.measurement_overlap) if "overlap" in set(kinds) else 1.0
+    net = mcps_by_overlap(replace_cameras(network, dense), f)
+    dcfg = jitter_config(cfg, f)
 
     def model(cid: str, cam: Any, c: AdjustConfig) -> AdjustableCamera:
         if cam is dense[cid] and cam is not seed.cameras[cid]:

@@ -388,6 +388,12 @@ class VarianceConfig(Settings):
         min_sigma_m: The same floor for a-priori ground sigmas (metres).
         max_step: A group's sigmas change by at most this factor (or its inverse) per
             iteration, which keeps the re-weighted adjustments well conditioned.
+        mcp_weight_share: The MCP groups (image and ground) are adjusted with this share
+            of the weight of their estimated sigma: ``1 / measurement_overlap`` when
+            dense templates share their errors and other observations (CCD-overlap
+            ties) must not be outweighed by MCPs counted many times over. Their factor
+            is ``sqrt(v^T P v / (share r))``, so VCE still estimates the MCPs' own
+            sigma; 1 (the default) is ordinary VCE. The jitter stage sets it.
     """
 
     enabled: bool = True
@@ -397,6 +403,7 @@ class VarianceConfig(Settings):
     min_sigma_px: float = Field(0.02, gt=0.0)
     min_sigma_m: float = Field(0.01, gt=0.0)
     max_step: float = Field(5.0, gt=1.0)
+    mcp_weight_share: float = Field(1.0, gt=0.0, le=1.0)
 
 
 class DiagnosticsConfig(Settings):

@@ -126,10 +126,17 @@ def consider_layout(
     n_keys = 0
     s_ccd = cfg.ccd_offset_sigma_px or 0.0
     if s_ccd > 0:
+        # CCD-overlap ties (kind "overlap") carry no CCD offset: each CCD pair's median
+        # offset is taken off their measures (control.networks.with_overlap_ties), which
+        # takes a constant offset of either CCD off with it; propagated through the ties
+        # (hundreds of precise measures) it would move the attitude by what the ties
+        # never see (tiny, sift: formal 6.6 m against a true 1.7 m).
+        kinds, code = net.point_kind_codes
+        tied = np.isin(code, np.flatnonzero(kinds == "overlap"))[net.obs_point]
         for ci, cam in enumerate(net.cameras):
             if placement_estimated[ci]:
                 continue
-            on_cam = net.obs_camera == ci
+            on_cam = (net.obs_camera == ci) & ~tied
             for k, name in enumerate(cam.ccd_names):
                 on = on_cam & (net.obs_ccd == k)
                 if not np.any(on):

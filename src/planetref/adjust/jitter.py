@@ -52,6 +52,7 @@ __all__ = [
     "jitter_config",
     "jitter_series",
     "line_of_sight_difference",
+    "mcps_by_overlap",
     "resolution_limit",
     "smoothness_sigma_rad",
     "true_jitter",
@@ -107,8 +108,15 @@ def densify(camera: LineScanCamera, spacing_lines: int) -> LineScanCamera:
     return camera.replace(node_lines=lines, nodes=np.asarray(nodes, np.float64))
 
 
-def jitter_config(cfg: AdjustConfig) -> AdjustConfig:
-    """The seed's configuration for the dense stage: positions, interior, placement fixed."""
+def jitter_config(cfg: AdjustConfig, mcp_overlap: float = 1.0) -> AdjustConfig:
+    """The seed's configuration for the dense stage: positions, interior, placement fixed.
+
+    With ``mcp_overlap`` ``f > 1`` (the MCPs' measurement overlap, when the network
+    also holds CCD-overlap ties) the MCPs are adjusted with ``1 / f`` of their weight
+    (:func:`mcps_by_overlap` scales their sigmas, VCE's ``mcp_weight_share`` keeps the
+    share) and the covariance needs no sandwich for them (``measurement_overlap`` 1):
+    ``f`` overlapping MCPs are one measurement, not ``f``, against the ties.
+    """
     ls = cfg.linescan
     amp = cast_float(cfg.jitter.amplitude_rad)
     dense = ls.model_copy(
@@ -119,7 +127,32 @@ def jitter_config(cfg: AdjustConfig) -> AdjustConfig:
             "ccd_placement": ls.ccd_placement.model_copy(update={"mode": "fixed"}),
         }
     )
-    return cfg.model_copy(update={"linescan": dense})
+    update: dict[str, Any] = {"linescan": dense}
+    f = float(mcp_overlap)
+    if f > 1.0:
+        update["systematic"] = cfg.systematic.model_copy(update={"measurement_overlap": 1.0})
+        update["variance"] = cfg.variance.model_copy(update={"mcp_weight_share": 1.0 / f})
+    return cfg.model_copy(update=update)
+
+
+def mcps_by_overlap(network: Any, overlap: float) -> Any:
+    """The network with its MCPs' image and ground sigmas times ``sqrt(overlap)``.
+
+    ``overlap`` MCPs whose templates share their pixels carry one measurement's
+    information: weighted ``1 / overlap`` each, together they count once against the
+    other observations and the priors. Fixed (0) and free (inf) ground sigmas stay.
+    """
+    if overlap <= 1.0:
+        return network
+    kinds, code = network.point_kind_codes
+    mcp = np.isin(code, np.flatnonzero(kinds == "mcp"))
+    k = math.sqrt(overlap)
+    obs_sigma = np.array(network.obs_sigma_px, np.float64, copy=True)
+    obs_sigma[mcp[network.obs_point]] *= k
+    pt_sigma = np.array(network.point_sigma_m, np.float64, copy=True)
+    scale = mcp[:, None] & np.isfinite(pt_sigma) & (pt_sigma > 0)
+    pt_sigma[scale] *= k
+    return replace(network, obs_sigma_px=obs_sigma, point_sigma_m=pt_sigma)
 
 
 class JitterParameterization(LineScanParameterization):

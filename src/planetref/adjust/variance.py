@@ -49,6 +49,7 @@ class _Group:
     points: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, np.intp))
     axes: tuple[int, ...] = ()
     estimate: bool = True
+    mcp: bool = False  # MCPs' measures (VarianceConfig.mcp_weight_share applies)
 
 
 def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
@@ -79,7 +80,14 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
             cc = int(ki) * n_keys + key
             sel = obs[order[bounds[cc] : bounds[cc + 1]]]
             if sel.size:
-                out.append(_Group(f"image {kinds[ki]} {labels[key]}", "image", obs=sel))
+                out.append(
+                    _Group(
+                        f"image {kinds[ki]} {labels[key]}",
+                        "image",
+                        obs=sel,
+                        mcp=str(kinds[ki]) == "mcp",
+                    )
+                )
     if not np.any(~solver.point_fixed):  # no unknown point: no ground group
         return out
     pts = np.flatnonzero(np.bincount(net.obs_point[obs], minlength=net.n_points))
@@ -96,15 +104,36 @@ def _groups(solver: BundleSolver, obs: NDArray[np.intp]) -> list[_Group]:
             sel = weighted[m & local]
             out.append(
                 _Group(
-                    f"ground {k} planimetric", kind_g, points=sel, axes=(0, 1), estimate=estimate
+                    f"ground {k} planimetric",
+                    kind_g,
+                    points=sel,
+                    axes=(0, 1),
+                    estimate=estimate,
+                    mcp=estimate,
                 )
             )
             out.append(
-                _Group(f"ground {k} height", kind_g, points=sel, axes=(2,), estimate=estimate)
+                _Group(
+                    f"ground {k} height",
+                    kind_g,
+                    points=sel,
+                    axes=(2,),
+                    estimate=estimate,
+                    mcp=estimate,
+                )
             )
         if np.any(m & ~local):
             sel = weighted[m & ~local]
-            out.append(_Group(f"ground {k}", kind_g, points=sel, axes=(0, 1, 2), estimate=estimate))
+            out.append(
+                _Group(
+                    f"ground {k}",
+                    kind_g,
+                    points=sel,
+                    axes=(0, 1, 2),
+                    estimate=estimate,
+                    mcp=estimate,
+                )
+            )
     return out
 
 
@@ -322,7 +351,8 @@ def variance_components(
         img_floor = _image_at_floor(solver, group_of, len(groups), cfg.min_sigma_px)
         for i, g in enumerate(groups):
             vtpv, r, n_eq = _group_stats(g, red, image)
-            f = math.sqrt(vtpv / r) if r > 0 else float("nan")
+            share = cfg.mcp_weight_share if g.mcp else 1.0
+            f = math.sqrt(vtpv / (share * r)) if r > 0 else float("nan")
             why = ""
             if not g.estimate:
                 why = "a-priori constraint (datum), not a measurement"

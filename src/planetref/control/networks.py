@@ -387,8 +387,10 @@ def with_overlap_ties(network: Network, ties: OverlapTies, cfg: CcdOverlapConfig
     point determined whatever the outlier rule leaves of its rays). Each CCD pair's
     median offset from the camera's prediction (the CCDs' relative placement and lens,
     which the camera model does not estimate) is taken off the second CCD's measures,
-    so the ties constrain only how that offset varies along the strip. The network's
-    own points and observations come first, unchanged.
+    so the ties constrain only how that offset varies along the strip (and a constant
+    CCD offset does not reach them: the adjustment's consider analysis gives their
+    observations no CCD-offset term). The network's own points and observations come
+    first, unchanged.
 
     Args:
         network: A strip's or a campaign's network (the strip's camera among its cameras).
