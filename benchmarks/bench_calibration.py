@@ -215,6 +215,17 @@ def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def verdict(ratio: float) -> str:
+    """What a true / formal ratio says: calibrated within 0.5-2, else which way it is off."""
+    if not np.isfinite(ratio):
+        return "not measured"
+    if ratio > 2.0:
+        return "NOT calibrated: the formal precision is optimistic (goal 0.5-2)"
+    if ratio < 0.5:
+        return "NOT calibrated: the formal precision is pessimistic (goal 0.5-2)"
+    return "calibrated (0.5-2)"
+
+
 def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
     """The benchmarks page's figures: per scene, matcher and strip, true, formal, ratio."""
     out: dict[str, dict[str, object]] = {}
@@ -228,10 +239,7 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
             continue
         out[f"{key}: true error"] = {"value": r["true_m"], "unit": "m"}
         out[f"{key}: formal precision"] = {"value": r["formal_m"], "unit": "m"}
-        out[f"{key}: true / formal"] = {
-            "value": r["ratio"],
-            "note": "0.5-2: calibrated",
-        }
+        out[f"{key}: true / formal"] = {"value": r["ratio"], "note": verdict(r["ratio"])}
     if len(seeds) > 1:
         for g in over_seeds(rows):
             key = f"{g['scene']} {g['matcher']}" + (f" {g['strip']}" if g["strip"] else "")
