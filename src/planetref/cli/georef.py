@@ -266,11 +266,12 @@ DEMO_COSTS: dict[str, DemoCost] = {
         "issue 32; disk: du of the scene (7 MB) and the sift (16 MB) and ncc (56 MB) runs",
     ),
     "hiric-strip": DemoCost(
-        cpu_s=1416.0,
+        cpu_s=873.0,
         peak_rss_gb=2.8,
         written_gb=1.9,
-        matchers="every matcher with weights",
-        source="issue 32: a first run as a new user on main 2553f7b (default settings)",
+        matchers="the six matchers with weights",
+        source="CPU: benchmarks/results/bench_demo_hiric_strip.json (simulation 173 CPU-s, "
+        "the six runs 700 CPU-s, 2026-12-06); memory and disk: issue 32, main 2553f7b",
     ),
     "hiric": DemoCost(
         cpu_s=None,
