@@ -47,20 +47,14 @@ def mini_toml(tmp_path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
-def test_an_interrupted_simulation_is_started_again(
-    tmp_path: Path, mini_toml: Path, sig: int
-) -> None:
-    # planetref simulate scene --preset tiny --config mini.toml, Ctrl-C (or kill -9) while
-    # it simulates; then the same command (as `planetref demo` runs it), no --overwrite
-    parent = tmp_path / "demo"
-    parent.mkdir()
-    (parent / "NOTES.txt").write_text("mine")
+def _interrupt(parent: Path, mini_toml: Path, sig: int) -> tuple[list[str], int, str]:
+    """Start ``planetref simulate`` into ``parent/scene``, send ``sig`` once its first file
+    is being written; its arguments, return code and stderr."""
     out = parent / "scene"
-    args = ["simulate", out, "--preset", "tiny", "--config", mini_toml, "--seed", "7"]
+    args = ["simulate", str(out), "--preset", "tiny", "--config", str(mini_toml), "--seed", "7"]
     env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(
-        [sys.executable, "-W", "ignore", "-m", "planetref", "-q", *map(str, args)],
+        [sys.executable, "-W", "ignore", "-m", "planetref", "-q", *args],
         env=env,
         stderr=subprocess.PIPE,
         text=True,
@@ -76,7 +70,30 @@ def test_an_interrupted_simulation_is_started_again(
     finally:
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=120)
-    assert proc.returncode != 0
+    return args, proc.returncode, err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+def test_an_interrupted_simulation_is_started_again(
+    tmp_path: Path, mini_toml: Path, sig: int
+) -> None:
+    # planetref simulate scene --preset tiny --config mini.toml, Ctrl-C (or kill -9) while
+    # it simulates; then the same command (as `planetref demo` runs it), no --overwrite.
+    # The mini scene writes its files in its last moments: a Ctrl-C that lands after the
+    # work is done (the interpreter shutting down) is lost and the run ends complete and
+    # well. Such an attempt tests nothing, so it is checked and the test starts again.
+    for attempt in range(4):
+        parent = tmp_path / f"demo{attempt}"
+        parent.mkdir()
+        (parent / "NOTES.txt").write_text("mine")
+        out = parent / "scene"
+        args, returncode, err = _interrupt(parent, mini_toml, sig)
+        if returncode != 0:
+            break
+        assert sig == signal.SIGINT, "kill -9 cannot be lost"
+        assert json.loads((out / MARKER).read_text())["complete"] is True
+    else:
+        pytest.fail("the simulation finished before every one of 4 interrupts")
     assert "Traceback" not in err, err
     assert sorted(p.name for p in parent.iterdir()) == ["NOTES.txt", "scene"]  # nothing beside
     assert not (out / "scene.toml").exists()
