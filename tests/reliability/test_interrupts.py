@@ -47,6 +47,16 @@ def mini_toml(tmp_path: Path) -> Path:
     return path
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT as a shell leaves it (default, not blocked).
+
+    An ignored or blocked SIGINT survives exec, and then Python never sees a Ctrl-C;
+    the pytest process's state (its libraries' threads, masks) must not decide this test.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _interrupt(parent: Path, mini_toml: Path, sig: int) -> tuple[list[str], int, str]:
     """Start ``planetref simulate`` into ``parent/scene``, send ``sig`` once its first file
     is being written; its arguments, return code and stderr."""
@@ -58,6 +68,7 @@ def _interrupt(parent: Path, mini_toml: Path, sig: int) -> tuple[list[str], int,
         env=env,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_default_sigint,
     )
     try:
         deadline = time.monotonic() + 120
