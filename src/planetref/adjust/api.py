@@ -112,8 +112,7 @@ def _jitter_stage(
     # them (else the MCPs, biased at the frequencies their templates average, outweigh
     # the ties ~20-fold there). MCPs alone keep their weights: the prior was set
     # against those, and their covariance takes the overlap as a sandwich.
-    kinds, _ = network.point_kind_codes
-    f = float(cfg.systematic.measurement_overlap) if "overlap" in set(kinds) else 1.0
+    f = float(cfg.systematic.measurement_overlap) if network.is_kind("overlap").any() else 1.0
     net = mcps_by_overlap(replace_cameras(network, dense), f)
     dcfg = jitter_config(cfg, f)
 
@@ -275,12 +274,12 @@ def _adjust(
     # Points whose coordinates the rays must determine: free ones, and tie points under
     # their (loose) a-priori sigma; they need min_tie_observations rays.
     sig_inf = _rows_all(np.isinf(net.point_sigma_m))
-    tied = _is_kind(net, "tie") | _is_kind(net, "overlap")
+    tied = net.is_kind("tie") | net.is_kind("overlap")
     free_pt = sig_inf | (tied & ~_rows_all(net.point_sigma_m == 0))
     # CCD-overlap ties are judged by the k x RMSE rule against their own RMSE: their
     # residuals (what the attitude model leaves of the jitter, a tenth of a pixel) would
     # otherwise set a threshold that rejects most MCPs.
-    own = _is_kind(net, "overlap")[net.obs_point]
+    own = net.is_kind("overlap")[net.obs_point]
     candidates = ~net.obs_check
     xyz0 = net.point_xyz.copy()
     finite_pt = _rows_all(np.isfinite(xyz0))
@@ -354,7 +353,7 @@ def _adjust(
     # Weighted MCPs: their residuals (metrics, outlier rule) are those of the reference
     # ground point through the adjusted camera, as with fixed MCPs; the adjusted point
     # may absorb its image residual (one view) and would flatter the RMSE.
-    ref_pt = _is_kind(net, "mcp") & ~solver.point_fixed & ~sig_inf
+    ref_pt = net.is_kind("mcp") & ~solver.point_fixed & ~sig_inf
 
     def _reference(xyz_now: F64) -> F64:
         return np.where(ref_pt[:, None], xyz_start, xyz_now)
@@ -583,7 +582,7 @@ def _consider(
             prior = prior + solver.con_n
         cov_meas = float(stats["sigma0"]) ** 2 * (f * q - (f - 1.0) * (q @ prior @ q))
     weighted_mcp = (
-        _is_kind(net, "mcp") & ~solver.point_fixed & ~_rows_all(np.isinf(net.point_sigma_m))
+        net.is_kind("mcp") & ~solver.point_fixed & ~_rows_all(np.isinf(net.point_sigma_m))
     )
     estimated = []
     for m in solver.models:
@@ -677,13 +676,6 @@ def _classify(
     new, rmse = classify_inliers(length, usable & ~own, inlier & ~own, k_rmse)
     new_own, _ = classify_inliers(length, usable & own, inlier & own, k_rmse)
     return new | new_own, rmse
-
-
-def _is_kind(net: Network, kind: str) -> NDArray[np.bool_]:
-    """Points of one kind (``"mcp"``, ``"tie"``, ``"overlap"``)."""
-    kinds, code = net.point_kind_codes
-    hit = np.flatnonzero(kinds == kind)
-    return code == hit[0] if hit.size else np.zeros(net.n_points, bool)
 
 
 def _set_threshold(

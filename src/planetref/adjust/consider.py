@@ -131,8 +131,7 @@ def consider_layout(
         # takes a constant offset of either CCD off with it; propagated through the ties
         # (hundreds of precise measures) it would move the attitude by what the ties
         # never see (tiny, sift: formal 6.6 m against a true 1.7 m).
-        kinds, code = net.point_kind_codes
-        tied = np.isin(code, np.flatnonzero(kinds == "overlap"))[net.obs_point]
+        tied = net.is_kind("overlap")[net.obs_point]
         for ci, cam in enumerate(net.cameras):
             if placement_estimated[ci]:
                 continue

@@ -144,8 +144,7 @@ def mcps_by_overlap(network: Any, overlap: float) -> Any:
     """
     if overlap <= 1.0:
         return network
-    kinds, code = network.point_kind_codes
-    mcp = np.isin(code, np.flatnonzero(kinds == "mcp"))
+    mcp = network.is_kind("mcp")
     k = math.sqrt(overlap)
     obs_sigma = np.array(network.obs_sigma_px, np.float64, copy=True)
     obs_sigma[mcp[network.obs_point]] *= k

@@ -242,6 +242,12 @@ class Network:
         kinds, code = small_unique(self.point_kind)
         return kinds, code
 
+    def is_kind(self, kind: str) -> NDArray[np.bool_]:
+        """Per point, whether it is of ``kind`` (``"mcp"``, ``"tie"``, ``"overlap"``)."""
+        kinds, code = self.point_kind_codes
+        hit = np.flatnonzero(kinds == kind)
+        return code == hit[0] if hit.size else np.zeros(self.n_points, bool)
+
     def point_frame_matrices(self, points: NDArray[np.intp] | None = None) -> F64:
         """Rotations from body-fixed XYZ to each point's sigma frame, ``(P, 3, 3)``.
 

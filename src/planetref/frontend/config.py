@@ -280,6 +280,14 @@ class FrontendConfig(Settings):
             )
         return self
 
+    @property
+    def fine_reach_ref_px(self) -> float:
+        """How far from the coarse offset a fine match can lie (reference px).
+
+        The fine window's margin plus the coarse consensus radius.
+        """
+        return self.fine_pad_ref_px + self.coarse_radius_ref_px
+
     def coarse_level(self, ref_gsd_m: float) -> int:
         """The coarse stage's downsampling factor for this uncertainty.
 

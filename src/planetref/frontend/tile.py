@@ -208,9 +208,11 @@ def _verify_fine(
         ok = np.all(np.isfinite(st.predicted), axis=1)
         gate = {"no_prediction": int(np.count_nonzero(~ok))}
         if coarse_offset is not None:
-            reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
             with np.errstate(invalid="ignore"):
-                far = np.any(np.abs(st.actual - st.predicted - coarse_offset) > reach, axis=1)
+                far = np.any(
+                    np.abs(st.actual - st.predicted - coarse_offset) > cfg.fine_reach_ref_px,
+                    axis=1,
+                )
             gate["outside_window"] = int(np.count_nonzero(ok & far))
             ok &= ~far
         res.record("coarse_gate", int(ok.sum()), gate)
@@ -485,7 +487,6 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
     # then give loose matches that a 1-px RANSAC mostly rejects. The first fine pass's
     # consensus offset then places the window of a second pass, as a coarse offset would
     # have (the same for every matcher).
-    reach = cfg.fine_pad_ref_px + cfg.coarse_radius_ref_px
     attempt = 0
     while True:
         attempt += 1
@@ -531,7 +532,9 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
                 cside, cref, cvalid, cwin, fallback, timings, "coarse_fallback"
             )
             offset, _ = _coarse_consensus(fb, cfg)
-            if offset is not None and np.any(np.abs(offset - coarse_offset) > reach):
+            if offset is not None and np.any(
+                np.abs(offset - coarse_offset) > cfg.fine_reach_ref_px
+            ):
                 coarse_offset = offset
                 res.coarse_offset_px = (float(offset[0]), float(offset[1]))
                 res.coarse_source = "ncc"
