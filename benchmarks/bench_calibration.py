@@ -14,7 +14,10 @@ prints, per strip:
   formal_ground_precision`), with every covariance term the adjustment reports
   (``formal_meas_m``: the measurement term alone, the covariance without the reference's
   correlated error);
-* ``ratio``: ``true_m / formal_m`` (calibrated: within 0.5-2), with sigma0 before VCE.
+* ``ratio``: ``true_m / formal_m`` (calibrated: within 0.5-2), with sigma0 before VCE;
+* ``check_z``: the held-out tiles' mean misfits over their predicted SD, RMS over tiles
+  and axes (:func:`planetref.adjust.precision.check_tile_misfit`: ~1 when calibrated;
+  the truth-free counterpart of ``ratio``, from one or two tiles a rough one).
 
 Usage::
 
@@ -152,6 +155,7 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
                 "rmse_px": result.metrics["all"]["after"]["rmse_px"],
                 "check_px": (result.metrics.get("check") or {}).get("after", {}).get("rms_px"),
                 "check_m": (result.metrics.get("check") or {}).get("after", {}).get("rms_m"),
+                "check_tiles": (result.metrics.get("check") or {}).get("tiles"),
                 "warnings": list(result.warnings),
                 "self_calibration_check": result.diagnostics.get("self_calibration_check"),
                 "systematic": None if result.consider is None else result.consider.summary(),
@@ -295,17 +299,19 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(
         f"{'scene':16} {'matcher':8} {'strip':8} {'true_m':>7} {'formal_m':>8} {'ratio':>6} "
-        f"{'meas_m':>7} {'r_meas':>6} {'s0_pre':>6}  vce factors"
+        f"{'meas_m':>7} {'r_meas':>6} {'check_z':>7} {'s0_pre':>6}  vce factors"
     )
     for r in out:
         if "failed" in r:
             print(f"{r['scene']:16} {r['matcher']:8} failed: {r['failed'][:80]}")
             continue
         s0 = r["sigma0_before_vce"]
+        cz = (r.get("check_tiles") or {}).get("rms_normalised")
         print(
             f"{r['scene']:16} {r['matcher']:8} {r['strip']:8} {r['true_m']:7.2f} "
             f"{r['formal_m']:8.2f} {r['ratio']:6.2f} {r['formal_meas_m']:7.2f} "
-            f"{r['ratio_meas']:6.2f} {s0 if s0 is None else f'{s0:6.2f}'}  "
+            f"{r['ratio_meas']:6.2f} {'   none' if cz is None else f'{cz:7.2f}'} "
+            f"{s0 if s0 is None else f'{s0:6.2f}'}  "
             + ", ".join(f"{k} x{v:.3g}" for k, v in r["vce_factors"].items())
         )
     if len(seeds) > 1:

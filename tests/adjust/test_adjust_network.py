@@ -304,3 +304,37 @@ def test_cli_writes_outputs(tmp_path):
         adjust_command, [str(path), "--out", str(out), "--overwrite", "--solve", "wings"], obj={}
     )
     assert isinstance(r.exception, InputError) and "unknown" in str(r.exception)
+
+
+def test_tile_id_column(tmp_path):
+    """A network file's ``tile_id`` column gives each measure its tile, per image camera;
+    an empty cell (the tie points here) is no tile, and the adjustment estimates the
+    tiles' offset sigma (Constrained MCPs: the consider terms need unknown points)."""
+
+    def hook(header, rows):
+        out = []
+        for r in rows:
+            mcp = r[0].startswith("m")
+            tile = f"T{int(float(r[7]) // 1000)}" if mcp else ""
+            typ = "Constrained" if mcp else r[1]
+            out.append([r[0], typ, *r[2:], tile, "1.0" if mcp else ""])
+        return [*header, "tile_id", "sigma_x_m"], out
+
+    def hook3(header, rows):
+        h, out = hook(header, rows)
+        h += ["sigma_y_m", "sigma_z_m"]
+        return h, [[*r, r[-1], r[-1]] for r in out]
+
+    path, _ = write_network(tmp_path, rows_hook=hook3)
+    net = read_network(path).network
+    mcp = net.point_kind[net.obs_point] == "mcp"
+    assert np.all(net.obs_tile[~mcp] == -1)
+    # The same tile id on every CCD of one camera is one tile (ids are per camera).
+    assert sorted(np.unique(net.obs_tile[mcp]).tolist()) == [0, 1, 2]
+    with open(tmp_path / "measures.csv") as fh:
+        first = next(iter(csv.DictReader(fh)))
+    assert net.obs_tile[0] == 0 and first["tile_id"] == "T" + str(int(float(first["line"]) // 1000))
+    res = adjust(net)
+    assert res.consider is not None and res.consider.tile is not None
+    assert res.consider.tile.n_tiles == 3
+    assert 0.0 <= res.consider.tile.sigma_px[0] < 0.3  # no tile offsets in these data

@@ -134,7 +134,17 @@ def test_truth_and_timing_rows():
     assert [r[0] for r in rows] == ["a"] and rows[0][1:3] == [100.0, 1.5]
     i = h.index("formal (m)")
     assert h[i + 1] == "true/formal" and rows[0][i : i + 2] == [1.2, 1.25]
-    assert h[i + 2 :] == ["RANSAC matches", "true OR >1 px (%)", "true OR >3 px (%)"]
+    assert h[i + 2 :] == [
+        "tile offset (px)",
+        "RANSAC matches",
+        "true OR >1 px (%)",
+        "true OR >3 px (%)",
+    ]
+    assert rows[0][i + 2] is None  # no tile term in this run's adjustment
+    runs["a"]["adjustment"] = {"systematic": {"tile_offset_sigma_px": [1.234, 0.5]}}
+    assert truth_rows(runs)[1][0][i + 2] == "1.23/0.50"
+    runs["a"]["adjustment"] = {"systematic": {"tile_offset_sigma_px": [0.5, 0.5]}}
+    assert truth_rows(runs)[1][0][i + 2] == "0.50"
     h, rows = timing_rows(runs)
     assert h[-1] == "matching per tile (s)" and rows[0][-1] == pytest.approx(2.0)
 

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planetref.adjust.config import AdjustConfig, validate_config
-from planetref.adjust.consider import ConsiderTerms, consider_layout
+from planetref.adjust.consider import ConsiderTerms, consider_layout, estimate_key_sigma
 from planetref.adjust.evaluation import (
     check_metrics,
     diagnostics,
@@ -38,6 +38,7 @@ from planetref.adjust.jitter import (
 )
 from planetref.adjust.models import AdjustableCamera, parameterize
 from planetref.adjust.outliers import classify_inliers, robust_scale, supported
+from planetref.adjust.precision import check_tile_misfit
 from planetref.adjust.rays import rays, triangulate
 from planetref.adjust.result import STATUSES, AdjustmentResult
 from planetref.adjust.solver import BundleSolver
@@ -549,6 +550,11 @@ def _adjust(
         warnings=warnings,
         seconds=time.perf_counter() - t0,
     )
+    if chk.size:
+        # The held-out tiles against the covariance's own prediction (no truth needed).
+        anchor = check_tile_misfit(result)
+        if anchor is not None:
+            metrics["check"]["tiles"] = anchor
     return result
 
 
@@ -588,37 +594,61 @@ def _consider(
     for m in solver.models:
         mode = np.asarray(m.mode)
         estimated.append(any("ccd[" in n and mode[i] != 2 for i, n in enumerate(m.names)))
-    patch, n_patch, key, n_key, names, units, sigma, ccd = consider_layout(
-        net, cfg.systematic, weighted_mcp, estimated
-    )
-    if not names:
+    layout = consider_layout(net, cfg.systematic, weighted_mcp, estimated, used=inlier)
+    if not layout.names:
         if cfg.systematic.measurement_overlap != 1.0:
             _set_covariance(stats, cov_meas)
         return None, cov_meas
-    g = solver.consider_sensitivity(
+    estimate = cfg.systematic.tile_offset_sigma_px == "estimate" and bool(
+        layout.columns("tile").stop
+    )
+    sens = solver.consider_sensitivity(
         c,
         xyz,
         np.flatnonzero(inlier),
         xyz0,
         np.asarray(stats["cofactor"]),
-        patch,
-        n_patch,
-        key,
-        n_key,
+        layout,
+        response="tile" if estimate else None,
     )
     if np.any(solver.point_fixed[net.obs_point[inlier]]):
         log.warning(
-            "the declared CCD offsets act on the observations of weighted and free points "
-            "only: those of fixed points do not enter the covariance's correlated part"
+            "the declared CCD and tile offsets act on the observations of weighted and free "
+            "points only: those of fixed points do not enter the covariance's correlated part"
+        )
+    sigma = layout.sigma
+    tile = None
+    if estimate:
+        # Overlapping templates' errors add up within a tile like f independent ones
+        # each (the measurements' covariance is scaled by f alike, above).
+        tile = estimate_key_sigma(
+            sens,
+            layout,
+            "tile",
+            float(stats["sigma0"]) * math.sqrt(f),
+            per_axis=cfg.systematic.tile_offset_axes == "per-axis",
+        )
+        cols = layout.columns("tile")
+        sigma = sigma.copy()
+        sigma[cols.start : cols.stop : 2] = tile.sigma_px[0]
+        sigma[cols.start + 1 : cols.stop : 2] = tile.sigma_px[1]
+        log.info(
+            "tile offsets: sigma %.3g px (line), %.3g px (sample) from %d tiles",
+            tile.sigma_px[0],
+            tile.sigma_px[1],
+            tile.n_tiles,
         )
     terms = ConsiderTerms(
-        names=names,
-        units=units,
+        names=layout.names,
+        units=layout.units,
         sigma=sigma,
-        sensitivity=g,
-        ccd=ccd,
+        sensitivity=sens.g,
+        ccd=layout.ccd,
         patch_m=cfg.systematic.patch_m,
-        n_patches=n_patch,
+        n_patches=layout.n_patches,
+        kinds=layout.kinds,
+        tile=tile,
+        point_patch=layout.point_patch,
     )
     _set_covariance(stats, cov_meas + terms.covariance)
     return terms, cov_meas

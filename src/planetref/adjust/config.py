@@ -521,7 +521,12 @@ class SystematicConfig(Settings):
       producer states it);
     * the CCDs' placement: one 2-D image offset (line, sample) per CCD, shared by every
       observation in it, sigma ``ccd_offset_sigma_px`` per axis (the calibration's
-      accuracy), when the placement is not estimated.
+      accuracy), when the placement is not estimated;
+    * the matcher's error common to a matching tile: one 2-D image offset (line,
+      sample) per tile (:attr:`~planetref.control.network.Network.obs_tile`), shared by
+      the tile's MCPs (a detector's sub-cell phase, the tile's homography), sigma
+      ``tile_offset_sigma_px`` per axis, by default estimated from the tiles' residual
+      sums (:func:`planetref.adjust.consider.estimate_key_sigma`).
 
     Attributes:
         reference_sigma_m: Per-axis sigma (m) of the reference's planimetric error common
@@ -532,6 +537,12 @@ class SystematicConfig(Settings):
         ccd_offset_sigma_px: Per-axis sigma (image pixels) of each CCD's placement error
             left by the calibration; ``None`` or 0: none. Not used for cameras whose CCD
             placement is estimated (weighted or free).
+        tile_offset_sigma_px: Per-axis sigma (image pixels) of a matching tile's common
+            offset: a number, ``"estimate"`` (default: from the tiles' residuals, per
+            axis, after the other terms' share; 0 where they show nothing more), or
+            ``None``/0: none. Networks without tiles have no such term.
+        tile_offset_axes: ``"pooled"`` (default): one estimated sigma for both axes;
+            ``"per-axis"``: line and sample estimated apart (needs many tiles).
         measurement_overlap: Mean number of observations per independent measurement
             (dense area-based matches sharing template pixels, see
             :func:`planetref.control.networks.template_overlap`); the measurements'
@@ -541,6 +552,8 @@ class SystematicConfig(Settings):
     reference_sigma_m: Metres = None
     reference_patch_m: Metres = None
     ccd_offset_sigma_px: float | None = Field(None, ge=0.0)
+    tile_offset_sigma_px: Annotated[float, Field(ge=0.0)] | Literal["estimate"] | None = "estimate"
+    tile_offset_axes: Literal["pooled", "per-axis"] = "pooled"
     measurement_overlap: float = Field(1.0, ge=1.0)
 
     @model_validator(mode="after")

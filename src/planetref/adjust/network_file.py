@@ -17,7 +17,9 @@ Measures CSV, one row per image measure, header required; columns (order free)::
 
 and optionally ``measure_id``, ``sigma_px`` (or ``sigma_line_px`` and
 ``sigma_sample_px``), ``sigma_x_m``, ``sigma_y_m``, ``sigma_z_m`` (a-priori sigmas of
-``Constrained`` points) and ``check`` (``true``/``1`` holds the measure out).
+``Constrained`` points), ``check`` (``true``/``1`` holds the measure out) and
+``tile_id`` (the matching tile a measure came from, per image; measures of one tile
+share a matcher offset in the covariance, ``[adjustment] systematic.tile_offset_sigma_px``).
 
 Point types (case-insensitive, ISIS names): ``Free`` - a tie point whose coordinates
 are unknowns (a priori coordinates are the starting values; empty ones are
@@ -67,6 +69,7 @@ OPTIONAL_COLUMNS = (
     "sigma_y_m",
     "sigma_z_m",
     "check",
+    "tile_id",
 )
 POINT_TYPES = ("free", "fixed", "constrained")
 _TOP_KEYS = {"measures", "convention", "images", "adjustment"}
@@ -297,6 +300,7 @@ def _read_measures(
     if not rows:
         raise InputError("no measures (only a header)", path=path)
     obs_cam, obs_ccd, obs_pt, line, sample, sig, check, ids = [], [], [], [], [], [], [], []
+    tiles: list[str | None] = []
     points: dict[str, dict[str, Any]] = {}
     for k, row in enumerate(rows):
         rn = k + 2  # 1-based file line (header is line 1)
@@ -377,6 +381,7 @@ def _read_measures(
         sig.append((s_line, s_samp))
         check.append(_bool(get("check"), path, rn) if "check" in col else False)
         ids.append(get("measure_id").strip() or f"row{rn}")
+        tiles.append(get("tile_id").strip() or None)
     if len(set(ids)) != len(ids):
         raise InputError("measure ids must be unique", path=path, field="measure_id")
     line_a, sample_a = np.asarray(line), np.asarray(sample)
@@ -430,4 +435,5 @@ def _read_measures(
         check=check,
         obs_ids=ids,
         source=path,
+        tile=tiles if "tile_id" in col else None,
     )

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
+from planetref.adjust.consider import ConsiderLayout, ConsiderSensitivity
 from planetref.adjust.linearization import quadratic
 from planetref.adjust.schur import Iterate
 from planetref.arrays import F64
@@ -193,20 +194,29 @@ class StatisticsMixin:
         obs: NDArray[np.intp],
         xyz0: F64,
         cofactor: F64,
-        point_patch: NDArray[np.intp],
-        n_patches: int,
-        obs_key: NDArray[np.intp],
-        n_keys: int,
-    ) -> F64:
+        layout: ConsiderLayout,
+        response: str | None = None,
+    ) -> ConsiderSensitivity:
         """Sensitivity of the adjusted parameters to consider parameters, ``(p, K)``.
 
-        The consider parameters ``z`` (``K = 2 n_patches + 2 n_keys``): per patch an
-        offset (east, north; metres) of the a-priori coordinates of its weighted points
-        (columns ``2k, 2k + 1``), then per key (a camera's CCD) an offset (line, sample;
-        pixels) of its observations (columns ``2 n_patches + 2g, + 1``). A linear
-        estimator moves by ``dc = S^-1 d(rhs)/dz z``; the columns are that derivative, from
-        one linearisation and point elimination at the solution (the point blocks ``V^-1``
-        of the elimination turn each point's share into its camera terms).
+        The consider parameters ``z`` (:class:`~planetref.adjust.consider.ConsiderLayout`,
+        ``K`` columns): per reference patch an offset (east, north; metres) of the
+        a-priori coordinates of its weighted points, then per key of each observation
+        key kind (a camera's CCD, a matching tile) an offset (line, sample; pixels) of its
+        observations. A linear estimator moves by ``dc = S^-1 d(rhs)/dz z``; the columns
+        are that derivative, from one linearisation and point elimination at the solution
+        (the point blocks ``V^-1`` of the elimination turn each point's share into its
+        camera terms).
+
+        With ``response`` (a key kind, e.g. ``"tile"``) it also gives what the variance
+        of those keys' offsets is estimated from: per column ``t`` of that kind the
+        weighted sum of its observations' residuals ``u_t = D_t^T P v``, and the
+        response ``M = D_T^T P R D`` of those sums to every consider parameter (``R`` the
+        residual operator, cameras and points adjusted), ``M = L - H_T^T S^-1 H`` with
+        ``L = D_T^T P D - b_T^T V^-1 b`` (the point eliminations' share, point by point)
+        and ``H = d(rhs)/dz``. Under ``Cov(e) = sigma0^2 P^-1 + sum sigma_j^2 D_j D_j^T``,
+        ``E[u^T u] = sigma0^2 tr(M_TT) + sum_j sigma_j^2 |M_Tj|^2``
+        (:func:`~planetref.adjust.consider.estimate_key_sigma`).
 
         Only observations of unknown (weighted or free) points take part: an offset of a
         fixed point's coordinates or of its observation is not propagated.
@@ -217,13 +227,14 @@ class StatisticsMixin:
             obs: The observations of the solution (its inliers).
             xyz0: A-priori point coordinates, ``(P, 3)``.
             cofactor: ``S^-1`` over the active parameters (zero elsewhere), ``(p, p)``.
-            point_patch: Patch index of each network point, ``-1`` for none, ``(P,)``.
-            n_patches: Number of patches.
-            obs_key: Key (CCD) index of each network observation, ``-1`` for none.
-            n_keys: Number of keys.
+            layout: The consider parameters.
+            response: The key kind whose residual sums and response are wanted, or
+                ``None``.
         """
         p = self.n_params
-        k_tot = 2 * n_patches + 2 * n_keys
+        k_tot = layout.n_columns
+        n_patches = layout.n_patches
+        point_patch = layout.point_patch
         st = self._structure(obs)
         self._unknown_ids = st.unknown
         lin = self._linearize(c, xyz, st.lay, st.tie_pos, st.n_tie, st.unknown, xyz0)
@@ -232,6 +243,10 @@ class StatisticsMixin:
         tie_obs = np.empty(st.n_tie, np.intp)
         tie_obs[st.tie_pos[rows]] = lin.obs[rows]
         h = np.zeros((p + 1) * k_tot)
+        resp = None if response is None else layout.columns(response)
+        n_resp = 0 if resp is None else resp.stop - resp.start
+        lmat = np.zeros((n_resp, k_tot))
+        sums = np.zeros(n_resp)
         for ch, (vinv, _, _) in zip(st.chunks, blocks, strict=True):
             a = lin.a_t[ch.obs]
             we = lin.weight_t[ch.obs]
@@ -240,17 +255,28 @@ class StatisticsMixin:
             y = a[:, 0, :, None] * wb[:, 0, None, :] + a[:, 1, :, None] * wb[:, 1, None, :]
             gcols = self.cols[lin.gpat_t[ch.obs]]
             gpts = st.unknown[ch.pts]
+            # The columns each observation's offsets (and each point's prior) enter, with
+            # their b = B^T P D vectors: what the point-local terms of M are made of.
+            ent_pt: list[NDArray[np.intp]] = []
+            ent_col: list[NDArray[np.intp]] = []
+            ent_vec: list[F64] = []
 
             patch = point_patch[gpts]
             if n_patches and np.any(patch >= 0):
                 en = enu_rotation(xyz0[gpts])[:, :2, :]  # (n, 2, 3): east, north rows
-                t = vinv @ self.point_prior_w[gpts] @ np.transpose(en, (0, 2, 1))
+                bp = self.point_prior_w[gpts] @ np.transpose(en, (0, 2, 1))  # (n, 3, 2)
+                t = vinv @ bp
                 contrib = -np.matmul(y, t[ch.pt])  # (m, q, 2)
                 pp = patch[ch.pt]
                 for k in range(2):
                     _scatter(h, gcols, k_tot, 2 * pp + k, contrib[:, :, k], pp >= 0)
-            if n_keys:
-                key = obs_key[tie_obs[ch.obs]]
+                    if n_resp:
+                        on = np.flatnonzero(patch >= 0)
+                        ent_pt.append(on)
+                        ent_col.append(2 * patch[on] + k)
+                        ent_vec.append(bp[on, :, k])
+            keys = [(kk, obs_key[tie_obs[ch.obs]], base) for kk, obs_key, base in layout.keys()]
+            for _, key, base in keys:
                 for g in np.unique(key[key >= 0]):
                     on = key == g
                     for k in range(2):
@@ -258,12 +284,83 @@ class StatisticsMixin:
                         vb = np.matmul(vinv, np.add.reduceat(bz, ch.starts, axis=0)[:, :, None])
                         cam = np.where(on[:, None], a[:, k, :] * we[:, k, None], 0.0)
                         contrib = cam - np.matmul(y, vb[ch.pt])[:, :, 0]
-                        col = np.full(len(key), 2 * n_patches + 2 * int(g) + k, np.intp)
-                        # Every observation of a point seen in this CCD carries the point's
+                        col = np.full(len(key), base + 2 * int(g) + k, np.intp)
+                        # Every observation of a point seen in this key carries the point's
                         # share (a tie point seen elsewhere too), hence no mask by key.
                         seen = np.add.reduceat(on.astype(np.intp), ch.starts) > 0
                         _scatter(h, gcols, k_tot, col, contrib, seen[ch.pt])
-        return cofactor @ h.reshape(p + 1, k_tot)[:p]
+                if n_resp:
+                    on = np.flatnonzero(key >= 0)
+                    for k in range(2):
+                        ent_pt.append(ch.pt[on])
+                        ent_col.append(base + 2 * key[on] + k)
+                        ent_vec.append(wb[on, k, :])
+            if n_resp and resp is not None:
+                _response_terms(lmat, sums, resp, vinv, ent_pt, ent_col, ent_vec, keys, we, ch, lin)
+        g_mat = cofactor @ h.reshape(p + 1, k_tot)[:p]
+        response_mat = None
+        if resp is not None:
+            h_t = h.reshape(p + 1, k_tot)[:p, resp]
+            response_mat = lmat - h_t.T @ g_mat
+        return ConsiderSensitivity(g_mat, response_mat, sums if resp is not None else None)
+
+
+def _response_terms(
+    lmat: F64,
+    sums: F64,
+    resp: slice,
+    vinv: F64,
+    ent_pt: list[NDArray[np.intp]],
+    ent_col: list[NDArray[np.intp]],
+    ent_vec: list[F64],
+    keys: list[tuple[str, NDArray[np.intp], int]],
+    we: F64,
+    ch: Any,
+    lin: Any,
+) -> None:
+    """Add one chunk's share of ``L`` and of the residual sums (see ``consider_sensitivity``).
+
+    ``L[t, j] = D_t^T P D_j - b_t^T V^-1 b_j`` over the rows ``t`` of ``resp``: the first
+    term where an observation carries both columns (same axis), the second point by point
+    over the pairs of its columns.
+    """
+    pts = np.concatenate(ent_pt)
+    cols = np.concatenate(ent_col)
+    vecs = np.concatenate(ent_vec)
+    # b per (point, column): an observation-key column of a point seen twice in a key
+    # sums both observations' vectors.
+    uid, inv = np.unique(pts.astype(np.int64) * lmat.shape[1] + cols, return_inverse=True)
+    inv = inv.ravel()
+    b = np.zeros((len(uid), 3))
+    np.add.at(b, inv, vecs)
+    upt = (uid // lmat.shape[1]).astype(np.intp)
+    ucol = (uid % lmat.shape[1]).astype(np.intp)
+    vb = np.matmul(vinv[upt], b[:, :, None])[:, :, 0]
+    # Pairs (first in resp, second any) of the same point: entries are sorted by point.
+    first = np.flatnonzero((ucol >= resp.start) & (ucol < resp.stop))
+    starts = np.searchsorted(upt, upt)  # first entry of each entry's point
+    ends = np.searchsorted(upt, upt, side="right")
+    n_pair = ends[first] - starts[first]
+    ia = np.repeat(first, n_pair)
+    offs = np.arange(int(n_pair.sum())) - np.repeat(np.cumsum(n_pair) - n_pair, n_pair)
+    ib = np.repeat(starts[first], n_pair) + offs
+    val = np.einsum("ij,ij->i", b[ia], vb[ib])
+    np.add.at(lmat, (ucol[ia] - resp.start, ucol[ib]), -val)
+    # D_t^T P D_j: the observations' weights where they carry both columns.
+    kind_key = [key for _, key, base in keys if base == resp.start]
+    if not kind_key:
+        return
+    rkey = kind_key[0]
+    on = rkey >= 0
+    if not np.any(on):
+        return
+    r = lin.r_t[ch.obs]
+    for k in range(2):
+        row = 2 * rkey[on] + k
+        for _, key, base in keys:
+            has = key[on] >= 0
+            np.add.at(lmat, (row[has], base + 2 * key[on][has] + k), we[on, k][has])
+        np.add.at(sums, row, we[on, k] * r[on, k])
 
 
 def _scatter(

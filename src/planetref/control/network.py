@@ -33,7 +33,15 @@ from planetref.camera.base import Camera
 from planetref.control.records import NetworkRecords, check_in_images, point_value
 from planetref.errors import InputError
 
-__all__ = ["Network", "PointFrames", "PointKind", "PointMatrices", "enu_rotation", "small_unique"]
+__all__ = [
+    "Network",
+    "PointFrames",
+    "PointKind",
+    "PointMatrices",
+    "enu_rotation",
+    "small_unique",
+    "tile_codes",
+]
 
 PointKind = str  # "mcp", "tie" or "overlap" (a CCD-overlap tie; see adjust.api)
 
@@ -75,6 +83,12 @@ class Network:
             local east, north and up (radial) directions at the point instead of the
             body-fixed X, Y, Z axes (MCPs: planimetric sigmas from the ortho, height
             sigma from the DEM).
+        obs_tile: Per observation, the index of its matching tile (the block of measures
+            that one matcher run on one image window produced, and that shares the
+            matcher's error there: its sub-pixel phase, its homography), ``-1`` for
+            none (tie points; networks read from files without a ``tile_id``),
+            ``(M,)``. The adjustment's covariance takes a per-tile offset in as a
+            consider parameter (:class:`~planetref.adjust.config.SystematicConfig`).
     """
 
     cameras: tuple[Camera, ...]
@@ -92,6 +106,7 @@ class Network:
     obs_check: NDArray[np.bool_]
     obs_ids: NDArray[np.str_]
     point_sigma_local: NDArray[np.bool_] | bool = False
+    obs_tile: NDArray[np.intp] | None = None
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -181,6 +196,12 @@ class Network:
         )
         check = np.asarray(np.broadcast_to(np.asarray(self.obs_check, dtype=bool), (m,)))
         local = np.array(np.broadcast_to(np.asarray(self.point_sigma_local, bool), (n_pts,)))
+        tile = (
+            np.full(m, -1, np.intp)
+            if self.obs_tile is None
+            else np.array(np.broadcast_to(np.asarray(self.obs_tile, np.intp), (m,)))
+        )
+        first_bad(tile < -1, lambda k: f"tile index {tile[k]} < -1", "obs_tile")
         for name, value in (
             ("point_sigma_local", local),
             ("cameras", cams),
@@ -197,6 +218,7 @@ class Network:
             ("obs_sigma_px", sig_px),
             ("obs_check", check),
             ("obs_ids", oids),
+            ("obs_tile", tile),
         ):
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
@@ -294,6 +316,7 @@ class Network:
         obs_ids: Sequence[str] | None = None,
         point_sigma_local: bool | Mapping[str, bool] = False,
         source: str | PathLike[str] | None = None,
+        tile: Sequence[str | None] | None = None,
     ) -> Network:
         """Build a network from string ids (e.g. rows of a measures table).
 
@@ -319,6 +342,8 @@ class Network:
             point_sigma_local: Sigmas along east, north, up (see the class doc), for all
                 points or point id -> flag.
             source: The file the records come from (named in errors).
+            tile: Matching tile id per observation (``None`` or empty: none); ids are
+                taken per camera (the same id in two strips is two tiles).
 
         Raises:
             InputError: A bad record (see above), naming ``source`` and the record.
@@ -337,6 +362,7 @@ class Network:
                 check=check,
                 obs_ids=obs_ids,
                 point_sigma_local=point_sigma_local,
+                tile=tile,
             )
             return cls._from_records(cameras, records)
         except InputError as exc:
@@ -352,6 +378,7 @@ class Network:
             ("obs_camera", rec.obs_camera),
             ("obs_ccd", rec.obs_ccd),
             ("obs_ids", rec.obs_ids),
+            ("tile", rec.tile),
         ):
             if seq is not None and len(seq) != m:
                 raise InputError(f"{len(seq)} entries for {m} observations (obs_point)", field=name)
@@ -423,6 +450,7 @@ class Network:
                 rec.obs_ids if rec.obs_ids is not None else [str(i) for i in range(m)], dtype=str
             ),
             point_sigma_local=local,
+            obs_tile=None if rec.tile is None else tile_codes(rec.obs_camera, rec.tile),
         )
 
     @classmethod
@@ -439,6 +467,7 @@ class Network:
         sigma_px: ArrayLike = 1.0,
         check: ArrayLike = False,
         ground_sigma_local: bool = False,
+        tile: ArrayLike | None = None,
     ) -> Network:
         """A network of matched control points of one camera (one point per observation).
 
@@ -457,6 +486,7 @@ class Network:
                 table) instead of X, Y, Z.
             sigma_px: Sigma of each measure (pixels).
             check: Held-out check flags.
+            tile: Matching tile id per observation (:attr:`obs_tile`), or ``None``.
         """
         line = np.atleast_1d(np.asarray(line, np.float64))
         m = len(line)
@@ -491,7 +521,32 @@ class Network:
             obs_check=np.asarray(check, bool),
             obs_ids=np.array([str(i) for i in range(m)], dtype=str),
             point_sigma_local=bool(ground_sigma_local),
+            obs_tile=None
+            if tile is None
+            else tile_codes([camera_id] * m, np.broadcast_to(np.asarray(tile, str), (m,))),
         )
+
+
+def tile_codes(camera: Sequence[str], tile: Sequence[str | None] | ArrayLike) -> NDArray[np.intp]:
+    """:attr:`Network.obs_tile` of per-observation camera and tile ids.
+
+    Args:
+        camera: Camera id per observation.
+        tile: Tile id per observation; ``None`` or ``""``: none (``-1``).
+
+    Returns:
+        One index per distinct ``(camera, tile)`` pair, in order of first appearance.
+    """
+    keys = [
+        None if t is None or str(t) == "" else (str(c), str(t))
+        for c, t in zip(camera, np.asarray(tile, dtype=object).ravel(), strict=True)
+    ]
+    index: dict[tuple[str, str], int] = {}
+    out = np.full(len(keys), -1, np.intp)
+    for k, key in enumerate(keys):
+        if key is not None:
+            out[k] = index.setdefault(key, len(index))
+    return out
 
 
 def small_unique(values: ArrayLike, limit: int = 16) -> tuple[NDArray[Any], NDArray[np.intp]]:

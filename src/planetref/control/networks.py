@@ -117,6 +117,7 @@ class McpSet:
             check=self.check,
             ground_sigma_m=0.0 if gs is None else gs.sigma_m,
             ground_sigma_local=False if gs is None else gs.local,
+            tile=np.asarray(t["tile_id"]).astype(str),
         )
 
 
@@ -325,6 +326,7 @@ def joint_network(
     sample: list[NDArray[np.float64]] = []
     sig_px: list[NDArray[np.float64]] = []
     check: list[NDArray[np.bool_]] = []
+    tile: list[str | None] = []
     xyz: dict[str, NDArray[np.float64]] = {}
     sig_m: dict[str, float] = {}
     kind: dict[str, str] = {}
@@ -345,6 +347,7 @@ def joint_network(
         sample.append(np.asarray(t["sample"], float))
         sig_px.append(np.full(len(t), mcp.sigma_px))
         check.append(p.mcps.check)
+        tile += list(np.asarray(t["tile_id"]).astype(str))
     tie_sigma = np.inf if opts.tie_sigma_m is None else float(opts.tie_sigma_m)
     for i, pid in enumerate(ties.point_ids):
         xyz[pid], sig_m[pid], kind[pid] = ties.xyz[i], tie_sigma, "tie"
@@ -356,6 +359,7 @@ def joint_network(
         sample.append(ties.sample[i])
         sig_px.append(np.full(2, opts.tie_sigma_px))
         check.append(np.zeros(2, bool))
+        tile += [None, None]
     return Network.from_records(
         {p.id: p.camera for p in preps},
         obs_camera=obs_cam,
@@ -369,6 +373,7 @@ def joint_network(
         sigma_px=np.concatenate(sig_px),
         check=np.concatenate(check),
         point_sigma_local=local,
+        tile=tile,
     )
 
 
@@ -460,6 +465,7 @@ def with_overlap_ties(network: Network, ties: OverlapTies, cfg: CcdOverlapConfig
             [network.obs_sigma_px, np.full((2 * t, 2), float(cfg.sigma_px))]
         ),
         obs_check=np.concatenate([network.obs_check, np.zeros(2 * t, bool)]),
+        obs_tile=np.concatenate([network.obs_tile, np.full(2 * t, -1, np.intp)]),
         obs_ids=np.concatenate(
             [network.obs_ids, np.array([f"{p}/{k}" for p in ties.point_ids for k in "ab"])]
         ),

@@ -48,6 +48,7 @@ class NetworkRecords:
         check: Held-out check flags.
         obs_ids: Observation ids (``None``: row numbers).
         point_sigma_local: Sigmas along east, north, up, for all points or point id -> flag.
+        tile: Matching tile id per observation, or ``None`` (see ``Network.obs_tile``).
     """
 
     obs_camera: Sequence[str]
@@ -62,6 +63,7 @@ class NetworkRecords:
     check: ArrayLike
     obs_ids: Sequence[str] | None
     point_sigma_local: bool | Mapping[str, bool]
+    tile: Sequence[str | None] | None = None
 
 
 def outside_image(

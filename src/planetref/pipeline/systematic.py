@@ -79,6 +79,10 @@ def systematic_settings(
         src["ccd_offset_sigma_px"] = "scene" if values else "default"
     else:
         src["ccd_offset_sigma_px"] = "config"
+    tile = sysc.tile_offset_sigma_px
+    src["tile_offset_sigma_px"] = (
+        "estimated" if tile == "estimate" else ("config" if tile else "none")
+    )
     if sysc.measurement_overlap == 1.0:
         upd["measurement_overlap"] = max(float(overlap), 1.0)
         src["measurement_overlap"] = "matches"

@@ -73,7 +73,9 @@ DEFINITIONS: list[tuple[str, str]] = [
         "formal",
         "(simulated scenes) the formal precision of the same ground positions: the "
         "adjustment's parameter covariance, with the declared correlated errors of the "
-        "reference and of the CCD placement (consider parameters, docs/adjust.md), "
+        "reference and of the CCD placement and the matcher's offset common to a tile, "
+        "its sigma estimated from the tiles' residuals (consider parameters, "
+        "docs/adjust.md), "
         "propagated to the true error's pixel grid, RMS in metres. 'true/formal' is ~1 "
         "when the reported precision means what it says (0.5-2: calibrated).",
     ),

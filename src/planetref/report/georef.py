@@ -369,7 +369,9 @@ def paper_departures(config: Mapping[str, Any]) -> list[str]:
         )
     out.append(
         "the covariance includes the declared correlated errors of the reference and of the "
-        "CCD placement (consider parameters; formal vs true error in the truth table)"
+        "CCD placement, and a matcher offset common to each tile with a sigma estimated "
+        "from the tiles' residuals (consider parameters; formal vs true error in the truth "
+        "table)"
     )
     return out
 

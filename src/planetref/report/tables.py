@@ -227,7 +227,10 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
     """True geolocation error, its formal precision, and the true outlier ratio (simulated).
 
     ``formal (m)`` is the adjustment's precision of the same ground positions and
-    ``true/formal`` their ratio (empty for reports written before they existed). The
+    ``true/formal`` their ratio (empty for reports written before they existed);
+    ``tile offset (px)`` the sigma of the matcher's offset common to a tile that the
+    adjustment estimated from the tiles' residuals and took into ``formal`` (one for
+    both axes; ``line/sample`` where they differ). The
     true outlier ratio (``true OR``) is the share of the matches after RANSAC whose true
     error exceeds 1 and 3 reference px (:mod:`planetref.frontend.truth`); a run that
     failed keeps its row for it.
@@ -240,6 +243,7 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
         "max after (m)",
         "formal (m)",
         "true/formal",
+        "tile offset (px)",
         "RANSAC matches",
         "true OR >1 px (%)",
         "true OR >3 px (%)",
@@ -259,12 +263,24 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
                 c.get("geoloc_max_m"),
                 c.get("formal_rmse_m"),
                 c.get("true_over_formal"),
+                _tile_sigma(rep),
                 t.get("n"),
                 t.get("pct_over_1px"),
                 t.get("pct_over_3px"),
             ]
         )
     return header, rows
+
+
+def _tile_sigma(rep: Mapping[str, Any]) -> str | None:
+    """The tile offsets' sigma (px) in a run's adjustment (``"line/sample"`` where they
+    differ), or ``None``.
+    """
+    sysm = (rep.get("adjustment") or {}).get("systematic") or {}
+    sig = sysm.get("tile_offset_sigma_px")
+    if not sig:
+        return None
+    return f"{sig[0]:.2f}" if sig[0] == sig[1] else f"{sig[0]:.2f}/{sig[1]:.2f}"
 
 
 def funnel_from_journal(paths: Sequence[str | Path]) -> dict[str, int]:
