@@ -273,8 +273,9 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
 
 
 def _tile_sigma(rep: Mapping[str, Any]) -> str | None:
-    """The tile offsets' sigma (px) in a run's adjustment (``"line/sample"`` where they
-    differ), or ``None``.
+    """The tile offsets' sigma (px) of a run's adjustment, or ``None``.
+
+    One number, or ``"line/sample"`` where the two differ.
     """
     sysm = (rep.get("adjustment") or {}).get("systematic") or {}
     sig = sysm.get("tile_offset_sigma_px")
