@@ -244,8 +244,8 @@ def check_tile_misfit(result: Any) -> dict[str, Any] | None:
     is an independent measurement of the adjusted cameras: the mean misfit ``m`` of its
     MCPs (projected reference point minus observed pixel, per axis) is, under the
     adjustment's own error model, ``a (c_hat - c) + sum_z (a G_z + d_z) z + o + n`` with
-    ``a`` the misfit's derivative by the camera's parameters (central differences of
-    the projections), ``G`` the consider sensitivities, ``d_z`` the direct effect of a
+    ``a`` the misfit's derivative by the camera's parameters (the model's partials,
+    averaged over the tile), ``G`` the consider sensitivities, ``d_z`` the direct effect of a
     consider parameter on the misfit (a CCD offset moves the observation, a reference
     patch's offset the reference point), ``o`` the tile's own matcher offset (the
     adjustment's tile sigma) and ``n`` the MCPs' noise averaged over the tile (their
@@ -305,16 +305,16 @@ def check_tile_misfit(result: Any) -> dict[str, Any] | None:
         var = overlap * spread / max(n, 1) + tile_sigma**2
         sig = total_sigma[loc]
         act = np.flatnonzero(sig > 0)
-        a = np.zeros((2, len(act)))
-        for k, i in enumerate(act):
-            h = _FD_SIGMAS * float(sig[i])
-            xp, xm = x.copy(), x.copy()
-            xp[i] += h
-            xm[i] -= h
-            pp = model.build(xp).ground_to_image(xyz, ccd=ccd)
-            pm = model.build(xm).ground_to_image(xyz, ccd=ccd)
-            a[0, k] = np.nanmean(pp.line - pm.line) / (2.0 * h)
-            a[1, k] = np.nanmean(pp.sample - pm.sample) / (2.0 * h)
+        # The misfits' partials by the camera's parameters and by the ground, from the
+        # model's own (as the solver's): mean over the tile's MCPs.
+        ev = model.evaluate(x, xyz, ccd_i, np.asarray(net.obs_line)[obs], partials=True)
+        good = np.asarray(ev.valid, bool)
+        cols = np.asarray(model.pattern_columns)[ev.pattern]  # (n, q) local, -1 padding
+        dpar = np.zeros((2, len(x)))
+        keep = (cols >= 0) & good[:, None]
+        for axis in range(2):
+            np.add.at(dpar[axis], cols[keep], np.asarray(ev.d_params)[:, axis, :][keep])
+        a = dpar[:, act] / max(int(np.count_nonzero(good)), 1)
         c_loc = cov[loc, loc][np.ix_(act, act)]
         var = var + np.einsum("ak,kl,al->a", a, c_loc, a)
         if consider is not None and len(consider.sigma):
@@ -324,17 +324,14 @@ def check_tile_misfit(result: Any) -> dict[str, Any] | None:
                     s[item[2], k] -= 1.0  # the observation moves, the misfit the other way
             patch = consider.point_patch
             if patch is not None and consider.n_patches:
-                cam = result.cameras[cam_id]
-                en = enu_rotation(xyz)[:, :2, :]
+                en = enu_rotation(xyz)[:, :2, :]  # (n, 2, 3)
+                # d(line, sample)/d(east, north) of each reference point.
+                d_en = np.einsum("nij,nkj->nik", np.asarray(ev.d_ground), en)
+                pp = patch[pts]
+                on = (pp >= 0) & good
                 for axis in range(2):
-                    step = en[:, axis, :]  # 1 m east or north
-                    pp = cam.ground_to_image(xyz + 0.5 * step, ccd=ccd)
-                    pm = cam.ground_to_image(xyz - 0.5 * step, ccd=ccd)
-                    for pk in np.unique(patch[pts][patch[pts] >= 0]):
-                        on = patch[pts] == pk
-                        col = 2 * int(pk) + axis
-                        s[0, col] += np.nansum((pp.line - pm.line)[on]) / n
-                        s[1, col] += np.nansum((pp.sample - pm.sample)[on]) / n
+                    for comp in range(2):
+                        np.add.at(s[axis], 2 * pp[on] + comp, d_en[on, axis, comp] / n)
             var = var + (s**2) @ (np.asarray(consider.sigma) ** 2)
         sd = np.sqrt(var)
         out.append(
