@@ -121,11 +121,15 @@ def test_csv_markdown_latex_agree():
 
 def test_adjustment_rows_with_check_points():
     run = _run()
-    run["adjustment"]["check_mcps"] = {"after": {"rms_px": 1.2, "rms_m": 3.0, "n": 40}}
+    run["adjustment"]["check_mcps"] = {
+        "after": {"rms_px": 1.2, "rms_m": 3.0, "n": 40},
+        "tiles": {"n_tiles": 2, "rms_normalised": 1.3},
+    }
     h, rows = adjustment_rows({"sift": run, "ncc": _run()})
     i = h.index("Check (px)")
-    assert h[i + 1] == "Check (m)" and rows[0][i : i + 2] == [1.2, 3.0]
-    assert rows[1][i : i + 2] == [None, None]
+    assert h[i + 1 : i + 3] == ["Check (m)", "Check / predicted"]
+    assert rows[0][i : i + 3] == [1.2, 3.0, 1.3]
+    assert rows[1][i : i + 3] == [None, None, None]
 
 
 def test_truth_and_timing_rows():

@@ -55,6 +55,14 @@ DEFINITIONS: list[tuple[str, str]] = [
         "percent. The front end's own rejections are in the funnel table. Lower is better.",
     ),
     (
+        "Check, Check / predicted",
+        "the held-out check tiles (whole tiles, never adjusted): RMS misfit of their MCPs "
+        "(pixels, and metres on the ground); and the RMS over those tiles and both axes "
+        "of each tile's mean misfit divided by the SD the adjustment's covariance "
+        "predicts for it, ~1 when the formal precision means what it says (real data "
+        "included; with one or two tiles a rough figure).",
+    ),
+    (
         "true error",
         "(simulated scenes) RMS over a grid of image pixels of the ground distance (metres) "
         "between the terrain intersections of the same pixel through the adjusted and the "

@@ -180,7 +180,10 @@ def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], l
     """Table 2: per strip, per matcher; per-axis RMSE and check points where held.
 
     The check columns are the RMS error of the held-out check points (image px and
-    metres), shown when some report holds them. A run that failed (its report has
+    metres), shown when some report holds them, and ``Check / predicted``: the RMS over
+    the held-out tiles and axes of each tile's mean misfit over the SD the covariance
+    predicts for it (~1 when the formal precision means what it says; a truth-free
+    anchor, rough with one or two tiles). A run that failed (its report has
     ``failed``) keeps one row per strip it reached, every value missing, and a
     ``status`` column (shown when any run failed) says so.
     """
@@ -201,14 +204,22 @@ def adjustment_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], l
         ["Matcher", "Strip"]
         + [h for h, _ in ADJ_COLUMNS]
         + [h for h, _ in extra]
-        + (["Check (px)", "Check (m)"] if checked else [])
+        + (["Check (px)", "Check (m)", "Check / predicted"] if checked else [])
         + ["RMSE before", "sigma0", "n"]
         + (["status"] if failed else [])
     )
     rows = [
         [name, sid]
         + [a.get(k) for _, k in ADJ_COLUMNS + extra]
-        + ([_check_after(a).get("rms_px"), _check_after(a).get("rms_m")] if checked else [])
+        + (
+            [
+                _check_after(a).get("rms_px"),
+                _check_after(a).get("rms_m"),
+                ((a.get("check_mcps") or {}).get("tiles") or {}).get("rms_normalised"),
+            ]
+            if checked
+            else []
+        )
         + [a.get("rmse_px_before"), a.get("sigma0"), a.get("n_total")]
         + (["failed" if f else "ok"] if failed else [])
         for name, sid, a, f in blocks
