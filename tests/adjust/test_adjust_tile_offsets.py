@@ -59,16 +59,28 @@ def _true_rms(res, true_cam) -> float:
 
 
 def test_response_equals_readjustment():
-    """The response M of the tiles' residual sums to a tile's offset is what re-adjusting
-    the data with that tile shifted by 1 px does to the sums (cameras and points moved)."""
+    """The response M of the tiles' residual sums to a consider parameter is what
+    re-adjusting the data with that parameter set to 1 does to the sums (cameras and
+    points moved): a tile's sample offset, a CCD's line offset, a reference patch's east
+    offset of the a-priori ground points."""
+    from test_adjust_calibration import PATCH_M, _patches
+
+    from planetref.control.network import enu_rotation
+
     net, _, _ = mcp_problem(300, noise_px=0.3, seed=3, ground_sigma_m=1.0)
     net = _with_tiles(net)
-    extra = {
-        "variance": {"enabled": False},
-        "outliers": {"enabled": False},
-        "solver": {"ftol": 1e-15, "xtol": 1e-12},
+    cfg = _cfg(
+        "estimate",
+        variance={"enabled": False},
+        outliers={"enabled": False},
+        solver={"ftol": 1e-15, "xtol": 1e-12},
+    )
+    cfg["systematic"] |= {
+        "ccd_offset_sigma_px": 0.5,
+        "reference_sigma_m": 1.0,
+        "reference_patch_m": PATCH_M,
     }
-    res = adjust(net, _cfg("estimate", **extra))
+    res = adjust(net, cfg)
     est = res.consider.tile
     assert est is not None and est.n_tiles == 3 * N_BLOCKS
     w = 1.0 / 0.3**2
@@ -91,15 +103,21 @@ def test_response_equals_readjustment():
     # The sums are the residuals' (the sign of the solver's residuals aside).
     sign = np.sign(base @ est.sums)
     np.testing.assert_allclose(sign * est.sums, base, rtol=1e-6, atol=1e-6 * np.abs(base).max())
-    k = res.consider.names.index("strip tile 7 sample offset")
-    col = k - res.consider.kinds.index("tile")
-    shifted = dataclasses.replace(net, obs_sample=np.asarray(net.obs_sample) + (tile == 7))
-    delta = sign * (sums(adjust(shifted, _cfg("estimate", **extra))) - base)
-    np.testing.assert_allclose(
-        delta, -est.response[:, k], atol=0.02 * np.abs(est.response[:, k]).max()
-    )
-    # A tile's own sum keeps a part of its offset; the others' see the cameras' move.
-    assert abs(est.response[col, k]) > 0.0
+    xyz = np.asarray(net.point_xyz)
+    east = enu_rotation(xyz)[:, 0]
+    patch = _patches(xyz, PATCH_M)
+    moves = {
+        "strip tile 7 sample offset": {"obs_sample": np.asarray(net.obs_sample) + (tile == 7)},
+        "strip/ccd2 line offset": {"obs_line": np.asarray(net.obs_line) + (net.obs_ccd == 1)},
+        "reference patch 1 east": {"point_xyz": xyz + (patch == 1)[:, None] * east},
+    }
+    for name, change in moves.items():
+        k = res.consider.names.index(name)
+        delta = sign * (sums(adjust(dataclasses.replace(net, **change), cfg)) - base)
+        # Projected - observed: a measure's (or a-priori point's) offset enters with -M.
+        expect = -est.response[:, k]
+        np.testing.assert_allclose(delta, expect, atol=0.02 * np.abs(expect).max(), err_msg=name)
+        assert np.abs(expect).max() > 0.0, name
 
 
 def test_estimated_sigma_and_calibration():
