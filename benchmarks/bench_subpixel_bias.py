@@ -22,12 +22,23 @@ Pairs (``--modes``), all from one high-resolution texture ``T`` (``--texture``):
   block means, sampled bilinearly every 5 texture pixels) against a 10 x 10 block mean
   (the 5 m reference), rounded to 8 bits and upsampled x2 bicubically as
   :func:`planetref.frontend.grid.read_fine` does; shifts of the reference side in
-  steps of one texture pixel (0.2 fine pixel).
+  steps of one texture pixel (0.2 fine pixel);
+* ``tiles`` (with ``--scene``, a simulated scene; made there with the ``hiric-strip``
+  moderate seed-0 config when missing): the fine-stage pairs of ``--tile-ids`` as the
+  front end builds them (:func:`tile_pairs`), the reference window placed on the true
+  offset and then moved by ``d`` fine pixels, so that the arrays are displaced by
+  ``D = -d`` (within half a pixel); each match's error is its reference position minus
+  the true position of its CCD-side point (through the scene's true camera and DEM), in
+  fine pixels. The front end itself places that window on the coarse offset rounded to
+  whole reference pixels (2 fine pixels), so ``D`` there is the coarse stage's error.
 
 For each matcher and shift: the matches' error ``kp1 - (kp0 + t)`` (``t`` the true
 displacement, pixels of the matched images), its mean and RMS per axis over the matches
-within 2 px (the others are wrong matches: counted, not averaged); per matcher and mode,
-the mean of the per-shift means and their spread (standard deviation over shifts).
+within 2 px (3 px for ``tiles``; the others are wrong matches: counted, not averaged);
+per matcher and mode, the mean of the per-shift means, their spread (standard deviation
+over shifts) and, where opposite shifts were measured, the odd part ``odd_x`` /
+``odd_y`` (half the difference of the mean errors at ``+t`` and ``-t``): negative when
+the matches measure less than the true displacement, whichever its sign.
 
 ``xfeat-upstream`` is planetref's XFeat + LighterGlue with its detector input replaced
 by what XFeat's own code does: ``XFeat.detectAndCompute`` on the image as it is (it
@@ -46,8 +57,11 @@ no noise, no illumination change between the two images, the same surface on bot
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_subpixel_bias.py [--texture sim|hirise|PATH]
-        [--modes phases sweep frontend] [--matchers xfeat-lighterglue ...] [--size 384]
-        [--json] [--json-out FILE]
+        [--modes phases sweep frontend tiles] [--scene DIR] [--tile-ids ccd1:r003c000 ...]
+        [--matchers xfeat-lighterglue ...] [--size 384] [--json] [--json-out FILE]
+
+``benchmarks/results/bench_subpixel_bias.json`` holds the ``sim`` and ``tiles`` modes,
+``bench_subpixel_bias_hirise.json`` the real HiRISE textures (``--texture hirise``).
 """
 
 from __future__ import annotations
