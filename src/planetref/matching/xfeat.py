@@ -13,6 +13,18 @@ Sparse XFeat
     to better than about one pixel when the image shifts by a non-multiple of 8 pixels;
     ``polish="ncc"`` gives sub-pixel matches.
 
+    The keypoints also stay partly with each image's pixel grid, so the displacement the
+    matches measure between two images falls short of the true one (an error of the sign
+    opposite to the displacement's, not a constant offset): 0.04 to 0.08 pixel for
+    displacements between a quarter and 1.75 pixels of identical textures, 0.1 to 0.3
+    pixel for displacements of 1 to 2 pixels on the front end's fine-stage pairs of the
+    simulated hiric-strip scene, where ALIKED and SIFT fall short by less than 0.03
+    pixel on the same pairs. XFeat's own decoding does the same
+    (``benchmarks/bench_subpixel_bias.py``). The front end places the fine window on the
+    coarse offset rounded to whole reference pixels; where the coarse errors share a sign,
+    this becomes a bias common to the tiles. Sub-pixel refinement (the front end's
+    ``refine``, or ``polish``) removes most of it.
+
 XFeat* (semi-dense)
     Implemented here from kornia's building blocks rather than with
     ``XFeat.match_xfeat_star``, to keep the coordinates exact: kornia resizes twice
