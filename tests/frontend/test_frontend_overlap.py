@@ -250,11 +250,13 @@ def test_overlap_ties_carry_no_ccd_offset_consider_term() -> None:
     out = with_overlap_ties(net, _ties(), CcdOverlapConfig(enabled=True))
     sys_cfg = SystematicConfig(ccd_offset_sigma_px=0.5)
     weighted = np.zeros(out.n_points, bool)
-    *_, obs_key, n_keys, names, _, sigma, _ = consider_layout(out, sys_cfg, weighted, [False])
+    lay = consider_layout(out, sys_cfg, weighted, [False])
+    ((kind, obs_key, n_keys),) = lay.obs_keys  # no tiles in this network
     # Only ccd2 has MCPs: one key (line and sample offsets), on the two MCP observations.
-    assert n_keys == 1 and names == ["s1/ccd2 line offset", "s1/ccd2 sample offset"]
+    assert kind == "ccd" and n_keys == 1
+    assert lay.names == ["s1/ccd2 line offset", "s1/ccd2 sample offset"]
     np.testing.assert_array_equal(obs_key, [0, 0] + [-1] * 12)
-    np.testing.assert_allclose(sigma, 0.5)
+    np.testing.assert_allclose(lay.sigma, 0.5)
 
 
 def test_overlap_ties_join_a_campaign_network() -> None:

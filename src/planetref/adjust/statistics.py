@@ -277,18 +277,7 @@ class StatisticsMixin:
                         ent_vec.append(bp[on, :, k])
             keys = [(kk, obs_key[tie_obs[ch.obs]], base) for kk, obs_key, base in layout.keys()]
             for _, key, base in keys:
-                for g in np.unique(key[key >= 0]):
-                    on = key == g
-                    for k in range(2):
-                        bz = np.where(on[:, None], wb[:, k, :], 0.0)
-                        vb = np.matmul(vinv, np.add.reduceat(bz, ch.starts, axis=0)[:, :, None])
-                        cam = np.where(on[:, None], a[:, k, :] * we[:, k, None], 0.0)
-                        contrib = cam - np.matmul(y, vb[ch.pt])[:, :, 0]
-                        col = np.full(len(key), base + 2 * int(g) + k, np.intp)
-                        # Every observation of a point seen in this key carries the point's
-                        # share (a tie point seen elsewhere too), hence no mask by key.
-                        seen = np.add.reduceat(on.astype(np.intp), ch.starts) > 0
-                        _scatter(h, gcols, k_tot, col, contrib, seen[ch.pt])
+                _key_columns(h, k_tot, key, base, (a, we, wb, y, gcols), vinv, ch)
                 if n_resp:
                     on = np.flatnonzero(key >= 0)
                     for k in range(2):
@@ -361,6 +350,66 @@ def _response_terms(
             has = key[on] >= 0
             np.add.at(lmat, (row[has], base + 2 * key[on][has] + k), we[on, k][has])
         np.add.at(sums, row, we[on, k] * r[on, k])
+
+
+def _key_columns(
+    h: F64,
+    k_tot: int,
+    key: NDArray[np.intp],
+    base: int,
+    rows: tuple[F64, F64, F64, F64, NDArray[np.intp]],
+    vinv: F64,
+    ch: Any,
+) -> None:
+    """Add one chunk's ``d(rhs)/dz`` of one observation-key kind to ``h`` (flat, ``K`` wide).
+
+    Per (point, key) entry ``E`` of the chunk and axis ``k``: ``b_E = sum B^T w`` over the
+    point's observations in that key; every observation ``i`` of the point carries
+    ``[key_i = g] a_ik w_ik - y_i V^-1 b_E`` in column ``base + 2 g + k`` (a tie point seen
+    in another key too carries its share there). All keys at once: one pass per chunk
+    whatever the number of keys (a loop over 300 tiles made the consider terms 7 times
+    the adjustment's cost on 50 k MCPs).
+
+    Args:
+        h: ``d(rhs)/dz``, ``(p + 1) * K`` flat, added to.
+        k_tot: ``K``.
+        key: Key per chunk observation (-1: none).
+        base: The kind's first column.
+        rows: ``(a, we, wb, y, gcols)`` of the chunk's observations (camera partials,
+            weights, ``W B``, ``A^T W B`` and the parameter columns).
+        vinv: The chunk's point blocks ``V^-1``, ``(n, 3, 3)``.
+        ch: The chunk (its ``pt`` and ``starts``).
+    """
+    a, we, wb, y, gcols = rows
+    on = np.flatnonzero(key >= 0)
+    if not on.size:
+        return
+    n_key = int(key[on].max()) + 1
+    uid, e_of = np.unique(ch.pt[on].astype(np.int64) * n_key + key[on], return_inverse=True)
+    e_of = e_of.ravel()
+    e_pt = (uid // n_key).astype(np.intp)
+    e_key = (uid % n_key).astype(np.intp)
+    b = np.zeros((len(uid), 2, 3))
+    np.add.at(b, e_of, wb[on])
+    vb = np.matmul(vinv[e_pt][:, None], b[:, :, :, None])[..., 0]  # (E, 2, 3)
+    # Pairs (observation of the entry's point, entry): the chunk's observations are
+    # grouped by point (ch.starts).
+    starts = np.asarray(ch.starts, np.intp)
+    stops = np.append(starts[1:], len(key))
+    n_pair = stops[e_pt] - starts[e_pt]
+    ent = np.repeat(np.arange(len(uid)), n_pair)
+    obs = np.repeat(starts[e_pt], n_pair) + (
+        np.arange(int(n_pair.sum())) - np.repeat(np.cumsum(n_pair) - n_pair, n_pair)
+    )
+    obs_entry = np.full(len(key), -1, np.intp)
+    obs_entry[on] = e_of
+    own = obs_entry[obs] == ent
+    for k in range(2):
+        contrib = -np.matmul(y[obs], vb[ent, k, :, None])[:, :, 0]
+        contrib[own] += a[obs[own], k, :] * we[obs[own], k, None]
+        col = base + 2 * e_key[ent] + k
+        idx = gcols[obs] * k_tot + col[:, None]
+        h += np.bincount(idx.ravel(), contrib.ravel(), minlength=h.size)
 
 
 def _scatter(
