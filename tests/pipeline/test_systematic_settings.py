@@ -40,6 +40,7 @@ def test_declared_by_the_scene():
         "reference_sigma_m": "scene",
         "reference_patch_m": "scene",
         "ccd_offset_sigma_px": "scene",
+        "tile_offset_sigma_px": "estimated",
         "measurement_overlap": "matches",
     }
     # A reference declared exact: no reference term.
@@ -59,6 +60,7 @@ def test_defaults_and_the_config_wins():
                 "reference_sigma_m": "2 m",
                 "ccd_offset_sigma_px": 0,
                 "reference_patch_m": 300,
+                "tile_offset_sigma_px": 0.4,
             }
         }
     )
@@ -66,6 +68,9 @@ def test_defaults_and_the_config_wins():
     s = cfg.systematic
     assert (s.reference_sigma_m, s.reference_patch_m, s.ccd_offset_sigma_px) == (2.0, 300.0, 0.0)
     assert set(src.values()) == {"config", "matches"}
+    assert s.tile_offset_sigma_px == 0.4
+    off = validate_config({"systematic": {"tile_offset_sigma_px": None}})
+    assert systematic_settings(off, _manifest(), ["s1"], 5.0)[1]["tile_offset_sigma_px"] == "none"
 
 
 def test_template_support():
