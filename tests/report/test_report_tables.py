@@ -148,7 +148,7 @@ def test_truth_and_timing_rows():
     runs["a"]["adjustment"] = {"systematic": {"tile_offset_sigma_px": [1.234, 0.5]}}
     assert truth_rows(runs)[1][0][i + 2] == "1.23/0.50"
     runs["a"]["adjustment"] = {"systematic": {"tile_offset_sigma_px": [0.5, 0.5]}}
-    assert truth_rows(runs)[1][0][i + 2] == "0.50"
+    assert truth_rows(runs)[1][0][i + 2] == 0.5
     h, rows = timing_rows(runs)
     assert h[-1] == "matching per tile (s)" and rows[0][-1] == pytest.approx(2.0)
 

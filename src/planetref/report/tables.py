@@ -283,7 +283,7 @@ def truth_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], list[l
     return header, rows
 
 
-def _tile_sigma(rep: Mapping[str, Any]) -> str | None:
+def _tile_sigma(rep: Mapping[str, Any]) -> float | str | None:
     """The tile offsets' sigma (px) of a run's adjustment, or ``None``.
 
     One number, or ``"line/sample"`` where the two differ.
@@ -292,7 +292,7 @@ def _tile_sigma(rep: Mapping[str, Any]) -> str | None:
     sig = sysm.get("tile_offset_sigma_px")
     if not sig:
         return None
-    return f"{sig[0]:.2f}" if sig[0] == sig[1] else f"{sig[0]:.2f}/{sig[1]:.2f}"
+    return float(sig[0]) if sig[0] == sig[1] else f"{sig[0]:.2f}/{sig[1]:.2f}"
 
 
 def funnel_from_journal(paths: Sequence[str | Path]) -> dict[str, int]:
