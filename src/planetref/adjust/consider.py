@@ -205,7 +205,12 @@ class ConsiderTerms:
             "tile_offset_sigma_px": tile_sigma,
             "tile_offset_source": None if not n_tile else ("estimated" if tile else "declared"),
             "n_tile_offsets": n_tile,
-            "tile_offset_relative_sd": None if tile is None else float(tile.relative_sd),
+            # Infinite where the estimate is 0 (no signal): JSON has no infinity.
+            "tile_offset_relative_sd": (
+                float(tile.relative_sd)
+                if tile is not None and math.isfinite(tile.relative_sd)
+                else None
+            ),
             "tile_offset_per_axis_px": (
                 None if tile is None else [float(v) for v in tile.per_axis_px]
             ),
