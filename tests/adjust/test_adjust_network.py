@@ -338,3 +338,10 @@ def test_tile_id_column(tmp_path):
     assert res.consider is not None and res.consider.tile is not None
     assert res.consider.tile.n_tiles == 3
     assert 0.0 <= res.consider.tile.sigma_px[0] < 0.3  # no tile offsets in these data
+    # `planetref adjust` reports the estimate.
+    out = tmp_path / "out"
+    r = run_cli(path, "--out", out, "--no-rpc", "--no-plots")
+    assert r.exit_code == 0, r.output
+    sysm = json.loads((out / "report.json").read_text())["systematic"]
+    assert sysm["n_tile_offsets"] == 3 and sysm["tile_offset_source"] == "estimated"
+    assert sysm["tile_offset_sigma_px"] == list(res.consider.tile.sigma_px)

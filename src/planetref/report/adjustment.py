@@ -571,6 +571,8 @@ def _report_dict(
             "top": top_correlations(result),
         },
         "variance_components": result.variance,
+        # The correlated errors in the covariance (declared, and the tiles' estimate).
+        "systematic": None if result.consider is None else result.consider.summary(),
         "movement": {
             "points": result.diagnostics.get("point_shifts", {}),
             "cameras": result.diagnostics.get("camera_shifts", {}),
