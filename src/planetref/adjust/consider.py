@@ -177,12 +177,6 @@ class ConsiderTerms:
         g = self.sensitivity
         return (g * self.sigma**2) @ g.T
 
-    def share(self, kind: str) -> F64:
-        """One kind's share of :attr:`covariance`, ``(p, p)``."""
-        on = np.array([k == kind for k in self.kinds], bool)
-        g = self.sensitivity[:, on]
-        return (g * self.sigma[on] ** 2) @ g.T
-
     def summary(self) -> dict[str, Any]:
         """What report.json says of them."""
         kinds = self.kinds or ["reference" if u == "m" else "ccd" for u in self.units]

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from planetref.adjust.linearization import Layout, Linearization
 from planetref.adjust.solver import BundleSolver
-from planetref.arrays import F64
+from planetref.arrays import F64, expand_ranges
 
 if TYPE_CHECKING:
     from planetref.adjust.models import Evaluation
@@ -418,10 +418,7 @@ def _tie_cofactors(
     vinv = np.linalg.inv(vsum)
     cmat = np.matmul(vinv[loc], np.transpose(bw, (0, 2, 1)))  # C_k = V^-1 B^T W, (m, 3, 2)
     # Pairs (i, k) of observations of the same point, in t's order.
-    cnt = counts[loc]
-    pa = np.repeat(np.arange(len(t)), cnt)
-    within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    pb = first[loc[pa]] + within
+    pa, pb = expand_ranges(first[loc], counts[loc])
     tmat = np.zeros((len(t), 2, 3))
     umat = np.zeros((u, 3, 3))
     ht = np.zeros((len(t), 2, 2))  # J_i Q J_i^T of the observations of unknown points

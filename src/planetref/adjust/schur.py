@@ -16,7 +16,7 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from planetref.adjust.linearization import Layout, Linearization
-from planetref.arrays import F64
+from planetref.arrays import F64, expand_ranges
 from planetref.errors import AdjustmentError
 from planetref.runtime.optional import optional_module
 
@@ -107,9 +107,7 @@ class SchurMixin:
                     loc = pt_sorted[a:b] - lo_pt
                     cnt = counts[lo_pt:hi_pt][loc]
                     first = (starts[lo_pt:hi_pt] - a)[loc]
-                    pa = np.repeat(np.arange(b - a), cnt)
-                    within = np.arange(len(pa)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-                    pb = np.repeat(first, cnt) + within
+                    pa, pb = expand_ranges(first, cnt)
                     chunks.append(
                         _TieChunk(
                             np.arange(a, b),

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from planetref.adjust.consider import ConsiderLayout, ConsiderSensitivity
 from planetref.adjust.linearization import quadratic
 from planetref.adjust.schur import Iterate
-from planetref.arrays import F64
+from planetref.arrays import F64, expand_ranges
 from planetref.control.network import enu_rotation
 from planetref.errors import AdjustmentError
 
@@ -329,10 +329,8 @@ def _response_terms(
     first = np.flatnonzero((ucol >= resp.start) & (ucol < resp.stop))
     starts = np.searchsorted(upt, upt)  # first entry of each entry's point
     ends = np.searchsorted(upt, upt, side="right")
-    n_pair = ends[first] - starts[first]
-    ia = np.repeat(first, n_pair)
-    offs = np.arange(int(n_pair.sum())) - np.repeat(np.cumsum(n_pair) - n_pair, n_pair)
-    ib = np.repeat(starts[first], n_pair) + offs
+    owner, ib = expand_ranges(starts[first], ends[first] - starts[first])
+    ia = first[owner]
     val = np.einsum("ij,ij->i", b[ia], vb[ib])
     np.add.at(lmat, (ucol[ia] - resp.start, ucol[ib]), -val)
     # D_t^T P D_j: the observations' weights where they carry both columns.
@@ -396,11 +394,7 @@ def _key_columns(
     # grouped by point (ch.starts).
     starts = np.asarray(ch.starts, np.intp)
     stops = np.append(starts[1:], len(key))
-    n_pair = stops[e_pt] - starts[e_pt]
-    ent = np.repeat(np.arange(len(uid)), n_pair)
-    obs = np.repeat(starts[e_pt], n_pair) + (
-        np.arange(int(n_pair.sum())) - np.repeat(np.cumsum(n_pair) - n_pair, n_pair)
-    )
+    ent, obs = expand_ranges(starts[e_pt], stops[e_pt] - starts[e_pt])
     obs_entry = np.full(len(key), -1, np.intp)
     obs_entry[on] = e_of
     own = obs_entry[obs] == ent

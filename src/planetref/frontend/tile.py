@@ -51,7 +51,7 @@ from planetref.frontend.batched import (
     inference_mode,
     run_steps,
 )
-from planetref.frontend.coarse import coarse_fallback_matcher
+from planetref.frontend.coarse import COARSE_FALLBACK_MATCHER, coarse_fallback_matcher
 from planetref.frontend.config import FrontendConfig
 from planetref.frontend.grid import FineWindow, read_fine
 from planetref.frontend.orthorectify import (
@@ -257,6 +257,12 @@ def _same_search(coarse: Matcher, fallback: Matcher) -> bool:
     return bool(getattr(coarse, opt, 0) >= reach and tuple(offset) == (0.0, 0.0))
 
 
+def _place(res: TileResult, offset: F64, source: str) -> None:
+    """Record the offset that places the fine window, and which search gave it."""
+    res.coarse_offset_px = (float(offset[0]), float(offset[1]))
+    res.coarse_source = source
+
+
 def _name(matcher: Matcher) -> str:
     return str(getattr(matcher, "name", type(matcher).__name__))
 
@@ -423,7 +429,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
     # matched with, so the expected displacement between the two arrays is just the
     # initial error: area-based matchers with a bounded search work as well as the rest.
     coarse_offset: F64 | None = None
-    fallback_pending = False  # the NCC search of the coarse windows may still be tried
+    pending: Matcher | None = None  # the NCC search of the coarse windows, still untried
     if cfg.coarse:
         # The coarse level adapts to the uncertainty (a bounded window; see
         # FrontendConfig.coarse_level): from the reference's nominal GSD, as the coarse
@@ -443,7 +449,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         coarse_offset, full_inl = _coarse_consensus(st, cfg)
         res.n_coarse_inliers = int(full_inl.sum())
         if coarse_offset is not None:
-            res.coarse_source = "matcher"
+            _place(res, coarse_offset, "matcher")
         if debug:
             res.debug.append(
                 StageDebug(
@@ -451,29 +457,27 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
                 )
             )
         fallback = coarse_fallback_matcher(cfg, gsd)
-        fallback_pending = fallback is not None and not _same_search(coarse, fallback)
+        if fallback is not None and not _same_search(coarse, fallback):
+            pending = fallback
         if coarse_offset is None and cfg.coarse_fallback == "ncc":
             # The front end's own bounded search of the same coarse windows (the same for
             # every matcher); when it finds nothing either, no wider search follows.
             n_fb = ""
-            if fallback_pending:
-                assert fallback is not None
-                fallback_pending = False
+            if pending is not None:
                 fb = yield from _match_stage(
-                    cside, cref, cvalid, cwin, fallback, timings, "coarse_fallback"
+                    cside, cref, cvalid, cwin, pending, timings, "coarse_fallback"
                 )
+                pending = None
                 coarse_offset, fb_inl = _coarse_consensus(fb, cfg)
                 n_fb = f", NCC {int(fb_inl.sum())} of {len(fb.kp0)}"
                 if coarse_offset is not None:
-                    res.coarse_source = "ncc"
+                    _place(res, coarse_offset, COARSE_FALLBACK_MATCHER)
             if coarse_offset is None:
                 return finish(
                     "too_few_inliers",
                     f"no coarse consensus: {res.n_coarse_inliers} of {res.n_coarse_matches}"
                     f"{n_fb}, {cfg.coarse_min_matches} needed",
                 )
-        if coarse_offset is not None:
-            res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
 
     # ---- fine stage
     # The fine stage checks the coarse offset: when it finds too few inliers around the
@@ -506,7 +510,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
             fref, fvalid = read_fine(ref, fine_ref)
         res.search_window = fwin.to_tuple()
         problem = _unmatchable(side, fref, fvalid, _area_share(base, iwin, cfg), cfg)
-        if problem is not None and not fallback_pending:
+        if problem is not None and pending is None:
             return finish(*problem)
         if problem is None:
             st = yield from _match_stage(
@@ -519,25 +523,22 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
                 # consensus places a second pass
                 if attempt == 1 and cfg.coarse and found:
                     coarse_offset = np.mean((st.actual - st.predicted)[inl], axis=0)
-                    res.coarse_offset_px = (float(coarse_offset[0]), float(coarse_offset[1]))
-                    res.coarse_source = "fine"
+                    _place(res, coarse_offset, "fine")
                     continue
                 break
             if found:
                 break
-        if fallback_pending and coarse_offset is not None:
-            fallback_pending = False
-            assert fallback is not None
+        if pending is not None and coarse_offset is not None:
             fb = yield from _match_stage(
-                cside, cref, cvalid, cwin, fallback, timings, "coarse_fallback"
+                cside, cref, cvalid, cwin, pending, timings, "coarse_fallback"
             )
+            pending = None
             offset, _ = _coarse_consensus(fb, cfg)
             if offset is not None and np.any(
                 np.abs(offset - coarse_offset) > cfg.fine_reach_ref_px
             ):
                 coarse_offset = offset
-                res.coarse_offset_px = (float(offset[0]), float(offset[1]))
-                res.coarse_source = "ncc"
+                _place(res, offset, COARSE_FALLBACK_MATCHER)
                 continue
         if problem is not None:
             return finish(*problem)

@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from planetref.frontend.coarse import COARSE_FALLBACK_MATCHER
 from planetref.frontend.stats import FUNNEL_STAGES as TILE_FUNNEL_STAGES
 
 __all__ = [
@@ -152,9 +153,10 @@ def matching_rows(runs: Mapping[str, Mapping[str, Any]]) -> tuple[list[str], lis
     # Tiles whose fine window NCC's coarse search placed (frontend.coarse_fallback): shown
     # only when some matcher needed it, so that it is never hidden and never noise.
     fallback = {
-        n: (r["matching"].get("coarse_sources") or {}).get("ncc", 0) for n, r in runs.items()
+        n: (r["matching"].get("coarse_sources") or {}).get(COARSE_FALLBACK_MATCHER, 0)
+        for n, r in runs.items()
     }
-    show_fallback = any(v and n != "ncc" for n, v in fallback.items())
+    show_fallback = any(v and n != COARSE_FALLBACK_MATCHER for n, v in fallback.items())
     header = (
         ["Matcher"]
         + [f"{c} NCP" for c in ccds]
