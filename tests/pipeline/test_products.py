@@ -4,6 +4,7 @@ exports of control points, and DEM datums in the scene manifest."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import shutil
 
 import numpy as np
@@ -235,6 +236,15 @@ def test_asp_gcp_and_isis_csv_round_trip(tmp_path):
     assert rows[2]["AprioriRadiusSigma"] == "" and rows[0]["AprioriRadiusSigma"] == "4.0"
     both = ControlPoints.concatenate([pts, pts])
     assert both.obs_point.tolist() == [0, 1, 2, 2, 3, 4, 5, 5]
+    # The matching tile of each MCP measure goes with it (none for tie points).
+    assert [r["planetref_tile"] for r in rows] == [""] * 4
+    tiled = dataclasses.replace(
+        pts, obs_tile=np.array(["ccd1:r0c1", "ccd1:r2c0", "", ""], dtype=object)
+    )
+    mixed = ControlPoints.concatenate([tiled, pts])
+    assert mixed.tiles.tolist() == ["ccd1:r0c1", "ccd1:r2c0"] + [""] * 6
+    rows = list(csv.DictReader(write_isis_cnet_csv(mixed, body, tmp_path / "y.csv").open()))
+    assert [r["planetref_tile"] for r in rows[:3]] == ["ccd1:r0c1", "ccd1:r2c0", ""]
 
 
 def test_scene_manifest_datum_keys(tiny_scene, tmp_path, write_geotiff):

@@ -31,6 +31,9 @@ degrees, ISIS's default), ``AprioriLongitude`` (positive east, ``[0, 360)``, ISI
 default), ``AprioriRadius`` (metres from the body centre), ``AprioriLatitudeSigma``,
 ``AprioriLongitudeSigma``, ``AprioriRadiusSigma`` (metres; empty when free),
 ``SerialNumber`` (the image file: planetref has no ISIS serial numbers), ``ccd``,
+``planetref_tile`` (the matching tile an MCP's measure came from: the measures of one
+tile share the matcher's error there, which ``planetref adjust`` models when a network's
+measures CSV gives it as ``tile_id``; empty for tie points),
 ``Sample``, ``Line`` (ISIS pixel convention: the first pixel's centre at ``(1, 1)``, so
 ``Sample = sample + 0.5``), ``SampleSigma``, ``LineSigma`` (pixels), ``MeasureType``
 (``RegisteredSubPixel``: matched automatically to sub-pixel precision).
@@ -42,7 +45,7 @@ import csv
 import io
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +84,7 @@ CNET_COLUMNS = (
     "AprioriRadiusSigma",
     "SerialNumber",
     "ccd",
+    "planetref_tile",
     "Sample",
     "Line",
     "SampleSigma",
@@ -105,6 +109,8 @@ class ControlPoints:
         line: Measured line (planetref pixels: first pixel's corner at 0), ``(M,)``.
         sample: Measured sample, ``(M,)``.
         sigma_px: Sigma of the measure (pixels), ``(M,)``.
+        obs_tile: Matching tile of each measure (``""``: none, e.g. a tie point),
+            ``(M,)``; empty (the default): none for every measure.
     """
 
     point_id: NDArray[Any]
@@ -118,6 +124,7 @@ class ControlPoints:
     line: F64
     sample: F64
     sigma_px: F64
+    obs_tile: NDArray[Any] = field(default_factory=lambda: np.empty(0, dtype=object))
 
     @classmethod
     def from_mcps(
@@ -159,6 +166,7 @@ class ControlPoints:
             line=np.asarray(table["line"], float),
             sample=np.asarray(table["sample"], float),
             sigma_px=np.full(n, float(sigma_px)),
+            obs_tile=np.asarray(table["tile_id"]).astype(str).astype(object),
         )
 
     @classmethod
@@ -220,7 +228,15 @@ class ControlPoints:
             line=np.concatenate([p.line for p in parts]),
             sample=np.concatenate([p.sample for p in parts]),
             sigma_px=np.concatenate([p.sigma_px for p in parts]),
+            obs_tile=np.concatenate([p.tiles for p in parts]),
         )
+
+    @property
+    def tiles(self) -> NDArray[Any]:
+        """:attr:`obs_tile`, one per measure (``""`` for all when it was not given)."""
+        if len(self.obs_tile) == len(self.line):
+            return self.obs_tile
+        return np.full(len(self.line), "", dtype=object)
 
 
 def _num(v: float) -> str:
@@ -264,6 +280,7 @@ def write_isis_cnet_csv(
     """
     lon, lat, _ = xyz_to_lonlat(points.xyz, ellipsoid, "planetocentric")
     radius = np.linalg.norm(points.xyz, axis=1)
+    tiles = points.tiles
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CNET_COLUMNS)
@@ -285,6 +302,7 @@ def write_isis_cnet_csv(
                 *(["", "", ""] if free else [_num(v) for v in sig]),
                 points.obs_image[k],
                 points.obs_ccd[k],
+                tiles[k],
                 _num(points.sample[k] + 0.5),
                 _num(points.line[k] + 0.5),
                 _num(points.sigma_px[k]),

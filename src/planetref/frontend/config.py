@@ -46,6 +46,8 @@ PAPER_PROTOCOL: dict[str, Any] = {
     # 0.5 m on 5 m), so the blunders reach the adjustment and its rule rejects them.
     "ransac_threshold_ref_px": 3.0,
     "fine_radius_ref_px": 3.0,
+    # one fine pass, as the seed matched
+    "fine_recentre": False,
 }
 """Settings of the ``paper`` protocol (used where the configuration does not set them)."""
 
@@ -177,6 +179,18 @@ class FrontendConfig(Settings):
             the tiny demo every matcher's true error after adjustment fell. 1 is the
             cheaper choice: the fine stage costs several times more CPU at 2 (the
             README has the figures).
+        fine_recentre: Run the fine stage a second time on the reference window
+            resampled (bicubic) at the first pass's mean displacement, to a fraction of a
+            pixel, and keep that pass's matches (the first pass's stand when the second
+            finds fewer than ``min_inliers``); orthorectified tiles with a placed window
+            only (in the ``downsample`` geometry the two windows differ by more than a
+            shift). The same for every matcher; it doubles the fine stage's matcher
+            calls. Why: the first window sits on the coarse offset rounded to whole
+            reference pixels, so a displacement of a few fine pixels is left between the
+            windows, of one sign along a strip; a matcher that undershoots displacement
+            (XFeat: 0.06-0.23 px per px of shift, ALIKED and SIFT about 0.01;
+            ``benchmarks/bench_subpixel_bias.py``) then makes an error common to the
+            tiles, which the cameras absorb and no residual or covariance shows.
         lattice_step_ref_px: Spacing of the exactly projected lattice that the
             orthorectification interpolates, reference px of the output grid.
         dense_spacing_ref_px: Grid spacing of the dense mode of area-based and
@@ -247,6 +261,7 @@ class FrontendConfig(Settings):
     coarse_radius_ref_px: float = Field(6.0, gt=0.0)
     fine_pad_ref_px: int = Field(16, ge=0)
     fine_upsample: int = Field(2, ge=1, le=8)
+    fine_recentre: bool = True
     lattice_step_ref_px: int = Field(8, ge=1, le=64)
     dense_spacing_ref_px: int = Field(2, ge=1, le=64)
     ransac_model: RansacModel = "homography"

@@ -89,6 +89,11 @@ class TileResult:
             matcher's consensus), ``"ncc"`` (the front end's NCC search after the coarse
             matcher found none; ``frontend.coarse_fallback``), ``"fine"`` (a first fine
             pass over the whole uncertainty), None (nothing did).
+        fine_shift_px: The offset ``(dcol, drow)``, reference px, at which the reference
+            window of a second fine pass was resampled (the first pass's mean
+            displacement; ``FrontendConfig.fine_recentre``); the funnel, offsets and
+            matches are that pass's. None when no second pass ran or it found too few
+            inliers (then the first pass's stand).
         offset_px: Fine offset (mean displacement of the verified inliers), reference px.
         offset_mad_px: Median absolute deviation of the inlier displacements, reference px.
         n_coarse_matches: Matches of the coarse stage.
@@ -135,6 +140,7 @@ class TileResult:
     search_window: tuple[int, ...] | None = None
     coarse_offset_px: tuple[float, float] | None = None
     coarse_source: str | None = None
+    fine_shift_px: tuple[float, float] | None = None
     offset_px: tuple[float, float] | None = None
     offset_mad_px: tuple[float, float] | None = None
     n_coarse_matches: int = 0
@@ -199,6 +205,7 @@ class TileResult:
             "search_window": None if self.search_window is None else list(self.search_window),
             "coarse_offset_px": _opt_pair(self.coarse_offset_px),
             "coarse_source": self.coarse_source,
+            "fine_shift_px": _opt_pair(self.fine_shift_px),
             "offset_px": _opt_pair(self.offset_px),
             "offset_mad_px": _opt_pair(self.offset_mad_px),
             "n_coarse_matches": self.n_coarse_matches,
@@ -249,6 +256,7 @@ class TileResult:
                 coarse_source=None
                 if doc.get("coarse_source") is None
                 else str(doc["coarse_source"]),
+                fine_shift_px=_opt_pair(doc.get("fine_shift_px")),
                 offset_px=_opt_pair(doc.get("offset_px")),
                 offset_mad_px=_opt_pair(doc.get("offset_mad_px")),
                 n_coarse_matches=int(doc.get("n_coarse_matches", 0)),

@@ -18,6 +18,9 @@ For one tile (:func:`match_tile`):
    (exactly, through the DEM and the initial camera, for orthorectified tiles), its
    reference keypoint to reference map coordinates.
 
+   With ``fine_recentre`` (default), the fine stage runs a second time on the reference
+   window resampled at the first pass's offset to a fraction of a pixel, so that the
+   matcher sees (almost) no displacement between the two windows; its matches are kept.
 5. **Refinement** (optional, ``refine``): every kept match is refined to sub-pixel
    precision on the fine-stage images (:func:`planetref.matching.refine.refine_matches`),
    the same way for every matcher; matches whose refinement diverges are dropped.
@@ -543,6 +546,35 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         if problem is not None:
             return finish(*problem)
         break
+    if (
+        cfg.fine_recentre
+        and cfg.geometry == "orthorectify"
+        and coarse_offset is not None
+        and int(inl.sum()) >= cfg.min_inliers
+    ):
+        # The fine window sat on the coarse offset rounded to whole reference pixels, so
+        # a displacement of up to a few fine pixels was left between the two windows, of
+        # one sign along a strip (the coarse errors are smooth). Matchers that undershoot
+        # such a displacement (XFeat: 0.06-0.23 px per px, benchmarks/
+        # bench_subpixel_bias.py) then share an error over the tiles that the cameras
+        # absorb and no residual shows. A second pass on the reference resampled at the
+        # first pass's offset, to a fraction of a pixel, leaves only the first pass's
+        # error as displacement: the same for every matcher.
+        shift = np.mean((st.actual - st.predicted)[inl], axis=0)
+        first = (st, inl, ransac_inl, fref, fvalid, fine_ref, res.funnel, res.drops, res.n_matches)
+        with _timed(timings, "fine_prepare"):
+            fine_ref = FineWindow.at(iwin, float(shift[0]), float(shift[1]), up)
+            fref, fvalid = read_fine(ref, fine_ref)
+        res.funnel, res.drops = {}, {}
+        st = yield from _match_stage(side, fref, fvalid, fine_ref, matcher, timings, "fine_match")
+        inl, ransac_inl = _verify_fine(st, shift, cfg, res, timings)
+        if int(inl.sum()) >= cfg.min_inliers:
+            res.fine_shift_px = (float(shift[0]), float(shift[1]))
+            res.search_window = fine_ref.base.to_tuple()
+        else:  # keep the first pass (its result stands on its own)
+            st, inl, ransac_inl, fref, fvalid, fine_ref, res.funnel, res.drops, res.n_matches = (
+                first
+            )
     with _timed(timings, "backmap"):
         # Every match RANSAC kept, before the consensus and the back-projection, with its
         # raw and reference position: on a simulated scene their true errors measure the
