@@ -17,7 +17,12 @@ prints, per strip:
 * ``ratio``: ``true_m / formal_m`` (calibrated: within 0.5-2), with sigma0 before VCE;
 * ``check_z``: the held-out tiles' mean misfits over their predicted SD, RMS over tiles
   and axes (:func:`planetref.adjust.precision.check_tile_misfit`: ~1 when calibrated;
-  the truth-free counterpart of ``ratio``, from one or two tiles a rough one).
+  the truth-free counterpart of ``ratio``, from one or two tiles a rough one);
+* with three matchers or more of one scene and seed, ``excess_m``: the matcher's ground
+  error beyond its own covariance, from the matchers' adjusted cameras compared with each
+  other and no truth (:func:`planetref.adjust.precision.excess_error`, the three-cornered
+  hat that ``planetref compare`` reports), and ``ratio_with_excess``: true over the
+  formal precision with the excess added.
 
 Usage::
 
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import sys
@@ -161,9 +167,48 @@ def measure(scene: Path, run_dir: Path, cfg: Any, matcher: str) -> list[dict[str
                 "systematic": None if result.consider is None else result.consider.summary(),
                 "adjust_cpu_s": cpu,
                 "formal_cpu_s": cpu_formal,
+                "_result": result,
+                "_dem": dem,
             }
         )
     return rows
+
+
+def _with_excess(rows: list[dict[str, Any]]) -> None:
+    """Add each matcher's excess error (the three-cornered hat) to the rows of one scene."""
+    import itertools
+
+    from planetref.adjust.precision import camera_agreement, excess_error
+
+    by_strip: dict[str, dict[str, dict[str, Any]]] = {}
+    for r in rows:
+        if "_result" in r:
+            by_strip.setdefault(r["strip"], {})[r["matcher"]] = r
+    for strip, by_matcher in by_strip.items():
+        pairs = [
+            camera_agreement(
+                by_matcher[a]["_result"],
+                by_matcher[b]["_result"],
+                strip,
+                matchers=(a, b),
+                terrain=by_matcher[a]["_dem"],
+            )
+            for a, b in itertools.combinations(by_matcher, 2)
+        ]
+        excess = excess_error(pairs)
+        for name, r in by_matcher.items():
+            r["agreement"] = [
+                {"other": p.matchers[1 - p.matchers.index(name)], "ratio": p.ratio}
+                for p in pairs
+                if name in p.matchers
+            ]
+            if name in excess:
+                r["excess_m"] = excess[name]
+                r["formal_with_excess_m"] = float(np.hypot(r["formal_m"], excess[name]))
+                r["ratio_with_excess"] = r["true_m"] / r["formal_with_excess_m"]
+    for r in rows:
+        r.pop("_result", None)
+        r.pop("_dem", None)
 
 
 def _scene_rows(
@@ -188,6 +233,7 @@ def _scene_rows(
             out.append(row | {"failed": str(exc)})
             continue
         out.extend(row | s for s in strips)
+    _with_excess(out)
     return out
 
 
@@ -203,6 +249,18 @@ def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         true = np.array([i["true_m"] for i in items])
         formal = np.array([i["formal_m"] for i in items])
         ratio = true / formal
+        both = [i.get("formal_with_excess_m") for i in items]
+        with_excess = (
+            {}
+            if any(b is None for b in both)
+            else {
+                "ratio_with_excess": float(
+                    np.sqrt(np.mean(true**2) / np.mean(np.square(np.array(both, float))))
+                ),
+                "ratio_with_excess_min": float(np.min(true / np.array(both, float))),
+                "ratio_with_excess_max": float(np.max(true / np.array(both, float))),
+            }
+        )
         out.append(
             {
                 "scene": scene,
@@ -214,6 +272,7 @@ def over_seeds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "ratio": float(np.sqrt(np.mean(true**2) / np.mean(formal**2))),
                 "ratio_min": float(ratio.min()),
                 "ratio_max": float(ratio.max()),
+                **with_excess,
             }
         )
     return out
@@ -244,6 +303,15 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
         out[f"{key}: true error"] = {"value": r["true_m"], "unit": "m"}
         out[f"{key}: formal precision"] = {"value": r["formal_m"], "unit": "m"}
         out[f"{key}: true / formal"] = {"value": r["ratio"], "note": verdict(r["ratio"])}
+        if "ratio_with_excess" in r:
+            out[f"{key}: excess error (three-cornered hat)"] = {
+                "value": r["excess_m"],
+                "unit": "m",
+            }
+            out[f"{key}: true / formal with excess"] = {
+                "value": r["ratio_with_excess"],
+                "note": verdict(r["ratio_with_excess"]),
+            }
     if len(seeds) > 1:
         for g in over_seeds(rows):
             key = f"{g['scene']} {g['matcher']}" + (f" {g['strip']}" if g["strip"] else "")
@@ -254,6 +322,14 @@ def figures(rows: list[dict[str, Any]]) -> dict[str, dict[str, object]]:
                     f"per seed {g['ratio_min']:.2f}-{g['ratio_max']:.2f}"
                 ),
             }
+            if "ratio_with_excess" in g:
+                out[f"{key}: true / formal with excess over {len(g['seeds'])} seeds"] = {
+                    "value": g["ratio_with_excess"],
+                    "note": (
+                        f"per seed {g['ratio_with_excess_min']:.2f}-"
+                        f"{g['ratio_with_excess_max']:.2f}"
+                    ),
+                }
     return out
 
 
@@ -299,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(
         f"{'scene':16} {'matcher':8} {'strip':8} {'true_m':>7} {'formal_m':>8} {'ratio':>6} "
-        f"{'meas_m':>7} {'r_meas':>6} {'check_z':>7} {'s0_pre':>6}  vce factors"
+        f"{'meas_m':>7} {'r_meas':>6} {'check_z':>7} {'s0_pre':>6} {'excess':>6} "
+        f"{'r_exc':>6}  vce factors"
     )
     for r in out:
         if "failed" in r:
@@ -311,7 +388,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['scene']:16} {r['matcher']:8} {r['strip']:8} {r['true_m']:7.2f} "
             f"{r['formal_m']:8.2f} {r['ratio']:6.2f} {r['formal_meas_m']:7.2f} "
             f"{r['ratio_meas']:6.2f} {'   none' if cz is None else f'{cz:7.2f}'} "
-            f"{s0 if s0 is None else f'{s0:6.2f}'}  "
+            f"{s0 if s0 is None else f'{s0:6.2f}'} "
+            f"{r.get('excess_m', math.nan):6.2f} {r.get('ratio_with_excess', math.nan):6.2f}  "
             + ", ".join(f"{k} x{v:.3g}" for k, v in r["vce_factors"].items())
         )
     if len(seeds) > 1:
@@ -321,6 +399,12 @@ def main(argv: list[str] | None = None) -> int:
                 f"{g['scene']:16} {g['matcher']:8} {g['strip']:8} {g['true_rms_m']:7.2f} "
                 f"{g['formal_rms_m']:8.2f} {g['ratio']:6.2f}  "
                 f"{g['ratio_min']:.2f}-{g['ratio_max']:.2f} ({len(g['seeds'])} seeds)"
+                + (
+                    f"; with excess {g['ratio_with_excess']:.2f} "
+                    f"({g['ratio_with_excess_min']:.2f}-{g['ratio_with_excess_max']:.2f})"
+                    if "ratio_with_excess" in g
+                    else ""
+                )
             )
     return 0
 

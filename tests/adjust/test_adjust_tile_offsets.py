@@ -207,3 +207,90 @@ def test_check_tiles_with_reference_patch_errors():
         z += [t["normalised"] for t in res.metrics["check"]["tiles"]["tiles"]]
     rms = float(np.sqrt(np.mean(np.square(z))))
     assert 0.7 < rms < 1.5, rms
+
+
+def test_matchers_agree_within_their_own_precision_and_the_odd_one_is_found():
+    """Matchers' adjustments of one strip, compared with no truth
+    (:func:`planetref.adjust.precision.camera_agreement`, :func:`excess_error`). Over 4
+    draws, three matchers each with their own noise (0.3 px) and tile offsets (1 px,
+    estimated); the third also carries a bias common to all its tiles (2 px line, 1.5 px
+    sample): nothing in its residuals shows it, its tile sigma is unchanged and its own
+    true / formal is 3.2. The unbiased pair's ground difference over what their own
+    errors predict is ~1 (1.03); the pairs with the biased one are 1.9 and 2.5. The
+    three-cornered hat gives the biased matcher an excess of 1.29 m (RMS) and an
+    unbiased one 0.0, and the biased one's formal precision with the excess added is
+    calibrated (true / formal 1.07 instead of 3.2; the unbiased one's stays 0.78)."""
+    from adjust_synth import perturb
+
+    from planetref.adjust.precision import camera_agreement, excess_error
+
+    true = true_strip()
+    init = perturb(true)
+    sq: dict[str, list[tuple[float, float]]] = {"ab": [], "ac": [], "bc": []}
+    cal: dict[str, list[tuple[float, float, float]]] = {"a": [], "c": []}
+    for seed in range(4):
+        res = {}
+        for k, name in enumerate("abc"):
+            net, true_cam, _ = mcp_problem(
+                300, noise_px=0.3, seed=10 * seed + k, ground_sigma_m=1.0, true=true, init=init
+            )
+            net = _with_tiles(net, np.random.default_rng(900 + 10 * seed + k), 1.0)
+            if name == "c":
+                net = dataclasses.replace(
+                    net,
+                    obs_line=np.asarray(net.obs_line) + 2.0,
+                    obs_sample=np.asarray(net.obs_sample) + 1.5,
+                )
+            res[name] = adjust(net, _cfg("estimate"))
+        pairs = [
+            camera_agreement(res[x], res[y], "strip", matchers=(x, y))
+            for x, y in ("ab", "ac", "bc")
+        ]
+        for pair in pairs:
+            assert pair.n == 3 * 21 * 21
+            full = formal_ground_precision(res[pair.matchers[1]], "strip", terrain=0.0)["rms_m"]
+            assert 0 < pair.own_m[1] <= full + 1e-12
+            sq["".join(pair.matchers)].append((pair.diff_m**2, pair.predicted_m**2))
+        excess = excess_error(pairs)
+        assert excess_error(pairs[:1]) == {}  # two matchers: one equation, two unknowns
+        for name in cal:
+            formal = formal_ground_precision(res[name], "strip", terrain=0.0)["rms_m"]
+            cal[name].append((_true_rms(res[name], true_cam), formal, excess[name]))
+    ratio = {
+        k: float(np.sqrt(np.mean([d for d, _ in v]) / np.mean([p for _, p in v])))
+        for k, v in sq.items()
+    }
+    assert 0.6 < ratio["ab"] < 1.5, ratio
+    assert min(ratio["ac"], ratio["bc"]) > 1.5 * ratio["ab"], ratio
+    t, f, e = (np.array(v) for v in zip(*cal["c"], strict=True))
+    assert np.sqrt(np.mean(t**2) / np.mean(f**2)) > 2.0  # the bias escapes its covariance
+    with_excess = np.sqrt(np.mean(t**2) / np.mean(f**2 + e**2))
+    assert 0.6 < with_excess < 1.6, with_excess
+    ta, fa, ea = (np.array(v) for v in zip(*cal["a"], strict=True))
+    assert np.sqrt(np.mean(ea**2)) < 0.5 * np.sqrt(np.mean(e**2))
+    assert 0.5 < np.sqrt(np.mean(ta**2) / np.mean(fa**2 + ea**2)) < 1.6
+
+
+def test_excess_error_recovers_known_excesses():
+    """The three-cornered hat on exact pair figures: four matchers with known own
+    precisions and excesses give back the excesses; with one pair per strip, nothing."""
+    from planetref.adjust.precision import CameraAgreement, excess_error
+
+    own = {"a": 0.3, "b": 0.5, "c": 0.4, "d": 0.6}
+    ex = {"a": 0.0, "b": 0.2, "c": 1.1, "d": 0.4}
+    names = sorted(own)
+    pairs = [
+        CameraAgreement(
+            "s1",
+            (x, y),
+            float(np.sqrt(own[x] ** 2 + own[y] ** 2 + ex[x] ** 2 + ex[y] ** 2)),
+            (own[x], own[y]),
+            100,
+        )
+        for i, x in enumerate(names)
+        for y in names[i + 1 :]
+    ]
+    got = excess_error(pairs)
+    assert got.keys() == ex.keys()
+    np.testing.assert_allclose([got[n] for n in names], [ex[n] for n in names], atol=1e-6)
+    assert excess_error(pairs[:1]) == {}

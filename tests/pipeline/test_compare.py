@@ -70,8 +70,17 @@ def test_compare_tables_and_figures(demo):
     assert demo.first.exit_code == 0, demo.first.output
     run_dir = demo.compare_dir
     rep = json.loads((run_dir / "report.json").read_text())
-    assert set(rep) == {"scene", "runs", "skipped"}
+    assert set(rep) == {"scene", "runs", "skipped", "agreement"}
+    # two matchers: no split of the excess (one equation, two unknowns)
+    assert rep["agreement"]["excess_m"] == {}
     assert set(rep["runs"]) == {"sift", "ncc"}
+    # The two matchers' adjusted cameras compared, with no truth: one pair on one strip,
+    # over the same 3 x 21 x 21 grid as the true error.
+    (pair,) = rep["agreement"]["pairs"]
+    assert pair["strip"] == "strip1" and sorted(pair["matchers"]) == ["ncc", "sift"]
+    assert pair["n"] == 3 * 21 * 21 and 0 < pair["diff_m"] < 10.0
+    assert abs(pair["predicted_m"] ** 2 - sum(v * v for v in pair["own_m"])) < 1e-9
+    assert abs(pair["ratio"] - pair["diff_m"] / pair["predicted_m"]) < 1e-9
     assert (
         "disk-lightglue" in rep["skipped"] and "depth-save.pth" in rep["skipped"]["disk-lightglue"]
     )
@@ -102,6 +111,7 @@ def test_compare_tables_and_figures(demo):
         assert not any("RPC" in w for w in adj.get("output_warnings", [])), adj
     md = (run_dir / "report.md").read_text()
     assert "## Matching" in md and "## Adjustment" in md and "Skipped" in md
+    assert "## Matcher agreement (no truth needed)" in md and "median diff / predicted" in md
     for name in ("RMSE", "Mean", "Max X", "Max Y", "Min X", "Min Y", "OR (%)"):
         assert name in md
     assert "ccd1 NCP" in md and "ccd3 SDU (%)" in md

@@ -11,21 +11,40 @@ covariance is ``J C J^T`` and
 the expected squared ground error is its trace. The RMS over the grid is the formal
 counterpart of the true RMS ground error; their ratio ``true / formal`` is ~1 when the
 covariance means what it says.
+
+Without truth, two adjustments of one strip from different matchers check each other
+(:func:`camera_agreement`): both rest on the same reference, DEM and cameras, so the
+reference's and the CCD placement's errors move both alike, and the difference of their
+ground positions over the grid should be as large as the two matchers' own errors
+(measurement noise and the per-tile matcher offsets) predict. A matcher with an error
+common to all its tiles (a bias no residual of its own shows) disagrees with the others
+beyond that prediction. With three matchers or more, the excess of each pair
+(difference squared minus its prediction) splits into one unmodelled error per matcher
+(:func:`excess_error`, the "three-cornered hat" of clock and gauge comparisons): the
+part of a matcher's ground error that its own covariance misses, estimated without
+truth.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from planetref.adjust.metrics import image_grid
+from planetref.adjust.metrics import geolocation_error, image_grid
 from planetref.arrays import F64
 
 __all__ = [
+    "OWN_CONSIDER_KINDS",
+    "CameraAgreement",
     "analytic_ground_jacobian",
+    "camera_agreement",
     "check_tile_misfit",
+    "excess_error",
     "formal_ground_precision",
     "ground_jacobian",
 ]
@@ -35,6 +54,10 @@ __all__ = [
 #: scale on which the ground point bends (a camera moves by a tenth of its uncertainty),
 #: large against the projections' rounding.
 _FD_SIGMAS = 0.1
+
+#: Consider kinds that are a matcher's own error (not shared by another matcher's
+#: adjustment of the same strip on the same reference): the per-tile matcher offsets.
+OWN_CONSIDER_KINDS: tuple[str, ...] = ("tile",)
 
 
 def ground_jacobian(
@@ -144,6 +167,7 @@ def formal_ground_precision(
     terrain: Any = 0.0,
     grid: tuple[int, int] = (21, 21),
     covariance: F64 | None = None,
+    consider_kinds: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """Formal RMS ground error of one adjusted camera over a regular image grid per CCD.
 
@@ -163,6 +187,9 @@ def formal_ground_precision(
             :func:`~planetref.adjust.metrics.geolocation_error`.
         covariance: A parameter covariance to propagate alone instead (no consider
             parameters), e.g. the measurements' share.
+        consider_kinds: Only the consider parameters of these kinds
+            (:data:`~planetref.adjust.consider.KINDS`) beside the measurements' share,
+            e.g. :data:`OWN_CONSIDER_KINDS`; None: all of them.
 
     Returns:
         ``{"rms_m", "ccds": {ccd: rms_m}, "n"}``: the square root of the mean trace of
@@ -189,6 +216,15 @@ def formal_ground_precision(
     active = np.flatnonzero(sig > 0)
     x = np.asarray(result.x[loc], np.float64)
     cam = result.cameras[camera_id]
+    if consider is not None:
+        sigma_z = np.asarray(consider.sigma, np.float64)
+        if consider_kinds is not None:
+            kinds = np.asarray(
+                list(consider.kinds)
+                or ["reference" if u == "m" else "ccd" for u in consider.units],
+                dtype=object,
+            )
+            sigma_z = np.where(np.isin(kinds, list(consider_kinds)), sigma_z, 0.0)
     per_ccd: dict[str, float] = {}
     sq: list[F64] = []
     for ccd in cam.ccd_names:
@@ -206,7 +242,7 @@ def formal_ground_precision(
             g = consider.sensitivity[loc][active]  # (k, K)
             jz = np.einsum("nik,kz->niz", jac, g) if active.size else 0.0
             jz = jz + _direct(consider, camera_id, ccd, cam, line, sample, height)
-            tr = tr + np.einsum("niz,z,niz->n", jz, consider.sigma**2, jz)
+            tr = tr + np.einsum("niz,z,niz->n", jz, sigma_z**2, jz)
         ok = np.isfinite(tr)
         per_ccd[ccd] = float(np.sqrt(np.mean(tr[ok]))) if np.any(ok) else float("nan")
         sq.append(tr[ok])
@@ -216,6 +252,130 @@ def formal_ground_precision(
         "ccds": per_ccd,
         "n": int(allv.size),
     }
+
+
+@dataclass(frozen=True)
+class CameraAgreement:
+    """Two matchers' adjustments of one strip, compared with no truth.
+
+    Attributes:
+        camera_id: The strip.
+        matchers: The two matchers ``(a, b)``.
+        diff_m: RMS over the image grid (every CCD) of the ground distance between the
+            two adjusted cameras' terrain intersections of the same pixel, metres.
+        own_m: Each one's formal ground precision from its own errors only (the
+            measurements and :data:`OWN_CONSIDER_KINDS`), metres, same grid.
+        n: Grid points used.
+    """
+
+    camera_id: str
+    matchers: tuple[str, str]
+    diff_m: float
+    own_m: tuple[float, float]
+    n: int
+
+    @property
+    def predicted_m(self) -> float:
+        """The difference's RMS if both adjustments' own errors are what they say."""
+        return math.hypot(*self.own_m)
+
+    @property
+    def ratio(self) -> float:
+        """``diff_m / predicted_m``: ~1 when both agree within their own precision."""
+        p = self.predicted_m
+        return self.diff_m / p if p > 0 else math.inf
+
+
+def camera_agreement(
+    a: Any,
+    b: Any,
+    camera_id: str,
+    *,
+    matchers: tuple[str, str] = ("a", "b"),
+    terrain: Any = 0.0,
+    grid: tuple[int, int] = (21, 21),
+) -> CameraAgreement:
+    """How far two adjustments of one strip (from different matchers) put its pixels apart.
+
+    The ground difference of the two adjusted cameras over the true error's image grid,
+    beside what the two adjustments' own errors predict for it: each one's measurement
+    covariance and own consider terms (:data:`OWN_CONSIDER_KINDS`), taken as
+    independent. The reference's and the CCD placement's errors are left out of the
+    prediction: the same reference and cameras move both adjustments alike (nearly: two
+    matchers sample the reference's patches with different MCPs). A ratio well above 1
+    against every other matcher marks one with an error that its own residuals do not
+    show, e.g. one common to all its tiles.
+
+    Args:
+        a: One :class:`~planetref.adjust.result.AdjustmentResult` with ``camera_id``.
+        b: Another, of the same strip (same CCDs, image size).
+        camera_id: The strip.
+        matchers: Their names, for the record.
+        terrain: Height (m) or terrain the grid pixels are intersected with.
+        grid: ``(n_lines, n_samples)`` nodes per CCD.
+    """
+    ca, cb = a.cameras[camera_id], b.cameras[camera_id]
+    sq, n = 0.0, 0
+    for ccd in ca.ccd_names:
+        g = geolocation_error(cb, ca, ccd=ccd, terrain=terrain, grid=grid)
+        if g["n"] and math.isfinite(g["rms_m"]):
+            sq += float(g["rms_m"]) ** 2 * int(g["n"])
+            n += int(g["n"])
+    own = tuple(
+        float(
+            formal_ground_precision(
+                r, camera_id, terrain=terrain, grid=grid, consider_kinds=OWN_CONSIDER_KINDS
+            )["rms_m"]
+        )
+        for r in (a, b)
+    )
+    return CameraAgreement(
+        camera_id=camera_id,
+        matchers=matchers,
+        diff_m=math.sqrt(sq / n) if n else math.nan,
+        own_m=(own[0], own[1]),
+        n=n,
+    )
+
+
+def excess_error(pairs: Sequence[CameraAgreement]) -> dict[str, float]:
+    """Each matcher's ground error beyond its own formal precision (m), from the pairs.
+
+    Per strip, the pairs' excess ``diff^2 - predicted^2`` is modelled as ``e_a^2 +
+    e_b^2`` (independent unmodelled errors of the two matchers) and solved for the
+    ``e^2`` by non-negative least squares (the three-cornered hat). It needs three
+    matchers of a strip at least (two give one equation for two unknowns); strips with
+    fewer are left out. Several strips: the RMS of a matcher's strips.
+
+    Args:
+        pairs: :func:`camera_agreement` of the pairs of matchers (each strip's pairs).
+
+    Returns:
+        Matcher -> excess RMS ground error (m); empty when no strip has three matchers.
+    """
+    from scipy.optimize import nnls
+
+    by_strip: dict[str, list[CameraAgreement]] = {}
+    for a in pairs:
+        if math.isfinite(a.diff_m) and math.isfinite(a.predicted_m):
+            by_strip.setdefault(a.camera_id, []).append(a)
+    sq: dict[str, list[float]] = {}
+    for group in by_strip.values():
+        names = sorted({n for a in group for n in a.matchers})
+        if len(names) < 3:
+            continue
+        col = {n: i for i, n in enumerate(names)}
+        design = np.zeros((len(group), len(names)))
+        rhs = np.zeros(len(group))
+        for k, a in enumerate(group):
+            design[k, [col[a.matchers[0]], col[a.matchers[1]]]] = 1.0
+            rhs[k] = a.diff_m**2 - a.predicted_m**2
+        if np.linalg.matrix_rank(design) < len(names):
+            continue
+        e2, _ = nnls(design, rhs)
+        for n, v in zip(names, e2, strict=True):
+            sq.setdefault(n, []).append(float(v))
+    return {n: math.sqrt(sum(v) / len(v)) for n, v in sq.items()}
 
 
 def _direct(

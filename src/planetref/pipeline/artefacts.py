@@ -43,6 +43,7 @@ __all__ = [
     "StripOutcome",
     "StripProducts",
     "adjustment_fingerprint",
+    "load_result",
     "solve_or_reload",
 ]
 
@@ -181,14 +182,8 @@ def solve_or_reload(
     recorded = _stamp_of(stamp)
     if digest is not None and recorded is not None and recorded[0] == digest and path.is_file():
         try:
-            data = path.read_bytes()
-            # Only the bytes this run wrote are unpickled: their own digest is in the stamp
-            # (a truncated, foreign or edited file is solved again, never loaded).
-            if hashlib.sha256(data).hexdigest() != recorded[1]:
-                raise ValueError("its content is not the one recorded")
-            result = pickle.loads(data)
-        except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError,
-                ImportError) as exc:  # fmt: skip
+            result = _read_result(path, recorded[1])
+        except _UNREADABLE as exc:
             log.warning("%s: cannot reload (%s); adjusting again", path, exc)
         else:
             log.info("%s: inputs unchanged, adjustment reloaded", "/".join(folder))
@@ -200,6 +195,39 @@ def solve_or_reload(
         write_bytes_atomic(path, data)
         write_text_atomic(stamp, f"{digest}\n{hashlib.sha256(data).hexdigest()}\n")
     return result, False
+
+
+_UNREADABLE = (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError)
+
+
+def _read_result(path: Path, sha256: str) -> AdjustmentResult:
+    """Unpickle a saved adjustment whose bytes have the recorded digest.
+
+    Only the bytes a run wrote are unpickled: their own digest is in the stamp (a
+    truncated, foreign or edited file raises ``ValueError``, never loads).
+    """
+    data = path.read_bytes()
+    if hashlib.sha256(data).hexdigest() != sha256:
+        raise ValueError("its content is not the one recorded")
+    result: AdjustmentResult = pickle.loads(data)
+    return result
+
+
+def load_result(folder: str | Path) -> AdjustmentResult | None:
+    """The adjustment a run saved in ``folder`` (``<run>/<strip>/adjustment``), or None.
+
+    None when the folder has no result, no stamp, or a result whose bytes are not the
+    ones its stamp records (the same check as a resumed run's).
+    """
+    path, stamp = Path(folder) / RESULT_NAME, Path(folder) / RESULT_STAMP
+    recorded = _stamp_of(stamp)
+    if recorded is None or not path.is_file():
+        return None
+    try:
+        return _read_result(path, recorded[1])
+    except _UNREADABLE as exc:
+        log.warning("%s: cannot load (%s)", path, exc)
+        return None
 
 
 def _stamp_of(path: Path) -> tuple[str, str] | None:

@@ -6,9 +6,13 @@ the matcher is the only variable.
 Output directory::
 
     run.json, config.json, planetref.log
-    report.json            {"scene", "runs": {matcher: georef report}, "skipped": {...}}
+    report.json            {"scene", "runs": {matcher: georef report}, "skipped": {...},
+                           "agreement": {"pairs": [...], "excess_m": {...}}}
                            (a run whose matcher ran but failed, e.g. too few MCPs, is
-                           in "runs" with "failed": why; "skipped": could not run)
+                           in "runs" with "failed": why; "skipped": could not run;
+                           "agreement": every pair of matchers' adjusted cameras
+                           compared, no truth needed, and each matcher's error
+                           beyond its own covariance from them; see _agreement)
     report.md, report.html the report (scene, settings, definitions, tables, figures,
                            warnings); the HTML is one self-contained file
     matching.csv, adjustment.csv, truth.csv, funnel.csv, timing.csv
@@ -20,6 +24,7 @@ Output directory::
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
@@ -29,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from planetref.adjust.precision import excess_error
 from planetref.errors import (
     InputError,
     MatcherFailedError,
@@ -289,7 +295,16 @@ def _run_compare(
         scene_name = next(
             (r["scene"] for r in runs.values() if "scene" in r), scene_path.parent.name
         )
-        report = {"scene": scene_name, "runs": runs, "skipped": skipped}
+        agreement = _agreement(scene_path, run.path, runs)
+        report = {
+            "scene": scene_name,
+            "runs": runs,
+            "skipped": skipped,
+            "agreement": {
+                "pairs": [_agreement_json(a) for a in agreement],
+                "excess_m": excess_error(agreement),
+            },
+        }
         run.write_json("report.json", report)
         headline = None
         if runs:
@@ -297,6 +312,7 @@ def _run_compare(
                 runs, run.file("figures", "headline.png"), scene=scene_name
             )
         context = _context(scene_path, scene_name, cfg, runs, run.path, headline)
+        context.agreement = agreement
         tables = write_compare_report(runs, skipped, run.path, context)
         files = {k: v for k, v in tables.items() if k != "markdown"}
         if headline is not None:
@@ -323,6 +339,53 @@ _FIGURE_CAPTIONS = {
     "residuals": "Fig. 4 (residual vectors after the adjustment) per CCD; black: check "
     "points; the title says whether neighbouring residuals correlate",
 }
+
+
+def _agreement(scene_path: Path, out: Path, runs: dict[str, Any]) -> list[Any]:
+    """Every pair of matchers' adjustments of each strip, compared with no truth.
+
+    :func:`planetref.adjust.precision.camera_agreement` on the adjustments the runs saved
+    (``runs/<matcher>/<strip>/adjustment``), over the true error's image grid at the
+    reference DEM. Strips adjusted jointly (``[campaign] adjust_together``), failed runs
+    and runs without a saved adjustment are left out; an empty list when fewer than two
+    matchers have one.
+    """
+    from planetref.adjust.precision import camera_agreement
+    from planetref.pipeline.artefacts import load_result
+    from planetref.scene.inputs import open_reference
+
+    ok = [n for n, r in runs.items() if not r.get("failed")]
+    strips = sorted({s for n in ok for s in (runs[n].get("strips") or {})})
+    results: dict[str, dict[str, Any]] = {}
+    for sid in strips:
+        for n in ok:
+            res = load_result(out / "runs" / n / sid / "adjustment")
+            if res is not None and sid in getattr(res, "cameras", {}):
+                results.setdefault(sid, {})[n] = res
+    if not any(len(v) > 1 for v in results.values()):
+        return []
+    manifest, root = load_manifest(scene_path)
+    _, dem = open_reference(manifest, root, warnings=[])
+    out_list = []
+    for sid, by_matcher in results.items():
+        for a, b in itertools.combinations(by_matcher, 2):
+            out_list.append(
+                camera_agreement(by_matcher[a], by_matcher[b], sid, matchers=(a, b), terrain=dem)
+            )
+    log.info("compare: agreement of %d pair(s) of adjustments", len(out_list))
+    return out_list
+
+
+def _agreement_json(a: Any) -> dict[str, Any]:
+    return {
+        "strip": a.camera_id,
+        "matchers": list(a.matchers),
+        "diff_m": a.diff_m,
+        "own_m": list(a.own_m),
+        "predicted_m": a.predicted_m,
+        "ratio": a.ratio,
+        "n": a.n,
+    }
 
 
 def _raster_fact(path: Path) -> str:

@@ -11,12 +11,15 @@ formulas, the tables, the figures and the warnings that matter.
 from __future__ import annotations
 
 import json
+import math
 import os
-from collections.abc import Mapping, Sequence
+import statistics
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from planetref.adjust.precision import CameraAgreement, excess_error
 from planetref.report.document import DEFINITIONS, Document
 from planetref.report.figures_adjust import (
     OR_AXIS_TOP_PCT,
@@ -43,6 +46,7 @@ __all__ = [
     "CompareContext",
     "add_realism",
     "adjustment_rows",
+    "agreement_rows",
     "figure_headline_bars",
     "figure_residual_vectors",
     "format_markdown_table",
@@ -88,6 +92,8 @@ class CompareContext:
         realism_level: The simulated scene's difficulty level when it cites sources.
         realism_sources: ``(setting, value, source)`` of every sourced realism setting.
         easier_than_real: What still makes the simulated scene easier than real data.
+        agreement: Every pair of matchers' adjustments of a strip, compared with no
+            truth (:class:`~planetref.adjust.precision.CameraAgreement`).
     """
 
     scene: str
@@ -103,6 +109,7 @@ class CompareContext:
     realism_level: str = ""
     realism_sources: list[tuple[str, str, str]] = field(default_factory=list)
     easier_than_real: list[str] = field(default_factory=list)
+    agreement: list[CameraAgreement] = field(default_factory=list)
 
 
 _TABLES = {
@@ -298,6 +305,40 @@ def write_compare_report(
         doc.table(_TABLES[name], _timing_header(h) if name == "timing" else h, r)
     if "funnel" not in tables:
         doc.para("Front-end funnel: not available (no tile journal).")
+    if context.agreement:
+        doc.heading("Matcher agreement (no truth needed)")
+        doc.para(
+            "Each pair of matchers adjusted the same strip on the same reference, DEM and "
+            "initial cameras: their errors from the reference and the CCD placement are "
+            "shared, their own (measurement noise, the per-tile matcher offsets) are not. "
+            "'diff' is the RMS over the true error's image grid of the ground distance "
+            "between the two adjusted cameras; 'predicted' what the two adjustments' own "
+            "covariances give for it. diff / predicted is ~1 when both say what they "
+            "know; a matcher well above 1 against every other carries an error its own "
+            "residuals and covariance do not show (e.g. one common to all its tiles). "
+            "This is the comparison's anchor on real data, where no truth is known. With "
+            "three matchers or more, each pair's excess (diff squared minus predicted "
+            "squared) is split into one error per matcher (non-negative least squares, the "
+            "'three-cornered hat'): 'excess' is the ground error the matcher's own "
+            "covariance misses, and 'formal with excess' its formal precision with it "
+            "added. The split takes the matchers' unmodelled errors as independent."
+        )
+        mh, mr = agreement_rows(context.agreement, runs)
+        doc.table("Agreement per matcher (median over its pairs)", mh, mr)
+        doc.table(
+            "Agreement of each pair of matchers",
+            ["Strip", "Matchers", "diff (m)", "predicted (m)", "diff / predicted"],
+            [
+                [
+                    a.camera_id,
+                    " / ".join(a.matchers),
+                    _f3(a.diff_m),
+                    _f3(a.predicted_m),
+                    _f2(a.ratio),
+                ]
+                for a in context.agreement
+            ],
+        )
     eh, er = _extra_adjustment(runs)
     if len(eh) > 1:
         doc.heading("Further adjustment statistics")
@@ -332,6 +373,55 @@ def write_compare_report(
     written = doc.write(folder)
     paths.update(written)
     return paths
+
+
+def _f3(v: float) -> str:
+    return f"{v:.3f}" if math.isfinite(v) else "-"
+
+
+def _f2(v: float) -> str:
+    return f"{v:.2f}" if math.isfinite(v) else "-"
+
+
+def agreement_rows(
+    pairs: Sequence[CameraAgreement], runs: Mapping[str, Mapping[str, Any]]
+) -> tuple[list[str], list[list[str]]]:
+    """Per matcher: its pairs' diff / predicted (median, largest) and its excess error.
+
+    The excess (:func:`~planetref.adjust.precision.excess_error`, three matchers or more)
+    is the ground error its covariance misses; "formal with excess" adds it to the run's
+    formal precision, and on a simulated scene the true error is set beside both.
+    """
+    ratios: dict[str, list[float]] = {}
+    for a in pairs:
+        for name in a.matchers:
+            ratios.setdefault(name, []).append(a.ratio)
+    excess = excess_error(pairs)
+    truth = any((runs.get(n) or {}).get("check", {}).get("geoloc_rmse_m") for n in ratios)
+    header = ["Matcher", "pairs", "median diff / predicted", "largest", "excess (m)"]
+    header += ["formal (m)", "formal with excess (m)"]
+    if truth:
+        header += ["true / formal", "true / formal with excess"]
+    rows = []
+    for name, r in ratios.items():
+        chk = (runs.get(name) or {}).get("check") or {}
+        formal = chk.get("formal_rmse_m")
+        ex = excess.get(name)
+        both = None if formal is None or ex is None else math.hypot(formal, ex)
+        row = [name, str(len(r)), _f2(statistics.median(r)), _f2(max(r))]
+        row += [_opt(ex, _f3), _opt(formal, _f3), _opt(both, _f3)]
+        if truth:
+            true = chk.get("geoloc_rmse_m")
+            row += [
+                _opt(None if true is None or not formal else true / formal, _f2),
+                _opt(None if true is None or not both else true / both, _f2),
+            ]
+        rows.append(row)
+    return header, rows
+
+
+def _opt(v: float | None, fmt: Callable[[float], str]) -> str:
+    return "-" if v is None else fmt(float(v))
 
 
 def _timing_header(header: list[str]) -> list[str]:
