@@ -63,6 +63,16 @@ DEFINITIONS: list[tuple[str, str]] = [
         "included; with one or two tiles a rough figure).",
     ),
     (
+        "diff / predicted, excess",
+        "(compare) matcher agreement, no truth needed: 'diff' is the RMS over the true "
+        "error's image grid of the ground distance between two matchers' adjusted cameras, "
+        "'predicted' what their own errors (measurements, per-tile matcher offsets) give "
+        "for it; ~1 when both covariances mean what they say. 'excess' (three matchers or "
+        "more) splits the pairs' excess into one error per matcher (non-negative least "
+        "squares, the three-cornered hat): the ground error its covariance misses; "
+        "'formal with excess' adds it to the formal precision.",
+    ),
+    (
         "true error",
         "(simulated scenes) RMS over a grid of image pixels of the ground distance (metres) "
         "between the terrain intersections of the same pixel through the adjusted and the "
