@@ -41,7 +41,14 @@ def _run(true_m, ncp=100, rmse=0.5, failed=False, tor3=5.0):
             "settings": {"protocol": "default"},
         },
         "adjustment": {"rmse_px": rmse, "outlier_ratio_pct": 1.0, "mean_px": 0.4},
-        "check": {"geoloc_rmse_m": true_m, "geoloc_max_m": 2 * true_m},
+        "check": {
+            "geoloc_rmse_m": true_m,
+            "geoloc_max_m": 2 * true_m,
+            "formal_rmse_m": true_m / 2,
+            "true_over_formal": 2.0,
+        },
+        # what compare adds with three matchers or more: the excess error (m)
+        "agreement": {"excess_m": 0.5 * true_m, "true_over_formal_with_excess": math.sqrt(2.0)},
     }
 
 
@@ -151,3 +158,15 @@ def test_summary_of_three_seeds_counts_failed_runs_and_ranks_with_the_seed_count
     captions = [c for c, _ in page.tables]
     assert any("over the seeds" in c for c in captions)
     assert any("Paired differences" in c for c in captions)
+
+
+def test_calibration_with_and_without_the_excess_over_seeds():
+    """The seeds table carries true / formal and, from the comparison's three-cornered
+    hat, the excess and true / formal with excess, per matcher over the seeds."""
+    summary = summarize_seeds(_reports())
+    keys = [sp.key for sp in summary.specs]
+    assert {"true_over_formal", "excess_m", "true_over_formal_with_excess"} <= set(keys)
+    a = summary.metrics["excess_m"]["a"]
+    assert a.n == 3 and a.mean == pytest.approx(0.5 * sum(A) / 3)
+    assert summary.metrics["true_over_formal"]["a"].mean == pytest.approx(2.0)
+    assert summary.metrics["true_over_formal_with_excess"]["c"].n == 2  # seed 1 failed

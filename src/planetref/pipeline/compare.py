@@ -6,7 +6,8 @@ the matcher is the only variable.
 Output directory::
 
     run.json, config.json, planetref.log
-    report.json            {"scene", "runs": {matcher: georef report}, "skipped": {...},
+    report.json            {"scene", "runs": {matcher: georef report (+ "agreement":
+                           its excess error)}, "skipped": {...},
                            "agreement": {"pairs": [...], "excess_m": {...}}}
                            (a run whose matcher ran but failed, e.g. too few MCPs, is
                            in "runs" with "failed": why; "skipped": could not run;
@@ -296,13 +297,16 @@ def _run_compare(
             (r["scene"] for r in runs.values() if "scene" in r), scene_path.parent.name
         )
         agreement = _agreement(scene_path, run.path, runs)
+        excess = excess_error(agreement)
+        for name, ex in excess.items():
+            runs[name]["agreement"] = _with_excess(runs[name], ex)
         report = {
             "scene": scene_name,
             "runs": runs,
             "skipped": skipped,
             "agreement": {
                 "pairs": [_agreement_json(a) for a in agreement],
-                "excess_m": excess_error(agreement),
+                "excess_m": excess,
             },
         }
         run.write_json("report.json", report)
@@ -374,6 +378,21 @@ def _agreement(scene_path: Path, out: Path, runs: dict[str, Any]) -> list[Any]:
             )
     log.info("compare: agreement of %d pair(s) of adjustments", len(out_list))
     return out_list
+
+
+def _with_excess(report: dict[str, Any], excess_m: float) -> dict[str, float | None]:
+    """A run's excess error and its formal precision with it (and true over that)."""
+    import math
+
+    chk = report.get("check") or {}
+    formal = chk.get("formal_rmse_m")
+    both = None if formal is None else math.hypot(float(formal), excess_m)
+    true = chk.get("geoloc_rmse_m")
+    return {
+        "excess_m": excess_m,
+        "formal_with_excess_m": both,
+        "true_over_formal_with_excess": None if true is None or not both else float(true) / both,
+    }
 
 
 def _agreement_json(a: Any) -> dict[str, Any]:

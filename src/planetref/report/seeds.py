@@ -57,6 +57,10 @@ def _chk(key: str) -> Callable[[Mapping[str, Any]], Any]:
     return lambda r: (r.get("check") or {}).get(key)
 
 
+def _agr(key: str) -> Callable[[Mapping[str, Any]], Any]:
+    return lambda r: (r.get("agreement") or {}).get(key)
+
+
 def _match(key: str) -> Callable[[Mapping[str, Any]], Any]:
     return lambda r: (r.get("matching") or {}).get(key)
 
@@ -102,10 +106,19 @@ SEED_METRICS: tuple[MetricSpec, ...] = (
     MetricSpec("sigma0", "sigma0", _adj("sigma0")),
     MetricSpec("geoloc_rmse_m", "true error (m)", _chk("geoloc_rmse_m"), "lower", True),
     MetricSpec("geoloc_max_m", "max true error (m)", _chk("geoloc_max_m"), "lower"),
+    MetricSpec("true_over_formal", "true / formal", _chk("true_over_formal")),
+    MetricSpec("excess_m", "excess (m)", _agr("excess_m"), "lower"),
+    MetricSpec(
+        "true_over_formal_with_excess",
+        "true / formal with excess",
+        _agr("true_over_formal_with_excess"),
+    ),
     MetricSpec("true_or_1px_pct", "true OR >1 px (%)", _tor("pct_over_1px"), "lower"),
     MetricSpec("true_or_3px_pct", "true OR >3 px (%)", _tor("pct_over_3px"), "lower", True),
 )
-"""The metrics of Tables 1-2, the true error and the true outlier ratio, in table order."""
+"""The metrics of Tables 1-2, the true error, its calibration (true over the formal
+precision, without and with the matcher's excess error of the comparison's three-cornered
+hat) and the true outlier ratio, in table order."""
 
 
 @dataclass(frozen=True)
