@@ -223,3 +223,40 @@ def test_report_timing_header_wraps_and_the_csv_keeps_the_names(tmp_path):
     assert "<th>outputs adjustment files</th>" in html and "outputs_adjustment_files" not in html
     with open(tmp_path / "timing.csv") as fh:
         assert "outputs_adjustment_files (s)" in next(csv.reader(fh))
+
+
+def test_agreement_rows_split_the_excess_and_calibrate_with_it():
+    """The compare report's agreement table: per matcher its pairs' diff / predicted, the
+    three-cornered hat's excess, and true over the formal precision with and without it."""
+    import math
+
+    from planetref.adjust.precision import CameraAgreement
+    from planetref.report.georef import agreement_rows
+
+    own = {"a": 0.3, "b": 0.4, "c": 0.5}
+    ex = {"a": 0.0, "b": 0.0, "c": 1.2}
+    pairs = [
+        CameraAgreement(
+            "s1",
+            (x, y),
+            math.sqrt(own[x] ** 2 + own[y] ** 2 + ex[x] ** 2 + ex[y] ** 2),
+            (own[x], own[y]),
+            441,
+        )
+        for x, y in (("a", "b"), ("a", "c"), ("b", "c"))
+    ]
+    runs = {
+        n: {"check": {"geoloc_rmse_m": 1.3 if n == "c" else 0.5, "formal_rmse_m": 0.5}} for n in own
+    }
+    header, rows = agreement_rows(pairs, runs)
+    assert header[-2:] == ["true / formal", "true / formal with excess"]
+    by = {r[0]: dict(zip(header, r, strict=True)) for r in rows}
+    # a's pairs: 1 (with b) and sqrt(1.78 / 0.34) = 2.29 (with c): their median
+    assert by["a"]["median diff / predicted"] == f"{(1.0 + math.sqrt(1.78 / 0.34)) / 2:.2f}"
+    assert by["c"]["excess (m)"] == "1.200" and by["a"]["excess (m)"] == "0.000"
+    assert by["c"]["formal with excess (m)"] == f"{math.hypot(0.5, 1.2):.3f}"
+    assert by["c"]["true / formal"] == "2.60"
+    assert by["c"]["true / formal with excess"] == f"{1.3 / math.hypot(0.5, 1.2):.2f}"
+    # no truth: no truth columns
+    header, _ = agreement_rows(pairs, {n: {"check": {"formal_rmse_m": 0.5}} for n in own})
+    assert "true / formal" not in header
