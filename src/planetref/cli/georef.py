@@ -257,21 +257,24 @@ class DemoCost:
 
 DEMO_COSTS: dict[str, DemoCost] = {
     "tiny": DemoCost(
-        cpu_s=277.0,
+        cpu_s=422.0,
         peak_rss_gb=2.0,
         written_gb=0.08,
         matchers="the six matchers with weights",
-        source="CPU: benchmarks/results/bench_demo_tiny_all.json (277 CPU-s, 2:47 wall on "
-        "an idle 2-core AMD EPYC, scene and numba cache in place, 2026-12-03); memory: "
+        source="CPU: benchmarks/results/bench_demo_tiny_all.json (422 CPU-s, 4:15 wall on "
+        "an idle 2-core AMD EPYC, scene and numba cache in place, with the second fine "
+        "pass, 2026-12-06; 277 CPU-s before it); memory: "
         "issue 32; disk: du of the scene (7 MB) and the sift (16 MB) and ncc (56 MB) runs",
     ),
     "hiric-strip": DemoCost(
-        cpu_s=873.0,
+        cpu_s=1240.0,
         peak_rss_gb=2.8,
         written_gb=1.9,
         matchers="the six matchers with weights",
-        source="CPU: benchmarks/results/bench_demo_hiric_strip.json (simulation 173 CPU-s, "
-        "the six runs 700 CPU-s, 2026-12-06); memory and disk: issue 32, main 2553f7b",
+        source="CPU: an estimate. benchmarks/results/bench_demo_hiric_strip.json measured "
+        "simulation 173 CPU-s and the six runs 700 CPU-s before the second fine pass "
+        "(2026-12-06); the runs' part is scaled by the tiny demo's 1.52 (277 -> 422 "
+        "CPU-s with it); memory and disk: issue 32, main 2553f7b",
     ),
     "hiric": DemoCost(
         cpu_s=None,
