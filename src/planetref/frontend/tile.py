@@ -559,7 +559,8 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         # bench_subpixel_bias.py) then share an error over the tiles that the cameras
         # absorb and no residual shows. A second pass on the reference resampled at the
         # first pass's offset, to a fraction of a pixel, leaves only the first pass's
-        # error as displacement: the same for every matcher.
+        # error as displacement: the same for every matcher. (A bias a matcher has at no
+        # displacement at all stays; the comparison's excess error shows it.)
         shift = np.mean((st.actual - st.predicted)[inl], axis=0)
         first = (st, inl, ransac_inl, fref, fvalid, fine_ref, res.funnel, res.drops, res.n_matches)
         with _timed(timings, "fine_prepare"):
