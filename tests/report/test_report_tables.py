@@ -230,8 +230,8 @@ def test_agreement_rows_split_the_excess_and_calibrate_with_it():
     three-cornered hat's excess, and true over the formal precision with and without it."""
     import math
 
-    from planetref.adjust.precision import CameraAgreement
-    from planetref.report.georef import agreement_rows
+    from planetref.adjust.precision import CameraAgreement, excess_error
+    from planetref.report.georef import agreement_rows, excess_block
 
     own = {"a": 0.3, "b": 0.4, "c": 0.5}
     ex = {"a": 0.0, "b": 0.0, "c": 1.2}
@@ -248,6 +248,9 @@ def test_agreement_rows_split_the_excess_and_calibrate_with_it():
     runs = {
         n: {"check": {"geoloc_rmse_m": 1.3 if n == "c" else 0.5, "formal_rmse_m": 0.5}} for n in own
     }
+    # what compare writes into each run: its excess from the three-cornered hat
+    for name, excess in excess_error(pairs).items():
+        runs[name]["agreement"] = excess_block(runs[name], excess)
     header, rows = agreement_rows(pairs, runs)
     assert header[-2:] == ["true / formal", "true / formal with excess"]
     by = {r[0]: dict(zip(header, r, strict=True)) for r in rows}

@@ -172,6 +172,15 @@ class ConsiderTerms:
     point_patch: NDArray[np.intp] | None = field(default=None, repr=False)
 
     @property
+    def column_kinds(self) -> list[str]:
+        """Per parameter its kind (:data:`KINDS`).
+
+        Terms saved before kinds existed had reference patches (unit ``"m"``) and CCD
+        offsets only.
+        """
+        return self.kinds or ["reference" if u == "m" else "ccd" for u in self.units]
+
+    @property
     def covariance(self) -> F64:
         """``G Sigma_z G^T``: their share of the parameters' covariance, ``(p, p)``."""
         g = self.sensitivity
@@ -179,7 +188,7 @@ class ConsiderTerms:
 
     def summary(self) -> dict[str, Any]:
         """What report.json says of them."""
-        kinds = self.kinds or ["reference" if u == "m" else "ccd" for u in self.units]
+        kinds = self.column_kinds
         ref = [s for s, k in zip(self.sigma, kinds, strict=True) if k == "reference"]
         ccd = [s for s, k in zip(self.sigma, kinds, strict=True) if k == "ccd"]
         n_tile = sum(1 for k in kinds if k == "tile") // 2

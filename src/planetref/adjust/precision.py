@@ -197,12 +197,9 @@ def formal_ground_precision(
         fixed terrain, mostly horizontal).
     """
     consider = getattr(result, "consider", None) if covariance is None else None
-    if covariance is not None:
-        cov = np.asarray(covariance, np.float64)
-    elif consider is not None and result.covariance_measurement is not None:
-        cov = np.asarray(result.covariance_measurement, np.float64)
-    else:
-        cov = np.asarray(result.covariance, np.float64)
+    cov = (
+        np.asarray(covariance, np.float64) if covariance is not None else _measurement_share(result)
+    )
     ids = list(result.cameras)
     ci = ids.index(camera_id)
     sizes = [len(m.x0) for m in result.models]
@@ -219,11 +216,7 @@ def formal_ground_precision(
     if consider is not None:
         sigma_z = np.asarray(consider.sigma, np.float64)
         if consider_kinds is not None:
-            kinds = np.asarray(
-                list(consider.kinds)
-                or ["reference" if u == "m" else "ccd" for u in consider.units],
-                dtype=object,
-            )
+            kinds = np.asarray(consider.column_kinds, dtype=object)
             sigma_z = np.where(np.isin(kinds, list(consider_kinds)), sigma_z, 0.0)
     per_ccd: dict[str, float] = {}
     sq: list[F64] = []
@@ -378,6 +371,13 @@ def excess_error(pairs: Sequence[CameraAgreement]) -> dict[str, float]:
     return {n: math.sqrt(sum(v) / len(v)) for n, v in sq.items()}
 
 
+def _measurement_share(result: Any) -> F64:
+    """The parameters' covariance less the consider terms' share (all of it without them)."""
+    if getattr(result, "consider", None) is not None and result.covariance_measurement is not None:
+        return np.asarray(result.covariance_measurement, np.float64)
+    return np.asarray(result.covariance, np.float64)
+
+
 def _direct(
     consider: Any, camera_id: str, ccd: str, cam: Any, line: F64, sample: F64, height: float
 ) -> F64:
@@ -431,19 +431,14 @@ def check_tile_misfit(result: Any) -> dict[str, Any] | None:
     if not chk.size:
         return None
     consider = getattr(result, "consider", None)
-    cov = np.asarray(
-        result.covariance_measurement
-        if consider is not None and result.covariance_measurement is not None
-        else result.covariance,
-        np.float64,
-    )
+    cov = _measurement_share(result)
     total_sigma = np.sqrt(np.maximum(np.diag(np.asarray(result.covariance, np.float64)), 0.0))
     sizes = [len(m.x0) for m in result.models]
     offs = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     overlap = float((result.variance or {}).get("measurement_overlap") or 1.0)
     tile_sigma = np.zeros(2)
-    if consider is not None and consider.kinds and "tile" in consider.kinds:
-        k0 = consider.kinds.index("tile")
+    if consider is not None and "tile" in consider.column_kinds:
+        k0 = consider.column_kinds.index("tile")
         tile_sigma = np.asarray(consider.sigma[k0 : k0 + 2], np.float64)
     xyz_all = np.asarray(result.point_xyz_initial, np.float64)
     out: list[dict[str, Any]] = []

@@ -156,6 +156,10 @@ class _Stage:
     predicted: F64
     actual: F64
 
+    def offset(self, keep: NDArray[np.bool_]) -> F64:
+        """The mean displacement (actual minus predicted, reference px) of ``keep``."""
+        return np.asarray(np.mean((self.actual - self.predicted)[keep], axis=0), np.float64)
+
 
 def _match_stage(
     side: ImageSide,
@@ -525,7 +529,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
                 # coarse_fallback = "fine": this pass searched the whole window; its
                 # consensus places a second pass
                 if attempt == 1 and cfg.coarse and found:
-                    coarse_offset = np.mean((st.actual - st.predicted)[inl], axis=0)
+                    coarse_offset = st.offset(inl)
                     _place(res, coarse_offset, "fine")
                     continue
                 break
@@ -561,7 +565,7 @@ def tile_steps(tile: Tile, inputs: TileInputs) -> TileSteps:
         # first pass's offset, to a fraction of a pixel, leaves only the first pass's
         # error as displacement: the same for every matcher. (A bias a matcher has at no
         # displacement at all stays; the comparison's excess error shows it.)
-        shift = np.mean((st.actual - st.predicted)[inl], axis=0)
+        shift = st.offset(inl)
         first = (st, inl, ransac_inl, fref, fvalid, fine_ref, res.funnel, res.drops, res.n_matches)
         with _timed(timings, "fine_prepare"):
             fine_ref = FineWindow.at(iwin, float(shift[0]), float(shift[1]), up)

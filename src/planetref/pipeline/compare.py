@@ -229,7 +229,11 @@ def _run_compare(
     device: str = "cpu",
 ) -> CompareOutcome:
     from planetref.pipeline.georef import run_georef
-    from planetref.report.georef import figure_headline_bars, write_compare_report
+    from planetref.report.georef import (
+        excess_block,
+        figure_headline_bars,
+        write_compare_report,
+    )
 
     cfg = config or GeorefConfig()
     names, skipped = resolve_matchers(matchers, weights_dir)
@@ -299,7 +303,7 @@ def _run_compare(
         agreement = _agreement(scene_path, run.path, runs)
         excess = excess_error(agreement)
         for name, ex in excess.items():
-            runs[name]["agreement"] = _with_excess(runs[name], ex)
+            runs[name]["agreement"] = excess_block(runs[name], ex)
         report = {
             "scene": scene_name,
             "runs": runs,
@@ -378,21 +382,6 @@ def _agreement(scene_path: Path, out: Path, runs: dict[str, Any]) -> list[Any]:
             )
     log.info("compare: agreement of %d pair(s) of adjustments", len(out_list))
     return out_list
-
-
-def _with_excess(report: dict[str, Any], excess_m: float) -> dict[str, float | None]:
-    """A run's excess error and its formal precision with it (and true over that)."""
-    import math
-
-    chk = report.get("check") or {}
-    formal = chk.get("formal_rmse_m")
-    both = None if formal is None else math.hypot(float(formal), excess_m)
-    true = chk.get("geoloc_rmse_m")
-    return {
-        "excess_m": excess_m,
-        "formal_with_excess_m": both,
-        "true_over_formal_with_excess": None if true is None or not both else float(true) / both,
-    }
 
 
 def _agreement_json(a: Any) -> dict[str, Any]:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from planetref.adjust.precision import CameraAgreement, excess_error
+from planetref.adjust.precision import CameraAgreement
 from planetref.report.document import DEFINITIONS, Document
 from planetref.report.figures_adjust import (
     OR_AXIS_TOP_PCT,
@@ -47,6 +47,7 @@ __all__ = [
     "add_realism",
     "adjustment_rows",
     "agreement_rows",
+    "excess_block",
     "figure_headline_bars",
     "figure_residual_vectors",
     "format_markdown_table",
@@ -383,20 +384,43 @@ def _f2(v: float) -> str:
     return f"{v:.2f}" if math.isfinite(v) else "-"
 
 
+def excess_block(report: Mapping[str, Any], excess_m: float) -> dict[str, float | None]:
+    """A run's excess error beside its formal precision: ``runs.<matcher>.agreement``.
+
+    Args:
+        report: The run's report.json content (its ``check`` block).
+        excess_m: Its excess error (:func:`~planetref.adjust.precision.excess_error`).
+
+    Returns:
+        ``{"excess_m", "formal_with_excess_m", "true_over_formal_with_excess"}``: the
+        formal precision with the excess added in quadrature, and on a simulated scene
+        the true error over it (``None`` where the report lacks a figure).
+    """
+    chk = report.get("check") or {}
+    formal = chk.get("formal_rmse_m")
+    both = None if formal is None else math.hypot(float(formal), excess_m)
+    true = chk.get("geoloc_rmse_m")
+    return {
+        "excess_m": excess_m,
+        "formal_with_excess_m": both,
+        "true_over_formal_with_excess": None if true is None or not both else float(true) / both,
+    }
+
+
 def agreement_rows(
     pairs: Sequence[CameraAgreement], runs: Mapping[str, Mapping[str, Any]]
 ) -> tuple[list[str], list[list[str]]]:
     """Per matcher: its pairs' diff / predicted (median, largest) and its excess error.
 
     The excess (:func:`~planetref.adjust.precision.excess_error`, three matchers or more)
-    is the ground error its covariance misses; "formal with excess" adds it to the run's
-    formal precision, and on a simulated scene the true error is set beside both.
+    is the ground error its covariance misses, read from each run's ``agreement`` block
+    (:func:`excess_block`, which ``compare`` writes); "formal with excess" adds it to the
+    run's formal precision, and on a simulated scene the true error is set beside both.
     """
     ratios: dict[str, list[float]] = {}
     for a in pairs:
         for name in a.matchers:
             ratios.setdefault(name, []).append(a.ratio)
-    excess = excess_error(pairs)
     truth = any((runs.get(n) or {}).get("check", {}).get("geoloc_rmse_m") for n in ratios)
     header = ["Matcher", "pairs", "median diff / predicted", "largest", "excess (m)"]
     header += ["formal (m)", "formal with excess (m)"]
@@ -404,17 +428,21 @@ def agreement_rows(
         header += ["true / formal", "true / formal with excess"]
     rows = []
     for name, r in ratios.items():
-        chk = (runs.get(name) or {}).get("check") or {}
+        run = runs.get(name) or {}
+        chk = run.get("check") or {}
+        agr = run.get("agreement") or {}
         formal = chk.get("formal_rmse_m")
-        ex = excess.get(name)
-        both = None if formal is None or ex is None else math.hypot(formal, ex)
         row = [name, str(len(r)), _f2(statistics.median(r)), _f2(max(r))]
-        row += [_opt(ex, _f3), _opt(formal, _f3), _opt(both, _f3)]
+        row += [
+            _opt(agr.get("excess_m"), _f3),
+            _opt(formal, _f3),
+            _opt(agr.get("formal_with_excess_m"), _f3),
+        ]
         if truth:
             true = chk.get("geoloc_rmse_m")
             row += [
                 _opt(None if true is None or not formal else true / formal, _f2),
-                _opt(None if true is None or not both else true / both, _f2),
+                _opt(agr.get("true_over_formal_with_excess"), _f2),
             ]
         rows.append(row)
     return header, rows
