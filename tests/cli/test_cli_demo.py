@@ -76,7 +76,7 @@ def test_cost_notice_before_simulating_and_not_under_quiet(tmp_path, no_simulati
     assert no_simulation[0][0].name == "hiric-strip"
     first = r.stderr.splitlines()[0]
     assert first == demo_cost_notice("hiric-strip")
-    assert "1,240 CPU seconds" in first and "2.8 GB" in first and "1.9 GB" in first
+    assert "1,470 CPU seconds" in first and "2.8 GB" in first and "1.9 GB" in first
     assert "about" in first and "depends on the matchers" in first
     r = CliRunner().invoke(main, ["-q", "demo", "--out", str(out), "--matchers", "sift"])
     assert len(no_simulation) == 2 and "CPU seconds" not in r.output

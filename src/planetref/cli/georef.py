@@ -267,14 +267,15 @@ DEMO_COSTS: dict[str, DemoCost] = {
         "issue 32; disk: du of the scene (7 MB) and the sift (16 MB) and ncc (56 MB) runs",
     ),
     "hiric-strip": DemoCost(
-        cpu_s=1240.0,
+        cpu_s=1470.0,
         peak_rss_gb=2.8,
         written_gb=1.9,
         matchers="the six matchers with weights",
-        source="CPU: an estimate. benchmarks/results/bench_demo_hiric_strip.json measured "
-        "simulation 173 CPU-s and the six runs 700 CPU-s before the second fine pass "
-        "(2026-12-06); the runs' part is scaled by the tiny demo's 1.52 (277 -> 422 "
-        "CPU-s with it); memory and disk: issue 32, main 2553f7b",
+        source="CPU: benchmarks/results/bench_demo_hiric_strip_all.json (simulation 139 "
+        "CPU-s, the demo of six matchers 1331 CPU-s, with the second fine pass, "
+        "2026-12-06; the machine also ran the test suite for about half of it, so an "
+        "upper bound; 873 CPU-s before the second pass); memory and disk: issue 32, "
+        "main 2553f7b",
     ),
     "hiric": DemoCost(
         cpu_s=None,
